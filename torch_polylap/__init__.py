@@ -1,0 +1,55 @@
+"""torch_polylap: the Alexa-Wardetzky discrete Laplacian on general polygon meshes, in PyTorch.
+
+Differentiable with respect to vertex positions, on CPU and CUDA, for faces of any degree
+(non-planar, non-convex, mixed).  See README.md for the conventions.
+"""
+
+from .faces import PolygonFaces, as_faces
+from .io import from_trimesh, read_mesh, write_mesh
+from .operators import (
+    PolygonLaplacian,
+    coboundary,
+    face_areas,
+    face_normals,
+    get_topology,
+    laplacian,
+    local_laplacians,
+    mass,
+    mean_curvature_normal,
+    one_form_inner_product,
+    planarity_energy,
+    planarity_laplacian,
+    strong_laplacian,
+    vector_area,
+)
+from .sparse import from_scipy, spmm, to_scipy
+from .topology import Topology, build_topology
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "PolygonFaces",
+    "as_faces",
+    "Topology",
+    "build_topology",
+    "get_topology",
+    "laplacian",
+    "mass",
+    "PolygonLaplacian",
+    "planarity_laplacian",
+    "planarity_energy",
+    "coboundary",
+    "one_form_inner_product",
+    "local_laplacians",
+    "mean_curvature_normal",
+    "strong_laplacian",
+    "vector_area",
+    "face_areas",
+    "face_normals",
+    "spmm",
+    "to_scipy",
+    "from_scipy",
+    "read_mesh",
+    "write_mesh",
+    "from_trimesh",
+]

@@ -1,0 +1,190 @@
+"""Polygon faces in packed form, and conversion from every form a user has.
+
+A polygon mesh with faces of mixed degree is stored the way pytorch3d packs heterogeneous
+data: one flat index tensor holding every face's vertices in order, plus an offsets tensor
+(``offsets[f]:offsets[f + 1]`` are the corners of face ``f``).  Uniform meshes, lists of
+Python sequences and numpy arrays all convert to this one form through :func:`as_faces`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Union
+
+import numpy as np
+import torch
+
+__all__ = ["PolygonFaces", "as_faces", "FacesLike"]
+
+
+class PolygonFaces:
+    """Packed polygon faces: flat vertex indices plus per-face offsets.
+
+    Args:
+        indices: ``(N,)`` integer tensor, the corners of all faces concatenated, each face in
+            its cyclic order (counter-clockwise seen from outside for consistent orientation).
+        sizes: ``(F,)`` number of corners of each face. Give ``sizes`` or ``offsets``.
+        offsets: ``(F + 1,)`` start of each face in ``indices``; ``offsets[-1] == N``.
+
+    Only the index arrays are stored (int64, CPU unless moved with :meth:`to`); geometry lives
+    in a separate ``verts`` tensor, so one ``PolygonFaces`` serves many vertex positions.
+    """
+
+    __slots__ = ("indices", "offsets", "_sizes")
+
+    def __init__(
+        self,
+        indices: torch.Tensor | np.ndarray | Sequence[int],
+        sizes: torch.Tensor | np.ndarray | Sequence[int] | None = None,
+        offsets: torch.Tensor | np.ndarray | Sequence[int] | None = None,
+    ) -> None:
+        idx = _as_index_tensor(indices, "indices")
+        if (sizes is None) == (offsets is None):
+            raise ValueError("PolygonFaces needs exactly one of `sizes` or `offsets`.")
+        if sizes is not None:
+            sz = _as_index_tensor(sizes, "sizes").to(idx.device)
+            off = torch.zeros(sz.numel() + 1, dtype=torch.int64, device=idx.device)
+            torch.cumsum(sz, 0, out=off[1:])
+        else:
+            off = _as_index_tensor(offsets, "offsets").to(idx.device)
+            if off.numel() == 0 or int(off[0]) != 0:
+                raise ValueError("`offsets` must start with 0 and have length F + 1.")
+            sz = off.diff()
+        if int(off[-1]) != idx.numel():
+            raise ValueError(
+                f"face sizes add up to {int(off[-1])} corners but `indices` holds {idx.numel()}."
+            )
+        if sz.numel() and int(sz.min()) < 3:
+            bad = int(torch.nonzero(sz < 3)[0, 0])
+            raise ValueError(
+                f"face {bad} has {int(sz[bad])} vertices; a polygon needs at least 3. "
+                "Remove degenerate faces (points and line segments) before building a Laplacian."
+            )
+        self.indices = idx
+        self.offsets = off
+        self._sizes = sz
+
+    @property
+    def sizes(self) -> torch.Tensor:
+        """``(F,)`` number of corners (the degree) of each face."""
+        return self._sizes
+
+    @property
+    def num_faces(self) -> int:
+        return self._sizes.numel()
+
+    @property
+    def num_corners(self) -> int:
+        """Total number of face corners, which is also the number of half-edges."""
+        return self.indices.numel()
+
+    @property
+    def device(self) -> torch.device:
+        return self.indices.device
+
+    def __len__(self) -> int:
+        return self.num_faces
+
+    def __getitem__(self, f: int) -> torch.Tensor:
+        """The vertex indices of face ``f`` in cyclic order."""
+        if not -self.num_faces <= f < self.num_faces:
+            raise IndexError(f"face {f} is out of range for {self.num_faces} faces")
+        f = f % self.num_faces
+        return self.indices[int(self.offsets[f]) : int(self.offsets[f + 1])]
+
+    def __repr__(self) -> str:
+        degrees = torch.unique(self._sizes.cpu()).tolist()
+        return f"PolygonFaces(num_faces={self.num_faces}, degrees={degrees})"
+
+    def to(self, device: torch.device | str) -> PolygonFaces:
+        out = PolygonFaces.__new__(PolygonFaces)
+        out.indices = self.indices.to(device)
+        out.offsets = self.offsets.to(device)
+        out._sizes = self._sizes.to(device)
+        return out
+
+    def tolist(self) -> list[list[int]]:
+        """Faces as a list of Python lists (handy for small meshes and printing)."""
+        flat = self.indices.cpu().tolist()
+        off = self.offsets.cpu().tolist()
+        return [flat[off[f] : off[f + 1]] for f in range(self.num_faces)]
+
+    def as_uniform(self) -> torch.Tensor | None:
+        """``(F, k)`` index tensor when every face has the same degree ``k``, else ``None``."""
+        if self.num_faces == 0:
+            return None
+        k = int(self._sizes[0])
+        if not bool((self._sizes == k).all()):
+            return None
+        return self.indices.view(self.num_faces, k)
+
+    def face_ids(self) -> torch.Tensor:
+        """``(N,)`` the face each corner belongs to."""
+        return torch.repeat_interleave(
+            torch.arange(self.num_faces, device=self.device), self._sizes
+        )
+
+    def flipped(self) -> PolygonFaces:
+        """The same faces with reversed orientation (corner order reversed within each face)."""
+        n = self.num_corners
+        start = torch.repeat_interleave(self.offsets[:-1], self._sizes)
+        end = torch.repeat_interleave(self.offsets[1:], self._sizes)
+        pos = torch.arange(n, device=self.device)
+        return PolygonFaces(self.indices[start + end - 1 - pos], sizes=self._sizes)
+
+
+FacesLike = Union[PolygonFaces, torch.Tensor, np.ndarray, Sequence[Sequence[int]]]
+
+
+def _as_index_tensor(x: object, name: str) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        t = x
+    else:
+        t = torch.as_tensor(np.asarray(x))
+    if t.dtype == torch.bool or t.is_floating_point() or t.is_complex():
+        if t.is_floating_point() and t.numel() and bool((t == t.round()).all()):
+            t = t.to(torch.int64)
+        else:
+            raise ValueError(f"`{name}` must hold integer vertex indices, got dtype {t.dtype}.")
+    return t.reshape(-1).to(torch.int64)
+
+
+def as_faces(faces: FacesLike) -> PolygonFaces:
+    """Convert faces in any accepted form to :class:`PolygonFaces`.
+
+    Accepted forms:
+        * :class:`PolygonFaces` (returned as is);
+        * an ``(F, k)`` integer tensor or numpy array (uniform degree ``k >= 3``);
+        * a sequence of index sequences of mixed length, e.g. ``[[0, 1, 2, 3], [3, 2, 4]]``;
+        * a ``(indices, sizes)`` pair is *not* guessed: build ``PolygonFaces(indices, sizes=...)``.
+    """
+    if isinstance(faces, PolygonFaces):
+        return faces
+    if isinstance(faces, (torch.Tensor, np.ndarray)):
+        if faces.ndim != 2:
+            raise ValueError(
+                f"face array must have shape (F, k), got {tuple(faces.shape)}; for faces of mixed "
+                "degree pass a list of index lists or PolygonFaces(indices, sizes=...)."
+            )
+        f, k = faces.shape
+        t = _as_index_tensor(faces, "faces")
+        return PolygonFaces(t, sizes=torch.full((f,), k, dtype=torch.int64, device=t.device))
+    if isinstance(faces, Sequence) and not isinstance(faces, (str, bytes)):
+        sizes = []
+        flat: list[int] = []
+        for i, face in enumerate(faces):
+            try:
+                face_list = [int(v) for v in face]
+            except TypeError:
+                raise ValueError(
+                    f"face {i} is {face!r}; each face must be a sequence of vertex indices."
+                ) from None
+            sizes.append(len(face_list))
+            flat.extend(face_list)
+        return PolygonFaces(
+            torch.tensor(flat, dtype=torch.int64), sizes=torch.tensor(sizes, dtype=torch.int64)
+        )
+    raise ValueError(
+        f"cannot interpret faces of type {type(faces).__name__}; pass an (F, k) integer "
+        "tensor/array, a list of index lists, or PolygonFaces."
+    )

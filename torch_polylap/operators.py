@@ -1,0 +1,523 @@
+"""The Alexa-Wardetzky Laplacian ``L``, the lumped mass ``M0`` and their relatives.
+
+For a face with ``k`` corners (AW11 sec. 3.3, MATH.md):
+
+    L_f = d^T M_f d = G G^T / |f| + lambda d^T Pi d                 (AW11 eq. 3 and 9)
+
+with ``G`` the rows ``g_i = (x_{i+1} - x_{i-1}) / 2`` and ``Pi`` the projector onto the kernel of
+the maximal projection's edge matrix.  ``L = sum_f P_f^T L_f P_f`` is symmetric positive
+semi-definite (the paper's sign; libigl's ``cotmatrix`` is ``-L`` on triangles), and ``M0`` is
+diagonal with ``m_p = sum_{f ni p} |f| / k_f`` (AW11 eq. 10).
+
+Assembly only evaluates the ``k (k - 1) / 2`` off-diagonal entries of each block; the diagonal
+follows from ``L_f 1 = 0`` (``d 1 = 0``), which holds exactly and saves a third of the work.
+All entries are closed-form elementwise expressions over the faces of one degree, scattered
+onto the pattern cached in :class:`~torch_polylap.topology.Topology`.
+"""
+
+from __future__ import annotations
+
+from typing import Union
+
+import torch
+from torch import nn
+
+from .faces import FacesLike, PolygonFaces
+from .geometry import corner_terms, face_frame, gather_corners, stabilizer_factors
+from .sparse import coo_tensor, csr_tensor, mark_symmetric, sparse_values, spmm
+from .topology import DegreeGroup, Topology, build_topology
+
+__all__ = [
+    "laplacian",
+    "mass",
+    "PolygonLaplacian",
+    "planarity_laplacian",
+    "planarity_energy",
+    "coboundary",
+    "one_form_inner_product",
+    "mean_curvature_normal",
+    "strong_laplacian",
+    "vector_area",
+    "face_areas",
+    "face_normals",
+    "local_laplacians",
+    "get_topology",
+]
+
+Lam = Union[float, torch.Tensor]
+MeshFaces = Union[FacesLike, Topology]
+
+
+def get_topology(faces: MeshFaces, num_verts: int) -> Topology:
+    """The :class:`Topology` of ``faces``, cached on the faces object where possible.
+
+    A :class:`Topology` is used as is.  For a ``PolygonFaces`` or an index tensor the topology is
+    stored on the object and reused while its content is unchanged (tensor version counter), so
+    repeated functional calls with the same faces pay for validation and sorting once.  Lists
+    are converted anew on every call: keep a ``PolygonFaces``, a tensor, a ``Topology`` or a
+    :class:`PolygonLaplacian` for repeated use.
+    """
+    if isinstance(faces, Topology):
+        if faces.num_verts != num_verts:
+            raise ValueError(
+                f"the topology was built for {faces.num_verts} vertices but verts has {num_verts} rows."
+            )
+        return faces
+    holder = faces.indices if isinstance(faces, PolygonFaces) else faces
+    if isinstance(holder, torch.Tensor):
+        cached = getattr(holder, "_polylap_topology", None)
+        stamp = (holder._version, holder.data_ptr(), tuple(holder.shape), num_verts)
+        if cached is not None and cached[0] == stamp:
+            return cached[1]
+        topo = build_topology(faces, num_verts)
+        holder._polylap_topology = (stamp, topo)
+        return topo
+    return build_topology(faces, num_verts)
+
+
+def _check_verts(verts: torch.Tensor) -> None:
+    if not isinstance(verts, torch.Tensor):
+        raise TypeError(f"verts must be a torch.Tensor of shape (V, 3), got {type(verts).__name__}.")
+    if verts.dim() != 2 or verts.shape[1] != 3:
+        raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
+    if not verts.is_floating_point():
+        raise ValueError(
+            f"verts must be floating point (float32 or float64), got {verts.dtype}; use verts.double()."
+        )
+
+
+def _block_entries(
+    x: torch.Tensor, grp: DegreeGroup, lam: Lam, geometric: bool = True
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of every face of one degree.
+
+    Args:
+        x: ``(3, k, F)`` corner positions.
+        lam: weight of the stabilizer; ``geometric=False`` keeps only ``lam d^T Pi d`` (the
+            planarity operator's blocks).
+
+    Returns:
+        ``off`` ``(P, F)``: entry ``(pair_i[p], pair_j[p])`` of each face's block;
+        ``area`` ``(F,)``: ``|f|``; ``e`` ``(3, k, F)``: the edges.
+    """
+    e, g, a = corner_terms(x)
+    area = torch.sqrt((a * a).sum(0).clamp_min(torch.finfo(x.dtype).tiny))
+    pi, pj = grp.pair_i, grp.pair_j
+    off = None
+    if geometric:
+        off = (g.index_select(1, pi) * g.index_select(1, pj)).sum(0) / area
+    if grp.k > 3 and not (isinstance(lam, (int, float)) and lam == 0):
+        alpha, beta = stabilizer_factors(e, a / area)
+        stab = torch.addcmul(
+            alpha.index_select(0, pi) * alpha.index_select(0, pj),
+            beta.index_select(0, pi),
+            beta.index_select(0, pj),
+        )
+        # (d^T d)_ij for i < j: -1 for neighbours on the cycle (including the pair (0, k-1)).
+        dtd = -((pj - pi == 1) | (pj - pi == grp.k - 1)).to(x.dtype)
+        stab = dtd[:, None] - stab
+        off = lam * stab if off is None else off + lam * stab
+    elif off is None:
+        # Triangles: the stabilizer vanishes identically (AW11 Theorem 2).
+        off = x.new_zeros(pi.numel(), x.shape[2])
+    return off, area, e
+
+
+def _incidence(grp: DegreeGroup, like: torch.Tensor) -> torch.Tensor:
+    """``(k, P)`` 0/1 matrix: corner ``c`` belongs to pair ``p``; ``-(inc @ off)`` is the diagonal."""
+    inc = like.new_zeros(grp.k, grp.pair_i.numel())
+    cols = torch.arange(grp.pair_i.numel(), device=like.device)
+    inc[grp.pair_i, cols] = 1.0
+    inc[grp.pair_j, cols] = 1.0
+    return inc
+
+
+def _raise_bad_input(verts: torch.Tensor, topo: Topology) -> None:
+    bad_v = ~torch.isfinite(verts).all(1)
+    if bool(bad_v.any()):
+        v = int(torch.nonzero(bad_v)[0, 0])
+        raise ValueError(
+            f"vertex {v} has non-finite coordinates {verts[v].tolist()} "
+            f"({int(bad_v.sum())} such vertices); fix or remove them before building operators."
+        )
+    eps = torch.finfo(verts.dtype).eps
+    for _, grp, x in _face_loop(verts, topo):
+        e, _, a = corner_terms(x)
+        area = torch.linalg.vector_norm(a, dim=0)
+        bad = area <= eps * (e * e).sum((0, 1))
+        if bool(bad.any()):
+            local = int(torch.nonzero(bad)[0, 0])
+            f = int(grp.face_ids[local])
+            raise ValueError(
+                f"face {f} (vertices {topo.faces[f].tolist()}) has zero vector area "
+                f"(|f| = {float(area[local]):.3g}); its corners are collinear or its loop cancels "
+                f"out ({int(bad.sum())} such face(s) of degree {grp.k}). The Laplacian divides by "
+                "|f|: remove the face, collapse it, or move its vertices apart. Thin faces with "
+                "non-zero area are fine."
+            )
+
+
+def _assemble(
+    verts: torch.Tensor,
+    topo: Topology,
+    lam: Lam,
+    geometric: bool,
+    want_mass: bool,
+    validate: bool,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """CSR values of ``L`` (or of the planarity operator) and, optionally, the lumped masses."""
+    groups, _, _ = topo.on(verts.device)
+    verts_t = verts.t().contiguous()
+    values = verts.new_zeros(topo.nnz)
+    masses = verts.new_zeros(topo.num_verts) if want_mass else None
+    eps = torch.finfo(verts.dtype).eps
+    degenerate = []
+    for grp in groups:
+        inc = _incidence(grp, verts)
+        for chunk in grp.chunks:
+            x = gather_corners(verts_t, chunk.corners_t)
+            off, area, e = _block_entries(x, grp, lam, geometric)
+            flat = off.reshape(-1)
+            values.index_add_(0, chunk.pos_upper, flat)
+            values.index_add_(0, chunk.pos_lower, flat)
+            values.index_add_(0, chunk.pos_diag, (inc @ off).reshape(-1), alpha=-1)
+            if want_mass:
+                share = (area / grp.k).expand(grp.k, -1).reshape(-1)
+                masses.index_add_(0, chunk.corners_t.reshape(-1), share)
+            if validate:
+                degenerate.append((area <= eps * (e * e).sum((0, 1))).any())
+    if validate:
+        ok = torch.isfinite(verts).all()
+        if degenerate:
+            ok = ok & ~torch.stack(degenerate).any()
+        if not bool(ok):
+            _raise_bad_input(verts, topo)
+    return values, masses
+
+
+def _csr(topo: Topology, values: torch.Tensor, layout: torch.layout) -> torch.Tensor:
+    _, crow, col = topo.on(values.device)
+    n = topo.num_verts
+    if layout == torch.sparse_csr:
+        A = csr_tensor(crow, col, values, (n, n))
+    elif layout == torch.sparse_coo:
+        row = topo.row.to(values.device)
+        A = coo_tensor(torch.stack((row, col)), values, (n, n))
+    else:
+        raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
+    return mark_symmetric(A)
+
+
+def _diag_matrix(d: torch.Tensor, layout: torch.layout) -> torch.Tensor:
+    n = d.numel()
+    ar = torch.arange(n, device=d.device)
+    if layout == torch.sparse_csr:
+        crow = torch.arange(n + 1, device=d.device)
+        A = csr_tensor(crow, ar, d, (n, n))
+    elif layout == torch.sparse_coo:
+        A = coo_tensor(torch.stack((ar, ar)), d, (n, n))
+    else:
+        raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
+    return mark_symmetric(A)
+
+
+def laplacian(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    lam: Lam = 1.0,
+    *,
+    layout: torch.layout = torch.sparse_csr,
+    validate: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The weak Laplacian ``L`` and lumped mass ``M0`` of a polygon mesh (AW11 eq. 3, 9, 10).
+
+    Args:
+        verts: ``(V, 3)`` vertex positions, float32 or float64, any device. ``L`` and ``M0``
+            follow its dtype and device, and their values are differentiable functions of it.
+        faces: ``(F, k)`` indices, a list of index lists of mixed degree, a
+            :class:`~torch_polylap.PolygonFaces`, or a prebuilt
+            :class:`~torch_polylap.topology.Topology` (cached on tensors/PolygonFaces).
+        lam: weight ``lambda > 0`` of the stabilizer ``lambda d^T Pi d`` (AW11 eq. 9, ``U = lambda Id``);
+            a float or a 0-dim tensor (which may require grad). Default 1 (the paper finds
+            ``1 <= lambda <= 3`` comparable). Triangles do not depend on it (Theorem 2).
+        layout: ``torch.sparse_csr`` (default; fastest products) or ``torch.sparse_coo``
+            (coalesced).
+        validate: check for non-finite coordinates and zero-area faces (one device sync). With
+            ``False`` a zero-area face gives huge but finite entries instead of an error.
+
+    Returns:
+        ``L``: ``(V, V)`` sparse, symmetric positive semi-definite, rows sum to zero, kernel the
+        constants on each connected component. ``M0``: ``(V, V)`` sparse diagonal.
+        Multiply them with :func:`torch_polylap.spmm` (O(nnz) backward).
+
+    Raises:
+        ValueError: bad connectivity (see :func:`~torch_polylap.topology.build_topology`),
+            non-finite coordinates or zero-area faces, naming the vertex or face.
+    """
+    _check_verts(verts)
+    topo = get_topology(faces, verts.shape[0])
+    values, masses = _assemble(verts, topo, lam, True, True, validate)
+    return _csr(topo, values, layout), _diag_matrix(masses, layout)
+
+
+def mass(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
+    """``(V,)`` lumped vertex masses ``m_p = sum_{f ni p} |f| / k_f`` (AW11 eq. 10), the diagonal of ``M0``."""
+    _check_verts(verts)
+    topo = get_topology(faces, verts.shape[0])
+    groups, _, _ = topo.on(verts.device)
+    verts_t = verts.t().contiguous()
+    m = verts.new_zeros(topo.num_verts)
+    for grp in groups:
+        _, _, a = corner_terms(gather_corners(verts_t, grp.corners_t))
+        share = (torch.linalg.vector_norm(a, dim=0) / grp.k).expand(grp.k, -1).reshape(-1)
+        m = m.index_add(0, grp.corners_t.reshape(-1), share)
+    return m
+
+
+def planarity_laplacian(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    lam: Lam = 1.0,
+    *,
+    layout: torch.layout = torch.sparse_csr,
+    validate: bool = True,
+) -> torch.Tensor:
+    """The planarity operator of AW11 sec. 5.3: ``sum_f P_f^T (lambda d^T Pi d) P_f``, ``(V, V)`` sparse.
+
+    ``1/2 sum_c X_c^T Lplan X_c`` is zero exactly when every face is planar; see
+    :func:`planarity_energy` for that energy without building the matrix. Triangles contribute
+    nothing.
+    """
+    _check_verts(verts)
+    topo = get_topology(faces, verts.shape[0])
+    values, _ = _assemble(verts, topo, lam, False, False, validate)
+    return _csr(topo, values, layout)
+
+
+def _face_loop(verts: torch.Tensor, faces: MeshFaces):
+    _check_verts(verts)
+    topo = get_topology(faces, verts.shape[0])
+    groups, _, _ = topo.on(verts.device)
+    verts_t = verts.t().contiguous()
+    for grp in groups:
+        yield topo, grp, gather_corners(verts_t, grp.corners_t)
+
+
+def vector_area(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
+    """``(F, 3)`` vector area ``a_f = 1/2 sum_i x_i x x_{i+1}`` of every face (AW11 Lemma 1, eq. 8).
+
+    Its norm is the area of the maximal projection and its direction that projection's normal;
+    it depends only on the boundary loop, so it is well defined for non-planar faces.
+    """
+    out = None
+    for topo, grp, x in _face_loop(verts, faces):
+        if out is None:
+            out = verts.new_zeros(topo.num_faces, 3)
+        _, _, a = corner_terms(x)
+        out = out.index_copy(0, grp.face_ids, a.t())
+    return out if out is not None else verts.new_zeros(0, 3)
+
+
+def face_areas(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
+    """``(F,)`` face areas ``|f| = |a_f|`` (area of the maximal projection)."""
+    return torch.linalg.vector_norm(vector_area(verts, faces), dim=1)
+
+
+def face_normals(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
+    """``(F, 3)`` unit normals of the faces' maximal projections, ``a_f / |a_f|``."""
+    a = vector_area(verts, faces)
+    return a / torch.linalg.vector_norm(a, dim=1, keepdim=True)
+
+
+def planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
+    """``E_plan = 1/2 sum_c X_c^T Lplan X_c`` (AW11 sec. 5.3), a differentiable scalar.
+
+    Per face this is ``lambda/2 |Pi E|_F^2``, the part of the edge vectors outside the maximal
+    projection's edge space; evaluated face by face without building ``Lplan``.
+    """
+    total = verts.new_zeros(())
+    for _, grp, x in _face_loop(verts, faces):
+        if grp.k == 3:
+            continue
+        e, _, a = corner_terms(x)
+        n = a / torch.linalg.vector_norm(a, dim=0)
+        q1, q2 = _plane_basis(e, n)
+        ee = (e * e).sum((0, 1))
+        p1 = (e * q1).sum(1)  # (3, F): E^T q1
+        p2 = (e * q2).sum(1)
+        total = total + 0.5 * lam * (ee - (p1 * p1).sum(0) - (p2 * p2).sum(0)).sum()
+    return total
+
+
+def _plane_basis(e: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Orthonormal ``(k, F)`` vectors ``q1, q2`` spanning the column space of ``Ebar``; ``Pi = I - q1 q1^T - q2 q2^T``."""
+    t1, t2 = face_frame(n)
+    u = (e * t1[:, None]).sum(0)
+    w = (e * t2[:, None]).sum(0)
+    q1 = u * torch.rsqrt((u * u).sum(0))
+    w = w - (q1 * w).sum(0) * q1
+    q2 = w * torch.rsqrt((w * w).sum(0))
+    return q1, q2
+
+
+def local_laplacians(
+    verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0, *, geometric: bool = True
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Dense per-face blocks ``L_f = d^T M_f d``, one ``(face_ids (F_k,), blocks (F_k, k, k))`` per degree.
+
+    For inspection and tests; :func:`laplacian` never materializes them.
+    ``geometric=False`` gives the planarity blocks ``lambda d^T Pi d``.
+    """
+    out = []
+    for _, grp, x in _face_loop(verts, faces):
+        off, _, _ = _block_entries(x, grp, lam, geometric)
+        blocks = verts.new_zeros(x.shape[2], grp.k, grp.k)
+        blocks[:, grp.pair_i, grp.pair_j] = off.t()
+        blocks[:, grp.pair_j, grp.pair_i] = off.t()
+        ar = torch.arange(grp.k, device=verts.device)
+        blocks[:, ar, ar] = -(_incidence(grp, verts) @ off).t()
+        out.append((grp.face_ids, blocks))
+    return out
+
+
+def coboundary(faces: MeshFaces, num_verts: int | None = None) -> torch.Tensor:
+    """The half-edge coboundary ``d`` (AW11 eq. 2), ``(N, V)`` sparse CSR, ``N`` = number of corners.
+
+    Row ``h`` is the half-edge leaving corner ``h`` of the packed faces (corner ``c`` of face ``f``
+    goes to corner ``c + 1``): ``(d u)_h = u(next) - u(this)``. Together with
+    :func:`one_form_inner_product`, ``L = d^T M1 d``.
+    """
+    topo = faces if isinstance(faces, Topology) else build_topology(faces, num_verts)
+    pf = topo.faces
+    idx = pf.indices
+    start = torch.repeat_interleave(pf.offsets[:-1], pf.sizes)
+    pos = torch.arange(idx.numel())
+    nxt = torch.where(pos + 1 == torch.repeat_interleave(pf.offsets[1:], pf.sizes), start, pos + 1)
+    this_v, next_v = idx, idx[nxt]
+    cols = torch.stack((torch.minimum(this_v, next_v), torch.maximum(this_v, next_v)), 1)
+    vals = torch.where((this_v < next_v)[:, None], torch.tensor([-1.0, 1.0]), torch.tensor([1.0, -1.0]))
+    crow = torch.arange(0, 2 * idx.numel() + 1, 2)
+    return csr_tensor(crow, cols.reshape(-1), vals.reshape(-1).to(torch.float64),
+                                   (idx.numel(), topo.num_verts))
+
+
+def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
+    """The inner product on 1-forms ``M1 = blockdiag(M_f)`` (AW11 eq. 5, 9), ``(N, N)`` sparse CSR.
+
+    ``M_f = B B^T / |f| + lambda Pi`` with the midpoints ``B`` taken relative to the face's vertex
+    centroid (the paper's choice for stability; ``M_f`` itself depends on the origin, ``d^T M_f d``
+    does not). Positive definite for ``lambda > 0`` (Theorem 1). Rows follow :func:`coboundary`.
+    """
+    parts = []
+    topo = None
+    for topo, grp, x in _face_loop(verts, faces):
+        e, _, a = corner_terms(x)
+        area = torch.linalg.vector_norm(a, dim=0)
+        b = 0.5 * (x + torch.roll(x, -1, dims=1))
+        b = b - x.mean(1, keepdim=True)
+        geo = torch.einsum("cif,cjf->fij", b, b) / area[:, None, None]
+        q1, q2 = _plane_basis(e, a / area)
+        proj = torch.eye(grp.k, dtype=x.dtype, device=x.device) - (
+            torch.einsum("if,jf->fij", q1, q1) + torch.einsum("if,jf->fij", q2, q2)
+        )
+        parts.append((grp, geo + lam * proj))
+    if topo is None:
+        return csr_tensor(torch.zeros(1, dtype=torch.int64), torch.zeros(0, dtype=torch.int64),
+                                       verts.new_zeros(0), (0, 0))
+    pf = topo.faces
+    n = pf.num_corners
+    off = pf.offsets.to(verts.device)
+    sizes = pf.sizes.to(verts.device)
+    row_len = torch.repeat_interleave(sizes, sizes)
+    crow = torch.zeros(n + 1, dtype=torch.int64, device=verts.device)
+    torch.cumsum(row_len, 0, out=crow[1:])
+    col = torch.empty(int(crow[-1]), dtype=torch.int64, device=verts.device)
+    values = verts.new_zeros(int(crow[-1]))
+    for grp, blocks in parts:
+        k = grp.k
+        first = off[grp.face_ids]  # (F_k,) first corner of each face
+        rows = first[:, None] + torch.arange(k, device=verts.device)  # (F_k, k)
+        slots = crow[rows][:, :, None] + torch.arange(k, device=verts.device)  # (F_k, k, k)
+        col[slots.reshape(-1)] = (first[:, None, None] + torch.arange(k, device=verts.device)).expand(-1, k, k).reshape(-1)
+        values = values.index_put((slots.reshape(-1),), blocks.reshape(-1))
+    return csr_tensor(crow, col, values, (n, n))
+
+
+def strong_laplacian(L: torch.Tensor, M0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """``M0^{-1} L u`` (AW11 eq. 3, the pointwise Laplacian), ``u`` of shape ``(V,)`` or ``(V, c)``.
+
+    Rows of isolated vertices (zero mass) are set to zero rather than divided by zero.
+    """
+    m = sparse_values(M0)
+    Lu = spmm(L, u)
+    inv = torch.where(m > 0, 1.0 / torch.where(m > 0, m, torch.ones_like(m)), torch.zeros_like(m))
+    return Lu * (inv if u.dim() == 1 else inv[:, None])
+
+
+def mean_curvature_normal(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
+    """``(V, 3)`` mean curvature vector ``H = M0^{-1} L X`` (AW11 sec. 3.2).
+
+    ``H`` tends to ``2 H_mean n`` (outward ``n`` for counter-clockwise faces seen from outside),
+    so on the unit sphere ``|H| / 2 -> 1``.
+    """
+    L, M0 = laplacian(verts, faces, lam)
+    return strong_laplacian(L, M0, verts)
+
+
+class PolygonLaplacian(nn.Module):
+    """``nn.Module`` computing ``(L, M0)`` with the topology cached across calls.
+
+    Args:
+        lam: stabilizer weight (see :func:`laplacian`).
+        learn_lam: make ``lam`` a learnable ``nn.Parameter``.
+        layout: ``torch.sparse_csr`` (default) or ``torch.sparse_coo``.
+        validate: see :func:`laplacian`.
+
+    ``forward(verts, faces=None)``: ``verts`` ``(V, 3)``; ``faces`` in any accepted form, or
+    ``None`` to reuse the faces of the previous call.  The topology is rebuilt only when the
+    faces change (a different object, or a tensor modified in place), so a training loop with
+    fixed connectivity only recomputes values.
+    """
+
+    def __init__(
+        self,
+        lam: float = 1.0,
+        *,
+        learn_lam: bool = False,
+        layout: torch.layout = torch.sparse_csr,
+        validate: bool = True,
+    ) -> None:
+        super().__init__()
+        if learn_lam:
+            self.lam = nn.Parameter(torch.tensor(float(lam)))
+        else:
+            self.lam = float(lam)
+        self.layout = layout
+        self.validate = validate
+        self.topology: Topology | None = None
+        self._faces_key = None
+
+    def _topology_for(self, faces: MeshFaces | None, num_verts: int) -> Topology:
+        if faces is None:
+            if self.topology is None:
+                raise ValueError("PolygonLaplacian: pass faces on the first call.")
+            return self.topology
+        key = (id(faces), getattr(faces, "_version", None), num_verts)
+        if isinstance(faces, PolygonFaces):
+            key = (id(faces.indices), faces.indices._version, num_verts)
+        if self.topology is None or key != self._faces_key or isinstance(faces, list):
+            self.topology = get_topology(faces, num_verts)
+            self._faces_key = key
+        return self.topology
+
+    def forward(
+        self, verts: torch.Tensor, faces: MeshFaces | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        _check_verts(verts)
+        topo = self._topology_for(faces, verts.shape[0])
+        lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam
+        return laplacian(verts, topo, lam, layout=self.layout, validate=self.validate)
+
+    def extra_repr(self) -> str:
+        lam = float(self.lam) if isinstance(self.lam, torch.Tensor) else self.lam
+        return f"lam={lam}, layout={self.layout}, cached={self.topology is not None}"
