@@ -100,21 +100,58 @@ class Topology:
         num_verts: ``V``; vertices never referenced by a face are *isolated*.
         groups: one :class:`DegreeGroup` per face degree present.
         crow, col: CSR pattern of the ``V x V`` Laplacian (sorted columns in every row).
-        edges: ``(E, 2)`` undirected edges ``(p, q)`` with ``p < q``.
-        edge_faces: ``(E,)`` how many faces use each edge (1 on the boundary, 2 inside).
-        half_edge_edge: ``(N,)`` undirected edge of every half-edge (corner ``c`` to the next).
         isolated: ``(V,)`` bool, vertices referenced by no face.
+
+    Edges (:attr:`edges`, :attr:`edge_faces`, :attr:`half_edge_edge`) are derived on first use.
     """
 
-    def __init__(self, faces: PolygonFaces, num_verts: int, groups, pattern, edge_data, isolated):
+    def __init__(self, faces: PolygonFaces, num_verts: int, groups, pattern, pair_data, isolated):
         self.faces = faces
         self.num_verts = num_verts
         self._groups_cpu: list[DegreeGroup] = groups
         self.crow, self.col = pattern
-        self.edges, self.edge_faces, self.half_edge_edge = edge_data
+        # unique vertex pairs (lo * V + hi, sorted) and how many faces use each as an edge
+        self._pair_keys, self._pair_uses = pair_data
         self.isolated = isolated
         self._device_cache: dict[torch.device, tuple] = {}
         self._row: torch.Tensor | None = None
+        self._edges: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._half_edge_edge: torch.Tensor | None = None
+
+    def _edge_arrays(self) -> tuple[torch.Tensor, torch.Tensor]:
+        if self._edges is None:
+            is_edge = self._pair_uses > 0
+            keys = self._pair_keys[is_edge]
+            nv = max(self.num_verts, 1)
+            lo = keys // nv
+            edges = np.stack([lo, keys - lo * nv], 1)
+            self._edges = (torch.from_numpy(edges), torch.from_numpy(self._pair_uses[is_edge]))
+        return self._edges
+
+    @property
+    def edges(self) -> torch.Tensor:
+        """``(E, 2)`` undirected edges ``(p, q)`` with ``p < q``, sorted."""
+        return self._edge_arrays()[0]
+
+    @property
+    def edge_faces(self) -> torch.Tensor:
+        """``(E,)`` how many faces use each edge (1 on the boundary, 2 inside)."""
+        return self._edge_arrays()[1]
+
+    @property
+    def half_edge_edge(self) -> torch.Tensor:
+        """``(N,)`` the undirected edge (row of :attr:`edges`) of every half-edge.
+
+        Half-edge ``h`` runs from corner ``h`` of the packed faces to the next corner of its face.
+        """
+        if self._half_edge_edge is None:
+            src, dst = half_edge_vertices(self.faces)
+            nv = max(self.num_verts, 1)
+            keys = (torch.minimum(src, dst) * nv + torch.maximum(src, dst)).numpy()
+            edges = self.edges.numpy()
+            edge_keys = edges[:, 0] * nv + edges[:, 1]
+            self._half_edge_edge = torch.from_numpy(np.searchsorted(edge_keys, keys))
+        return self._half_edge_edge
 
     @property
     def num_faces(self) -> int:
@@ -263,8 +300,7 @@ def build_topology(faces: FacesLike, num_verts: int | None = None) -> Topology:
     col[pos_diag_v] = np.arange(num_verts)
 
     groups = []
-    he_uid = np.empty(idx.size, np.int64)
-    he_forward = np.empty(idx.size, bool)
+    he_uid, he_forward, groups_np_faces = [], [], []
     start = 0
     for k, fid, corners_t, pi, pj, keys in blocks:
         ginv = inv[start : start + keys.size].reshape(pi.size, fid.size)
@@ -296,11 +332,13 @@ def build_topology(faces: FacesLike, num_verts: int | None = None) -> Topology:
         )
         # half-edge c of a face runs from corner c to corner c+1 (mod k): pair row of (c, c+1)
         he_rows = [_pair_row(k, c, c + 1) if c + 1 < k else _pair_row(k, 0, k - 1) for c in range(k)]
-        slots = offsets[fid][None, :] + np.arange(k)[:, None]
-        he_uid[slots] = ginv[he_rows]
-        he_forward[slots] = corners_t < np.roll(corners_t, -1, axis=0)
+        he_uid.append(ginv[he_rows].reshape(-1))
+        he_forward.append((corners_t < np.roll(corners_t, -1, axis=0)).reshape(-1))
+        groups_np_faces.append((k, fid))
 
-    edge_data = _edges(he_uid, he_forward, ulo, uhi, n_unique, offsets)
+    uses = _check_edges(
+        np.concatenate(he_uid), np.concatenate(he_forward), ulo, uhi, n_unique, groups_np_faces
+    )
 
     isolated = np.bincount(idx, minlength=num_verts) == 0
     if isolated.any():
@@ -313,7 +351,7 @@ def build_topology(faces: FacesLike, num_verts: int | None = None) -> Topology:
         )
 
     pattern = (torch.from_numpy(crow), torch.from_numpy(col))
-    return Topology(cpu, num_verts, groups, pattern, edge_data, torch.from_numpy(isolated))
+    return Topology(cpu, num_verts, groups, pattern, (ukeys, uses), torch.from_numpy(isolated))
 
 
 def _pair_row(k: int, i: int, j: int) -> int:
@@ -335,23 +373,37 @@ def _check_index_range(idx: np.ndarray, offsets: np.ndarray, num_verts: int) -> 
         )
 
 
-def _edges(he_uid, he_forward, ulo, uhi, n_unique, offsets):
-    """Undirected edges with their face counts; errors for non-manifold or mis-oriented edges."""
+def half_edge_vertices(faces: PolygonFaces) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(src, dst)``, each ``(N,)``: half-edge ``h`` runs from corner ``h`` to the next corner of its face."""
+    pos = torch.arange(faces.num_corners, device=faces.device)
+    last = torch.repeat_interleave(faces.offsets[1:] - 1, faces.sizes)
+    first = torch.repeat_interleave(faces.offsets[:-1], faces.sizes)
+    nxt = torch.where(pos == last, first, pos + 1)
+    return faces.indices, faces.indices[nxt]
+
+
+def _check_edges(he_uid, he_forward, ulo, uhi, n_unique, he_faces) -> np.ndarray:
+    """Face count of every vertex pair used as an edge; errors for non-manifold or mis-oriented edges.
+
+    A manifold edge is used by one face (boundary) or two; two faces of a consistently
+    oriented mesh traverse it in opposite directions, so exactly one of them goes from the
+    lower to the higher vertex index.
+    """
     uses = np.bincount(he_uid, minlength=n_unique)
-    net = np.bincount(he_uid, weights=np.where(he_forward, 1.0, -1.0), minlength=n_unique)
+    forward = np.bincount(he_uid[he_forward], minlength=n_unique)
     if (uses > 2).any():
         u = int(np.flatnonzero(uses > 2)[0])
-        faces = _faces_of_half_edges(he_uid == u, offsets)
+        faces = _faces_of(he_uid == u, he_faces)
         raise ValueError(
             f"edge ({int(ulo[u])}, {int(uhi[u])}) is shared by {int(uses[u])} faces {faces}; a "
             "manifold polygon mesh allows at most two. Split the mesh along this edge "
             "(duplicate its vertices for the extra faces) or remove duplicate faces."
         )
-    bad = (uses == 2) & (net != 0)
+    bad = (uses == 2) & (forward != 1)
     if bad.any():
         u = int(np.flatnonzero(bad)[0])
-        faces = _faces_of_half_edges(he_uid == u, offsets)
-        a, b = (int(ulo[u]), int(uhi[u])) if net[u] > 0 else (int(uhi[u]), int(ulo[u]))
+        faces = _faces_of(he_uid == u, he_faces)
+        a, b = (int(ulo[u]), int(uhi[u])) if forward[u] == 2 else (int(uhi[u]), int(ulo[u]))
         raise ValueError(
             f"faces {faces[0]} and {faces[1]} both traverse edge {a} -> {b} in the same direction: "
             f"the mesh is not consistently oriented ({int(bad.sum())} such edge(s)). Reverse the "
@@ -359,17 +411,10 @@ def _edges(he_uid, he_forward, ulo, uhi, n_unique, offsets):
             "non-orientable mesh such as a Moebius band has no consistent orientation and is "
             "not supported."
         )
-    edge_ids = np.flatnonzero(uses)
-    remap = np.full(n_unique, -1, np.int64)
-    remap[edge_ids] = np.arange(edge_ids.size)
-    edges = np.stack([ulo[edge_ids], uhi[edge_ids]], 1)
-    return (
-        torch.from_numpy(edges),
-        torch.from_numpy(uses[edge_ids].astype(np.int64)),
-        torch.from_numpy(remap[he_uid]),
-    )
+    return uses
 
 
-def _faces_of_half_edges(mask: np.ndarray, offsets: np.ndarray) -> list[int]:
-    corners = np.flatnonzero(mask)
-    return sorted(set((np.searchsorted(offsets, corners, side="right") - 1).tolist()))
+def _faces_of(mask: np.ndarray, he_faces: list[tuple[int, np.ndarray]]) -> list[int]:
+    """Faces owning the masked half-edges (laid out like ``he_uid``: per group, corner-major)."""
+    owner = np.concatenate([np.broadcast_to(fid, (k, fid.size)).reshape(-1) for k, fid in he_faces])
+    return sorted(set(owner[mask].tolist()))
