@@ -21,6 +21,7 @@ __all__ = [
     "face_frame",
     "corner_terms",
     "stabilizer_factors",
+    "plane_basis",
 ]
 
 
@@ -101,12 +102,22 @@ def stabilizer_factors(e: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, 
     Returns:
         ``alpha = d^T q1`` and ``beta = d^T q2``, each ``(k, F)``, with ``(d^T y)_i = y_{i-1} - y_i``.
     """
+    q1, q2 = plane_basis(e, n)
+    return torch.roll(q1, 1, dims=0) - q1, torch.roll(q2, 1, dims=0) - q2
+
+
+def plane_basis(e: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Orthonormal ``(k, F)`` vectors ``q1, q2`` spanning the column space of ``Ebar``.
+
+    ``Pi = I - q1 q1^T - q2 q2^T`` (see :func:`stabilizer_factors`). The squared norms are
+    clamped at the smallest normal number so that a degenerate face (zero area, only reachable
+    with validation switched off) yields zeros instead of ``0 * inf = nan``.
+    """
     t1, t2 = face_frame(n)
+    tiny = torch.finfo(e.dtype).tiny
     u = (e * t1[:, None]).sum(0)  # (k, F)
     w = (e * t2[:, None]).sum(0)
-    uu = (u * u).sum(0)
-    w = w - ((u * w).sum(0) / uu) * u
-    ww = (w * w).sum(0)
-    alpha = (torch.roll(u, 1, dims=0) - u) * torch.rsqrt(uu)
-    beta = (torch.roll(w, 1, dims=0) - w) * torch.rsqrt(ww)
-    return alpha, beta
+    q1 = u * torch.rsqrt((u * u).sum(0).clamp_min(tiny))
+    w = w - (q1 * w).sum(0) * q1
+    q2 = w * torch.rsqrt((w * w).sum(0).clamp_min(tiny))
+    return q1, q2

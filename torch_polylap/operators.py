@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from .faces import FacesLike, PolygonFaces
-from .geometry import corner_terms, face_frame, gather_corners, stabilizer_factors
+from .geometry import corner_terms, gather_corners, plane_basis, stabilizer_factors
 from .sparse import coo_tensor, csr_tensor, mark_symmetric, sparse_values, spmm
 from .topology import DegreeGroup, Topology, build_topology
 
@@ -332,8 +332,9 @@ def face_normals(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
 def planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
     """``E_plan = 1/2 sum_c X_c^T Lplan X_c`` (AW11 sec. 5.3), a differentiable scalar.
 
-    Per face this is ``lambda/2 |Pi E|_F^2``, the part of the edge vectors outside the maximal
-    projection's edge space; evaluated face by face without building ``Lplan``.
+    Per face this is ``lambda/2 |Pi E|_F^2``: the part of the edge matrix ``E`` (``k x 3``)
+    outside the column space of the maximal projection's edges, which vanishes exactly for
+    planar faces. Evaluated face by face without building ``Lplan``.
     """
     total = verts.new_zeros(())
     for _, grp, x in _face_loop(verts, faces):
@@ -341,23 +342,12 @@ def planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> t
             continue
         e, _, a = corner_terms(x)
         n = a / torch.linalg.vector_norm(a, dim=0)
-        q1, q2 = _plane_basis(e, n)
-        ee = (e * e).sum((0, 1))
-        p1 = (e * q1).sum(1)  # (3, F): E^T q1
-        p2 = (e * q2).sum(1)
-        total = total + 0.5 * lam * (ee - (p1 * p1).sum(0) - (p2 * p2).sum(0)).sum()
+        q1, q2 = plane_basis(e, n)
+        # Pi E = E - q1 (q1^T E) - q2 (q2^T E), formed explicitly: subtracting squared norms
+        # instead would cancel catastrophically exactly where a planarizing flow converges.
+        residual = e - q1 * (e * q1).sum(1, keepdim=True) - q2 * (e * q2).sum(1, keepdim=True)
+        total = total + 0.5 * lam * (residual * residual).sum()
     return total
-
-
-def _plane_basis(e: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Orthonormal ``(k, F)`` vectors ``q1, q2`` spanning the column space of ``Ebar``; ``Pi = I - q1 q1^T - q2 q2^T``."""
-    t1, t2 = face_frame(n)
-    u = (e * t1[:, None]).sum(0)
-    w = (e * t2[:, None]).sum(0)
-    q1 = u * torch.rsqrt((u * u).sum(0))
-    w = w - (q1 * w).sum(0) * q1
-    q2 = w * torch.rsqrt((w * w).sum(0))
-    return q1, q2
 
 
 def local_laplacians(
@@ -416,7 +406,7 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
         b = 0.5 * (x + torch.roll(x, -1, dims=1))
         b = b - x.mean(1, keepdim=True)
         geo = torch.einsum("cif,cjf->fij", b, b) / area[:, None, None]
-        q1, q2 = _plane_basis(e, a / area)
+        q1, q2 = plane_basis(e, a / area)
         proj = torch.eye(grp.k, dtype=x.dtype, device=x.device) - (
             torch.einsum("if,jf->fij", q1, q1) + torch.einsum("if,jf->fij", q2, q2)
         )

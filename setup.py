@@ -1,0 +1,31 @@
+"""Packaging for torch_polylap (pure Python; torch is a runtime dependency only)."""
+
+from pathlib import Path
+
+from setuptools import find_packages, setup
+
+setup(
+    name="torch_polylap",
+    version="0.1.0",
+    description=(
+        "Differentiable Alexa-Wardetzky discrete Laplacian on general polygon meshes for PyTorch"
+    ),
+    long_description=Path(__file__).with_name("README.md").read_text(encoding="utf-8"),
+    long_description_content_type="text/markdown",
+    license="MIT",
+    python_requires=">=3.9",
+    packages=find_packages(include=["torch_polylap", "torch_polylap.*"]),
+    package_data={"torch_polylap": ["data/*.obj", "data/*.md"]},
+    install_requires=["torch>=2.1", "numpy>=1.22", "scipy>=1.9", "trimesh>=3.20"],
+    extras_require={
+        # libigl: the independent cotan Laplacian the tests and benchmarks compare against
+        "test": ["pytest>=7", "ruff>=0.4", "libigl>=2.5"],
+        "bench": ["libigl>=2.5"],
+    },
+    entry_points={"console_scripts": ["polylap=torch_polylap.cli:main"]},
+    classifiers=[
+        "Programming Language :: Python :: 3",
+        "Topic :: Scientific/Engineering :: Mathematics",
+        "Intended Audience :: Science/Research",
+    ],
+)

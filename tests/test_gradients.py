@@ -1,0 +1,152 @@
+"""Gradients: gradcheck in float64, spmm's O(nnz) backward, thin faces, CUDA."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import hex_pent_mesh, mixed_mesh, quad_grid
+
+import torch_polylap as tp
+from torch_polylap.sparse import sparse_values
+
+D64 = {"dtype": torch.float64}
+
+
+@pytest.mark.parametrize("make", [mixed_mesh, hex_pent_mesh], ids=["mixed", "hexpent"])
+@pytest.mark.parametrize("lam", [0.7, 2.0])
+def test_gradcheck_laplacian_values(make, lam):
+    V, F = make()
+    topo = tp.build_topology(F, V.shape[0])
+
+    def values(X):
+        L, M0 = tp.laplacian(X, topo, lam)
+        return sparse_values(L), sparse_values(M0)
+
+    assert torch.autograd.gradcheck(values, (V.clone().requires_grad_(True),), eps=1e-6, atol=1e-6)
+
+
+def test_gradcheck_planarity_energy():
+    V, F = hex_pent_mesh()
+    X = V.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda X: tp.planarity_energy(X, F, 2.0), (X,))
+
+
+def test_gradcheck_learnable_lambda():
+    V, F = mixed_mesh()
+    topo = tp.build_topology(F, V.shape[0])
+    lam = torch.tensor(1.3, **D64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda lam: sparse_values(tp.laplacian(V, topo, lam)[0]), (lam,))
+
+
+def random_sparse(n, m, density, seed):
+    gen = torch.Generator().manual_seed(seed)
+    dense = torch.rand(n, m, generator=gen, **D64) * (torch.rand(n, m, generator=gen) < density)
+    return dense, dense.to_sparse_csr()
+
+
+@pytest.mark.parametrize("symmetric", [False, True])
+@pytest.mark.parametrize("layout", [torch.sparse_csr, torch.sparse_coo])
+def test_gradcheck_spmm(symmetric, layout):
+    dense, _ = random_sparse(7, 7 if symmetric else 5, 0.5, 0)
+    if symmetric:
+        dense = dense + dense.T
+    pattern = dense.to_sparse_coo().coalesce() if layout == torch.sparse_coo else dense.to_sparse_csr()
+    if layout == torch.sparse_coo:
+        index = pattern.indices()
+        make = lambda v: tp.sparse.coo_tensor(index, v, dense.shape)  # noqa: E731
+    else:
+        crow, col = pattern.crow_indices(), pattern.col_indices()
+        make = lambda v: tp.sparse.csr_tensor(crow, col, v, dense.shape)  # noqa: E731
+    values = pattern.values().clone().requires_grad_(True)
+    X = torch.randn(dense.shape[1], 3, **D64, requires_grad=True)
+
+    def product(v, X):
+        A = make(v)
+        if symmetric:
+            tp.sparse.mark_symmetric(A)
+        return tp.spmm(A, X)
+
+    assert torch.autograd.gradcheck(product, (values, X))
+    x1 = torch.randn(dense.shape[1], **D64, requires_grad=True)
+    assert torch.autograd.gradcheck(product, (values, x1))
+    assert torch.allclose(product(values, X), dense @ X)
+
+
+def test_spmm_rejects_mismatches():
+    _, A = random_sparse(4, 3, 0.6, 1)
+    with pytest.raises(ValueError, match="dtype"):
+        tp.spmm(A, torch.randn(3, 2))
+    with pytest.raises(ValueError, match="cannot multiply"):
+        tp.spmm(A, torch.randn(4, 2, **D64))
+    with pytest.raises(ValueError, match="sparse CSR or COO"):
+        tp.spmm(torch.randn(4, 3, **D64), torch.randn(3, 2, **D64))
+
+
+def test_backward_memory_is_linear_in_nnz():
+    """At 40k vertices a dense V x V gradient would need 12.8 GB; this must run in O(nnz)."""
+    V, F = quad_grid(199, bump=0.1)
+    X = V.clone().requires_grad_(True)
+    L, M0 = tp.laplacian(X, F)
+    loss = (tp.spmm(L, X) ** 2).sum() + tp.strong_laplacian(L, M0, X).square().sum()
+    loss.backward()
+    assert torch.isfinite(X.grad).all() and X.grad.abs().max() > 0
+
+
+def test_gradient_of_dirichlet_energy_matches_finite_differences():
+    V, F = quad_grid(4, bump=0.3, seed=9)
+    u = torch.sin(3 * V[:, 0]) * V[:, 1]
+    topo = tp.build_topology(F, V.shape[0])
+
+    def energy(X):
+        L, _ = tp.laplacian(X, topo, 1.5)
+        return 0.5 * (u * tp.spmm(L, u)).sum()
+
+    X = V.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(energy(X), X)
+    d = torch.randn(V.shape, generator=torch.Generator().manual_seed(3), **D64)
+    h = 1e-6
+    fd = (energy(V + h * d) - energy(V - h * d)) / (2 * h)
+    assert torch.isclose((g * d).sum(), fd, rtol=1e-7)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("thinness", [1e-3, 1e-6])
+def test_thin_faces_have_finite_values_and_gradients(dtype, thinness):
+    """Valid but thin faces (aspect ratio up to 1e6) give finite L, M0 and gradients."""
+    if dtype == torch.float32 and thinness < 1e-5:
+        thinness = 1e-3  # float32 resolves aspect ratios to about 1e-4
+    verts = torch.tensor(
+        [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, thinness, 0.01],
+            [0.0, thinness, -0.01],
+            [2.0, 0.0, 0.02],
+            [2.0, thinness, 0.0],
+            [0.5, 1.0, 0.0],
+        ],
+        dtype=dtype,
+    )
+    faces = [[0, 1, 2, 3], [1, 4, 5, 2], [3, 2, 5, 6]]
+    X = verts.clone().requires_grad_(True)
+    L, M0 = tp.laplacian(X, faces)
+    assert torch.isfinite(sparse_values(L)).all() and torch.isfinite(sparse_values(M0)).all()
+    loss = (tp.spmm(L, X) ** 2).sum() + tp.planarity_energy(X, faces)
+    loss.backward()
+    assert torch.isfinite(X.grad).all()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA is not available on this machine")
+def test_cuda_matches_cpu():
+    V, F = quad_grid(20, bump=0.3, seed=1)
+    L, M0 = tp.laplacian(V, F, 1.5)
+    Vc = V.cuda().requires_grad_(True)
+    Lc, M0c = tp.laplacian(Vc, F, 1.5)
+    assert Lc.device.type == "cuda" and M0c.device.type == "cuda"
+    assert torch.allclose(Lc.to_dense().cpu(), L.to_dense(), atol=1e-12)
+    (tp.spmm(Lc, Vc) ** 2).sum().backward()
+    X = V.clone().requires_grad_(True)
+    (tp.spmm(tp.laplacian(X, F, 1.5)[0], X) ** 2).sum().backward()
+    assert torch.allclose(Vc.grad.cpu(), X.grad, atol=1e-9)
+    Lf, _ = tp.laplacian(V.float().cuda(), F)
+    assert Lf.dtype == torch.float32
