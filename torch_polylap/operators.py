@@ -40,6 +40,7 @@ __all__ = [
     "vector_area",
     "face_areas",
     "face_normals",
+    "face_nonplanarity",
     "local_laplacians",
     "get_topology",
 ]
@@ -123,13 +124,15 @@ def _block_entries(
     return off, area, e
 
 
-def _incidence(grp: DegreeGroup, like: torch.Tensor) -> torch.Tensor:
-    """``(k, P)`` 0/1 matrix: corner ``c`` belongs to pair ``p``; ``-(inc @ off)`` is the diagonal."""
-    inc = like.new_zeros(grp.k, grp.pair_i.numel())
-    cols = torch.arange(grp.pair_i.numel(), device=like.device)
-    inc[grp.pair_i, cols] = 1.0
-    inc[grp.pair_j, cols] = 1.0
-    return inc
+def _row_sums(off: torch.Tensor, grp: DegreeGroup) -> torch.Tensor:
+    """``(k, F)`` sums of the off-diagonal entries in each row of every block.
+
+    ``L_f 1 = 0`` makes the diagonal their negative. Accumulated row by row (a small BLAS
+    matmul would cost milliseconds of threading overhead per call on small meshes).
+    """
+    sums = off.new_zeros(grp.k, off.shape[1])
+    sums.index_add_(0, grp.pair_i, off)
+    return sums.index_add_(0, grp.pair_j, off)
 
 
 def _raise_bad_input(verts: torch.Tensor, topo: Topology) -> None:
@@ -173,14 +176,13 @@ def _assemble(
     eps = torch.finfo(verts.dtype).eps
     degenerate = []
     for grp in groups:
-        inc = _incidence(grp, verts)
         for chunk in grp.chunks:
             x = gather_corners(verts_t, chunk.corners_t)
             off, area, e = _block_entries(x, grp, lam, geometric)
             flat = off.reshape(-1)
             values.index_add_(0, chunk.pos_upper, flat)
             values.index_add_(0, chunk.pos_lower, flat)
-            values.index_add_(0, chunk.pos_diag, (inc @ off).reshape(-1), alpha=-1)
+            values.index_add_(0, chunk.pos_diag, _row_sums(off, grp).reshape(-1), alpha=-1)
             if want_mass:
                 share = (area / grp.k).expand(grp.k, -1).reshape(-1)
                 masses.index_add_(0, chunk.corners_t.reshape(-1), share)
@@ -329,6 +331,24 @@ def face_normals(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     return a / torch.linalg.vector_norm(a, dim=1, keepdim=True)
 
 
+def face_nonplanarity(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
+    """``(F,)`` non-planarity of every face: the largest distance of a corner from the plane of the
+    maximal projection (through the corners' centroid, normal ``a_f / |a_f|``), over the face
+    diameter. Zero for planar faces and for triangles; scale invariant.
+    """
+    out = verts.new_zeros(0)
+    for topo, grp, x in _face_loop(verts, faces):
+        if out.numel() == 0:
+            out = verts.new_zeros(topo.num_faces)
+        _, _, a = corner_terms(x)
+        n = a / torch.linalg.vector_norm(a, dim=0)
+        height = ((x - x.mean(1, keepdim=True)) * n[:, None]).sum(0).abs().amax(0)
+        diff = x.index_select(1, grp.pair_i) - x.index_select(1, grp.pair_j)
+        diameter = torch.linalg.vector_norm(diff, dim=0).amax(0)
+        out = out.index_copy(0, grp.face_ids, height / diameter)
+    return out
+
+
 def planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
     """``E_plan = 1/2 sum_c X_c^T Lplan X_c`` (AW11 sec. 5.3), a differentiable scalar.
 
@@ -365,7 +385,7 @@ def local_laplacians(
         blocks[:, grp.pair_i, grp.pair_j] = off.t()
         blocks[:, grp.pair_j, grp.pair_i] = off.t()
         ar = torch.arange(grp.k, device=verts.device)
-        blocks[:, ar, ar] = -(_incidence(grp, verts) @ off).t()
+        blocks[:, ar, ar] = -_row_sums(off, grp).t()
         out.append((grp.face_ids, blocks))
     return out
 
