@@ -13,7 +13,7 @@ DATA = Path(__file__).resolve().parent / "data"
 
 
 def shared_meshes() -> Path | None:
-    """``../shared/data/meshes`` beside the repository (or ``$POLYLAP_SHARED_MESHES``), if present."""
+    """``../shared/data/meshes`` beside the repo (or ``$POLYLAP_SHARED_MESHES``), if present."""
     env = os.environ.get("POLYLAP_SHARED_MESHES")
     path = Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
     return path if path.is_dir() else None
@@ -72,7 +72,7 @@ def mixed_mesh():
 
 
 def hex_pent_mesh():
-    """Degrees 3, 4 and 5 around a raised apex, inside a ring of quads; non-planar, with boundary."""
+    """Degrees 3, 4 and 5 around a raised apex inside a ring of quads; non-planar, with boundary."""
     ang = np.linspace(0, 2 * np.pi, 7)[:-1]
     inner = np.stack([np.cos(ang), np.sin(ang), 0.15 * np.cos(3 * ang)], 1)
     outer = np.stack([2.2 * np.cos(ang + 0.3), 2.2 * np.sin(ang + 0.3), -0.2 * np.sin(2 * ang)], 1)
@@ -95,5 +95,7 @@ def hexpent():
 def require_shared() -> Path:
     path = shared_meshes()
     if path is None:
-        pytest.skip("../shared/data/meshes not found: the refinement families live outside the repo")
+        pytest.skip(
+            "../shared/data/meshes not found: the refinement families live outside the repo"
+        )
     return path

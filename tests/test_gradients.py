@@ -35,7 +35,9 @@ def test_gradcheck_learnable_lambda():
     V, F = mixed_mesh()
     topo = tp.build_topology(F, V.shape[0])
     lam = torch.tensor(1.3, **D64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda lam: sparse_values(tp.laplacian(V, topo, lam)[0]), (lam,))
+    assert torch.autograd.gradcheck(
+        lambda lam: sparse_values(tp.laplacian(V, topo, lam)[0]), (lam,)
+    )
 
 
 def random_sparse(n, m, density, seed):
@@ -50,7 +52,9 @@ def test_gradcheck_spmm(symmetric, layout):
     dense, _ = random_sparse(7, 7 if symmetric else 5, 0.5, 0)
     if symmetric:
         dense = dense + dense.T
-    pattern = dense.to_sparse_coo().coalesce() if layout == torch.sparse_coo else dense.to_sparse_csr()
+    pattern = (
+        dense.to_sparse_coo().coalesce() if layout == torch.sparse_coo else dense.to_sparse_csr()
+    )
     if layout == torch.sparse_coo:
         index = pattern.indices()
         make = lambda v: tp.sparse.coo_tensor(index, v, dense.shape)  # noqa: E731

@@ -34,7 +34,7 @@ IDS = [m[0] for m in MESHES]
 
 
 def cotan_laplacian(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Textbook cotan Laplacian (PSD sign): L_ij = -(cot a_ij + cot b_ij) / 2, written independently."""
+    """Textbook cotan Laplacian (PSD sign), L_ij = -(cot a_ij + cot b_ij) / 2, written anew."""
     n = len(V)
     L = np.zeros((n, n))
     for tri in F:
@@ -75,9 +75,7 @@ def test_triangles_give_cotan(lam):
     ref = cotan_laplacian(V.numpy(), T.numpy())
     np.testing.assert_allclose(dense(L).numpy(), ref, atol=1e-12 * np.abs(ref).max())
     # M0 = barycentric lumped mass: a third of each incident triangle's area
-    areas = 0.5 * np.linalg.norm(
-        np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1
-    )
+    areas = 0.5 * np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1)
     m = np.zeros(len(V))
     np.add.at(m, T.numpy().ravel(), np.repeat(areas / 3, 3))
     np.testing.assert_allclose(torch.diagonal(dense(M0)).numpy(), m, rtol=1e-13)
@@ -199,18 +197,20 @@ def test_lemma5_nonplanar_face():
     """Lemma 5: Htilde_f = H_fbar, and H_f - Htilde_f = lam (d^T hbar_e) n^T."""
     gen = torch.Generator().manual_seed(5)
     for k in (4, 5, 7):
-        ang = torch.linspace(0, 2 * math.pi, k + 1, **D64)[:-1] + 0.2 * torch.rand(k, generator=gen, **D64)
+        ang = torch.linspace(0, 2 * math.pi, k + 1, **D64)[:-1] + 0.2 * torch.rand(
+            k, generator=gen, **D64
+        )
         X = torch.stack(
             [torch.cos(ang), 1.3 * torch.sin(ang), 0.3 * torch.randn(k, generator=gen, **D64)], 1
         )
         face = [list(range(k))]
         lam = 1.7
-        (_, (Lf,)), = [(i, b) for i, b in tp.local_laplacians(X, face, lam)]
-        (_, (Lg,)), = [(i, b) for i, b in tp.local_laplacians(X, face, 0.0)]
+        ((_, (Lf,)),) = [(i, b) for i, b in tp.local_laplacians(X, face, lam)]
+        ((_, (Lg,)),) = [(i, b) for i, b in tp.local_laplacians(X, face, 0.0)]
         n = tp.face_normals(X, face)[0]
         h = (X - X.mean(0)) @ n
         Xbar = X - h[:, None] * n
-        (_, (Lbar,)), = [(i, b) for i, b in tp.local_laplacians(Xbar, face, 0.0)]
+        ((_, (Lbar,)),) = [(i, b) for i, b in tp.local_laplacians(Xbar, face, 0.0)]
         assert torch.allclose(Lg @ X, Lbar @ Xbar, atol=1e-13)
         # hbar_e: projection of h_e = d h onto ker(Ebar^T), from an independent SVD
         d = torch.roll(torch.eye(k, **D64), 1, 1) - torch.eye(k, **D64)

@@ -42,7 +42,11 @@ def test_polygon_faces_accessors():
         ([[0, 1, 2, 1]], 3, r"face 0 .* visits vertex 1 twice"),
         ([[0, 1, 2], [0, 2]], 3, r"face 1 has 2 vertices; a polygon needs at least 3"),
         ([[0, 1, 2], [1, 0, 3], [0, 1, 4]], 5, r"edge \(0, 1\) is shared by 3 faces \[0, 1, 2\]"),
-        ([[0, 1, 2], [0, 1, 3]], 4, r"faces 0 and 1 both traverse edge 0 -> 1 in the same direction"),
+        (
+            [[0, 1, 2], [0, 1, 3]],
+            4,
+            r"faces 0 and 1 both traverse edge 0 -> 1 in the same direction",
+        ),
     ],
 )
 def test_bad_connectivity_is_named(faces, num_verts, match):
@@ -78,7 +82,9 @@ def test_bad_geometry_is_named():
     collinear = V.clone()
     collinear[[0, 1, 3, 4], 1] = 0.0  # face 0 = (0, 1, 4, 3) collapses onto the x axis
     collinear[[0, 1, 3, 4], 0] = torch.tensor([0.0, 0.5, 0.25, 0.75], dtype=V.dtype)
-    with pytest.raises(ValueError, match=r"face 0 \(vertices \[0, 3, 4, 1\]\) has zero vector area"):
+    with pytest.raises(
+        ValueError, match=r"face 0 \(vertices \[0, 3, 4, 1\]\) has zero vector area"
+    ):
         tp.laplacian(collinear, F)
     with pytest.raises(ValueError, match=r"shape \(V, 3\)"):
         tp.laplacian(V[:, :2], F)

@@ -5,7 +5,7 @@ Differentiable with respect to vertex positions, on CPU and CUDA, for faces of a
 """
 
 from .faces import PolygonFaces, as_faces
-from .io import from_trimesh, read_mesh, write_mesh
+from .io import from_trimesh, read_mesh, to_trimesh, write_mesh
 from .operators import (
     PolygonLaplacian,
     coboundary,
@@ -54,4 +54,5 @@ __all__ = [
     "read_mesh",
     "write_mesh",
     "from_trimesh",
+    "to_trimesh",
 ]

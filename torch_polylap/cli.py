@@ -51,7 +51,9 @@ def _smallest_eigenvalues(L: sp.csr_matrix, M: sp.csr_matrix, k: int) -> np.ndar
         return None
     shift = -1e-8 * abs(L.diagonal()).max()
     try:
-        vals = scipy.sparse.linalg.eigsh(L, k=k, M=M, sigma=shift, which="LM", return_eigenvectors=False)
+        vals = scipy.sparse.linalg.eigsh(
+            L, k=k, M=M, sigma=shift, which="LM", return_eigenvectors=False
+        )
     except (RuntimeError, scipy.sparse.linalg.ArpackNoConvergence):
         return None
     return np.sort(vals)
@@ -89,9 +91,12 @@ def cmd_info(args: argparse.Namespace) -> int:
     evals = _smallest_eigenvalues(Ls.astype(np.float64), Ms.astype(np.float64), args.eigs)
 
     lines = [
-        f"polylap {__version__}: {path.name}" + (" (embedded default mesh)" if not args.mesh else ""),
+        f"polylap {__version__}: {path.name}"
+        + (" (embedded default mesh)" if not args.mesh else ""),
         "mesh",
-        _row("vertices / faces / edges", f"{verts.shape[0]} / {faces.num_faces} / {topo.num_edges}"),
+        _row(
+            "vertices / faces / edges", f"{verts.shape[0]} / {faces.num_faces} / {topo.num_edges}"
+        ),
         _row("face degrees (k:count)", degrees),
         _row("boundary edges", str(n_boundary)),
         _row("connected components", str(n_comp)),
@@ -117,7 +122,12 @@ def cmd_info(args: argparse.Namespace) -> int:
     ]
     if evals is not None:
         zero = int((np.abs(evals) < 1e-8 * max(1.0, abs(evals).max())).sum())
-        lines.append(_row(f"smallest {len(evals)} eigenvalues of L = mu M0", np.array2string(evals, precision=4)))
+        lines.append(
+            _row(
+                f"smallest {len(evals)} eigenvalues of L = mu M0",
+                np.array2string(evals, precision=4),
+            )
+        )
         lines.append(_row("zero eigenvalues / components", f"{zero} / {n_comp}"))
     lines += [
         "timings (median of 3)",
@@ -132,7 +142,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="polylap",
-        description="Alexa-Wardetzky polygon Laplacians with PyTorch: inspect meshes and operators.",
+        description="Alexa-Wardetzky polygon Laplacians in PyTorch: inspect meshes and operators.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

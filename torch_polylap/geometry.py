@@ -8,7 +8,8 @@ per-op overhead on tiny matrices (see ``docs`` in the repository), and it differ
 cleanly: no SVD, no eigen-decomposition, no data-dependent Python branches.
 
 Notation follows Alexa & Wardetzky 2011 (AW11) and ``MATH.md``: for a face with corners
-``x_0 .. x_{k-1}``, edges ``e_i = x_{i+1} - x_i``, midpoints ``b_i``, ``g_i = (x_{i+1} - x_{i-1})/2``,
+``x_0 .. x_{k-1}``, edges ``e_i = x_{i+1} - x_i``, midpoints ``b_i``,
+``g_i = (x_{i+1} - x_{i-1}) / 2``,
 vector area ``a = 1/2 sum_i x_i x x_{i+1}`` (AW11 Lemma 1, eq. 8), area ``|f| = |a|``.
 """
 
@@ -47,7 +48,7 @@ def corner_terms(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
 
     Returns:
         ``e`` ``(3, k, F)``: edges ``x_{i+1} - x_i``;
-        ``g`` ``(3, k, F)``: ``(x_{i+1} - x_{i-1}) / 2 = (e_i + e_{i-1}) / 2``, the rows of ``d^T B``
+        ``g`` ``(3, k, F)``: ``(x_{i+1} - x_{i-1}) / 2 = (e_i + e_{i-1}) / 2``, rows of ``d^T B``
         whose Gram matrix divided by ``|f|`` is the geometric part ``d^T (B B^T / |f|) d``
         (MATH.md; origin-free, unlike ``B``);
         ``a`` ``(3, F)``: vector area ``1/2 sum_i x_i x x_{i+1}`` (AW11 eq. 8), summed as the fan
@@ -100,7 +101,8 @@ def stabilizer_factors(e: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, 
         n: ``(3, F)`` unit normals (of the maximal projection).
 
     Returns:
-        ``alpha = d^T q1`` and ``beta = d^T q2``, each ``(k, F)``, with ``(d^T y)_i = y_{i-1} - y_i``.
+        ``alpha = d^T q1`` and ``beta = d^T q2``, each ``(k, F)``;
+        ``(d^T y)_i = y_{i-1} - y_i``.
     """
     q1, q2 = plane_basis(e, n)
     return torch.roll(q1, 1, dims=0) - q1, torch.roll(q2, 1, dims=0) - q2

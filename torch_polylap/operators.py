@@ -61,7 +61,8 @@ def get_topology(faces: MeshFaces, num_verts: int) -> Topology:
     if isinstance(faces, Topology):
         if faces.num_verts != num_verts:
             raise ValueError(
-                f"the topology was built for {faces.num_verts} vertices but verts has {num_verts} rows."
+                f"the topology was built for {faces.num_verts} vertices "
+                f"but verts has {num_verts} rows."
             )
         return faces
     holder = faces.indices if isinstance(faces, PolygonFaces) else faces
@@ -78,12 +79,15 @@ def get_topology(faces: MeshFaces, num_verts: int) -> Topology:
 
 def _check_verts(verts: torch.Tensor) -> None:
     if not isinstance(verts, torch.Tensor):
-        raise TypeError(f"verts must be a torch.Tensor of shape (V, 3), got {type(verts).__name__}.")
+        raise TypeError(
+            f"verts must be a torch.Tensor of shape (V, 3), got {type(verts).__name__}."
+        )
     if verts.dim() != 2 or verts.shape[1] != 3:
         raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
     if not verts.is_floating_point():
         raise ValueError(
-            f"verts must be floating point (float32 or float64), got {verts.dtype}; use verts.double()."
+            f"verts must be floating point (float32 or float64), got {verts.dtype}; "
+            "use verts.double()."
         )
 
 
@@ -239,7 +243,8 @@ def laplacian(
         faces: ``(F, k)`` indices, a list of index lists of mixed degree, a
             :class:`~torch_polylap.PolygonFaces`, or a prebuilt
             :class:`~torch_polylap.topology.Topology` (cached on tensors/PolygonFaces).
-        lam: weight ``lambda > 0`` of the stabilizer ``lambda d^T Pi d`` (AW11 eq. 9, ``U = lambda Id``);
+        lam: weight ``lambda > 0`` of the stabilizer ``lambda d^T Pi d`` (AW11 eq. 9 with
+            ``U = lambda Id``);
             a float or a 0-dim tensor (which may require grad). Default 1 (the paper finds
             ``1 <= lambda <= 3`` comparable). Triangles do not depend on it (Theorem 2).
         layout: ``torch.sparse_csr`` (default; fastest products) or ``torch.sparse_coo``
@@ -263,7 +268,7 @@ def laplacian(
 
 
 def mass(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
-    """``(V,)`` lumped vertex masses ``m_p = sum_{f ni p} |f| / k_f`` (AW11 eq. 10), the diagonal of ``M0``."""
+    """``(V,)`` lumped masses ``m_p = sum_{f ni p} |f| / k_f`` (AW11 eq. 10), diagonal of ``M0``."""
     _check_verts(verts)
     topo = get_topology(faces, verts.shape[0])
     groups, _, _ = topo.on(verts.device)
@@ -284,7 +289,7 @@ def planarity_laplacian(
     layout: torch.layout = torch.sparse_csr,
     validate: bool = True,
 ) -> torch.Tensor:
-    """The planarity operator of AW11 sec. 5.3: ``sum_f P_f^T (lambda d^T Pi d) P_f``, ``(V, V)`` sparse.
+    """The planarity operator of AW11 sec. 5.3, ``sum_f P_f^T (lambda d^T Pi d) P_f``, ``(V, V)``.
 
     ``1/2 sum_c X_c^T Lplan X_c`` is zero exactly when every face is planar; see
     :func:`planarity_energy` for that energy without building the matrix. Triangles contribute
@@ -373,7 +378,7 @@ def planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> t
 def local_laplacians(
     verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0, *, geometric: bool = True
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """Dense per-face blocks ``L_f = d^T M_f d``, one ``(face_ids (F_k,), blocks (F_k, k, k))`` per degree.
+    """Dense blocks ``L_f = d^T M_f d``: ``(face_ids (F_k,), blocks (F_k, k, k))`` per degree.
 
     For inspection and tests; :func:`laplacian` never materializes them.
     ``geometric=False`` gives the planarity blocks ``lambda d^T Pi d``.
@@ -391,7 +396,7 @@ def local_laplacians(
 
 
 def coboundary(faces: MeshFaces, num_verts: int | None = None) -> torch.Tensor:
-    """The half-edge coboundary ``d`` (AW11 eq. 2), ``(N, V)`` sparse CSR, ``N`` = number of corners.
+    """The half-edge coboundary ``d`` (AW11 eq. 2), ``(N, V)`` sparse CSR; ``N`` counts corners.
 
     Row ``h`` is the half-edge leaving corner ``h`` of the packed faces (corner ``c`` of face ``f``
     goes to corner ``c + 1``): ``(d u)_h = u(next) - u(this)``. Together with
@@ -405,10 +410,13 @@ def coboundary(faces: MeshFaces, num_verts: int | None = None) -> torch.Tensor:
     nxt = torch.where(pos + 1 == torch.repeat_interleave(pf.offsets[1:], pf.sizes), start, pos + 1)
     this_v, next_v = idx, idx[nxt]
     cols = torch.stack((torch.minimum(this_v, next_v), torch.maximum(this_v, next_v)), 1)
-    vals = torch.where((this_v < next_v)[:, None], torch.tensor([-1.0, 1.0]), torch.tensor([1.0, -1.0]))
+    vals = torch.where(
+        (this_v < next_v)[:, None], torch.tensor([-1.0, 1.0]), torch.tensor([1.0, -1.0])
+    )
     crow = torch.arange(0, 2 * idx.numel() + 1, 2)
-    return csr_tensor(crow, cols.reshape(-1), vals.reshape(-1).to(torch.float64),
-                                   (idx.numel(), topo.num_verts))
+    return csr_tensor(
+        crow, cols.reshape(-1), vals.reshape(-1).to(torch.float64), (idx.numel(), topo.num_verts)
+    )
 
 
 def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
@@ -420,7 +428,7 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
     """
     parts = []
     topo = None
-    for topo, grp, x in _face_loop(verts, faces):
+    for topo, grp, x in _face_loop(verts, faces):  # noqa: B007 (topo is used after the loop)
         e, _, a = corner_terms(x)
         area = torch.linalg.vector_norm(a, dim=0)
         b = 0.5 * (x + torch.roll(x, -1, dims=1))
@@ -432,8 +440,12 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
         )
         parts.append((grp, geo + lam * proj))
     if topo is None:
-        return csr_tensor(torch.zeros(1, dtype=torch.int64), torch.zeros(0, dtype=torch.int64),
-                                       verts.new_zeros(0), (0, 0))
+        return csr_tensor(
+            torch.zeros(1, dtype=torch.int64),
+            torch.zeros(0, dtype=torch.int64),
+            verts.new_zeros(0),
+            (0, 0),
+        )
     pf = topo.faces
     n = pf.num_corners
     off = pf.offsets.to(verts.device)
@@ -448,7 +460,11 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
         first = off[grp.face_ids]  # (F_k,) first corner of each face
         rows = first[:, None] + torch.arange(k, device=verts.device)  # (F_k, k)
         slots = crow[rows][:, :, None] + torch.arange(k, device=verts.device)  # (F_k, k, k)
-        col[slots.reshape(-1)] = (first[:, None, None] + torch.arange(k, device=verts.device)).expand(-1, k, k).reshape(-1)
+        col[slots.reshape(-1)] = (
+            (first[:, None, None] + torch.arange(k, device=verts.device))
+            .expand(-1, k, k)
+            .reshape(-1)
+        )
         values = values.index_put((slots.reshape(-1),), blocks.reshape(-1))
     return csr_tensor(crow, col, values, (n, n))
 

@@ -50,7 +50,7 @@ def csr_tensor(
 
 
 def coo_tensor(indices: torch.Tensor, values: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
-    """A coalesced torch sparse COO tensor from sorted, duplicate-free ``indices`` (see :func:`csr_tensor`)."""
+    """A coalesced COO tensor from sorted, duplicate-free ``indices`` (see :func:`csr_tensor`)."""
     A = torch.sparse_coo_tensor(indices, values, shape, is_coalesced=True, check_invariants=False)
     setattr(A, _VALUES_LINK, values)
     return A
@@ -67,7 +67,9 @@ def sparse_values(A: torch.Tensor) -> torch.Tensor:
     if linked is not None:
         return linked
     if A.layout == torch.sparse_coo and not A.is_coalesced():
-        raise ValueError("expected a coalesced COO tensor (call A.coalesce() once) or a CSR tensor.")
+        raise ValueError(
+            "expected a coalesced COO tensor (call A.coalesce() once) or a CSR tensor."
+        )
     return A.values()
 
 
@@ -83,7 +85,7 @@ def mark_symmetric(A: torch.Tensor) -> torch.Tensor:
 
 
 def csr_parts(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(crow, col, values)`` of a 2-D sparse CSR or COO tensor; ``values`` keeps its autograd link.
+    """``(crow, col, values)`` of a 2-D sparse CSR or COO tensor; ``values`` stays differentiable.
 
     A COO tensor must be coalesced (sorted by row, then column), which makes its value array
     the CSR value array of the same matrix.
@@ -178,7 +180,7 @@ def spmm(A: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
 
 
 def to_scipy(A: torch.Tensor) -> sp.csr_matrix:
-    """A torch sparse (CSR or COO) or dense 2-D tensor as a ``scipy.sparse.csr_matrix`` (detached, CPU)."""
+    """A sparse (CSR/COO) or dense 2-D tensor as a ``scipy.sparse.csr_matrix`` (detached, CPU)."""
     if A.layout == torch.strided:
         return sp.csr_matrix(A.detach().cpu().numpy())
     crow, col, values = csr_parts(A)

@@ -54,7 +54,10 @@ class GroupChunk:
         return GroupChunk(
             self.start,
             self.stop,
-            *(t.to(device) for t in (self.corners_t, self.pos_upper, self.pos_lower, self.pos_diag)),
+            *(
+                t.to(device)
+                for t in (self.corners_t, self.pos_upper, self.pos_lower, self.pos_diag)
+            ),
         )
 
 
@@ -159,7 +162,7 @@ class Topology:
 
     @property
     def row(self) -> torch.Tensor:
-        """``(nnz,)`` row index of every stored entry (the COO form of the pattern), built lazily."""
+        """``(nnz,)`` row index of every stored entry (the COO pattern), built on first use."""
         if self._row is None:
             self._row = torch.repeat_interleave(torch.arange(self.num_verts), self.crow.diff())
         return self._row
@@ -208,7 +211,8 @@ class Topology:
         degs = ", ".join(f"{g.k}:{g.face_ids.numel()}" for g in self._groups_cpu)
         return (
             f"Topology(V={self.num_verts}, F={self.num_faces}, E={self.num_edges}, "
-            f"boundary_edges={int((self.edge_faces == 1).sum())}, degrees={{{degs}}}, nnz={self.nnz})"
+            f"boundary_edges={int((self.edge_faces == 1).sum())}, degrees={{{degs}}}, "
+            f"nnz={self.nnz})"
         )
 
 
@@ -331,7 +335,9 @@ def build_topology(faces: FacesLike, num_verts: int | None = None) -> Topology:
             )
         )
         # half-edge c of a face runs from corner c to corner c+1 (mod k): pair row of (c, c+1)
-        he_rows = [_pair_row(k, c, c + 1) if c + 1 < k else _pair_row(k, 0, k - 1) for c in range(k)]
+        he_rows = [
+            _pair_row(k, c, c + 1) if c + 1 < k else _pair_row(k, 0, k - 1) for c in range(k)
+        ]
         he_uid.append(ginv[he_rows].reshape(-1))
         he_forward.append((corners_t < np.roll(corners_t, -1, axis=0)).reshape(-1))
         groups_np_faces.append((k, fid))
@@ -374,7 +380,7 @@ def _check_index_range(idx: np.ndarray, offsets: np.ndarray, num_verts: int) -> 
 
 
 def half_edge_vertices(faces: PolygonFaces) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(src, dst)``, each ``(N,)``: half-edge ``h`` runs from corner ``h`` to the next corner of its face."""
+    """``(src, dst)``, each ``(N,)``: half-edge ``h`` runs from corner ``h`` to the next corner."""
     pos = torch.arange(faces.num_corners, device=faces.device)
     last = torch.repeat_interleave(faces.offsets[1:] - 1, faces.sizes)
     first = torch.repeat_interleave(faces.offsets[:-1], faces.sizes)
@@ -383,7 +389,7 @@ def half_edge_vertices(faces: PolygonFaces) -> tuple[torch.Tensor, torch.Tensor]
 
 
 def _check_edges(he_uid, he_forward, ulo, uhi, n_unique, he_faces) -> np.ndarray:
-    """Face count of every vertex pair used as an edge; errors for non-manifold or mis-oriented edges.
+    """Face count of every vertex pair used as an edge; errors for non-manifold or flipped edges.
 
     A manifold edge is used by one face (boundary) or two; two faces of a consistently
     oriented mesh traverse it in opposite directions, so exactly one of them goes from the
