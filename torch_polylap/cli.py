@@ -40,7 +40,7 @@ def _timed(fn: Callable[[], object], repeat: int = 3) -> tuple[float, object]:
 
 
 def _row(label: str, value: str) -> str:
-    return f"  {label:<34}{value}"
+    return f"  {label:<40}{value}"
 
 
 def _smallest_eigenvalues(L: sp.csr_matrix, M: sp.csr_matrix, k: int) -> np.ndarray | None:
