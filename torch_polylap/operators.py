@@ -23,7 +23,13 @@ import torch
 from torch import nn
 
 from .faces import FacesLike, PolygonFaces
-from .geometry import corner_terms, gather_corners, plane_basis, stabilizer_factors
+from .geometry import (
+    corner_terms,
+    gather_corners,
+    plane_basis,
+    quad_entries,
+    stabilizer_factors,
+)
 from .sparse import coo_tensor, csr_tensor, mark_symmetric, sparse_values, spmm
 from .topology import DegreeGroup, Topology, build_topology
 
@@ -93,7 +99,7 @@ def _check_verts(verts: torch.Tensor) -> None:
 
 def _block_entries(
     x: torch.Tensor, grp: DegreeGroup, lam: Lam, geometric: bool = True
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of every face of one degree.
 
     Args:
@@ -103,8 +109,10 @@ def _block_entries(
 
     Returns:
         ``off`` ``(P, F)``: entry ``(pair_i[p], pair_j[p])`` of each face's block;
-        ``area`` ``(F,)``: ``|f|``; ``e`` ``(3, k, F)``: the edges.
+        ``area`` ``(F,)``: ``|f|``.
     """
+    if grp.k == 4:
+        return quad_entries(x, lam, geometric)
     e, g, a = corner_terms(x)
     area = torch.sqrt((a * a).sum(0).clamp_min(torch.finfo(x.dtype).tiny))
     pi, pj = grp.pair_i, grp.pair_j
@@ -125,7 +133,12 @@ def _block_entries(
     elif off is None:
         # Triangles: the stabilizer vanishes identically (AW11 Theorem 2).
         off = x.new_zeros(pi.numel(), x.shape[2])
-    return off, area, e
+    return off, area
+
+
+def _spread(x: torch.Tensor) -> torch.Tensor:
+    """``(F,)`` sum of squared corner distances from the centroid: the scale of a zero-area test."""
+    return (x - x.mean(1, keepdim=True)).square().sum((0, 1))
 
 
 def _row_sums(off: torch.Tensor, grp: DegreeGroup) -> torch.Tensor:
@@ -149,9 +162,9 @@ def _raise_bad_input(verts: torch.Tensor, topo: Topology) -> None:
         )
     eps = torch.finfo(verts.dtype).eps
     for _, grp, x in _face_loop(verts, topo):
-        e, _, a = corner_terms(x)
+        _, _, a = corner_terms(x)
         area = torch.linalg.vector_norm(a, dim=0)
-        bad = area <= eps * (e * e).sum((0, 1))
+        bad = area <= eps * _spread(x)
         if bool(bad.any()):
             local = int(torch.nonzero(bad)[0, 0])
             f = int(grp.face_ids[local])
@@ -182,7 +195,7 @@ def _assemble(
     for grp in groups:
         for chunk in grp.chunks:
             x = gather_corners(verts_t, chunk.corners_t)
-            off, area, e = _block_entries(x, grp, lam, geometric)
+            off, area = _block_entries(x, grp, lam, geometric)
             flat = off.reshape(-1)
             values.index_add_(0, chunk.pos_upper, flat)
             values.index_add_(0, chunk.pos_lower, flat)
@@ -191,7 +204,7 @@ def _assemble(
                 share = (area / grp.k).expand(grp.k, -1).reshape(-1)
                 masses.index_add_(0, chunk.corners_t.reshape(-1), share)
             if validate:
-                degenerate.append((area <= eps * (e * e).sum((0, 1))).any())
+                degenerate.append((area <= eps * _spread(x)).any())
     if validate:
         ok = torch.isfinite(verts).all()
         if degenerate:
@@ -385,7 +398,7 @@ def local_laplacians(
     """
     out = []
     for _, grp, x in _face_loop(verts, faces):
-        off, _, _ = _block_entries(x, grp, lam, geometric)
+        off, _ = _block_entries(x, grp, lam, geometric)
         blocks = verts.new_zeros(x.shape[2], grp.k, grp.k)
         blocks[:, grp.pair_i, grp.pair_j] = off.t()
         blocks[:, grp.pair_j, grp.pair_i] = off.t()
