@@ -128,7 +128,7 @@ def plane_basis(e: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.T
 
 def quad_entries(
     x: torch.Tensor, lam: float | torch.Tensor, geometric: bool = True
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Off-diagonal entries of ``L_f`` for quadrilaterals in closed form (fewer passes than the
     general path; quads dominate real meshes).
 
@@ -147,8 +147,8 @@ def quad_entries(
         lam: stabilizer weight; ``geometric=False`` keeps only the stabilizer.
 
     Returns:
-        ``off`` ``(6, F)`` in the pair order ``(0,1), (0,2), (0,3), (1,2), (1,3), (2,3)``, and
-        ``area`` ``(F,)``.
+        ``off`` ``(6, F)`` in the pair order ``(0,1), (0,2), (0,3), (1,2), (1,3), (2,3)``;
+        ``area`` ``(F,)``; ``size2`` ``(F,)``, the sum of the squared diagonals.
     """
     x0, x1, x2, x3 = x.unbind(1)
     g0 = x1 - x3  # 2 g_0
@@ -156,12 +156,15 @@ def quad_entries(
     a2 = torch.linalg.cross(g0, g1, dim=0)  # 2 a
     tiny = torch.finfo(x.dtype).tiny
     a2_norm = torch.sqrt((a2 * a2).sum(0).clamp_min(tiny))  # 2 |f|
+    d00 = (g0 * g0).sum(0)
+    d11 = (g1 * g1).sum(0)
+    size2 = d00 + d11  # squared diagonals: the length scale of the zero-area test
     rows = []
     if geometric:
         scale = 0.5 / a2_norm  # (g_i . g_j) / |f| with the factors 2 of g0, g1 folded in
         d01 = (g0 * g1).sum(0) * scale
-        d00 = (g0 * g0).sum(0) * scale
-        d11 = (g1 * g1).sum(0) * scale
+        d00 = d00 * scale
+        d11 = d11 * scale
         rows = [d01, -d00, -d01, -d01, -d11, d01]
     if not (isinstance(lam, (int, float)) and lam == 0):
         n = a2 / a2_norm
@@ -181,4 +184,4 @@ def quad_entries(
         rows = stab if not rows else [r + s for r, s in zip(rows, stab)]
     if not rows:
         rows = [x.new_zeros(x.shape[2])] * 6
-    return torch.stack(rows), 0.5 * a2_norm
+    return torch.stack(rows), 0.5 * a2_norm, size2

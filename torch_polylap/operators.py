@@ -61,8 +61,8 @@ def get_topology(faces: MeshFaces, num_verts: int) -> Topology:
     A :class:`Topology` is used as is.  For a ``PolygonFaces`` or an index tensor the topology is
     stored on the object and reused while its content is unchanged (tensor version counter), so
     repeated functional calls with the same faces pay for validation and sorting once.  Lists
-    are converted anew on every call: keep a ``PolygonFaces``, a tensor, a ``Topology`` or a
-    :class:`PolygonLaplacian` for repeated use.
+    and numpy arrays are converted anew on every call: keep a ``PolygonFaces``, a tensor, a
+    ``Topology`` or a :class:`PolygonLaplacian` for repeated use.
     """
     if isinstance(faces, Topology):
         if faces.num_verts != num_verts:
@@ -99,7 +99,7 @@ def _check_verts(verts: torch.Tensor) -> None:
 
 def _block_entries(
     x: torch.Tensor, grp: DegreeGroup, lam: Lam, geometric: bool = True
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of every face of one degree.
 
     Args:
@@ -109,7 +109,8 @@ def _block_entries(
 
     Returns:
         ``off`` ``(P, F)``: entry ``(pair_i[p], pair_j[p])`` of each face's block;
-        ``area`` ``(F,)``: ``|f|``.
+        ``area`` ``(F,)``: ``|f|``; ``size2`` ``(F,)``: a squared length of the face (sum of
+        ``|g_i|^2``), against which a zero area is judged.
     """
     if grp.k == 4:
         return quad_entries(x, lam, geometric)
@@ -133,12 +134,7 @@ def _block_entries(
     elif off is None:
         # Triangles: the stabilizer vanishes identically (AW11 Theorem 2).
         off = x.new_zeros(pi.numel(), x.shape[2])
-    return off, area
-
-
-def _spread(x: torch.Tensor) -> torch.Tensor:
-    """``(F,)`` sum of squared corner distances from the centroid: the scale of a zero-area test."""
-    return (x - x.mean(1, keepdim=True)).square().sum((0, 1))
+    return off, area, (g * g).sum((0, 1))
 
 
 def _row_sums(off: torch.Tensor, grp: DegreeGroup) -> torch.Tensor:
@@ -162,9 +158,8 @@ def _raise_bad_input(verts: torch.Tensor, topo: Topology) -> None:
         )
     eps = torch.finfo(verts.dtype).eps
     for _, grp, x in _face_loop(verts, topo):
-        _, _, a = corner_terms(x)
-        area = torch.linalg.vector_norm(a, dim=0)
-        bad = area <= eps * _spread(x)
+        _, area, size2 = _block_entries(x, grp, 0.0)
+        bad = area <= eps * size2
         if bool(bad.any()):
             local = int(torch.nonzero(bad)[0, 0])
             f = int(grp.face_ids[local])
@@ -195,7 +190,7 @@ def _assemble(
     for grp in groups:
         for chunk in grp.chunks:
             x = gather_corners(verts_t, chunk.corners_t)
-            off, area = _block_entries(x, grp, lam, geometric)
+            off, area, size2 = _block_entries(x, grp, lam, geometric)
             flat = off.reshape(-1)
             values.index_add_(0, chunk.pos_upper, flat)
             values.index_add_(0, chunk.pos_lower, flat)
@@ -204,7 +199,7 @@ def _assemble(
                 share = (area / grp.k).expand(grp.k, -1).reshape(-1)
                 masses.index_add_(0, chunk.corners_t.reshape(-1), share)
             if validate:
-                degenerate.append((area <= eps * _spread(x)).any())
+                degenerate.append((area <= eps * size2).any())
     if validate:
         ok = torch.isfinite(verts).all()
         if degenerate:
@@ -398,7 +393,7 @@ def local_laplacians(
     """
     out = []
     for _, grp, x in _face_loop(verts, faces):
-        off, _ = _block_entries(x, grp, lam, geometric)
+        off, _, _ = _block_entries(x, grp, lam, geometric)
         blocks = verts.new_zeros(x.shape[2], grp.k, grp.k)
         blocks[:, grp.pair_i, grp.pair_j] = off.t()
         blocks[:, grp.pair_j, grp.pair_i] = off.t()
@@ -541,12 +536,21 @@ class PolygonLaplacian(nn.Module):
             if self.topology is None:
                 raise ValueError("PolygonLaplacian: pass faces on the first call.")
             return self.topology
-        key = (id(faces), getattr(faces, "_version", None), num_verts)
-        if isinstance(faces, PolygonFaces):
-            key = (id(faces.indices), faces.indices._version, num_verts)
-        if self.topology is None or key != self._faces_key or isinstance(faces, list):
+        # Identity plus the tensor version counter: the module holds a reference to the faces
+        # it was built from, so their id cannot be recycled by a different object meanwhile.
+        holder = faces.indices if isinstance(faces, PolygonFaces) else faces
+        version = getattr(holder, "_version", None)
+        cached = self._faces_key
+        if (
+            self.topology is None
+            or cached is None
+            or cached[0] is not faces
+            or cached[1] != version
+            or cached[2] != num_verts
+            or not isinstance(holder, (torch.Tensor, Topology))
+        ):
             self.topology = get_topology(faces, num_verts)
-            self._faces_key = key
+            self._faces_key = (faces, version, num_verts)
         return self.topology
 
     def forward(

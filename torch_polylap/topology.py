@@ -245,9 +245,14 @@ def build_topology(faces: FacesLike, num_verts: int | None = None) -> Topology:
     nv = np.int64(max(num_verts, 1))
 
     # One block per degree; inside a block every per-pair array is laid out (P, F_k), the
-    # layout in which operators.py produces the per-face entries.
-    blocks = []
+    # layout in which operators.py produces the per-face entries. The pair keys lo * V + hi
+    # are written row by row into one preallocated array (fresh large temporaries cost page
+    # faults that rival the arithmetic).
     degrees = np.unique(sizes)
+    counts = {k: int((sizes == k).sum()) for k in degrees.tolist()}
+    all_keys = np.empty(sum(k * (k - 1) // 2 * n for k, n in counts.items()), np.int64)
+    blocks = []
+    start = 0
     for k in degrees.tolist():
         if degrees.size == 1:
             fid = np.arange(sizes.size, dtype=np.int64)
@@ -256,28 +261,34 @@ def build_topology(faces: FacesLike, num_verts: int | None = None) -> Topology:
             fid = np.flatnonzero(sizes == k)
             corners_t = idx[offsets[fid][None, :] + np.arange(k)[:, None]]
         pi, pj = _pairs(k)
-        p, q = corners_t[pi], corners_t[pj]
-        same = p == q
-        if same.any():
-            pair, f_local = np.argwhere(same)[0]
-            f = int(fid[f_local])
-            raise ValueError(
-                f"face {f} (vertices {corners_t[:, f_local].tolist()}) visits vertex "
-                f"{int(p[pair, f_local])} twice; a polygon must be simple. Split it into simple "
-                "polygons or merge the duplicated corners."
-            )
-        keys = np.minimum(p, q) * nv + np.maximum(p, q)
-        blocks.append((k, fid, corners_t, pi, pj, keys.reshape(-1)))
+        for i, j in zip(pi.tolist(), pj.tolist()):
+            a, b = corners_t[i], corners_t[j]
+            same = a == b
+            if same.any():
+                f_local = int(np.flatnonzero(same)[0])
+                raise ValueError(
+                    f"face {int(fid[f_local])} (vertices {corners_t[:, f_local].tolist()}) visits "
+                    f"vertex {int(a[f_local])} twice; a polygon must be simple. Split it into "
+                    "simple polygons or merge the duplicated corners."
+                )
+            row = all_keys[start : start + fid.size]
+            np.minimum(a, b, out=row)
+            row *= nv
+            row += np.maximum(a, b)
+            start += fid.size
+        blocks.append((k, fid, corners_t, pi, pj))
 
-    all_keys = np.concatenate([b[5] for b in blocks]) if blocks else np.zeros(0, np.int64)
     # Stable sort (timsort) exploits the long sorted runs that face-ordered keys contain; on
     # structured meshes it is an order of magnitude faster than quicksort.
     perm = np.argsort(all_keys, kind="stable")
     sk = all_keys[perm]
     new = np.ones(sk.size, bool)
     np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    uid = np.cumsum(new, dtype=np.int64)
+    uid -= 1
     inv = np.empty_like(perm)
-    inv[perm] = np.cumsum(new) - 1
+    inv[perm] = uid
+    del perm, uid
     ukeys = sk[new]
     ulo = ukeys // nv
     uhi = ukeys - ulo * nv
@@ -306,9 +317,9 @@ def build_topology(faces: FacesLike, num_verts: int | None = None) -> Topology:
     groups = []
     he_uid, he_forward, groups_np_faces = [], [], []
     start = 0
-    for k, fid, corners_t, pi, pj, keys in blocks:
-        ginv = inv[start : start + keys.size].reshape(pi.size, fid.size)
-        start += keys.size
+    for k, fid, corners_t, pi, pj in blocks:
+        ginv = inv[start : start + pi.size * fid.size].reshape(pi.size, fid.size)
+        start += pi.size * fid.size
         step = max(256, CHUNK_ELEMENTS // (3 * max(pi.size, k)))
         chunks = []
         for a in range(0, fid.size, step):
