@@ -1,0 +1,660 @@
+"""Benchmark torch_polylap's AW11 Laplacian against libigl and scipy.
+
+Measured on non-planar quad grids (``--sizes``, an ``n x n`` grid has ``n^2`` faces) and on the
+real polygon meshes of ``--real-dir``:
+
+1. first assembly of ``(L, M0)``: ``build_topology`` + ``laplacian``;
+2. re-assembly of ``(L, M0)`` with the cached ``Topology``;
+3. forward + backward of ``sum((L X)^2)`` with respect to the vertex positions ``X``;
+4. ``L @ X`` for ``X`` ``(V, 3)``: ``torch_polylap.spmm`` and plain ``L @ X`` on a detached ``L``;
+5. peak memory of (3), in a fresh process per grid size.
+
+Side by side: libigl's triangle ``cotmatrix`` on the fan triangulation of the same mesh (two
+triangles per grid quad), libigl's polygon ``cotmatrix`` (Bunge et al. 2020) and scipy's CSR
+product for (4).  Every time is the median of ``--repeat`` samples after a warm-up call
+(fast operations are repeated within a sample, see :func:`median_time`).
+
+Run from the repository root::
+
+    python benchmarks/bench_laplacian.py                 # 10k, 100k, 1M faces + real meshes
+    python benchmarks/bench_laplacian.py --sizes 100 316 --repeat 1 --json results.json
+
+Progress goes to stderr; the report (Markdown tables) goes to stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import gc
+import json
+import multiprocessing
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Union
+
+# Benchmark the checkout this file lives in, installed or not.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import igl
+import numpy as np
+import scipy
+import torch
+
+import torch_polylap as tp
+
+DEFAULT_SIZES = (100, 316, 1000)
+# ../shared beside the repository holds the real meshes (see ../shared/data/meshes/README.md)
+DEFAULT_REAL_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "real"
+MESH_SUFFIXES = (".obj", ".off", ".ply")
+# Meshes that build_topology must reject (non-orientable); they are checked, not timed.
+MUST_RAISE = ("moebius.obj",)
+# A timing sample repeats a fast call until it lasts this long, so sub-millisecond operations
+# are not dominated by timer and scheduling noise.
+MIN_SAMPLE_SECONDS = 0.05
+CORRECTNESS_TOL = 1e-10
+MEMORY_TARGET_BYTES = 3 * 2**30
+# Warn when other processes kept more than this fraction of the cores busy during the run:
+# torch's multi-threaded kernels then wait for descheduled threads and slow down by far more.
+BUSY_CORES_PER_CORE = 0.1
+
+# name -> (numerator, denominator, target upper bound or None)
+RATIOS: dict[str, tuple[str, str, float | None]] = {
+    "first / igl tri": ("first", "igl_tri", 0.7),
+    "re-asm / igl tri": ("reassembly", "igl_tri", 0.1),
+    "fwd+bwd / first": ("fwd_bwd", "first", 3.0),
+    "spmm / scipy": ("spmm", "scipy_matmul", 2.0),
+    "L@X / scipy": ("torch_matmul", "scipy_matmul", 2.0),
+    "first / igl poly": ("first", "igl_poly", None),
+}
+
+Faces = Union[torch.Tensor, tp.PolygonFaces]
+
+
+@dataclass
+class Mesh:
+    """A benchmark mesh: float64 positions and faces, plus the inputs of the libigl baselines."""
+
+    name: str
+    verts: np.ndarray  # (V, 3) float64
+    faces: Faces  # (F, k) tensor for grids, PolygonFaces for files
+    packed: tp.PolygonFaces
+
+    @property
+    def num_faces(self) -> int:
+        return self.packed.num_faces
+
+    def fan_triangles(self) -> np.ndarray:
+        """``(T, 3)`` fan triangulation ``(c0, ci, ci+1)`` of every face (2 triangles per quad)."""
+        idx = self.packed.indices.numpy()
+        sizes = self.packed.sizes.numpy()
+        offsets = self.packed.offsets.numpy()
+        per_face = sizes - 2
+        owner = np.repeat(np.arange(sizes.size), per_face)
+        local = np.arange(per_face.sum()) - np.repeat(np.cumsum(per_face) - per_face, per_face)
+        first = offsets[owner]
+        return idx[np.stack((first, first + local + 1, first + local + 2), 1)]
+
+
+def grid_mesh(n: int) -> Mesh:
+    """An ``n x n`` quad grid of the unit square lifted to ``z = 0.05 sin(7x) cos(5y)``.
+
+    The lift makes the quads non-planar, so the AW11 stabilizer is exercised on every face.
+    """
+    t = np.linspace(0.0, 1.0, n + 1)
+    x, y = np.meshgrid(t, t, indexing="xy")
+    verts = np.stack((x, y, 0.05 * np.sin(7.0 * x) * np.cos(5.0 * y)), -1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="xy")
+    a = (j * (n + 1) + i).reshape(-1)
+    quads = np.stack((a, a + 1, a + n + 2, a + n + 1), 1).astype(np.int64)
+    faces = torch.from_numpy(quads)
+    return Mesh(f"grid {n}x{n}", verts, faces, tp.as_faces(faces))
+
+
+def file_mesh(path: Path) -> Mesh:
+    """A mesh read with ``torch_polylap.read_mesh`` (polygons kept as written)."""
+    verts, faces = tp.read_mesh(path)
+    return Mesh(path.name, verts.numpy(), faces, faces)
+
+
+def synchronizer(device: torch.device) -> Callable[[], None]:
+    """A function that waits for queued work on ``device`` (a no-op on the CPU)."""
+    if device.type == "cuda":
+        return lambda: torch.cuda.synchronize(device)
+    return lambda: None
+
+
+def _run(fn: Callable[[], object], number: int, sync: Callable[[], None]) -> float:
+    """Seconds taken by ``number`` back-to-back calls of ``fn``, including the device sync."""
+    start = time.perf_counter()
+    for _ in range(number):
+        fn()
+    sync()
+    return time.perf_counter() - start
+
+
+def median_time(fn: Callable[[], object], repeat: int, sync: Callable[[], None]) -> float:
+    """Median seconds per call of ``fn`` over ``repeat`` samples, after warming up.
+
+    The warm-up is one call; when it is faster than :data:`MIN_SAMPLE_SECONDS`, the number of
+    calls per sample is doubled (these runs are also discarded) until a sample lasts that long,
+    so sub-millisecond operations are timed over many calls. Slower calls are timed one by one.
+    """
+    number = 1
+    while _run(fn, number, sync) < MIN_SAMPLE_SECONDS and number < 2**20:
+        number *= 2
+    return statistics.median(_run(fn, number, sync) / number for _ in range(repeat))
+
+
+def forward_backward(verts: torch.Tensor, topo: tp.Topology) -> None:
+    """One training step's worth of work: ``(L, M0)`` from ``X``, ``sum((L X)^2)``, backward."""
+    X = verts.detach().requires_grad_(True)
+    L, _ = tp.laplacian(X, topo)
+    loss = (tp.spmm(L, X) ** 2).sum()
+    loss.backward()
+
+
+def bench_mesh(mesh: Mesh, dtype: torch.dtype, device: torch.device, repeat: int) -> dict:
+    """Median seconds of every measured operation on ``mesh``, plus its sizes."""
+    sync = synchronizer(device)
+    num_verts = mesh.verts.shape[0]
+    verts = torch.as_tensor(mesh.verts, dtype=dtype, device=device)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # isolated-vertex warnings were reported by validate()
+        topo = tp.build_topology(mesh.faces, num_verts)
+        L, _ = tp.laplacian(verts, topo)
+        S = tp.to_scipy(L)
+        X_np = verts.cpu().numpy()
+        tris = mesh.fan_triangles()
+        corners = mesh.packed.indices.numpy()
+        offsets = mesh.packed.offsets.numpy()
+        times = {
+            "topology": median_time(lambda: tp.build_topology(mesh.faces, num_verts), repeat, sync),
+            "first": median_time(
+                lambda: tp.laplacian(verts, tp.build_topology(mesh.faces, num_verts)), repeat, sync
+            ),
+            "reassembly": median_time(lambda: tp.laplacian(verts, topo), repeat, sync),
+            "fwd_bwd": median_time(lambda: forward_backward(verts, topo), repeat, sync),
+            "spmm": median_time(lambda: tp.spmm(L, verts), repeat, sync),
+            "torch_matmul": median_time(lambda: L @ verts, repeat, sync),
+            "scipy_matmul": median_time(lambda: S @ X_np, repeat, sync),
+            "igl_tri": median_time(lambda: igl.cotmatrix(mesh.verts, tris), repeat, sync),
+            "igl_poly": median_time(
+                lambda: igl.cotmatrix(mesh.verts, corners, offsets), repeat, sync
+            ),
+        }
+    return {
+        "name": mesh.name,
+        "faces": mesh.num_faces,
+        "verts": num_verts,
+        "nnz": topo.nnz,
+        "degrees": sorted(set(mesh.packed.sizes.tolist())),
+        "seconds": times,
+        "ratios": {name: times[a] / times[b] for name, (a, b, _) in RATIOS.items()},
+    }
+
+
+def _rss_bytes(field: str) -> int | None:
+    """``VmRSS`` / ``VmHWM`` of this process from ``/proc/self/status`` (None off Linux)."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def _reset_peak_rss() -> bool:
+    """Reset the kernel's peak-RSS counter (``VmHWM``) to the current RSS; False if unsupported."""
+    try:
+        with open("/proc/self/clear_refs", "w") as clear_refs:
+            clear_refs.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_memory_child(n: int, dtype_name: str, device_name: str) -> dict:
+    """Peak memory of one forward + backward on the ``n x n`` grid; runs in a fresh process.
+
+    The setup (mesh, positions, topology on the device) is done first; the peak-RSS counter is
+    then reset and the step run once.  Where ``/proc/self/clear_refs`` cannot be written the
+    peak falls back to ``ru_maxrss`` since process start (an upper bound).
+    """
+    device = torch.device(device_name)
+    mesh = grid_mesh(n)
+    verts = torch.as_tensor(mesh.verts, dtype=getattr(torch, dtype_name), device=device)
+    topo = tp.build_topology(mesh.faces, verts.shape[0])
+    topo.on(device)
+    del mesh
+    gc.collect()
+    exact = _reset_peak_rss()
+    baseline = _rss_bytes("VmRSS")
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        cuda_baseline = torch.cuda.memory_allocated(device)
+    forward_backward(verts, topo)
+    if exact:
+        peak = _rss_bytes("VmHWM")
+    else:
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    result = {
+        "method": "VmHWM after clear_refs" if exact else "ru_maxrss since start",
+        "rss_baseline_bytes": baseline,
+        "rss_peak_bytes": peak,
+        "rss_delta_bytes": None if baseline is None else peak - baseline,
+    }
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        result["cuda_delta_bytes"] = torch.cuda.max_memory_allocated(device) - cuda_baseline
+    return result
+
+
+def measure_peak_memory(n: int, dtype: torch.dtype, device: torch.device) -> dict:
+    """Run :func:`peak_memory_child` in a freshly spawned interpreter and return its result."""
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(1, mp_context=context) as pool:
+        dtype_name = str(dtype).removeprefix("torch.")
+        return pool.submit(peak_memory_child, n, dtype_name, str(device)).result()
+
+
+def check_against_igl(n: int, device: torch.device) -> dict:
+    """On the triangle split of the ``n x n`` grid, ``L`` must be ``-igl.cotmatrix`` (float64)."""
+    mesh = grid_mesh(n)
+    tris = mesh.fan_triangles()
+    verts = torch.as_tensor(mesh.verts, dtype=torch.float64, device=device)
+    L, _ = tp.laplacian(verts, torch.from_numpy(tris))
+    diff = tp.to_scipy(L) + igl.cotmatrix(mesh.verts, tris)
+    max_abs = float(abs(diff).max()) if diff.nnz else 0.0
+    return {
+        "mesh": f"{mesh.name} split into triangles",
+        "max_abs_diff": max_abs,
+        "tolerance": CORRECTNESS_TOL,
+        "passed": max_abs <= CORRECTNESS_TOL,
+    }
+
+
+def check_must_raise(path: Path) -> dict:
+    """``build_topology`` must reject a non-orientable mesh with a ValueError."""
+    verts, faces = tp.read_mesh(path)
+    try:
+        tp.build_topology(faces, verts.shape[0])
+    except ValueError as err:
+        return {"mesh": path.name, "passed": True, "message": str(err)}
+    return {"mesh": path.name, "passed": False, "message": "no error raised"}
+
+
+def validate(mesh: Mesh) -> list[str]:
+    """Build ``L`` once; raises on meshes the library rejects, returns the warnings it gave."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        tp.laplacian(torch.from_numpy(mesh.verts), tp.build_topology(mesh.faces, len(mesh.verts)))
+    return [str(w.message) for w in caught]
+
+
+def real_meshes(directory: Path) -> tuple[list[Mesh], list[dict], list[dict]]:
+    """The meshes of ``directory`` that load and build; the skipped ones; the must-raise checks."""
+    meshes, skipped, raise_checks = [], [], []
+    for path in sorted(p for p in directory.iterdir() if p.suffix.lower() in MESH_SUFFIXES):
+        if path.name in MUST_RAISE:
+            raise_checks.append(check_must_raise(path))
+            continue
+        try:
+            mesh = file_mesh(path)
+            notes = validate(mesh)
+        except (OSError, ValueError) as err:
+            skipped.append({"mesh": path.name, "reason": f"{type(err).__name__}: {err}"})
+            progress(f"skip {path.name}: {type(err).__name__}: {err}")
+            continue
+        for note in notes:
+            progress(f"note {path.name}: {note}")
+        meshes.append(mesh)
+    return meshes, skipped, raise_checks
+
+
+def progress(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def fmt_ms(seconds: float) -> str:
+    ms = seconds * 1e3
+    return f"{ms:.3g}" if ms < 1000 else f"{ms:,.0f}"
+
+
+def fmt_ratio(value: float, target: float | None) -> str:
+    text = f"{value:.3g}"
+    if target is None:
+        return text
+    return f"{text} {'✓' if value <= target else '✗'}"
+
+
+def fmt_mb(num_bytes: int | None) -> str:
+    return "–" if num_bytes is None else f"{num_bytes / 2**20:,.0f}"
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    align = ["---"] + ["--:"] * (len(header) - 1)
+    lines = [header, align, *rows]
+    return "\n".join("| " + " | ".join(cells) + " |" for cells in lines)
+
+
+def timing_table(results: list[dict]) -> str:
+    header = [
+        "mesh",
+        "F",
+        "V",
+        "nnz(L)",
+        "topology",
+        "first",
+        "re-asm",
+        "fwd+bwd",
+        "spmm",
+        "L@X",
+        "scipy L@X",
+        "igl tri",
+        "igl poly",
+        "fwd+bwd Δ MB",
+        "process MB",
+    ]
+    rows = []
+    for r in results:
+        s, mem = r["seconds"], r.get("memory") or {}
+        rows.append(
+            [r["name"], f"{r['faces']:,}", f"{r['verts']:,}", f"{r['nnz']:,}"]
+            + [
+                fmt_ms(s[key])
+                for key in (
+                    "topology",
+                    "first",
+                    "reassembly",
+                    "fwd_bwd",
+                    "spmm",
+                    "torch_matmul",
+                    "scipy_matmul",
+                    "igl_tri",
+                    "igl_poly",
+                )
+            ]
+            + [
+                fmt_mb(mem.get("cuda_delta_bytes", mem.get("rss_delta_bytes"))),
+                fmt_mb(mem.get("rss_peak_bytes")),
+            ]
+        )
+    return markdown_table(header, rows)
+
+
+def ratio_table(results: list[dict]) -> str:
+    header = ["mesh"] + [
+        name if t is None else f"{name} (≤ {t:g})" for name, (_, _, t) in RATIOS.items()
+    ]
+    rows = [
+        [r["name"]] + [fmt_ratio(r["ratios"][name], t) for name, (_, _, t) in RATIOS.items()]
+        for r in results
+    ]
+    return markdown_table(header, rows)
+
+
+def scaling_table(grids: list[dict]) -> str:
+    keys = {
+        "first": "first",
+        "re-asm": "reassembly",
+        "fwd+bwd": "fwd_bwd",
+        "spmm": "spmm",
+        "igl tri": "igl_tri",
+    }
+    header = ["grid", "F"] + [f"{name} µs/face" for name in keys]
+    base = grids[0]
+    rows = []
+    for r in grids:
+        cells = [r["name"], f"{r['faces']:,}"]
+        for key in keys.values():
+            per_face = r["seconds"][key] / r["faces"]
+            growth = per_face / (base["seconds"][key] / base["faces"])
+            cells.append(f"{per_face * 1e6:.3g} (×{growth:.2f})")
+        rows.append(cells)
+    return markdown_table(header, rows)
+
+
+def cpu_counters() -> tuple[float, float] | None:
+    """``(busy CPU-seconds of the whole machine, CPU-seconds of this process and its children)``.
+
+    Read from ``/proc/stat`` (Linux); None elsewhere.
+    """
+    try:
+        with open("/proc/stat") as stat:
+            ticks = [int(t) for t in stat.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    idle = ticks[3] + ticks[4]  # idle + iowait; steal counts as busy (another VM ran)
+    busy = (sum(ticks) - idle) / os.sysconf("SC_CLK_TCK")
+    own = sum(
+        getattr(resource.getrusage(who), field)
+        for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+        for field in ("ru_utime", "ru_stime")
+    )
+    return busy, own
+
+
+def other_processes_cores(
+    start: tuple[float, float] | None, stop: tuple[float, float] | None, seconds: float
+) -> float | None:
+    """Average number of cores kept busy by other processes between two :func:`cpu_counters`."""
+    if start is None or stop is None or seconds <= 0:
+        return None
+    return max(0.0, ((stop[0] - start[0]) - (stop[1] - start[1])) / seconds)
+
+
+def environment(args: argparse.Namespace, device: torch.device) -> dict:
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as info:
+            cpu = next(line.split(":", 1)[1].strip() for line in info if "model name" in line)
+    except (OSError, StopIteration):
+        pass
+    return {
+        "cpu": cpu,
+        "cpu_count": multiprocessing.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "device": str(device),
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "dtype": args.dtype,
+        "repeat": args.repeat,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "torch_polylap": tp.__version__,
+    }
+
+
+def report(env: dict, checks: dict, grids: list[dict], reals: list[dict]) -> str:
+    """The Markdown report printed to stdout."""
+    lines = [
+        f"Machine: {env['cpu']}, {env['cpu_count']} cores, torch {env['torch']} with "
+        f"{env['torch_threads']} threads; device {env['device']}"
+        + (f" ({env['gpu']})" if env["gpu"] else "")
+        + f", {env['dtype']}. Median of {env['repeat']} sample(s) after a warm-up; a sample "
+        f"repeats calls faster than {MIN_SAMPLE_SECONDS * 1e3:g} ms. Times in ms.",
+        "",
+    ]
+    other = env.get("other_processes_cores")
+    if other is not None:
+        lines += [
+            f"Other processes kept {other:.2f} of {env['cpu_count']} cores busy on average "
+            "during the run.",
+            "",
+        ]
+        if other > BUSY_CORES_PER_CORE * env["cpu_count"]:
+            lines += ["**Warning: the machine was not idle; the timings are unreliable.**", ""]
+    tri = checks["igl_triangles"]
+    lines.append(
+        f"Correctness: {tri['mesh']}: max |L + igl.cotmatrix| = "
+        f"{tri['max_abs_diff']:.2e} (tol {tri['tolerance']:g}) "
+        f"{'PASS' if tri['passed'] else 'FAIL'}"
+    )
+    for check in checks["must_raise"]:
+        verdict = "raises ValueError: PASS" if check["passed"] else "did not raise: FAIL"
+        lines.append(f"Correctness: {check['mesh']} (non-orientable) {verdict}")
+    results = grids + reals
+    lines += [
+        "",
+        "### Timings (ms)",
+        "",
+        timing_table(results),
+        "",
+        "### Ratios (✓ meets the target)",
+        "",
+        ratio_table(results),
+    ]
+    if grids:
+        lines += [
+            "",
+            "### Time per face on the grids (growth relative to the smallest)",
+            "",
+            scaling_table(grids),
+        ]
+    memories = [g["memory"] for g in grids if g.get("memory")]
+    if memories:
+        largest = grids[-1]
+        delta = largest["memory"].get("cuda_delta_bytes", largest["memory"]["rss_delta_bytes"])
+        if delta is not None:
+            verdict = "✓" if delta < MEMORY_TARGET_BYTES else "✗"
+            lines += [
+                "",
+                f"Peak fwd+bwd memory on {largest['name']}: {fmt_mb(delta)} MB "
+                f"(target < {MEMORY_TARGET_BYTES / 2**30:g} GB at 1M faces) {verdict}; "
+                f"measured with {largest['memory']['method']}.",
+            ]
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        description="Benchmark torch_polylap's Laplacian (assembly, fwd+bwd, L@X, memory) "
+        "against libigl and scipy; prints Markdown tables to stdout.",
+    )
+    parser.add_argument(
+        "--sizes",
+        type=int,
+        nargs="*",
+        default=list(DEFAULT_SIZES),
+        metavar="N",
+        help="grid resolutions n (n x n quads = n^2 faces); "
+        "default: %(default)s; pass none to skip the grids",
+    )
+    parser.add_argument(
+        "--real",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also benchmark the meshes in --real-dir (default: on)",
+    )
+    parser.add_argument(
+        "--real-dir",
+        type=Path,
+        default=DEFAULT_REAL_DIR,
+        help="directory of .obj/.off/.ply meshes (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=3,
+        help="timed samples per measurement, the median is reported (default: 3)",
+    )
+    parser.add_argument(
+        "--dtype",
+        choices=("float64", "float32"),
+        default="float64",
+        help="dtype of torch_polylap's computations (libigl is always float64)",
+    )
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        help="torch device for torch_polylap, e.g. cpu or cuda (default: cpu)",
+    )
+    parser.add_argument(
+        "--memory",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="measure peak fwd+bwd memory per grid in a fresh process (default: on)",
+    )
+    parser.add_argument("--json", type=Path, metavar="PATH", help="also write all numbers here")
+    args = parser.parse_args(argv)
+    if args.repeat < 1:
+        parser.error("--repeat must be at least 1")
+    if any(n < 1 for n in args.sizes):
+        parser.error("--sizes must be positive")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print(
+            "CUDA is not available in this torch build or on this machine; nothing to "
+            "benchmark on --device cuda."
+        )
+        return 0
+    dtype = getattr(torch, args.dtype)
+    started = time.perf_counter()
+    counters = cpu_counters()
+    env = environment(args, device)
+
+    sizes = sorted(args.sizes)
+    checks = {
+        "igl_triangles": check_against_igl(sizes[0] if sizes else 10, device),
+        "must_raise": [],
+    }
+    progress(f"correctness vs igl: max abs diff {checks['igl_triangles']['max_abs_diff']:.2e}")
+
+    grids = []
+    for n in sizes:
+        progress(f"grid {n}x{n} ...")
+        result = bench_mesh(grid_mesh(n), dtype, device, args.repeat)
+        if args.memory:
+            result["memory"] = measure_peak_memory(n, dtype, device)
+        grids.append(result)
+
+    reals, skipped = [], []
+    if args.real:
+        meshes, skipped, checks["must_raise"] = real_meshes(args.real_dir)
+        for mesh in meshes:
+            progress(f"{mesh.name} ...")
+            reals.append(bench_mesh(mesh, dtype, device, args.repeat))
+
+    elapsed = time.perf_counter() - started
+    env["other_processes_cores"] = other_processes_cores(counters, cpu_counters(), elapsed)
+    print(report(env, checks, grids, reals))
+    for skip in skipped:
+        print(f"\nSkipped {skip['mesh']}: {skip['reason']}")
+    progress(f"total time {elapsed:.1f} s")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        payload: dict[str, Any] = {
+            "environment": env,
+            "checks": checks,
+            "grids": grids,
+            "real": reals,
+            "skipped": skipped,
+            "targets": {name: t for name, (_, _, t) in RATIOS.items()},
+            "memory_target_bytes": MEMORY_TARGET_BYTES,
+            "total_seconds": elapsed,
+        }
+        args.json.write_text(json.dumps(payload, indent=2))
+        progress(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
