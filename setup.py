@@ -13,7 +13,7 @@ setup(
     long_description=Path(__file__).with_name("README.md").read_text(encoding="utf-8"),
     long_description_content_type="text/markdown",
     license="MIT",
-    python_requires=">=3.9",
+    python_requires=">=3.10",
     packages=find_packages(include=["torch_polylap", "torch_polylap.*"]),
     package_data={"torch_polylap": ["data/*.obj", "data/*.md"]},
     install_requires=["torch>=2.1", "numpy>=1.22", "scipy>=1.9", "trimesh>=3.20"],

@@ -39,7 +39,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Union
+from typing import Any
 
 # Benchmark the checkout this file lives in, installed or not.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -76,7 +76,7 @@ RATIOS: dict[str, tuple[str, str, float | None]] = {
     "first / igl poly": ("first", "igl_poly", None),
 }
 
-Faces = Union[torch.Tensor, tp.PolygonFaces]
+Faces = torch.Tensor | tp.PolygonFaces
 
 
 @dataclass

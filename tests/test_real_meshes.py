@@ -196,7 +196,7 @@ def test_counts_match_sources(name):
     assert verts.shape == (facts["V"], 3)
     assert faces.num_faces == facts["F"]
     degrees, counts = np.unique(faces.sizes.numpy(), return_counts=True)
-    assert dict(zip(degrees.tolist(), counts.tolist())) == facts["deg"]
+    assert dict(zip(degrees.tolist(), counts.tolist(), strict=True)) == facts["deg"]
     assert bool(torch.isfinite(verts).all())
 
 

@@ -285,7 +285,7 @@ def test_franke_laplacian_matches_finite_differences():
 _CASES = [
     pytest.param(exp, mesh, lam, printed, id=f"{exp}-{mesh}-lam{lam:g}")
     for (exp, mesh), row in REFERENCE.items()
-    for lam, printed in zip(LAMBDAS, row)
+    for lam, printed in zip(LAMBDAS, row, strict=True)
 ]
 
 
@@ -309,7 +309,7 @@ def test_franke_reference_uses_raw_coordinates(mesh):
     # These three grids cover [-0.5, 0.5]^2. REFERENCE-VALUES.md says "raw vertex coordinates
     # (no shift)", and the table agrees with that reading only: shifting to [0, 1]^2 moves every
     # value by > 10% (observed 17-33%), far outside the rounding tolerance above.
-    for lam, printed in zip(LAMBDAS, REFERENCE[("franke", mesh)]):
+    for lam, printed in zip(LAMBDAS, REFERENCE[("franke", mesh)], strict=True):
         shifted = franke_error(DATA_DIR / f"{mesh}.obj", lam, shift=0.5)
         assert abs(shifted / float(printed) - 1.0) > 0.10
 
@@ -360,7 +360,7 @@ if __name__ == "__main__":
     print(f"{'experiment':15s} {'mesh':18s} {header}")
     for (exp, mesh), row in REFERENCE.items():
         cells = []
-        for lam, printed in zip(LAMBDAS, row):
+        for lam, printed in zip(LAMBDAS, row, strict=True):
             v = EXPERIMENTS[exp](DATA_DIR / f"{mesh}.obj", lam)
             cells.append(f"{v:.4e} vs {printed:>7s} {(v - float(printed)) / float(printed):+.1e}")
         print(f"{exp:15s} {mesh:18s} " + " ".join(f"{c:>26s}" for c in cells))

@@ -137,7 +137,7 @@ def test_pattern_matches_scipy_and_edges():
     assert topo.euler_characteristic() == 12 - len(edges) + len(F) == 1  # a disk
     faces = tp.as_faces(F)
     he = topo.half_edge_edge
-    for h, (a, b) in enumerate(zip(faces.indices.tolist(), _next_corner(faces))):
+    for h, (a, b) in enumerate(zip(faces.indices.tolist(), _next_corner(faces), strict=True)):
         assert tuple(topo.edges[he[h]].tolist()) == (min(a, b), max(a, b))
 
 

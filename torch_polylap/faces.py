@@ -9,7 +9,6 @@ Python sequences and numpy arrays all convert to this one form through :func:`as
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Union
 
 import numpy as np
 import torch
@@ -133,7 +132,7 @@ class PolygonFaces:
         return PolygonFaces(self.indices[start + end - 1 - pos], sizes=self._sizes)
 
 
-FacesLike = Union[PolygonFaces, torch.Tensor, np.ndarray, Sequence[Sequence[int]]]
+FacesLike = PolygonFaces | torch.Tensor | np.ndarray | Sequence[Sequence[int]]
 
 
 def _as_index_tensor(x: object, name: str) -> torch.Tensor:

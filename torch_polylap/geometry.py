@@ -24,6 +24,7 @@ __all__ = [
     "stabilizer_factors",
     "plane_basis",
     "quad_entries",
+    "gather_coordinates",
 ]
 
 
@@ -126,62 +127,97 @@ def plane_basis(e: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return q1, q2
 
 
+def gather_coordinates(verts_t: torch.Tensor, corners_t: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Corner coordinates of a degree group as three ``(k, F)`` tensors ``(X, Y, Z)``.
+
+    One ``take`` per coordinate row is about twice as fast as a 2-D ``index_select`` on the CPU.
+    """
+    return tuple(verts_t[c].take(corners_t) for c in range(3))
+
+
+def _cross_dot(n, u, v) -> torch.Tensor:
+    """``n . (u x v)`` for 3-vectors given as tuples of ``(F,)`` rows."""
+    cx = torch.addcmul(u[1] * v[2], u[2], v[1], value=-1)
+    cy = torch.addcmul(u[2] * v[0], u[0], v[2], value=-1)
+    cz = torch.addcmul(u[0] * v[1], u[1], v[0], value=-1)
+    return torch.addcmul(torch.addcmul(n[0] * cx, n[1], cy), n[2], cz)
+
+
 def quad_entries(
-    x: torch.Tensor, lam: float | torch.Tensor, geometric: bool = True
+    xyz: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    lam: float | torch.Tensor,
+    geometric: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Off-diagonal entries of ``L_f`` for quadrilaterals in closed form (fewer passes than the
-    general path; quads dominate real meshes).
+    """Off-diagonal entries of ``L_f`` for quadrilaterals in closed form.
+
+    Quads dominate real meshes, so they get a scalar kernel: every quantity is an ``(F,)`` row
+    and every step one vectorized pass (fused multiply-adds where possible).
 
     For a quad ``g_2 = -g_0`` and ``g_3 = -g_1``, so ``G G^T`` needs three dot products, and the
     vector area is ``a = 2 g_0 x g_1``. ``ker(Ebar^T)`` is spanned by ``1`` and one vector ``c``;
     since ``d^T 1 = 0`` the stabilizer is the rank-one term ``(d^T c)(d^T c)^T / |c|^2``
     (AW11 eq. 9). With ``t_i = n . (e_i x e_{i+1})``, twice the projected area of the corner
-    triangle ``(x_i, x_{i+1}, x_{i+2})``, ``t_0 + t_2 = t_1 + t_3 = 2 |f|`` and, solving
-    ``Ebar^T c = 0, 1^T c = 0`` by minors,
+    triangle ``(x_i, x_{i+1}, x_{i+2})``, one has ``t_0 + t_2 = t_1 + t_3 = 2 |f|``, and solving
+    ``Ebar^T c = 0, 1^T c = 0`` by minors gives
 
-        c   = (-t0 + 2 t1 + t2, -t0 + 2 t1 - 3 t2, 3 t0 - 2 t1 + t2, -t0 - 2 t1 + t2),
-        d^T c = 4 (-t1, t2, -t3, t0).
+        c     = (-t0 + 2 t1 + t2, -t0 + 2 t1 - 3 t2, 3 t0 - 2 t1 + t2, -t0 - 2 t1 + t2),
+        d^T c = 4 (-t1, t2, -t3, t0),
+        |c|^2 = 4 (t0^2 + t1^2 + t2^2 + t3^2 + (t0 - t1)^2 + (t1 - t2)^2).
 
     Args:
-        x: ``(3, 4, F)`` corner positions.
+        xyz: corner coordinates ``(X, Y, Z)``, each ``(4, F)``.
         lam: stabilizer weight; ``geometric=False`` keeps only the stabilizer.
 
     Returns:
         ``off`` ``(6, F)`` in the pair order ``(0,1), (0,2), (0,3), (1,2), (1,3), (2,3)``;
         ``area`` ``(F,)``; ``size2`` ``(F,)``, the sum of the squared diagonals.
     """
-    x0, x1, x2, x3 = x.unbind(1)
-    g0 = x1 - x3  # 2 g_0
-    g1 = x2 - x0  # 2 g_1
-    a2 = torch.linalg.cross(g0, g1, dim=0)  # 2 a
-    tiny = torch.finfo(x.dtype).tiny
-    a2_norm = torch.sqrt((a2 * a2).sum(0).clamp_min(tiny))  # 2 |f|
-    d00 = (g0 * g0).sum(0)
-    d11 = (g1 * g1).sum(0)
+    X, Y, Z = xyz
+    x0, x1, x2, x3 = ((X[c], Y[c], Z[c]) for c in range(4))
+    g0 = tuple(a - b for a, b in zip(x1, x3, strict=True))  # 2 g_0
+    g1 = tuple(a - b for a, b in zip(x2, x0, strict=True))  # 2 g_1
+    a2 = (  # g0 x g1 = 2 a
+        torch.addcmul(g0[1] * g1[2], g0[2], g1[1], value=-1),
+        torch.addcmul(g0[2] * g1[0], g0[0], g1[2], value=-1),
+        torch.addcmul(g0[0] * g1[1], g0[1], g1[0], value=-1),
+    )
+    tiny = torch.finfo(X.dtype).tiny
+    a2_sq = torch.addcmul(torch.addcmul(a2[0] * a2[0], a2[1], a2[1]), a2[2], a2[2])
+    a2_norm = a2_sq.clamp_min(tiny).sqrt()  # 2 |f|
+    d00 = torch.addcmul(torch.addcmul(g0[0] * g0[0], g0[1], g0[1]), g0[2], g0[2])
+    d11 = torch.addcmul(torch.addcmul(g1[0] * g1[0], g1[1], g1[1]), g1[2], g1[2])
     size2 = d00 + d11  # squared diagonals: the length scale of the zero-area test
-    rows = []
     if geometric:
         scale = 0.5 / a2_norm  # (g_i . g_j) / |f| with the factors 2 of g0, g1 folded in
-        d01 = (g0 * g1).sum(0) * scale
-        d00 = d00 * scale
-        d11 = d11 * scale
-        rows = [d01, -d00, -d01, -d01, -d11, d01]
+        d01 = torch.addcmul(torch.addcmul(g0[0] * g1[0], g0[1], g1[1]), g0[2], g1[2]) * scale
+        neg = -scale
+        d00n, d11n, d01n = d00 * neg, d11 * neg, -d01
+        rows = [d01, d00n, d01n, d01n, d11n, d01]
+    else:
+        zero = torch.zeros_like(a2_norm)
+        rows = [zero] * 6
     if not (isinstance(lam, (int, float)) and lam == 0):
-        n = a2 / a2_norm
-        e1 = x2 - x1
-        t0 = (torch.linalg.cross(x1 - x0, e1, dim=0) * n).sum(0)
-        t1 = (torch.linalg.cross(e1, x3 - x2, dim=0) * n).sum(0)
+        inv = 1.0 / a2_norm
+        n = tuple(c * inv for c in a2)
+        e0 = tuple(a - b for a, b in zip(x1, x0, strict=True))
+        e1 = tuple(a - b for a, b in zip(x2, x1, strict=True))
+        e2 = tuple(a - b for a, b in zip(x3, x2, strict=True))
+        t0 = _cross_dot(n, e0, e1)
+        t1 = _cross_dot(n, e1, e2)
         t2 = a2_norm - t0
         t3 = a2_norm - t1
-        c0 = -t0 + 2 * t1 + t2
-        c1 = -t0 + 2 * t1 - 3 * t2
-        c2 = 3 * t0 - 2 * t1 + t2
-        c3 = -t0 - 2 * t1 + t2
-        w = (16 * lam) / (c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3).clamp_min(tiny)
-        dc = (-t1, t2, -t3, t0)
-        pairs = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-        stab = [w * dc[i] * dc[j] for i, j in pairs]
-        rows = stab if not rows else [r + s for r, s in zip(rows, stab)]
-    if not rows:
-        rows = [x.new_zeros(x.shape[2])] * 6
+        p, r = t0 - t1, t1 - t2
+        c_sq = torch.addcmul(torch.addcmul(t0 * t0, t1, t1), t2, t2)
+        c_sq = torch.addcmul(torch.addcmul(torch.addcmul(c_sq, t3, t3), p, p), r, r)
+        w = (4 * lam) / c_sq.clamp_min(tiny)  # 16 lam / |c|^2
+        wt0, wt1, wt3 = w * t0, w * t1, w * t3
+        # (d^T c)_i (d^T c)_j / |c|^2 with d^T c = 4 (-t1, t2, -t3, t0)
+        rows = [
+            torch.addcmul(rows[0], wt1, t2, value=-1),
+            torch.addcmul(rows[1], wt1, t3),
+            torch.addcmul(rows[2], wt1, t0, value=-1),
+            torch.addcmul(rows[3], wt3, t2, value=-1),
+            torch.addcmul(rows[4], wt0, t2),
+            torch.addcmul(rows[5], wt3, t0, value=-1),
+        ]
     return torch.stack(rows), 0.5 * a2_norm, size2

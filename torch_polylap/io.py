@@ -768,7 +768,7 @@ def _binary_list_element(
         )
     tail = seg_scalar_bytes[-1]
     seg_starts: list[list[int]] = [[] for _ in range(len(lists) + 1)]
-    plan = list(zip(readers, steps, seg_starts))
+    plan = list(zip(readers, steps, seg_starts, strict=True))
     last = seg_starts[-1]
     p = pos
     try:

@@ -17,14 +17,13 @@ onto the pattern cached in :class:`~torch_polylap.topology.Topology`.
 
 from __future__ import annotations
 
-from typing import Union
-
 import torch
 from torch import nn
 
 from .faces import FacesLike, PolygonFaces
 from .geometry import (
     corner_terms,
+    gather_coordinates,
     gather_corners,
     plane_basis,
     quad_entries,
@@ -51,8 +50,8 @@ __all__ = [
     "get_topology",
 ]
 
-Lam = Union[float, torch.Tensor]
-MeshFaces = Union[FacesLike, Topology]
+Lam = float | torch.Tensor
+MeshFaces = FacesLike | Topology
 
 
 def get_topology(faces: MeshFaces, num_verts: int) -> Topology:
@@ -103,7 +102,8 @@ def _block_entries(
     """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of every face of one degree.
 
     Args:
-        x: ``(3, k, F)`` corner positions.
+        x: ``(3, k, F)`` corner positions (the quad kernel also accepts the tuple of three
+            ``(k, F)`` coordinate tensors that :func:`gather_coordinates` returns).
         lam: weight of the stabilizer; ``geometric=False`` keeps only ``lam d^T Pi d`` (the
             planarity operator's blocks).
 
@@ -113,7 +113,7 @@ def _block_entries(
         ``|g_i|^2``), against which a zero area is judged.
     """
     if grp.k == 4:
-        return quad_entries(x, lam, geometric)
+        return quad_entries(x.unbind(0), lam, geometric)
     e, g, a = corner_terms(x)
     area = torch.sqrt((a * a).sum(0).clamp_min(torch.finfo(x.dtype).tiny))
     pi, pj = grp.pair_i, grp.pair_j
@@ -189,8 +189,12 @@ def _assemble(
     degenerate = []
     for grp in groups:
         for chunk in grp.chunks:
-            x = gather_corners(verts_t, chunk.corners_t)
-            off, area, size2 = _block_entries(x, grp, lam, geometric)
+            if grp.k == 4:
+                xyz = gather_coordinates(verts_t, chunk.corners_t)
+                off, area, size2 = quad_entries(xyz, lam, geometric)
+            else:
+                x = gather_corners(verts_t, chunk.corners_t)
+                off, area, size2 = _block_entries(x, grp, lam, geometric)
             flat = off.reshape(-1)
             values.index_add_(0, chunk.pos_upper, flat)
             values.index_add_(0, chunk.pos_lower, flat)

@@ -261,7 +261,7 @@ def build_topology(faces: FacesLike, num_verts: int | None = None) -> Topology:
             fid = np.flatnonzero(sizes == k)
             corners_t = idx[offsets[fid][None, :] + np.arange(k)[:, None]]
         pi, pj = _pairs(k)
-        for i, j in zip(pi.tolist(), pj.tolist()):
+        for i, j in zip(pi.tolist(), pj.tolist(), strict=True):
             a, b = corners_t[i], corners_t[j]
             same = a == b
             if same.any():
