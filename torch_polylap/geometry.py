@@ -59,8 +59,17 @@ def corner_terms(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
     """
     e = torch.roll(x, -1, dims=1) - x
     g = 0.5 * (e + torch.roll(e, 1, dims=1))
-    r = x[:, 1:] - x[:, :1]  # (3, k-1, F)
-    a = 0.5 * torch.linalg.cross(r[:, :-1], r[:, 1:], dim=0).sum(1)
+    rx, ry, rz = (x[:, 1:] - x[:, :1]).unbind(0)  # (k-1, F) each
+    a = (
+        0.5
+        * torch.stack(  # fan cross products by coordinate: cheaper than linalg.cross
+            (
+                torch.addcmul(ry[:-1] * rz[1:], rz[:-1], ry[1:], value=-1).sum(0),
+                torch.addcmul(rz[:-1] * rx[1:], rx[:-1], rz[1:], value=-1).sum(0),
+                torch.addcmul(rx[:-1] * ry[1:], ry[:-1], rx[1:], value=-1).sum(0),
+            )
+        )
+    )
     return e, g, a
 
 

@@ -119,7 +119,12 @@ def _block_entries(
     pi, pj = grp.pair_i, grp.pair_j
     off = None
     if geometric:
-        off = (g.index_select(1, pi) * g.index_select(1, pj)).sum(0) / area
+        # g_i . g_j one coordinate at a time: row gathers of (k, F) blocks and fused
+        # multiply-adds beat a (3, P, F) product reduced over its leading axis.
+        gx, gy, gz = g.unbind(0)
+        off = gx.index_select(0, pi) * gx.index_select(0, pj)
+        off = torch.addcmul(off, gy.index_select(0, pi), gy.index_select(0, pj))
+        off = torch.addcmul(off, gz.index_select(0, pi), gz.index_select(0, pj)) / area
     if grp.k > 3 and not (isinstance(lam, (int, float)) and lam == 0):
         alpha, beta = stabilizer_factors(e, a / area)
         stab = torch.addcmul(
