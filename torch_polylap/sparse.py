@@ -168,6 +168,11 @@ def spmm(A: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
         )
     crow, col, values = csr_parts(A)
     vec = X.dim() == 1
+    if not (torch.is_grad_enabled() and (values.requires_grad or X.requires_grad)):
+        # nothing to differentiate: skip the autograd.Function (its fixed cost dominates on
+        # small meshes) and use the CSR product directly
+        A_csr = A if A.layout == torch.sparse_csr else csr_tensor(crow, col, values, A.shape)
+        return A_csr.detach() @ X
     Y = _CSRMatmul.apply(
         values,
         X.unsqueeze(1) if vec else X,
