@@ -768,7 +768,8 @@ def _binary_list_element(
         )
     tail = seg_scalar_bytes[-1]
     seg_starts: list[list[int]] = [[] for _ in range(len(lists) + 1)]
-    plan = list(zip(readers, steps, seg_starts, strict=True))
+    # seg_starts has one more list (the tail after the last list property) than readers
+    plan = list(zip(readers, steps, seg_starts, strict=False))
     last = seg_starts[-1]
     p = pos
     try:
