@@ -30,7 +30,7 @@ from .geometry import (
     stabilizer_factors,
 )
 from .sparse import coo_tensor, csr_tensor, mark_symmetric, sparse_values, spmm
-from .topology import DegreeGroup, Topology, build_topology
+from .topology import DegreeGroup, Topology, build_topology, half_edge_vertices
 
 __all__ = [
     "laplacian",
@@ -412,27 +412,31 @@ def local_laplacians(
     return out
 
 
-def coboundary(faces: MeshFaces, num_verts: int | None = None) -> torch.Tensor:
+def coboundary(
+    faces: MeshFaces,
+    num_verts: int | None = None,
+    *,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
     """The half-edge coboundary ``d`` (AW11 eq. 2), ``(N, V)`` sparse CSR; ``N`` counts corners.
 
     Row ``h`` is the half-edge leaving corner ``h`` of the packed faces (corner ``c`` of face ``f``
     goes to corner ``c + 1``): ``(d u)_h = u(next) - u(this)``. Together with
-    :func:`one_form_inner_product`, ``L = d^T M1 d``.
+    :func:`one_form_inner_product`, ``L = d^T M1 d``. Its entries are ``+-1`` in ``dtype``.
     """
     topo = faces if isinstance(faces, Topology) else build_topology(faces, num_verts)
-    pf = topo.faces
-    idx = pf.indices
-    start = torch.repeat_interleave(pf.offsets[:-1], pf.sizes)
-    pos = torch.arange(idx.numel())
-    nxt = torch.where(pos + 1 == torch.repeat_interleave(pf.offsets[1:], pf.sizes), start, pos + 1)
-    this_v, next_v = idx, idx[nxt]
+    this_v, next_v = half_edge_vertices(topo.faces)
+    n = this_v.numel()
     cols = torch.stack((torch.minimum(this_v, next_v), torch.maximum(this_v, next_v)), 1)
-    vals = torch.where(
-        (this_v < next_v)[:, None], torch.tensor([-1.0, 1.0]), torch.tensor([1.0, -1.0])
-    )
-    crow = torch.arange(0, 2 * idx.numel() + 1, 2)
+    sign = torch.where(this_v < next_v, 1.0, -1.0).to(dtype)
+    vals = torch.stack((-sign, sign), 1)  # -1 at the tail, +1 at the head, sorted by column
+    crow = torch.arange(0, 2 * n + 1, 2)
     return csr_tensor(
-        crow, cols.reshape(-1), vals.reshape(-1).to(torch.float64), (idx.numel(), topo.num_verts)
+        crow.to(device),
+        cols.reshape(-1).to(device),
+        vals.reshape(-1).to(device),
+        (n, topo.num_verts),
     )
 
 
