@@ -6,6 +6,7 @@ Differentiable with respect to vertex positions, on CPU and CUDA, for faces of a
 
 from .faces import PolygonFaces, as_faces
 from .io import from_trimesh, read_mesh, to_trimesh, write_mesh
+from .linalg import dirichlet_solve, eigs, solve
 from .operators import (
     PolygonLaplacian,
     coboundary,
@@ -49,6 +50,9 @@ __all__ = [
     "face_normals",
     "face_nonplanarity",
     "spmm",
+    "solve",
+    "dirichlet_solve",
+    "eigs",
     "to_scipy",
     "from_scipy",
     "read_mesh",

@@ -1,0 +1,178 @@
+"""Differentiable solves and eigenpairs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
+
+import torch_polylap as tp
+from torch_polylap.sparse import csr_tensor, sparse_values
+
+D64 = {"dtype": torch.float64}
+
+
+def implicit_matrix(V, F, h=0.1, lam=1.0):
+    L, M0 = tp.laplacian(V, F, lam)
+    crow, col = L.crow_indices(), L.col_indices()
+    diag = torch.zeros_like(sparse_values(L))
+    row = torch.repeat_interleave(torch.arange(V.shape[0]), crow.diff())
+    diag[row == col] = sparse_values(M0)
+    return csr_tensor(crow, col, diag + h * sparse_values(L), tuple(L.shape))
+
+
+@pytest.mark.parametrize("backend", ["splu", "cg"])
+def test_solve_matches_dense(backend):
+    V, F = quad_grid(6, bump=0.3, seed=2)
+    A = implicit_matrix(V, F)
+    B = torch.randn(V.shape[0], 3, generator=torch.Generator().manual_seed(0), **D64)
+    X = tp.solve(A, B, backend=backend, tol=1e-12)
+    ref = torch.linalg.solve(A.to_dense(), B)
+    assert torch.allclose(X, ref, rtol=1e-9, atol=1e-10)
+    x = tp.solve(A, B[:, 0], backend=backend, tol=1e-12)
+    assert x.shape == (V.shape[0],) and torch.allclose(x, ref[:, 0], rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("backend", ["splu", "cg"])
+def test_gradcheck_solve_values_and_rhs(backend):
+    V, F = mixed_mesh()
+    A = implicit_matrix(V, F, h=0.3)
+    crow, col = A.crow_indices(), A.col_indices()
+    values = sparse_values(A).detach().clone().requires_grad_(True)
+    B = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(1), **D64)
+    B.requires_grad_(True)
+
+    def f(v, B):
+        # symmetrize so that perturbations keep A symmetric, as the adjoint for CG assumes
+        A = csr_tensor(crow, col, v, (V.shape[0],) * 2)
+        return tp.solve(A, B, backend=backend, tol=1e-13)
+
+    if backend == "cg":
+        # CG assumes symmetry: check the gradient along symmetric value perturbations only
+        Ad = A.to_dense()
+        assert torch.equal(Ad, Ad.T)
+        assert torch.autograd.gradcheck(lambda B: f(values.detach(), B), (B,))
+    else:
+        assert torch.autograd.gradcheck(f, (values, B))
+
+
+def test_solve_gradient_reaches_vertex_positions():
+    """d/dX of a loss through (M0 + h L)^{-1} b matches finite differences."""
+    V, F = quad_grid(4, bump=0.3, seed=5)
+    topo = tp.build_topology(F, V.shape[0])
+    b = torch.sin(3 * V[:, 0]) + V[:, 1]
+
+    def loss(X):
+        return tp.solve(implicit_matrix(X, topo), b).square().sum()
+
+    X = V.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(loss(X), X)
+    d = torch.randn(V.shape, generator=torch.Generator().manual_seed(3), **D64)
+    h = 1e-6
+    fd = (loss(V + h * d) - loss(V - h * d)) / (2 * h)
+    assert torch.isclose((g * d).sum(), fd, rtol=1e-6)
+
+
+def test_factorization_is_cached_and_invalidated():
+    V, F = quad_grid(5, bump=0.2)
+    A = implicit_matrix(V, F)
+    B = torch.ones(V.shape[0], **D64)
+    tp.solve(A, B)
+    factor = A._polylap_factorization
+    tp.solve(A, 2 * B)
+    assert A._polylap_factorization is factor
+    sparse_values(A).mul_(2.0)  # in-place change of the values: the cache must notice
+    X = tp.solve(A, B)
+    assert A._polylap_factorization is not factor
+    assert torch.allclose(A.to_dense() @ X, B)
+
+
+def test_singular_system_is_a_clear_error():
+    V, F = quad_grid(3)
+    L, _ = tp.laplacian(V, F)
+    with pytest.raises(ValueError, match="singular.*M0 \\+ h L.*dirichlet_solve"):
+        tp.solve(L, torch.ones(V.shape[0], **D64))
+    with pytest.raises(ValueError, match="dtype"):
+        tp.solve(L, torch.ones(V.shape[0]))
+
+
+def test_dirichlet_solve_reproduces_linear_functions():
+    """Linear precision: harmonic interpolation of linear boundary data is that linear function."""
+    V, F = tp.read_mesh(DATA / "grid" / "quad_3.obj")
+    topo = tp.build_topology(F, V.shape[0])
+    L, _ = tp.laplacian(V, topo, 2.0)
+    boundary = topo.boundary_vertices
+    u = 0.3 + 2.0 * V[:, 0] - 1.5 * V[:, 1]
+    X = tp.dirichlet_solve(L, torch.zeros_like(u), boundary, u[boundary])
+    assert torch.allclose(X, u, atol=1e-11)
+    assert torch.equal(X[boundary], u[boundary])
+    mask = torch.zeros(V.shape[0], dtype=torch.bool)
+    mask[boundary] = True
+    X2 = tp.dirichlet_solve(
+        L, torch.zeros(V.shape[0], 2, **D64), mask, torch.stack([u, u], 1)[mask]
+    )
+    assert torch.allclose(X2[:, 1], u, atol=1e-11)
+
+
+def test_gradcheck_dirichlet_solve():
+    V, F = hex_pent_mesh()
+    topo = tp.build_topology(F, V.shape[0])
+    boundary = topo.boundary_vertices
+    b = torch.randn(V.shape[0], generator=torch.Generator().manual_seed(4), **D64)
+    g = torch.randn(boundary.numel(), generator=torch.Generator().manual_seed(5), **D64)
+
+    def f(X, b, g):
+        L, M0 = tp.laplacian(X, topo)
+        return tp.dirichlet_solve(L, tp.spmm(M0, b), boundary, g)
+
+    args = (V.clone().requires_grad_(True), b.requires_grad_(True), g.requires_grad_(True))
+    assert torch.autograd.gradcheck(f, args)
+
+
+def test_eigs_match_dense_and_are_m_orthonormal():
+    V, F = tp.read_mesh(DATA / "spot_control_mesh.obj")
+    L, M0 = tp.laplacian(V, F)
+    evals, evecs = tp.eigs(L, M0, 10)
+    ref = scipy.linalg.eigh(L.to_dense().numpy(), M0.to_dense().numpy(), eigvals_only=True)[:10]
+    np.testing.assert_allclose(evals.numpy(), ref, rtol=1e-8, atol=1e-10)
+    gram = evecs.T @ (M0.to_dense() @ evecs)
+    assert torch.allclose(gram, torch.eye(10, **D64), atol=1e-10)
+    residual = L.to_dense() @ evecs - (M0.to_dense() @ evecs) * evals
+    assert residual.abs().max() < 1e-9 * evals.max()
+    assert abs(evals[0]) < 1e-10  # constants
+
+
+def test_eigs_counts_components():
+    V1, F1 = quad_grid(4, bump=0.2)
+    V2, F2 = mixed_mesh()
+    V = torch.cat([V1, V2 + 5.0])
+    F = [f.tolist() for f in F1] + [[i + V1.shape[0] for i in f] for f in F2]
+    L, M0 = tp.laplacian(V, F)
+    evals, _ = tp.eigs(L, M0, 4)
+    assert (evals[:2].abs() < 1e-9).all() and evals[2] > 1e-3
+
+
+def test_eigenvalue_gradient_matches_finite_differences():
+    V, F = quad_grid(5, bump=0.3, seed=11)  # irregular: simple eigenvalues
+    topo = tp.build_topology(F, V.shape[0])
+    weights = torch.tensor([0.0, 1.0, -0.5, 2.0], **D64)
+
+    def spectrum(X):
+        L, M0 = tp.laplacian(X, topo, 1.5)
+        return (tp.eigs(L, M0, 4)[0] * weights).sum()
+
+    X = V.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(spectrum(X), X)
+    d = torch.randn(V.shape, generator=torch.Generator().manual_seed(7), **D64)
+    h = 1e-6
+    fd = (spectrum(V + h * d) - spectrum(V - h * d)) / (2 * h)
+    assert torch.isclose((g * d).sum(), fd, rtol=1e-5)
+
+
+def test_eigs_rejects_bad_k():
+    V, F = mixed_mesh()
+    L, M0 = tp.laplacian(V, F)
+    with pytest.raises(ValueError, match="1 <= k < n"):
+        tp.eigs(L, M0, V.shape[0])

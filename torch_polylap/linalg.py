@@ -1,0 +1,369 @@
+"""Differentiable sparse solves and generalized eigenpairs for the operators of this package.
+
+``solve(A, B)`` solves ``A X = B`` for a sparse, symmetric positive definite ``A`` (``M0 + h L``,
+``L`` with Dirichlet rows, ...) and is differentiable in ``B`` and in ``A``'s values by the
+adjoint method: with ``G = dLoss/dX``, ``dLoss/dB = A^{-T} G`` and
+``dLoss/dA_ij = -(A^{-T} G)_i X_j`` on ``A``'s pattern only, so memory stays O(nnz).  The
+factorization is cached on ``A`` and reused by the backward solve and by later solves with the
+same values.
+
+``eigs(L, M, k)`` returns the ``k`` smallest eigenpairs of ``L phi = mu M phi``; the eigenvalues
+are differentiable (``d mu = phi^T (dL - mu dM) phi`` for simple eigenvalues).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from .sparse import csr_parts, csr_tensor, mark_symmetric, spmm, to_scipy
+
+__all__ = ["solve", "dirichlet_solve", "eigs", "Factorization"]
+
+_FACTOR_CACHE = "_polylap_factorization"
+
+
+class Factorization:
+    """A sparse LU factorization (SuperLU, symmetric mode) of a CSR matrix, in float64.
+
+    Built from ``A``'s values at one point in time; :func:`solve` checks the values' version
+    counter and data pointer before reusing it.
+    """
+
+    def __init__(self, A: torch.Tensor, values: torch.Tensor) -> None:
+        S = sp.csc_matrix(to_scipy(A).astype(np.float64))
+        try:
+            # Symmetric mode with a minimum-degree ordering of A + A^T and no row pivoting is
+            # what SuperLU recommends for SPD matrices; it keeps the fill of a Cholesky.
+            self.lu = spla.splu(
+                S,
+                permc_spec="MMD_AT_PLUS_A",
+                diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True},
+            )
+        except RuntimeError as err:
+            raise ValueError(_singular_message(A, str(err))) from None
+        # A singular PSD matrix (a Laplacian without a mass term) factors without complaint,
+        # its last pivot being round-off: compare the pivots instead.
+        pivots = np.abs(self.lu.U.diagonal())
+        if pivots.size and pivots.min() <= pivots.size * np.finfo(float).eps * pivots.max():
+            raise ValueError(_singular_message(A, f"pivot ratio {pivots.min() / pivots.max():.1e}"))
+        self.stamp = _stamp(values)
+        self.shape = tuple(A.shape)
+
+    def solve(self, B: np.ndarray, transpose: bool = False) -> np.ndarray:
+        X = self.lu.solve(
+            np.ascontiguousarray(B, dtype=np.float64), trans="T" if transpose else "N"
+        )
+        if not np.isfinite(X).all():
+            raise ValueError(
+                "the solve produced non-finite values: the system matrix is singular or "
+                "numerically singular (a Laplacian without a mass term or Dirichlet values?)."
+            )
+        return X
+
+
+def _singular_message(A: torch.Tensor, detail: str) -> str:
+    return (
+        f"the {A.shape[0]} x {A.shape[1]} system matrix is singular ({detail}). A Laplacian "
+        "alone has the constants in its kernel: solve with M0 + h L, or fix values at some "
+        "vertices with torch_polylap.dirichlet_solve."
+    )
+
+
+def _stamp(values: torch.Tensor) -> tuple:
+    return (values.data_ptr(), values._version, values.numel(), values.dtype)
+
+
+def _factorization(A: torch.Tensor, values: torch.Tensor) -> Factorization:
+    cached = getattr(A, _FACTOR_CACHE, None)
+    if cached is not None and cached.stamp == _stamp(values):
+        return cached
+    factor = Factorization(A, values)
+    setattr(A, _FACTOR_CACHE, factor)
+    return factor
+
+
+def _cg(A: torch.Tensor, B: torch.Tensor, tol: float, max_iter: int) -> torch.Tensor:
+    """Jacobi-preconditioned conjugate gradients on every column of ``B`` at once (SPD ``A``)."""
+    crow, col, values = csr_parts(A)
+    row = torch.repeat_interleave(torch.arange(A.shape[0], device=A.device), crow.diff())
+    diag = torch.zeros(A.shape[0], dtype=values.dtype, device=values.device)
+    diag.index_add_(0, row, torch.where(row == col, values, torch.zeros_like(values)))
+    if bool((diag <= 0).any()):
+        raise ValueError("conjugate gradients needs a positive diagonal (an SPD matrix).")
+    Ad = csr_tensor(crow, col, values.detach(), tuple(A.shape))
+    inv_diag = (1.0 / diag.detach())[:, None]
+    X = torch.zeros_like(B)
+    R = B.clone()
+    Z = inv_diag * R
+    P = Z.clone()
+    rz = (R * Z).sum(0)
+    tiny = torch.finfo(B.dtype).tiny
+    target = tol * torch.linalg.vector_norm(B, dim=0)
+    for _ in range(max_iter):
+        if bool((torch.linalg.vector_norm(R, dim=0) <= target).all()):
+            return X
+        AP = Ad @ P
+        # converged (or zero) columns have rz = 0: keep them where they are instead of 0 / 0
+        alpha = torch.where(rz > 0, rz / (P * AP).sum(0).clamp_min(tiny), 0.0)
+        X = X + alpha * P
+        R = R - alpha * AP
+        Z = inv_diag * R
+        rz_new = (R * Z).sum(0)
+        P = Z + torch.where(rz > 0, rz_new / rz.clamp_min(tiny), 0.0) * P
+        rz = rz_new
+    if bool((torch.linalg.vector_norm(R, dim=0) <= target).all()):
+        return X
+    raise ValueError(
+        f"conjugate gradients did not reach a relative residual of {tol:g} in {max_iter} "
+        "iterations: the matrix may be singular or badly conditioned (pass a larger max_iter)."
+    )
+
+
+class _Solve(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, values, B, wrapped, backend, tol, max_iter):
+        (A,) = wrapped  # a 1-tuple: autograd must not treat the sparse tensor as an input
+        if backend == "splu":
+            factor = _factorization(A, values)
+            X = torch.from_numpy(factor.solve(B.detach().cpu().numpy())).to(B)
+        else:
+            factor = None
+            X = _cg(A, B.detach(), tol, max_iter)
+        ctx.save_for_backward(values, X)
+        ctx.A, ctx.factor, ctx.backend, ctx.tol, ctx.max_iter = A, factor, backend, tol, max_iter
+        return X
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, G):
+        values, X = ctx.saved_tensors
+        if ctx.backend == "splu":
+            gB = torch.from_numpy(ctx.factor.solve(G.cpu().numpy(), transpose=True)).to(G)
+        else:
+            gB = _cg(ctx.A, G.contiguous(), ctx.tol, ctx.max_iter)  # A symmetric: A^T = A
+        grad_values = None
+        if ctx.needs_input_grad[0]:
+            crow, col, _ = csr_parts(ctx.A)
+            pattern = csr_tensor(crow, col, torch.zeros_like(values), tuple(ctx.A.shape))
+            grad_values = -torch.sparse.sampled_addmm(pattern, gB, X.t(), beta=0.0).values()
+        return grad_values, gB if ctx.needs_input_grad[1] else None, None, None, None, None
+
+
+def solve(
+    A: torch.Tensor,
+    B: torch.Tensor,
+    *,
+    backend: str = "auto",
+    tol: float = 1e-10,
+    max_iter: int = 10000,
+) -> torch.Tensor:
+    """``X = A^{-1} B`` for a sparse symmetric positive definite ``A``, differentiable in both.
+
+    Args:
+        A: ``(n, n)`` sparse CSR (or coalesced COO) tensor, e.g. ``M0 + h L``; its values may
+            require grad.
+        B: ``(n,)`` or ``(n, c)`` dense right-hand side(s) of ``A``'s dtype.
+        backend: ``"splu"`` (a sparse direct factorization on the CPU, cached on ``A``),
+            ``"cg"`` (Jacobi-preconditioned conjugate gradients, on ``A``'s device), or
+            ``"auto"``: ``"splu"`` for CPU tensors, ``"cg"`` for CUDA tensors.
+        tol, max_iter: relative residual and iteration limit of ``"cg"``.
+
+    Returns:
+        ``X`` with ``B``'s shape, dtype and device. The direct solver works in float64 and
+        casts back.
+
+    Raises:
+        ValueError: ``A`` singular (e.g. ``L`` without a mass term or Dirichlet values), shapes
+            or dtypes that do not match, or CG that does not converge.
+    """
+    if A.dim() != 2 or A.shape[0] != A.shape[1]:
+        raise ValueError(f"solve needs a square matrix, got shape {tuple(A.shape)}.")
+    if B.dim() not in (1, 2) or B.shape[0] != A.shape[0]:
+        raise ValueError(
+            f"solve: B of shape {tuple(B.shape)} does not fit A of shape {tuple(A.shape)}."
+        )
+    if B.dtype != A.dtype:
+        raise ValueError(f"solve: A has dtype {A.dtype} but B has {B.dtype}; convert one of them.")
+    if backend == "auto":
+        backend = "splu" if A.device.type == "cpu" else "cg"
+    if backend not in ("splu", "cg"):
+        raise ValueError(f"backend must be 'auto', 'splu' or 'cg', got {backend!r}.")
+    if A.layout != torch.sparse_csr:
+        crow, col, values = csr_parts(A)
+        A = csr_tensor(crow, col, values, tuple(A.shape))
+    values = csr_parts(A)[2]
+    vec = B.dim() == 1
+    X = _Solve.apply(values, B[:, None] if vec else B, (A,), backend, tol, max_iter)
+    return X[:, 0] if vec else X
+
+
+def dirichlet_solve(
+    A: torch.Tensor,
+    B: torch.Tensor,
+    fixed: torch.Tensor,
+    fixed_values: torch.Tensor,
+    **solve_options,
+) -> torch.Tensor:
+    """Solve ``A X = B`` on the free rows with ``X[fixed] = fixed_values`` prescribed.
+
+    The free unknowns solve ``A_FF X_F = B_F - A_FC X_C``; rows of ``B`` at fixed vertices are
+    ignored. Differentiable in ``A``'s values, ``B`` and ``fixed_values`` (gathers of ``A``'s
+    values keep the O(nnz) backward).
+
+    Args:
+        A: ``(n, n)`` sparse matrix, e.g. the Laplacian ``L`` (whose free block is SPD when at
+            least one vertex per connected component is fixed).
+        B: ``(n,)`` or ``(n, c)``.
+        fixed: indices (or an ``(n,)`` bool mask) of the prescribed rows.
+        fixed_values: ``(m,)`` or ``(m, c)`` values at ``fixed`` (in the order of ``fixed``).
+        solve_options: passed to :func:`solve`.
+
+    Returns:
+        ``X`` of ``B``'s shape, equal to ``fixed_values`` on ``fixed``.
+    """
+    n = A.shape[0]
+    is_fixed = torch.zeros(n, dtype=torch.bool, device=B.device)
+    if fixed.dtype == torch.bool:
+        is_fixed = fixed.to(B.device)
+        fixed = torch.nonzero(is_fixed).reshape(-1)
+    else:
+        is_fixed[fixed] = True
+    if int(is_fixed.sum()) != fixed.numel():
+        raise ValueError("dirichlet_solve: `fixed` lists a vertex more than once.")
+    free = torch.nonzero(~is_fixed).reshape(-1)
+    crow, col, values = csr_parts(A)
+    row = torch.repeat_interleave(torch.arange(n, device=crow.device), crow.diff())
+    new_index = torch.full((n,), -1, dtype=torch.int64, device=crow.device)
+    new_index[free] = torch.arange(free.numel(), device=crow.device)
+    fixed_index = torch.full((n,), -1, dtype=torch.int64, device=crow.device)
+    fixed_index[fixed] = torch.arange(fixed.numel(), device=crow.device)
+
+    def block(col_mask: torch.Tensor, col_map: torch.Tensor, n_cols: int) -> torch.Tensor:
+        keep = torch.nonzero(~is_fixed[row] & col_mask[col]).reshape(-1)
+        sub_row = new_index[row[keep]]
+        sub_crow = torch.zeros(free.numel() + 1, dtype=torch.int64, device=crow.device)
+        torch.cumsum(torch.bincount(sub_row, minlength=free.numel()), 0, out=sub_crow[1:])
+        return csr_tensor(sub_crow, col_map[col[keep]], values[keep], (free.numel(), n_cols))
+
+    A_ff = block(~is_fixed, new_index, free.numel())
+    if getattr(A, "_polylap_symmetric", False):
+        mark_symmetric(A_ff)
+    A_fc = block(is_fixed, fixed_index, fixed.numel())
+    vec = B.dim() == 1
+    Bm = B[:, None] if vec else B
+    Xc = fixed_values.reshape(fixed.numel(), -1).to(B.dtype)
+    rhs = Bm[free] - spmm(A_fc, Xc)
+    Xf = solve(A_ff, rhs, **solve_options)
+    X = torch.zeros_like(Bm).index_put((free,), Xf).index_put((fixed,), Xc.expand_as(Bm[fixed]))
+    return X[:, 0] if vec else X
+
+
+class _Eigenvalues(torch.autograd.Function):
+    """Eigenvalues ``mu`` of ``L phi = mu M phi`` with the first-order perturbation gradient."""
+
+    @staticmethod
+    def forward(ctx, l_values, m_values, evals, evecs, patterns):
+        ctx.save_for_backward(evals, evecs)
+        ctx.patterns = patterns  # ((crow, col, shape) of L, of M), outside autograd's view
+        return evals.clone()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):
+        evals, evecs = ctx.saved_tensors
+        grads = []
+        for (crow, col, shape), weights, needed in (
+            (ctx.patterns[0], g, ctx.needs_input_grad[0]),
+            (ctx.patterns[1], -g * evals, ctx.needs_input_grad[1]),
+        ):
+            if not needed:
+                grads.append(None)
+                continue
+            pattern = csr_tensor(crow, col, evals.new_zeros(col.numel()), shape)
+            # sum_i w_i phi_i phi_i^T, sampled on the pattern: O(nnz * k)
+            grads.append(
+                torch.sparse.sampled_addmm(pattern, evecs * weights, evecs.t(), beta=0.0).values()
+            )
+        return grads[0], grads[1], None, None, None
+
+
+def eigs(
+    L: torch.Tensor,
+    M: torch.Tensor,
+    k: int,
+    *,
+    sigma: float | None = None,
+    tol: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` smallest eigenpairs of ``L phi = mu M phi`` (``L`` PSD, ``M`` SPD, e.g. ``L, M0``).
+
+    Shift-invert Lanczos (ARPACK through scipy) around ``sigma`` (default: slightly below zero,
+    so that ``L - sigma M`` is positive definite even though ``L`` is singular); if ARPACK does
+    not converge, it retries with more Lanczos vectors and a larger shift, and small problems
+    (under 3000 unknowns) fall back to a dense solver.
+
+    Args:
+        L: ``(n, n)`` sparse symmetric matrix; values may require grad.
+        M: ``(n, n)`` sparse symmetric positive definite matrix; values may require grad.
+        k: number of eigenpairs, ``1 <= k < n``.
+        sigma: shift for shift-invert.
+        tol: ARPACK's relative accuracy (0: machine precision).
+
+    Returns:
+        ``evals`` ``(k,)`` ascending and ``evecs`` ``(n, k)``, ``M``-orthonormal
+        (``evecs^T M evecs = I``), each column's sign fixed so that its entry of largest
+        magnitude is positive. ``evals`` is differentiable with respect to the values of ``L``
+        and ``M`` (``d mu = phi^T (dL - mu dM) phi``), which is exact for simple eigenvalues;
+        for a repeated eigenvalue only symmetric functions of the cluster (e.g. its sum) have
+        a well-defined gradient. ``evecs`` are returned without gradient.
+
+    Raises:
+        ValueError: ``k`` out of range, or no convergence after the retries.
+    """
+    n = L.shape[0]
+    if not 1 <= k < n:
+        raise ValueError(f"eigs: k must satisfy 1 <= k < n = {n}, got {k}.")
+    Ls = to_scipy(L).astype(np.float64)
+    Ms = to_scipy(M).astype(np.float64)
+    scale = float(abs(Ls).max()) / max(float(Ms.diagonal().max()), np.finfo(float).tiny)
+    shifts = [sigma] if sigma is not None else [-1e-8 * scale, -1e-5 * scale, -1e-3 * scale]
+    evals = evecs = None
+    for attempt, shift in enumerate(shifts):
+        try:
+            evals, evecs = spla.eigsh(
+                Ls,
+                k=k,
+                M=Ms,
+                sigma=shift,
+                which="LM",
+                tol=tol,
+                ncv=min(n, max(2 * k + 1, 20) * (attempt + 1)),
+            )
+            break
+        except (spla.ArpackNoConvergence, RuntimeError):
+            continue
+    if evals is None:
+        if n > 3000:
+            raise ValueError(
+                f"eigs: ARPACK did not converge for k = {k} with shifts {shifts}; try a "
+                "different sigma or a smaller k."
+            )
+        evals, evecs = scipy.linalg.eigh(Ls.toarray(), Ms.toarray(), subset_by_index=(0, k - 1))
+    order = np.argsort(evals)
+    evals, evecs = evals[order], evecs[:, order]
+    # M-orthonormalize (ARPACK's vectors are, up to round-off) and fix signs for determinism
+    evecs = evecs / np.sqrt(np.einsum("ik,ik->k", evecs, Ms @ evecs))
+    signs = np.sign(evecs[np.abs(evecs).argmax(0), np.arange(k)])
+    evecs = evecs * np.where(signs == 0, 1.0, signs)
+    l_crow, l_col, l_values = csr_parts(L)
+    m_crow, m_col, m_values = csr_parts(M)
+    evals_t = torch.from_numpy(evals).to(l_values)
+    evecs_t = torch.from_numpy(evecs).to(l_values)
+    patterns = ((l_crow, l_col, tuple(L.shape)), (m_crow, m_col, tuple(M.shape)))
+    mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, patterns)
+    return mu, evecs_t
