@@ -25,6 +25,13 @@ from .operators import (
     vector_area,
 )
 from .sparse import from_scipy, spmm, to_scipy
+from .spectral import (
+    cached_eigs,
+    heat_kernel_signature,
+    implicit_heat_diffusion,
+    spectral_heat_diffusion,
+    wave_kernel_signature,
+)
 from .topology import Topology, build_topology
 
 __version__ = "0.1.0"
@@ -53,6 +60,11 @@ __all__ = [
     "solve",
     "dirichlet_solve",
     "eigs",
+    "heat_kernel_signature",
+    "wave_kernel_signature",
+    "spectral_heat_diffusion",
+    "implicit_heat_diffusion",
+    "cached_eigs",
     "to_scipy",
     "from_scipy",
     "read_mesh",

@@ -292,6 +292,22 @@ class _Eigenvalues(torch.autograd.Function):
         return grads[0], grads[1], None, None, None
 
 
+class _EigenvectorsWithoutGradient(torch.autograd.Function):
+    """Eigenvectors stay in the graph only to refuse a backward pass through them."""
+
+    @staticmethod
+    def forward(ctx, l_values, m_values, evecs):
+        return evecs.clone()
+
+    @staticmethod
+    def backward(ctx, g):
+        raise RuntimeError(
+            "torch_polylap.eigs: gradients through eigenvectors are not implemented (they need "
+            "the full spectrum or a solve per eigenpair). Use evecs.detach() to treat them as "
+            "constants, or build the loss from the eigenvalues, which are differentiable."
+        )
+
+
 def eigs(
     L: torch.Tensor,
     M: torch.Tensor,
@@ -320,7 +336,9 @@ def eigs(
         magnitude is positive. ``evals`` is differentiable with respect to the values of ``L``
         and ``M`` (``d mu = phi^T (dL - mu dM) phi``), which is exact for simple eigenvalues;
         for a repeated eigenvalue only symmetric functions of the cluster (e.g. its sum) have
-        a well-defined gradient. ``evecs`` are returned without gradient.
+        a well-defined gradient. Eigenvector derivatives are not implemented: a backward pass
+        through ``evecs`` raises an error (instead of silently dropping that part of the
+        gradient); ``evecs.detach()`` treats them as constants.
 
     Raises:
         ValueError: ``k`` out of range, or no convergence after the retries.
@@ -366,4 +384,6 @@ def eigs(
     evecs_t = torch.from_numpy(evecs).to(l_values)
     patterns = ((l_crow, l_col, tuple(L.shape)), (m_crow, m_col, tuple(M.shape)))
     mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, patterns)
+    if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
+        evecs_t = _EigenvectorsWithoutGradient.apply(l_values, m_values, evecs_t)
     return mu, evecs_t
