@@ -31,3 +31,34 @@ def test_denoising_reduces_radial_error():
     errors = [float(m) for m in re.findall(r"^\S.*?\s([\d.]+e[-+]\d+)\s+[\d.]+$", out, re.M)]
     noisy, weak, strong = errors
     assert strong < weak < noisy and strong < 0.6 * noisy
+
+
+def test_convergence_study_reproduces_reference_values(tmp_path):
+    """The study's level-3 numbers (via dirichlet_solve, strong_laplacian, eigs) equal the
+    polyLaplace reference values that tests/test_reference_values.py checks by another route."""
+    from conftest import require_shared
+
+    shared = require_shared()
+    out = tmp_path / "convergence.md"
+    run(
+        "convergence_study.py",
+        *("--shared", str(shared), "--levels", "3", "--lams", "2", "1", "0.5", "--out", str(out)),
+    )
+    rows = {}
+    section = None
+    for line in out.read_text().splitlines():
+        if line.startswith("## "):
+            section = line[3:6]
+        elif line.startswith("| sphere/") or line.startswith("| grid/"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows[(section, cells[0])] = [float(c) for c in cells[3:]]
+    expected = {  # REFERENCE-VALUES.md, lam = 2, 1, 0.5
+        ("(a)", "sphere/hex"): (3.15e-3, 1.05e-3, 4.92e-4),
+        ("(a)", "sphere/concave"): (2.59e-2, 1.09e-2, 4.89e-3),
+        ("(b)", "sphere/quad"): (6.0e-2, 3.0e-2, 1.5e-2),
+        ("(c)", "grid/voronoi"): (4.76e-4, 3.83e-4, 6.22e-4),
+        ("(c)", "grid/dia_quad"): (1.20e-3, 5.14e-4, 5.13e-4),
+    }
+    for key, values in expected.items():
+        for ours, ref in zip(rows[key], values, strict=True):
+            assert abs(ours - ref) <= 0.006 * ref, (key, ours, ref)  # printed to 3 digits

@@ -176,3 +176,22 @@ def test_eigs_rejects_bad_k():
     L, M0 = tp.laplacian(V, F)
     with pytest.raises(ValueError, match="1 <= k < n"):
         tp.eigs(L, M0, V.shape[0])
+
+
+@pytest.mark.parametrize("family", ["hex", "quad"])
+def test_sphere_spectrum_converges_at_second_order(family):
+    """First 16 eigenvalues on the unit sphere against l(l+1), multiplicities 1, 3, 5, 7."""
+    from conftest import require_shared
+
+    shared = require_shared()
+    exact = torch.tensor([ell * (ell + 1) for ell in range(4) for _ in range(2 * ell + 1)], **D64)
+    errors, sizes = [], []
+    for level in (2, 3, 4):
+        V, F = tp.read_mesh(shared / "sphere" / f"{family}_{level}.obj")
+        V = V / V.norm(dim=1, keepdim=True)
+        evals, _ = tp.eigs(*tp.laplacian(V, F, 1.0), 16)
+        errors.append(float(((evals[1:] - exact[1:]).abs() / exact[1:]).max()))
+        sizes.append(V.shape[0])
+    for i in (1, 2):
+        order = np.log(errors[i - 1] / errors[i]) / np.log(np.sqrt(sizes[i] / sizes[i - 1]))
+        assert order > 1.7, (family, errors)

@@ -1,0 +1,195 @@
+"""Convergence of the Alexa-Wardetzky Laplacian under refinement, for several lambdas.
+
+    python examples/convergence_study.py [--levels 1 2 3 4 5] [--lams 0.5 1 2] [--out FILE]
+
+On the sphere and grid refinement families of ``../shared/data/meshes`` (levels 1..5):
+
+(a) spherical harmonic: ``M0^-1 L Y`` against ``l (l + 1) Y = 12 Y`` for ``Y = Y_3^2`` on the
+    normalized spheres, error ``sqrt(e^T M0 e / |V|)``;
+(b) mean curvature: ``|M0^-1 L X| / 2`` against 1 on the normalized spheres, RMS over vertices;
+(c) Poisson problem on the planar grids: ``L u = -M0 lap(f)`` for Franke's function ``f``,
+    Dirichlet boundary ``u = f``, RMS error over vertices (``torch_polylap.dirichlet_solve``);
+(d) spectrum: the first 16 eigenvalues of ``L phi = mu M0 phi`` on the normalized spheres
+    against ``l (l + 1)`` with multiplicities 1, 3, 5, 7; error = largest relative error of
+    eigenvalues 1..15 (``torch_polylap.eigs``).
+
+The definitions follow the reference values of the polyLaplace implementation
+(``../shared/docs/REFERENCE-VALUES.md``). Observed orders are ``log(e_prev / e) /
+log(h_prev / h)`` with ``h = |V|^-1/2``. Writes a Markdown report (default
+``examples/output/convergence.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import torch_polylap as tp
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_SHARED = ROOT.parent / "shared" / "data" / "meshes"
+SPHERES = ("hex", "quad", "voronoi", "concave", "hex_cos", "hex_noise", "triangle")
+GRIDS = ("quad", "voronoi", "concave", "str_hex", "comp_hex", "irr_poly", "dia_quad", "triangle")
+
+
+def unit_sphere(path: Path) -> tuple[torch.Tensor, tp.PolygonFaces]:
+    verts, faces = tp.read_mesh(path)
+    return verts / verts.norm(dim=1, keepdim=True), faces
+
+
+def y32(p: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonic Y_3^2 with the reference's axes: sqrt(2) K 15 y (z^2 - x^2) / r^3."""
+    x, y, z = p.unbind(1)
+    k = math.sqrt(7.0 / (4 * math.pi * 120.0))
+    return math.sqrt(2.0) * k * 15.0 * y * (z * z - x * x) / p.norm(dim=1) ** 3
+
+
+def franke_and_laplacian(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Franke's function at raw coordinates and its exact Laplacian.
+
+    Each term is ``c exp(q)`` with ``q`` at most quadratic, so its Laplacian is
+    ``c exp(q) (|grad q|^2 + lap q)``.
+    """
+    terms = (  # c, q, dq/dx, dq/dy, lap q
+        (
+            0.75,
+            -((9 * x - 2) ** 2 + (9 * y - 2) ** 2) / 4,
+            -4.5 * (9 * x - 2),
+            -4.5 * (9 * y - 2),
+            -81.0,
+        ),
+        (
+            0.75,
+            -((9 * x + 1) ** 2) / 49 - (9 * y + 1) / 10,
+            -18 * (9 * x + 1) / 49,
+            -0.9 + 0 * y,
+            -162 / 49,
+        ),
+        (
+            0.5,
+            -((9 * x - 7) ** 2 + (9 * y - 3) ** 2) / 4,
+            -4.5 * (9 * x - 7),
+            -4.5 * (9 * y - 3),
+            -81.0,
+        ),
+        (
+            -0.2,
+            -((9 * x - 4) ** 2) - (9 * y - 7) ** 2,
+            -18 * (9 * x - 4),
+            -18 * (9 * y - 7),
+            -324.0,
+        ),
+    )
+    f = sum(c * torch.exp(q) for c, q, *_ in terms)
+    lap = sum(c * torch.exp(q) * (qx * qx + qy * qy + lq) for c, q, qx, qy, lq in terms)
+    return f, lap
+
+
+def sh_error(path: Path, lam: float) -> float:
+    verts, faces = unit_sphere(path)
+    L, M0 = tp.laplacian(verts, faces, lam)
+    y = y32(verts)
+    e = y - tp.strong_laplacian(L, M0, y) / 12.0
+    m = tp.sparse.sparse_values(M0)
+    return float((e * m * e).sum() / y.numel()) ** 0.5
+
+
+def mean_curvature_error(path: Path, lam: float) -> float:
+    verts, faces = unit_sphere(path)
+    c = tp.mean_curvature_normal(verts, faces, lam).norm(dim=1) / 2
+    return float(((c - 1) ** 2).mean()) ** 0.5
+
+
+def franke_error(path: Path, lam: float) -> float:
+    verts, faces = tp.read_mesh(path)
+    topo = tp.build_topology(faces, verts.shape[0])
+    L, M0 = tp.laplacian(verts, topo, lam)
+    f, lap = franke_and_laplacian(verts[:, 0], verts[:, 1])
+    boundary = topo.boundary_vertices
+    u = tp.dirichlet_solve(L, -tp.spmm(M0, lap), boundary, f[boundary])
+    return float(((u - f) ** 2).mean()) ** 0.5
+
+
+EXACT_SPECTRUM = torch.tensor([ell * (ell + 1) for ell in range(4) for _ in range(2 * ell + 1)])
+
+
+def spectrum_error(path: Path, lam: float) -> float:
+    verts, faces = unit_sphere(path)
+    L, M0 = tp.laplacian(verts, faces, lam)
+    evals, _ = tp.eigs(L, M0, 16)
+    exact = EXACT_SPECTRUM.to(evals)
+    return float(((evals[1:] - exact[1:]).abs() / exact[1:]).max())
+
+
+EXPERIMENTS: dict[str, tuple[str, tuple[str, ...], Callable[[Path, float], float]]] = {
+    "(a) spherical harmonic Y_3^2": ("sphere", SPHERES, sh_error),
+    "(b) mean curvature |H|/2 - 1": ("sphere", SPHERES, mean_curvature_error),
+    "(c) Franke Poisson problem": ("grid", GRIDS, franke_error),
+    "(d) first 16 eigenvalues vs l(l+1)": ("sphere", SPHERES, spectrum_error),
+}
+
+
+def orders(errors: list[float], sizes: list[int]) -> list[float | None]:
+    out: list[float | None] = [None]
+    for i in range(1, len(errors)):
+        ratio_h = math.sqrt(sizes[i] / sizes[i - 1])  # h_prev / h with h = |V|^-1/2
+        out.append(math.log(errors[i - 1] / errors[i]) / math.log(ratio_h))
+    return out
+
+
+def run(shared: Path, levels: list[int], lams: list[float]) -> str:
+    lines = [
+        "# Convergence study",
+        "",
+        f"Levels {levels}, lambdas {lams}; error (observed order against h = |V|^-1/2).",
+    ]
+    for title, (folder, families, measure) in EXPERIMENTS.items():
+        lines += ["", f"## {title}", ""]
+        header = "| mesh | level | V | " + " | ".join(f"lam = {lam:g}" for lam in lams) + " |"
+        lines += [header, "|" + " --- |" * (3 + len(lams))]
+        for family in families:
+            paths = [shared / folder / f"{family}_{level}.obj" for level in levels]
+            if not all(p.is_file() for p in paths):
+                continue
+            sizes = [tp.read_mesh(p)[0].shape[0] for p in paths]
+            columns = []
+            for lam in lams:
+                errors = [measure(p, lam) for p in paths]
+                columns.append(list(zip(errors, orders(errors, sizes), strict=True)))
+            for row, (level, size) in enumerate(zip(levels, sizes, strict=True)):
+                cells = [
+                    f"{e:.3e}" + (f" ({o:.2f})" if o is not None else "")
+                    for e, o in (column[row] for column in columns)
+                ]
+                lines.append(
+                    f"| {folder}/{family} | {level} | {size} | " + " | ".join(cells) + " |"
+                )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--shared", type=Path, default=DEFAULT_SHARED, help="mesh families folder")
+    parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 3, 4, 5])
+    parser.add_argument("--lams", type=float, nargs="+", default=[0.5, 1.0, 2.0])
+    parser.add_argument("--out", type=Path, default=ROOT / "examples" / "output" / "convergence.md")
+    args = parser.parse_args()
+    if not args.shared.is_dir():
+        raise SystemExit(f"mesh families not found at {args.shared}; pass --shared DIR")
+    start = time.perf_counter()
+    report = run(args.shared, args.levels, args.lams)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(report)
+    print(report)
+    print(f"wrote {args.out} in {time.perf_counter() - start:.1f} s")
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=4)
+    main()
