@@ -92,6 +92,17 @@ def hexpent():
     return hex_pent_mesh()
 
 
+def assert_directional_derivative(f, X: torch.Tensor, rtol: float, seed: int = 3) -> None:
+    """Autograd's derivative of the scalar ``f`` at ``X`` along a random direction equals a
+    central finite difference (step 1e-6, float64)."""
+    Xg = X.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(f(Xg), Xg)
+    d = torch.randn(X.shape, generator=torch.Generator().manual_seed(seed), dtype=X.dtype)
+    h = 1e-6
+    fd = (f(X + h * d) - f(X - h * d)) / (2 * h)
+    assert torch.isclose((grad * d).sum(), fd, rtol=rtol), ((grad * d).sum(), fd)
+
+
 def require_shared() -> Path:
     path = shared_meshes()
     if path is None:
