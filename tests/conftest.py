@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -10,13 +9,6 @@ import pytest
 import torch
 
 DATA = Path(__file__).resolve().parent / "data"
-
-
-def shared_meshes() -> Path | None:
-    """``../shared/data/meshes`` beside the repo (or ``$POLYLAP_SHARED_MESHES``), if present."""
-    env = os.environ.get("POLYLAP_SHARED_MESHES")
-    path = Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
-    return path if path.is_dir() else None
 
 
 def quad_grid(n: int, m: int | None = None, bump: float = 0.0, seed: int | None = None):
@@ -101,12 +93,3 @@ def assert_directional_derivative(f, X: torch.Tensor, rtol: float, seed: int = 3
     h = 1e-6
     fd = (f(X + h * d) - f(X - h * d)) / (2 * h)
     assert torch.isclose((grad * d).sum(), fd, rtol=rtol), ((grad * d).sum(), fd)
-
-
-def require_shared() -> Path:
-    path = shared_meshes()
-    if path is None:
-        pytest.skip(
-            "../shared/data/meshes not found: the refinement families live outside the repo"
-        )
-    return path

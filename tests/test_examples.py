@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from meshes import require_shared
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
@@ -36,8 +38,6 @@ def test_denoising_reduces_radial_error():
 def test_convergence_study_reproduces_reference_values(tmp_path):
     """The study's level-3 numbers (via dirichlet_solve, strong_laplacian, eigs) equal the
     polyLaplace reference values that tests/test_reference_values.py checks by another route."""
-    from conftest import require_shared
-
     shared = require_shared()
     out = tmp_path / "convergence.md"
     run(

@@ -7,6 +7,7 @@ import pytest
 import scipy.linalg
 import torch
 from conftest import DATA, assert_directional_derivative, hex_pent_mesh, mixed_mesh, quad_grid
+from meshes import require_shared
 
 import torch_polylap as tp
 from torch_polylap.sparse import csr_tensor, sparse_values
@@ -171,8 +172,6 @@ def test_eigs_rejects_bad_k():
 @pytest.mark.parametrize("family", ["hex", "quad"])
 def test_sphere_spectrum_converges_at_second_order(family):
     """First 16 eigenvalues on the unit sphere against l(l+1), multiplicities 1, 3, 5, 7."""
-    from conftest import require_shared
-
     shared = require_shared()
     exact = torch.tensor([ell * (ell + 1) for ell in range(4) for _ in range(2 * ell + 1)], **D64)
     errors, sizes = [], []
