@@ -83,13 +83,8 @@ def bench_solve(n: int, repeat: int) -> dict:
     out["ours_resolve"] = timed(lambda: tp.solve(A, B), repeat)
 
     def splu_solve() -> np.ndarray:
-        lu = spla.splu(
-            A_csc,
-            permc_spec="MMD_AT_PLUS_A",
-            diag_pivot_thresh=0.0,
-            options={"SymmetricMode": True},
-        )
-        return lu.solve(B.numpy())
+        # the same SuperLU settings as torch_polylap.solve, called directly
+        return tp.linalg.spd_splu(A_csc).solve(B.numpy())
 
     out["scipy_splu_solve"] = timed(splu_solve, repeat)
     out["scipy_splu_default"] = timed(lambda: spla.splu(A_csc).solve(B.numpy()), repeat)
