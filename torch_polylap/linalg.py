@@ -362,10 +362,6 @@ def eigs(
     evals = evecs = None
     for attempt, shift in enumerate(shifts):
         try:
-            # shift-invert with the SPD settings of spd_splu (ARPACK's own factorization
-            # pivots, which costs fill and time on these matrices)
-            lu = spd_splu(sp.csc_matrix(Ls - shift * Ms))
-            op_inv = spla.LinearOperator((n, n), matvec=lu.solve, dtype=np.float64)
             evals, evecs = spla.eigsh(
                 Ls,
                 k=k,
@@ -373,7 +369,6 @@ def eigs(
                 sigma=shift,
                 which="LM",
                 tol=tol,
-                OPinv=op_inv,
                 ncv=min(n, max(2 * k + 1, 20) * (attempt + 1)),
             )
             break
