@@ -86,7 +86,7 @@ def test_read_dtype_and_device(tmp_path, mixed_verts):
     assert faces.device.type == "cpu"
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA is not available on this machine")
 def test_read_to_cuda_keeps_faces_on_cpu(tmp_path, mixed_verts):
     write_mesh(tmp_path / "m.obj", mixed_verts, MIXED_FACES)
     verts, faces = read_mesh(tmp_path / "m.obj", device="cuda")
