@@ -16,11 +16,14 @@ setup(
     python_requires=">=3.10",
     packages=find_packages(include=["torch_polylap", "torch_polylap.*"]),
     package_data={"torch_polylap": ["data/*.obj", "data/*.md"]},
-    install_requires=["torch>=2.1", "numpy>=1.22", "scipy>=1.9", "trimesh>=3.20"],
+    # tqdm: progress bars on the iterative applications (flow, planarization); pure Python, tiny
+    install_requires=["torch>=2.1", "numpy>=1.22", "scipy>=1.9", "trimesh>=3.20", "tqdm>=4.60"],
     extras_require={
         # libigl: the independent cotan Laplacian the tests and benchmarks compare against
-        "test": ["pytest>=7", "ruff>=0.4", "libigl>=2.5"],
-        "bench": ["libigl>=2.5"],
+        # matplotlib: the figures the command line and the examples write
+        "test": ["pytest>=7", "ruff>=0.4", "libigl>=2.5", "matplotlib>=3.5"],
+        "plot": ["matplotlib>=3.5"],
+        "bench": ["libigl>=2.5", "matplotlib>=3.5"],
     },
     entry_points={"console_scripts": ["polylap=torch_polylap.cli:main"]},
     classifiers=[
