@@ -1,0 +1,429 @@
+"""Batches of heterogeneous polygon meshes in pytorch3d's packed convention.
+
+A batch of ``B`` meshes with ``V_i`` vertices and ``F_i`` faces each is held as one
+``(sum V_i, 3)`` vertex tensor (*packed* vertices) and one :class:`PolygonFaces` whose indices
+are global, i.e. shifted by the first packed index of their mesh.  Because no face joins two
+meshes, every operator assembled on the packed mesh is block diagonal: one call of
+:func:`torch_polylap.laplacian` on the packed faces yields ``blockdiag(L_1, ..., L_B)`` (and
+the same for ``M0``), and per-mesh quantities follow by scattering per-vertex or per-face values
+with :func:`per_mesh_sum`.
+
+The connectivity (the packed faces, their validated :class:`~torch_polylap.Topology` and the
+index maps) lives in a cache shared by every batch derived with :meth:`PolygonMeshes.update_packed`
+or :meth:`PolygonMeshes.to`, so a training loop with fixed connectivity builds it once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+from .faces import FacesLike, PolygonFaces, as_faces
+from .operators import Lam, get_topology, laplacian
+from .topology import Topology, half_edge_vertices
+
+__all__ = ["PolygonMeshes", "per_mesh_sum", "per_mesh_mean"]
+
+
+def per_mesh_sum(values: torch.Tensor, index: torch.Tensor, num_meshes: int) -> torch.Tensor:
+    """Sum packed per-element values into their meshes.
+
+    Args:
+        values: ``(N, ...)`` one row per packed vertex, face or edge.
+        index: ``(N,)`` the mesh of each row, e.g. :meth:`PolygonMeshes.verts_packed_to_mesh_idx`.
+        num_meshes: ``B``.
+
+    Returns:
+        ``(B, ...)`` per-mesh sums (zero for a mesh without rows); differentiable in ``values``.
+    """
+    if index.shape != values.shape[:1]:
+        raise ValueError(
+            f"index must have shape ({values.shape[0]},), one mesh per row of values, "
+            f"got {tuple(index.shape)}."
+        )
+    out = values.new_zeros((num_meshes, *values.shape[1:]))
+    return out.index_add(0, index.to(values.device), values)
+
+
+def per_mesh_mean(values: torch.Tensor, index: torch.Tensor, num_meshes: int) -> torch.Tensor:
+    """``(B, ...)`` per-mesh means of packed values (see :func:`per_mesh_sum`).
+
+    A mesh without rows (no vertices, or no faces/edges of the kind averaged) gets ``0``.
+    """
+    sums = per_mesh_sum(values, index, num_meshes)
+    counts = torch.bincount(index.to(values.device), minlength=num_meshes).clamp_min(1)
+    return sums / counts.to(values.dtype).reshape(-1, *([1] * (values.dim() - 1)))
+
+
+class _Connectivity:
+    """Everything about a batch that depends only on its faces; shared by derived batches."""
+
+    def __init__(self, faces: list[PolygonFaces], num_verts: list[int], source: Any) -> None:
+        self.faces = faces
+        self.num_verts = num_verts
+        self.num_faces = [f.num_faces for f in faces]
+        # For a single mesh given as a tensor or PolygonFaces, get_topology caches the topology
+        # on the user's object, so rebuilding a batch from the same faces does not re-validate.
+        self.source = source
+        self.topology: Topology | None = None
+        self.packed_cpu: PolygonFaces | None = None
+        self.per_device: dict[tuple[str, torch.device], Any] = {}
+
+    def packed(self) -> PolygonFaces:
+        if self.packed_cpu is None:
+            if len(self.faces) == 1:
+                self.packed_cpu = self.faces[0]
+            else:
+                first = torch.tensor([0, *self.num_verts[:-1]], dtype=torch.int64).cumsum(0)
+                corners = torch.tensor([f.num_corners for f in self.faces], dtype=torch.int64)
+                shift = torch.repeat_interleave(first, corners)
+                indices = torch.cat([f.indices for f in self.faces]) + shift
+                sizes = torch.cat([f.sizes for f in self.faces])
+                self.packed_cpu = PolygonFaces(indices, sizes=sizes)
+        return self.packed_cpu
+
+    def cached(self, name: str, device: torch.device, make) -> Any:
+        key = (name, device)
+        if key not in self.per_device:
+            self.per_device[key] = make()
+        return self.per_device[key]
+
+
+def _check_mesh(i: int, verts: torch.Tensor, faces: PolygonFaces) -> None:
+    if not isinstance(verts, torch.Tensor):
+        raise TypeError(f"verts of mesh {i} must be a torch.Tensor (V, 3), got {type(verts)}.")
+    if verts.dim() != 2 or verts.shape[1] != 3:
+        raise ValueError(f"verts of mesh {i} must have shape (V, 3), got {tuple(verts.shape)}.")
+    if not verts.is_floating_point():
+        raise ValueError(f"verts of mesh {i} must be floating point, got {verts.dtype}.")
+    if faces.num_corners:
+        hi, lo = int(faces.indices.max()), int(faces.indices.min())
+        if hi >= verts.shape[0] or lo < 0:
+            j = hi if hi >= verts.shape[0] else lo
+            corner = int(torch.nonzero(faces.indices == j)[0, 0])
+            f = int(torch.searchsorted(faces.offsets, torch.tensor(corner), right=True)) - 1
+            raise ValueError(
+                f"mesh {i}: face {f} refers to vertex {j}, but the mesh has {verts.shape[0]} "
+                f"vertices (valid local indices are 0..{verts.shape[0] - 1}). Faces of each "
+                "mesh must index its own verts, 0-based."
+            )
+
+
+class PolygonMeshes:
+    """A batch of ``B`` polygon meshes of different sizes and face degrees (packed layout).
+
+    Args:
+        verts: ``B`` tensors ``(V_i, 3)``, same dtype and device; may require grad.
+        faces: ``B`` faces in any form accepted by :func:`torch_polylap.as_faces`, with indices
+            local to their mesh (``0 <= j < V_i``).
+
+    The packed representation follows pytorch3d's ``Meshes``: ``verts_packed()`` is
+    ``(sum V_i, 3)``, ``faces_packed()`` holds global indices and the ``*_idx`` maps tell which
+    mesh a packed row belongs to.  :meth:`laplacian` assembles the block-diagonal ``(L, M0)``
+    of the whole batch in one call (AW11 eq. 3, 9, 10 on the packed mesh).
+
+    Raises:
+        ValueError: lists of different lengths, a malformed verts tensor, or a face of mesh
+            ``i`` that refers to a vertex ``j >= V_i`` (the message names ``i`` and ``j``).
+    """
+
+    def __init__(self, verts: Sequence[torch.Tensor], faces: Sequence[FacesLike]) -> None:
+        if isinstance(verts, torch.Tensor):
+            raise TypeError(
+                "PolygonMeshes takes a list of (V_i, 3) tensors, one per mesh; for a single mesh "
+                "pass [verts], [faces]."
+            )
+        verts = list(verts)
+        faces_in = list(faces)
+        if len(verts) != len(faces_in):
+            raise ValueError(f"got {len(verts)} vertex tensors but {len(faces_in)} face sets.")
+        if not verts:
+            raise ValueError("PolygonMeshes needs at least one mesh.")
+        pfaces = []
+        for i, (v, f) in enumerate(zip(verts, faces_in, strict=True)):
+            try:
+                pf = as_faces(f)
+            except ValueError as err:
+                raise ValueError(f"mesh {i}: {err}") from None
+            pf = pf if pf.device.type == "cpu" else pf.to("cpu")
+            _check_mesh(i, v, pf)
+            if v.dtype != verts[0].dtype or v.device != verts[0].device:
+                raise ValueError(
+                    f"mesh {i} has verts of dtype {v.dtype} on {v.device} but mesh 0 has "
+                    f"{verts[0].dtype} on {verts[0].device}; convert them to one dtype and device."
+                )
+            pfaces.append(pf)
+        source = faces_in[0] if len(verts) == 1 else None
+        if not isinstance(source, (torch.Tensor, PolygonFaces)):
+            source = None
+        self._conn = _Connectivity(pfaces, [v.shape[0] for v in verts], source)
+        self._verts_list: list[torch.Tensor] | None = verts
+        self._verts_packed: torch.Tensor | None = None
+
+    @classmethod
+    def _from_packed(cls, conn: _Connectivity, verts_packed: torch.Tensor) -> PolygonMeshes:
+        out = cls.__new__(cls)
+        out._conn = conn
+        out._verts_list = None
+        out._verts_packed = verts_packed
+        return out
+
+    # ----------------------------------------------------------------- adapters
+
+    @classmethod
+    def from_list(cls, meshes: Sequence[tuple[torch.Tensor, FacesLike]]) -> PolygonMeshes:
+        """From a sequence of ``(verts, faces)`` pairs."""
+        meshes = list(meshes)
+        return cls([m[0] for m in meshes], [m[1] for m in meshes])
+
+    @classmethod
+    def from_trimesh(
+        cls,
+        meshes: Sequence[Any],
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> PolygonMeshes:
+        """From a sequence of :class:`trimesh.Trimesh` (triangle meshes)."""
+        from .io import from_trimesh
+
+        pairs = [from_trimesh(m, dtype=dtype, device=device) for m in meshes]
+        return cls.from_list(pairs)
+
+    @classmethod
+    def from_pytorch3d(cls, meshes: Any) -> PolygonMeshes:
+        """From a ``pytorch3d.structures.Meshes`` (triangles; vertices keep their autograd graph).
+
+        Uses the list accessors ``verts_list()`` and ``faces_list()``, so any object with those
+        behaves the same; pytorch3d itself is not imported.
+        """
+        if not (hasattr(meshes, "verts_list") and hasattr(meshes, "faces_list")):
+            raise TypeError(
+                f"from_pytorch3d needs a pytorch3d Meshes (verts_list/faces_list), got "
+                f"{type(meshes).__name__}."
+            )
+        return cls(list(meshes.verts_list()), list(meshes.faces_list()))
+
+    @classmethod
+    def from_pyg(cls, data_or_list: Any) -> PolygonMeshes:
+        """From torch_geometric ``Data`` (one mesh), a list of them, or a ``Batch``.
+
+        Each ``Data`` needs ``pos`` ``(V, 3)`` and either ``face`` ``(3, F)`` (torch_geometric's
+        triangle convention) or ``polygons`` (any form accepted by
+        :func:`torch_polylap.as_faces`, e.g. a :class:`PolygonFaces`), which takes precedence.
+        A ``Batch`` is split with its ``to_data_list()``.
+        """
+        if hasattr(data_or_list, "to_data_list"):
+            items = data_or_list.to_data_list()
+        elif hasattr(data_or_list, "pos"):
+            items = [data_or_list]
+        else:
+            items = list(data_or_list)
+        verts, faces = [], []
+        for i, d in enumerate(items):
+            pos = getattr(d, "pos", None)
+            polys = getattr(d, "polygons", None)
+            tri = getattr(d, "face", None)
+            if pos is None or (polys is None and tri is None):
+                raise ValueError(
+                    f"graph {i} needs `pos` (V, 3) and `face` (3, F) or `polygons` to be a mesh."
+                )
+            if polys is None:
+                if tri.dim() != 2 or tri.shape[0] != 3:
+                    raise ValueError(
+                        f"graph {i}: `face` must have shape (3, F) (torch_geometric stores "
+                        f"triangles column-wise), got {tuple(tri.shape)}."
+                    )
+                polys = tri.t()
+            verts.append(pos)
+            faces.append(polys)
+        return cls(verts, faces)
+
+    # ----------------------------------------------------------------- accessors
+
+    def __len__(self) -> int:
+        return len(self._conn.faces)
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, PolygonFaces]:
+        """``(verts_i (V_i, 3), faces_i)`` of mesh ``i`` with local indices."""
+        b = len(self)
+        if not isinstance(i, int) or not -b <= i < b:
+            raise IndexError(f"mesh index {i!r} is out of range for a batch of {b} meshes.")
+        return self.verts_list()[i], self.faces_list()[i]
+
+    def __repr__(self) -> str:
+        return (
+            f"PolygonMeshes(B={len(self)}, V={sum(self._conn.num_verts)}, "
+            f"F={sum(self._conn.num_faces)}, dtype={self.dtype}, device={self.device})"
+        )
+
+    @property
+    def device(self) -> torch.device:
+        v = self._verts_packed if self._verts_packed is not None else self._verts_list[0]
+        return v.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        v = self._verts_packed if self._verts_packed is not None else self._verts_list[0]
+        return v.dtype
+
+    def verts_list(self) -> list[torch.Tensor]:
+        """``B`` tensors ``(V_i, 3)`` (views of the packed vertices when built from them)."""
+        if self._verts_list is None:
+            self._verts_list = list(torch.split(self._verts_packed, self._conn.num_verts))
+        return self._verts_list
+
+    def faces_list(self) -> list[PolygonFaces]:
+        """``B`` :class:`PolygonFaces` with local indices, on :attr:`device`."""
+        dev = self.device
+        return self._conn.cached(
+            "faces_list",
+            dev,
+            lambda: [f if dev.type == "cpu" else f.to(dev) for f in self._conn.faces],
+        )
+
+    def verts_packed(self) -> torch.Tensor:
+        """``(sum V_i, 3)`` all vertices; differentiable in the per-mesh tensors."""
+        if self._verts_packed is None:
+            vl = self._verts_list
+            self._verts_packed = vl[0] if len(vl) == 1 else torch.cat(vl, 0)
+        return self._verts_packed
+
+    def faces_packed(self) -> PolygonFaces:
+        """All faces with global (packed) vertex indices, on :attr:`device`."""
+        dev = self.device
+        return self._conn.cached("faces_packed", dev, lambda: self._conn.packed().to(dev))
+
+    def num_verts_per_mesh(self) -> torch.Tensor:
+        """``(B,)`` int64 ``V_i``."""
+        return self._conn.cached(
+            "nv", self.device, lambda: torch.tensor(self._conn.num_verts, device=self.device)
+        )
+
+    def num_faces_per_mesh(self) -> torch.Tensor:
+        """``(B,)`` int64 ``F_i``."""
+        return self._conn.cached(
+            "nf", self.device, lambda: torch.tensor(self._conn.num_faces, device=self.device)
+        )
+
+    def mesh_to_verts_packed_first_idx(self) -> torch.Tensor:
+        """``(B,)`` index of each mesh's first vertex in :meth:`verts_packed`."""
+
+        def make() -> torch.Tensor:
+            nv = self.num_verts_per_mesh()
+            return torch.cumsum(nv, 0) - nv
+
+        return self._conn.cached("first", self.device, make)
+
+    def mesh_to_faces_packed_first_idx(self) -> torch.Tensor:
+        """``(B,)`` index of each mesh's first face in :meth:`faces_packed`."""
+
+        def make() -> torch.Tensor:
+            nf = self.num_faces_per_mesh()
+            return torch.cumsum(nf, 0) - nf
+
+        return self._conn.cached("ffirst", self.device, make)
+
+    def verts_packed_to_mesh_idx(self) -> torch.Tensor:
+        """``(sum V_i,)`` the mesh of every packed vertex."""
+        return self._conn.cached(
+            "v2m",
+            self.device,
+            lambda: torch.repeat_interleave(
+                torch.arange(len(self), device=self.device), self.num_verts_per_mesh()
+            ),
+        )
+
+    def faces_packed_to_mesh_idx(self) -> torch.Tensor:
+        """``(sum F_i,)`` the mesh of every packed face."""
+        return self._conn.cached(
+            "f2m",
+            self.device,
+            lambda: torch.repeat_interleave(
+                torch.arange(len(self), device=self.device), self.num_faces_per_mesh()
+            ),
+        )
+
+    def topology(self) -> Topology:
+        """The validated :class:`~torch_polylap.Topology` of the packed faces, built once."""
+        conn = self._conn
+        if conn.topology is None:
+            total = sum(conn.num_verts)
+            faces = conn.source if conn.source is not None else conn.packed()
+            conn.topology = get_topology(faces, total)
+        return conn.topology
+
+    def interior_edge_faces(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(f0, f1)``, each ``(E_I,)``: the two packed faces on each side of every interior
+        edge (an edge used by two faces), on :attr:`device`."""
+
+        def make() -> tuple[torch.Tensor, torch.Tensor]:
+            topo = self.topology()
+            he_edge = topo.half_edge_edge
+            he_face = topo.faces.face_ids()
+            order = torch.argsort(he_edge, stable=True)
+            uses = topo.edge_faces
+            first = torch.cumsum(uses, 0) - uses
+            start = first[uses == 2]
+            pair = he_face[order[start]], he_face[order[start + 1]]
+            return pair[0].to(self.device), pair[1].to(self.device)
+
+        return self._conn.cached("interior", self.device, make)
+
+    def edges_packed(self) -> torch.Tensor:
+        """``(E, 2)`` undirected edges ``(p, q)``, ``p < q``, of the packed mesh, on the device."""
+        return self._conn.cached(
+            "edges", self.device, lambda: self.topology().edges.to(self.device)
+        )
+
+    def half_edges_packed(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(src, dst)``, each ``(N,)``: the half-edges of the packed faces (see
+        :func:`~torch_polylap.coboundary`), on :attr:`device`."""
+        return self._conn.cached(
+            "half_edges", self.device, lambda: half_edge_vertices(self.faces_packed())
+        )
+
+    # ----------------------------------------------------------------- operators
+
+    def laplacian(
+        self, lam: Lam = 1.0, *, validate: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Block-diagonal ``(L, M0)``, each ``(sum V_i, sum V_i)`` sparse CSR (AW11 eq. 3, 9, 10).
+
+        One assembly over the packed faces; block ``i`` equals ``laplacian(verts_i, faces_i)``.
+        Differentiable in the vertices; multiply with :func:`torch_polylap.spmm`.
+        """
+        return laplacian(self.verts_packed(), self.topology(), lam, validate=validate)
+
+    def update_packed(self, new_verts_packed: torch.Tensor) -> PolygonMeshes:
+        """A batch with the same faces (shared topology and caches) and new packed vertices."""
+        total = sum(self._conn.num_verts)
+        if not isinstance(new_verts_packed, torch.Tensor) or tuple(new_verts_packed.shape) != (
+            total,
+            3,
+        ):
+            shape = getattr(new_verts_packed, "shape", None)
+            raise ValueError(
+                f"new_verts_packed must have shape ({total}, 3) like verts_packed(), got "
+                f"{tuple(shape) if shape is not None else type(new_verts_packed).__name__}."
+            )
+        if not new_verts_packed.is_floating_point():
+            raise ValueError(
+                f"new_verts_packed must be floating point, got {new_verts_packed.dtype}."
+            )
+        return PolygonMeshes._from_packed(self._conn, new_verts_packed)
+
+    def offset_verts(self, offsets_packed: torch.Tensor) -> PolygonMeshes:
+        """``update_packed(verts_packed() + offsets_packed)`` (pytorch3d's ``offset_verts``)."""
+        return self.update_packed(self.verts_packed() + offsets_packed)
+
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> PolygonMeshes:
+        """The batch with vertices on ``device`` in ``dtype`` (connectivity shared)."""
+        return self.update_packed(self.verts_packed().to(device=device, dtype=dtype))
+
+    def detach(self) -> PolygonMeshes:
+        """The batch with detached vertices (connectivity shared)."""
+        return self.update_packed(self.verts_packed().detach())
