@@ -384,6 +384,16 @@ class PolygonMeshes:
             "half_edges", self.device, lambda: half_edge_vertices(self.faces_packed())
         )
 
+    def laplacian_diagonal_index(self) -> torch.Tensor:
+        """``(sum V_i,)`` position of each diagonal entry ``L_pp`` in the value array of the CSR
+        ``L`` returned by :meth:`laplacian` (every vertex has one, isolated ones included)."""
+
+        def make() -> torch.Tensor:
+            topo = self.topology()
+            return torch.nonzero(topo.row == topo.col)[:, 0].to(self.device)
+
+        return self._conn.cached("diag", self.device, make)
+
     # ----------------------------------------------------------------- operators
 
     def laplacian(
