@@ -1,0 +1,165 @@
+"""Chebyshev polynomial filters of the polygon Laplacian (ChebConv, Defferrard et al. 2016).
+
+The operator is the Alexa-Wardetzky Laplacian (AW11 eq. 3, 9) normalized by the lumped mass
+(AW11 eq. 10) and rescaled so that its spectrum lies in ``[-1, 1]``:
+
+* ``"sym"``: ``S = M0^{-1/2} L M0^{-1/2}`` (symmetric);
+* ``"rw"``:  ``S = M0^{-1} L`` (the strong Laplacian; same eigenvalues, not symmetric);
+
+``S_hat = 2 S / lambda_max - I``, where ``lambda_max`` is the Gershgorin bound
+``max_i sum_j |S_ij|`` of each mesh of a batch (a guaranteed upper bound on the spectrum,
+unlike a few power iterations, which approach it from below; pass ``lambda_max`` from
+:func:`torch_polylap.eigs` for a tight one).  A filter of ``K`` terms computes
+``y = sum_{k<K} T_k(S_hat) x W_k`` with the recursion ``T_0 x = x``, ``T_1 x = S_hat x``,
+``T_k x = 2 S_hat T_{k-1} x - T_{k-2} x``: ``K - 1`` sparse products through
+:func:`torch_polylap.spmm` (O(nnz) backward, gradients to ``L``'s and ``M0``'s values).
+
+torch.compile: the sparse products graph-break (CSR tensors and the custom autograd function);
+the dense weight contraction between them compiles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from ..sparse import csr_parts, csr_tensor, mark_symmetric, spmm
+from .spectrum import diagonal
+
+__all__ = ["chebyshev_operator", "chebyshev_filter", "ChebyshevFilter"]
+
+
+def chebyshev_operator(
+    L: torch.Tensor,
+    M0: torch.Tensor,
+    normalization: str = "sym",
+    *,
+    vert_to_mesh: torch.Tensor | None = None,
+    num_meshes: int | None = None,
+    lambda_max: torch.Tensor | float | None = None,
+) -> torch.Tensor:
+    """``S_hat = 2 S / lambda_max - I`` on ``L``'s sparsity pattern (see the module docstring).
+
+    Args:
+        L: ``(V, V)`` sparse Laplacian storing its diagonal (block-diagonal for a batch).
+        M0: ``(V, V)`` sparse diagonal mass matrix, or its ``(V,)`` diagonal.
+        normalization: ``"sym"`` or ``"rw"``.
+        vert_to_mesh: ``(V,)`` mesh index of each vertex of a packed batch; each mesh gets its
+            own ``lambda_max``, so a batch gives the same result as its meshes one by one.
+        num_meshes: number of meshes (default ``vert_to_mesh.max() + 1``).
+        lambda_max: upper bound(s) on the spectrum, a scalar or ``(B,)``; default Gershgorin.
+
+    Returns:
+        ``(V, V)`` sparse CSR, differentiable in ``L``'s and ``M0``'s values.
+    """
+    if normalization not in ("sym", "rw"):
+        raise ValueError(f"normalization must be 'sym' or 'rw', got {normalization!r}.")
+    crow, col, values = csr_parts(L)
+    m = diagonal(M0).to(values.dtype)
+    n = L.shape[0]
+    row = torch.repeat_interleave(torch.arange(n, device=crow.device), crow.diff())
+    on_diag = row == col
+    if int(on_diag.sum()) != n:
+        raise ValueError(
+            "chebyshev_operator: L must store every diagonal entry (torch_polylap.laplacian's "
+            "L does); add explicit zeros on the diagonal of a custom L."
+        )
+    if normalization == "sym":
+        r = torch.rsqrt(m)
+        s_values = values * r[row] * r[col]
+    else:
+        s_values = values / m[row]
+    if vert_to_mesh is None:
+        vert_to_mesh = torch.zeros(n, dtype=torch.int64, device=crow.device)
+        num_meshes = 1
+    elif num_meshes is None:
+        num_meshes = int(vert_to_mesh.max()) + 1
+    if lambda_max is None:
+        row_sums = s_values.new_zeros(n).index_add(0, row, s_values.abs())
+        lambda_max = s_values.new_zeros(num_meshes).scatter_reduce(
+            0, vert_to_mesh, row_sums, "amax", include_self=False
+        )
+    lam = torch.as_tensor(lambda_max, dtype=values.dtype, device=values.device)
+    lam_row = lam.expand(num_meshes)[vert_to_mesh][row]
+    S_hat = csr_tensor(crow, col, 2.0 * s_values / lam_row - on_diag.to(values.dtype), (n, n))
+    return mark_symmetric(S_hat) if normalization == "sym" else S_hat
+
+
+def chebyshev_filter(x: torch.Tensor, S_hat: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``sum_k T_k(S_hat) x weight[k]``.
+
+    Args:
+        x: ``(V, C_in)``; S_hat: ``(V, V)`` sparse from :func:`chebyshev_operator`;
+        weight: ``(K, C_in, C_out)``.
+
+    Returns:
+        ``(V, C_out)``.
+    """
+    K = weight.shape[0]
+    t_prev, t_cur = x, None
+    out = x @ weight[0]
+    for k in range(1, K):
+        if k == 1:
+            t_cur = spmm(S_hat, x)
+        else:
+            t_prev, t_cur = t_cur, 2.0 * spmm(S_hat, t_cur) - t_prev
+        out = out + t_cur @ weight[k]
+    return out
+
+
+class ChebyshevFilter(nn.Module):
+    """Learnable ``K``-term Chebyshev filter ``(sumV, C_in) -> (sumV, C_out)``.
+
+    Args:
+        in_channels, out_channels: ``C_in``, ``C_out``.
+        K: number of polynomial terms (degree ``K - 1``, support ``K - 1`` rings).
+        normalization: ``"sym"`` or ``"rw"`` (see :func:`chebyshev_operator`).
+        bias: add a learnable ``(C_out,)`` bias.
+
+    ``forward(x, L=None, M0=None, *, operator=None, vert_to_mesh=None)``: pass the batch's
+    block-diagonal ``L, M0`` (and ``vert_to_mesh`` for per-mesh scaling), or a precomputed
+    ``operator`` from :func:`chebyshev_operator` to reuse it across layers and steps.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        K: int = 3,
+        normalization: str = "sym",
+        bias: bool = True,
+    ) -> None:
+        super().__init__()
+        if K < 1:
+            raise ValueError(f"K must be at least 1, got {K}.")
+        self.in_channels, self.out_channels, self.K = in_channels, out_channels, K
+        self.normalization = normalization
+        bound = math.sqrt(6.0 / (K * in_channels + out_channels))  # Glorot over the K terms
+        self.weight = nn.Parameter(
+            torch.empty(K, in_channels, out_channels).uniform_(-bound, bound)
+        )
+        self.bias = nn.Parameter(torch.zeros(out_channels)) if bias else None
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        L: torch.Tensor | None = None,
+        M0: torch.Tensor | None = None,
+        *,
+        operator: torch.Tensor | None = None,
+        vert_to_mesh: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        if operator is None:
+            if L is None or M0 is None:
+                raise ValueError("ChebyshevFilter needs L and M0, or a precomputed `operator`.")
+            operator = chebyshev_operator(L, M0, self.normalization, vert_to_mesh=vert_to_mesh)
+        out = chebyshev_filter(x, operator, self.weight.to(x.dtype))
+        return out if self.bias is None else out + self.bias.to(x.dtype)
+
+    def extra_repr(self) -> str:
+        return (
+            f"{self.in_channels}, {self.out_channels}, K={self.K}, "
+            f"normalization={self.normalization!r}"
+        )

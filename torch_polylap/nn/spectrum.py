@@ -1,0 +1,216 @@
+"""Packed eigenpairs of a batch of meshes, with the index maps the learning layers need.
+
+A batch of ``B`` meshes with ``V_b`` vertices each is stored pytorch3d-style as *packed*
+tensors: the vertices of all meshes concatenated (``sumV = sum_b V_b`` rows), with
+``vert_to_mesh`` saying which mesh each row belongs to.  Every mesh carries the same number
+``k`` of eigenpairs of ``L phi = mu M0 phi`` (``M0``-orthonormal, from
+:func:`torch_polylap.eigs` or :func:`torch_polylap.cached_eigs`).
+
+Products with the per-mesh eigenbases go through a *padded* view ``(B, V_max, .)`` built by
+one scatter (and read back by one gather), so that a whole batch is projected with a single
+batched matrix product instead of a Python loop over meshes or vertices.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from ..sparse import csr_parts
+
+if TYPE_CHECKING:
+    from ..batch import PolygonMeshes
+
+__all__ = ["Spectrum", "diagonal", "per_mesh_weighted_mean", "block_diagonal"]
+
+
+def diagonal(M0: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` diagonal of a sparse diagonal matrix (``M0``), differentiable in its values.
+
+    A ``(V,)`` dense tensor is returned unchanged, so callers may pass masses directly.
+
+    Raises:
+        ValueError: ``M0`` is sparse but not diagonal with one stored entry per row.
+    """
+    if M0.layout == torch.strided:
+        if M0.dim() != 1:
+            raise ValueError(
+                f"expected masses of shape (V,) or a sparse M0, got {tuple(M0.shape)}."
+            )
+        return M0
+    crow, col, values = csr_parts(M0)
+    n = M0.shape[0]
+    if values.numel() != n or not torch.equal(col, torch.arange(n, device=col.device)):
+        raise ValueError(
+            "M0 must be diagonal with its diagonal stored (as torch_polylap.laplacian returns "
+            "it); pass the (V,) masses instead."
+        )
+    return values
+
+
+def block_diagonal(mats: Sequence[torch.Tensor]) -> torch.Tensor:
+    """The block-diagonal CSR matrix of square sparse ``mats`` (values stay differentiable).
+
+    Concatenates the CSR arrays with row/column offsets: O(total nnz), no densification.
+    """
+    from ..sparse import csr_tensor, mark_symmetric
+
+    crows, cols, vals = [], [], []
+    row_off = nnz_off = 0
+    for A in mats:
+        crow, col, values = csr_parts(A)
+        crows.append(crow[(1 if crows else 0) :] + nnz_off)
+        cols.append(col + row_off)
+        vals.append(values)
+        row_off += A.shape[0]
+        nnz_off += values.numel()
+    B = csr_tensor(torch.cat(crows), torch.cat(cols), torch.cat(vals), (row_off, row_off))
+    if all(getattr(A, "_polylap_symmetric", False) for A in mats):
+        mark_symmetric(B)
+    return B
+
+
+def per_mesh_weighted_mean(
+    x: torch.Tensor, weights: torch.Tensor, vert_to_mesh: torch.Tensor, num_meshes: int
+) -> torch.Tensor:
+    """``(B, C)`` per-mesh mean ``sum_v w_v x_v / sum_v w_v`` of packed ``x: (sumV, C)``.
+
+    With ``weights`` the lumped masses this is the area-weighted mean (global mean pooling that
+    does not depend on the tessellation density).
+    """
+    num = x.new_zeros(num_meshes, x.shape[1]).index_add(0, vert_to_mesh, weights[:, None] * x)
+    den = weights.new_zeros(num_meshes).index_add(0, vert_to_mesh, weights)
+    return num / den[:, None]
+
+
+@dataclass
+class Spectrum:
+    """``k`` eigenpairs of each mesh of a batch, packed.
+
+    Attributes:
+        evals: ``(B, k)`` eigenvalues, ascending per mesh.
+        evecs: ``(sumV, k)`` ``M0``-orthonormal eigenvectors, rows of mesh ``b`` at
+            ``first_idx[b] : first_idx[b] + num_verts[b]``.
+        mass: ``(sumV,)`` lumped masses (diagonal of ``M0``), used for projections.
+        num_verts: ``(B,)`` vertices per mesh (int64).
+    Derived index maps: ``first_idx (B,)``, ``vert_to_mesh (sumV,)``, ``local_idx (sumV,)``
+    (position of a vertex inside its mesh).
+    """
+
+    evals: torch.Tensor
+    evecs: torch.Tensor
+    mass: torch.Tensor
+    num_verts: torch.Tensor
+
+    def __post_init__(self) -> None:
+        B, k = self.evals.shape
+        n = int(self.num_verts.sum())
+        if self.evecs.shape != (n, k) or self.mass.shape != (n,):
+            raise ValueError(
+                f"Spectrum: evals {tuple(self.evals.shape)} and num_verts (sum {n}) need evecs "
+                f"of shape ({n}, {k}) and mass ({n},); got {tuple(self.evecs.shape)} and "
+                f"{tuple(self.mass.shape)}."
+            )
+        counts = self.num_verts.to(device=self.evecs.device, dtype=torch.int64)
+        self.num_verts = counts
+        self.first_idx = torch.cumsum(counts, 0) - counts
+        self.vert_to_mesh = torch.repeat_interleave(torch.arange(B, device=counts.device), counts)
+        self.local_idx = torch.arange(n, device=counts.device) - self.first_idx[self.vert_to_mesh]
+        self.max_verts = int(counts.max()) if B else 0
+        self._padded_evecs: torch.Tensor | None = None
+
+    @classmethod
+    def from_meshes(
+        cls, items: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    ) -> Spectrum:
+        """Pack ``[(evals (k,), evecs (V_b, k), M0 or mass (V_b,)), ...]`` (same ``k`` each)."""
+        ks = {int(e.shape[0]) for e, _, _ in items}
+        if len(ks) != 1:
+            raise ValueError(f"every mesh needs the same number of eigenpairs, got k in {ks}.")
+        masses = [diagonal(m) for _, _, m in items]
+        return cls(
+            torch.stack([e for e, _, _ in items]),
+            torch.cat([v for _, v, _ in items]),
+            torch.cat(masses),
+            torch.tensor([m.shape[0] for m in masses], device=masses[0].device),
+        )
+
+    @classmethod
+    def from_polygon_meshes(
+        cls,
+        meshes: PolygonMeshes,
+        k: int,
+        *,
+        lam: float = 1.0,
+        cache_dir: str | Path | None = None,
+    ) -> Spectrum:
+        """``k`` eigenpairs of each mesh of a :class:`~torch_polylap.batch.PolygonMeshes`.
+
+        With ``cache_dir`` they come from :func:`torch_polylap.cached_eigs` (on-disk cache keyed
+        by the mesh, so a dataset computes them once); the masses come from one block-diagonal
+        assembly of the batch. No gradient flows into the result.
+        """
+        from ..linalg import eigs
+        from ..operators import laplacian
+        from ..spectral import cached_eigs
+
+        with torch.no_grad():
+            mass = diagonal(meshes.laplacian(lam)[1])
+            pairs = []
+            for verts, faces in (meshes[i] for i in range(len(meshes))):
+                if cache_dir is not None:
+                    pairs.append(cached_eigs(verts, faces, k, cache_dir, lam=lam))
+                else:
+                    pairs.append(eigs(*laplacian(verts, faces, lam), k))
+        return cls(
+            torch.stack([e for e, _ in pairs]),
+            torch.cat([v for _, v in pairs]),
+            mass,
+            meshes.num_verts_per_mesh(),
+        )
+
+    @property
+    def num_meshes(self) -> int:
+        return int(self.evals.shape[0])
+
+    @property
+    def k(self) -> int:
+        return int(self.evals.shape[1])
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None):
+        """A copy on ``device`` with floating tensors cast to ``dtype``."""
+        return Spectrum(
+            self.evals.to(device=device, dtype=dtype),
+            self.evecs.to(device=device, dtype=dtype),
+            self.mass.to(device=device, dtype=dtype),
+            self.num_verts.to(device=device),
+        )
+
+    def to_padded(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, V_max, C)`` zero-padded view of packed ``x: (sumV, C)`` (one scatter)."""
+        out = x.new_zeros(self.num_meshes, self.max_verts, x.shape[1])
+        return out.index_put((self.vert_to_mesh, self.local_idx), x)
+
+    def from_padded(self, x: torch.Tensor) -> torch.Tensor:
+        """Packed ``(sumV, C)`` rows of padded ``x: (B, V_max, C)`` (one gather)."""
+        return x[self.vert_to_mesh, self.local_idx]
+
+    def padded_evecs(self) -> torch.Tensor:
+        """``(B, V_max, k)`` eigenvectors, zero rows past each mesh's end (computed once)."""
+        if self.evecs.requires_grad:  # a cached tensor would hold a graph across calls
+            return self.to_padded(self.evecs)
+        if self._padded_evecs is None:
+            self._padded_evecs = self.to_padded(self.evecs)
+        return self._padded_evecs
+
+    def project(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, k, C)`` spectral coefficients ``Phi_b^T M0_b x_b`` of packed ``x: (sumV, C)``."""
+        return self.padded_evecs().transpose(1, 2) @ self.to_padded(self.mass[:, None] * x)
+
+    def synthesize(self, coeffs: torch.Tensor) -> torch.Tensor:
+        """Packed ``(sumV, C)`` signal ``Phi_b c_b`` from coefficients ``(B, k, C)``."""
+        return self.from_padded(self.padded_evecs() @ coeffs)
