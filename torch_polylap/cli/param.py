@@ -1,0 +1,131 @@
+"""``polylap param [MESH]``: conformal parameterization of a disk-like mesh (AW11 sec. 5.2)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+import torch
+
+from ..io import write_mesh
+from ..operators import get_topology, vector_area
+from .common import (
+    DISK_MESH,
+    Result,
+    add_mesh_argument,
+    add_output_arguments,
+    load_mesh,
+    output_dir,
+    positive_float,
+    result_path,
+    up_axis,
+)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "param",
+        help="conformal (LSCM-type) parameterization of a mesh with boundary",
+        description="Flatten a polygon mesh with boundary by minimizing the conformal energy "
+        "E_C = E_D - A (AW11 sec. 5.2): two pinned boundary vertices (default, eq. 12) or a free "
+        "boundary (--free-boundary, eq. 13-15). Writes <mesh>_param.obj (the flat mesh, z = 0) "
+        "and a figure of the mesh and its image colored by the angle distortion.",
+    )
+    add_mesh_argument(p, default=DISK_MESH)
+    p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
+    p.add_argument(
+        "--free-boundary",
+        action="store_true",
+        help="no pins: minimize E_C subject to A = 1 (boundary Schur complement, AW11 eq. 15)",
+    )
+    p.add_argument(
+        "--pins",
+        type=int,
+        nargs=2,
+        metavar=("I", "J"),
+        help="the two pinned boundary vertices (default: two far-apart ones)",
+    )
+    add_output_arguments(p, progress=False)
+    p.set_defaults(func=run, compute=compute)
+
+
+def corner_faces(faces) -> torch.Tensor:
+    """``(N,)`` the face of every packed corner."""
+    return torch.repeat_interleave(torch.arange(faces.num_faces), faces.sizes)
+
+
+def compute(args: argparse.Namespace) -> Result:
+    from ..apps.conformal import angle_distortion, conformal_energy, conformal_parameterization
+
+    verts, faces, path, label = load_mesh(args)
+    topo = get_topology(faces, verts.shape[0])
+    out = output_dir(args)
+    if args.pins is not None and args.free_boundary:
+        raise ValueError("--pins and --free-boundary exclude each other; pass one of them.")
+    start = time.perf_counter()
+    uv = conformal_parameterization(
+        verts, topo, pins=args.pins, free_boundary=args.free_boundary, lam=args.lam
+    )
+    seconds = time.perf_counter() - start
+    uv = uv.detach()
+    energy = float(conformal_energy(uv, verts, topo, args.lam))
+    dist = angle_distortion(uv, verts, topo)
+    # per-face mean |angle error| in degrees (the corners are packed face by face)
+    face_err = torch.zeros(faces.num_faces, dtype=uv.dtype).index_add_(
+        0, corner_faces(faces), dist.per_corner.abs()
+    ) / faces.sizes.to(uv.dtype)
+    face_err_deg = face_err * 180 / math.pi
+    flat = torch.cat([uv, torch.zeros_like(uv[:, :1])], 1)
+    signed_area = vector_area(flat, topo)[:, 2]
+    flipped = int((signed_area <= 0).sum())
+    mesh_out = result_path(out, path, "param", ".obj")
+    write_mesh(mesh_out, flat, faces)
+    rows = [
+        (
+            "vertices / faces / boundary edges",
+            f"{verts.shape[0]} / {faces.num_faces} / {topo.boundary_edges.shape[0]}",
+        ),
+        ("mode", "free boundary (eq. 13-15)" if args.free_boundary else "two pins (eq. 12)"),
+        ("lambda / time", f"{args.lam} / {seconds * 1e3:.1f} ms"),
+        ("conformal energy E_C", f"{energy:.4g}"),
+        ("image area / 3D area", f"{float(signed_area.sum()) / float(_area(verts, topo)):.4f}"),
+        (
+            "angle error mean / rms / max (deg)",
+            f"{math.degrees(dist.mean):.3f} / {math.degrees(dist.rms):.3f} / "
+            f"{math.degrees(dist.max):.3f}",
+        ),
+        ("flipped faces", str(flipped)),
+    ]
+    files = [mesh_out]
+    if not args.no_plot:
+        from ..plot import new_figure, plot_mesh, plot_uv, save_figure
+
+        png = result_path(out, path, "param", ".png")
+        fig, (ax3, ax2) = new_figure(1, 2, [True, False], panel_size=4.5)
+        hi = float(np.nanmax(face_err_deg.numpy())) or 1.0
+        common = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
+        plot_mesh(
+            verts,
+            faces,
+            face_err_deg,
+            ax=ax3,
+            title="input",
+            colorbar=False,
+            up=up_axis(args, verts),
+            **common,
+        )
+        plot_uv(uv, faces, face_err_deg, ax=ax2, title="conformal map", **common)
+        save_figure(fig, png)
+        files.append(png)
+    return Result(f"polylap param: {label}", rows, files)
+
+
+def _area(verts: torch.Tensor, topo) -> torch.Tensor:
+    return torch.linalg.vector_norm(vector_area(verts, topo), dim=1).sum()
+
+
+def run(args: argparse.Namespace) -> int:
+    compute(args).print()
+    return 0

@@ -1,0 +1,121 @@
+"""``polylap planarize [MESH]``: make every face planar (AW11 sec. 5.3)."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from ..io import write_mesh
+from ..operators import face_nonplanarity, get_topology
+from .common import (
+    Result,
+    add_mesh_argument,
+    add_output_arguments,
+    load_mesh,
+    output_dir,
+    positive_float,
+    positive_int,
+    result_path,
+    up_axis,
+)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "planarize",
+        help="planarize the faces (quasi-Newton descent of the planarity energy)",
+        description="Minimize the planarity energy E_plan = 1/2 sum_c X_c^T Lplan X_c "
+        "(AW11 sec. 5.3) with L-BFGS until the largest face non-planarity (corner distance from "
+        "the face plane over the face diameter) is below --tol. Writes <mesh>_planar.<ext> and "
+        "a before/after figure colored by non-planarity.",
+    )
+    add_mesh_argument(p)
+    p.add_argument("--lam", type=positive_float, default=2.0, help="lambda (default 2, as AW11)")
+    p.add_argument(
+        "--tol", type=positive_float, default=1e-4, help="target largest non-planarity (1e-4)"
+    )
+    p.add_argument(
+        "--max-iter", type=positive_int, default=500, help="L-BFGS iterations (default 500)"
+    )
+    add_output_arguments(p)
+    p.set_defaults(func=run, compute=compute)
+
+
+def compute(args: argparse.Namespace) -> Result:
+    from ..apps.planarize import planarize
+
+    verts, faces, path, label = load_mesh(args)
+    topo = get_topology(faces, verts.shape[0])
+    out = output_dir(args)
+    res = planarize(
+        verts,
+        topo,
+        lam=args.lam,
+        tol=args.tol,
+        max_iter=args.max_iter,
+        progress=not args.no_progress,
+    )
+    mesh_out = result_path(out, path, "planar")
+    write_mesh(mesh_out, res.verts, faces)
+    rows = [
+        ("vertices / faces", f"{verts.shape[0]} / {faces.num_faces}"),
+        ("lambda / tol / max iterations", f"{args.lam} / {args.tol:g} / {args.max_iter}"),
+        (
+            "non-planarity max / mean before",
+            f"{res.nonplanarity_before[0]:.3e} / {res.nonplanarity_before[1]:.3e}",
+        ),
+        (
+            "non-planarity max / mean after",
+            f"{res.nonplanarity_after[0]:.3e} / {res.nonplanarity_after[1]:.3e}",
+        ),
+        (
+            "displacement max / mean (bbox diag)",
+            f"{res.displacement[0]:.3e} / {res.displacement[1]:.3e}",
+        ),
+        ("iterations / time", f"{res.iterations} / {res.seconds:.2f} s"),
+        ("converged", "yes" if res.converged else f"no (largest above {args.tol:g})"),
+    ]
+    files = [mesh_out]
+    if not args.no_plot:
+        from ..plot import new_figure, plot_lines, plot_mesh, save_figure
+
+        png = result_path(out, path, "planar", ".png")
+        before = face_nonplanarity(verts, topo)
+        after = face_nonplanarity(res.verts, topo)
+        fig, axes = new_figure(1, 3, [True, True, False], panel_size=4.0)
+        clim = (0.0, float(before.max()) or 1.0)
+        up = up_axis(args, verts)
+        for ax, x, values, title in (
+            (axes[0], verts, before, f"input, max {res.nonplanarity_before[0]:.2e}"),
+            (axes[1], res.verts, after, f"planarized, max {res.nonplanarity_after[0]:.2e}"),
+        ):
+            plot_mesh(
+                x,
+                faces,
+                values,
+                ax=ax,
+                title=title,
+                cmap="inferno",
+                clim=clim,
+                up=up,
+                label="non-planarity",
+            )
+        if res.energies:
+            energies = np.maximum(np.asarray(res.energies), np.finfo(float).tiny)
+            plot_lines(
+                {"E_plan": (np.arange(len(energies)), energies)},
+                ax=axes[2],
+                title="planarity energy",
+                xlabel="iteration",
+                logy=True,
+                marker="",
+            )
+        save_figure(fig, png)
+        files.append(png)
+    return Result(f"polylap planarize: {label}", rows, files)
+
+
+def run(args: argparse.Namespace) -> int:
+    compute(args).print()
+    return 0
