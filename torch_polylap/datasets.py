@@ -1,0 +1,206 @@
+"""A dataset of polygon meshes with precomputed operators and eigenpairs, and its collate.
+
+Each item carries what the layers of :mod:`torch_polylap.nn` need: the mesh, its Laplacian
+``L`` and lumped mass ``M0`` (AW11 eq. 3, 9, 10) and ``k`` eigenpairs of ``L phi = mu M0 phi``.
+Eigenpairs are the expensive part; they go through :func:`torch_polylap.cached_eigs`, an
+on-disk cache keyed by the (normalized) geometry, so they are computed once per mesh across
+epochs, runs and processes.  Fill the cache up front in parallel with
+:meth:`PolygonMeshDataset.precompute`, or let ``DataLoader(num_workers=n)`` workers fill it on
+first access (writes are atomic, so concurrent workers never read half a file).
+
+:func:`collate_meshes` packs a list of items into a :class:`MeshBatch`: a
+:class:`~torch_polylap.batch.PolygonMeshes`, the packed :class:`~torch_polylap.nn.Spectrum`,
+block-diagonal ``L`` and ``M0`` (concatenated, not re-assembled) and the labels.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch.utils.data import Dataset
+
+from .batch import PolygonMeshes
+from .faces import FacesLike, PolygonFaces, as_faces
+from .io import read_mesh
+from .nn.spectrum import Spectrum, block_diagonal
+from .operators import laplacian, mass
+from .sparse import csr_parts, csr_tensor, mark_symmetric
+from .spectral import cached_eigs
+
+__all__ = ["PolygonMeshDataset", "MeshBatch", "collate_meshes"]
+
+MeshItem = str | os.PathLike | tuple[torch.Tensor, FacesLike]
+
+
+def normalize_mesh(verts: torch.Tensor, faces: PolygonFaces) -> torch.Tensor:
+    """Translate the area-weighted centroid to the origin and scale to unit total area.
+
+    Diffusion times and spectra then mean the same on meshes of any size (``mu`` scales as
+    ``1 / area``).
+    """
+    m = mass(verts, faces)
+    centered = verts - (m[:, None] * verts).sum(0) / m.sum()
+    return centered / m.sum().sqrt()
+
+
+class PolygonMeshDataset(Dataset):
+    """Polygon meshes (files or ``(verts, faces)`` pairs) with labels, ``L``, ``M0`` and eigenpairs.
+
+    Args:
+        items: mesh file paths (OBJ/OFF/PLY, read with :func:`torch_polylap.read_mesh`) or
+            ``(verts (V, 3), faces)`` pairs.
+        labels: one integer label per item (classification), or ``None``.
+        k: eigenpairs per mesh (every mesh needs more than ``k`` vertices).
+        cache_dir: directory of the eigenpair cache.
+        lam: stabilization weight of the Laplacian (AW11 eq. 9).
+        normalize: center and scale each mesh to unit area (:func:`normalize_mesh`).
+        dtype: dtype of the returned tensors (eigenpairs are computed in float64).
+
+    ``dataset[i]`` is a dict with ``verts (V, 3)``, ``faces`` (:class:`PolygonFaces`),
+    ``label`` (int or None), ``evals (k,)``, ``evecs (V, k)``, ``mass (V,)`` and ``L`` as CSR
+    arrays ``(crow, col, values)`` (plain tensors, so items cross DataLoader worker processes).
+    """
+
+    def __init__(
+        self,
+        items: Sequence[MeshItem],
+        labels: Sequence[int] | None = None,
+        *,
+        k: int = 32,
+        cache_dir: str | os.PathLike,
+        lam: float = 1.0,
+        normalize: bool = True,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        if labels is not None and len(labels) != len(items):
+            raise ValueError(f"got {len(items)} meshes but {len(labels)} labels.")
+        self.items, self.labels = list(items), None if labels is None else list(labels)
+        self.k, self.cache_dir, self.lam = k, Path(cache_dir), lam
+        self.normalize, self.dtype = normalize, dtype
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def mesh(self, i: int) -> tuple[torch.Tensor, PolygonFaces]:
+        """``(verts, faces)`` of item ``i`` in float64, normalized if requested."""
+        item = self.items[i]
+        if isinstance(item, str | os.PathLike):
+            verts, faces = read_mesh(item, dtype=torch.float64)
+        else:
+            verts, faces = item[0].detach().to(torch.float64), as_faces(item[1])
+        if verts.shape[0] <= self.k:
+            raise ValueError(
+                f"mesh {i} has {verts.shape[0]} vertices, too few for k = {self.k} eigenpairs; "
+                "use a smaller k or a finer mesh."
+            )
+        return (normalize_mesh(verts, faces) if self.normalize else verts), faces
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        verts, faces = self.mesh(i)
+        evals, evecs = cached_eigs(verts, faces, self.k, self.cache_dir, lam=self.lam)
+        L, M0 = laplacian(verts, faces, self.lam)
+        crow, col, values = csr_parts(L)
+        return {
+            "verts": verts.to(self.dtype),
+            "faces": faces,
+            "label": None if self.labels is None else int(self.labels[i]),
+            "evals": evals.to(self.dtype),
+            "evecs": evecs.to(self.dtype),
+            "mass": csr_parts(M0)[2].to(self.dtype),
+            "L": (crow, col, values.to(self.dtype)),
+        }
+
+    def _fill_cache(self, i: int) -> None:
+        verts, faces = self.mesh(i)
+        cached_eigs(verts, faces, self.k, self.cache_dir, lam=self.lam)
+
+    def precompute(self, num_workers: int = 0) -> None:
+        """Fill the eigenpair cache for every item, in ``num_workers`` processes (0: here).
+
+        Uses ``fork`` where available (no re-import of torch per worker) with one torch thread
+        per worker, so ``num_workers`` processes use about ``num_workers`` cores.
+        """
+        if num_workers <= 0:
+            for i in range(len(self)):
+                self._fill_cache(i)
+            return
+        methods = multiprocessing.get_all_start_methods()
+        context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        with context.Pool(num_workers, initializer=torch.set_num_threads, initargs=(1,)) as pool:
+            pool.map(
+                self._fill_cache, range(len(self)), chunksize=max(1, len(self) // (4 * num_workers))
+            )
+
+
+@dataclass
+class MeshBatch:
+    """A collated batch: meshes, packed eigenpairs, block-diagonal operators, labels.
+
+    Attributes:
+        meshes: :class:`PolygonMeshes` of the ``B`` meshes (packed vertices and faces).
+        spectrum: :class:`Spectrum` (``evals (B, k)``, ``evecs (sumV, k)``, masses, index maps).
+        L_csr: ``(crow, col, values)`` of the block-diagonal Laplacian (plain tensors, so a
+            batch collated in a DataLoader worker crosses processes without sparse pickling).
+        labels: ``(B,)`` int64, or ``None`` when the items have none.
+    Properties ``L`` and ``M0``: ``(sumV, sumV)`` sparse CSR operators built on access.
+    """
+
+    meshes: PolygonMeshes
+    spectrum: Spectrum
+    L_csr: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+    labels: torch.Tensor | None
+
+    @property
+    def L(self) -> torch.Tensor:
+        n = self.spectrum.mass.numel()
+        return mark_symmetric(csr_tensor(*self.L_csr, (n, n)))
+
+    @property
+    def M0(self) -> torch.Tensor:
+        d = self.spectrum.mass
+        ar = torch.arange(d.numel() + 1, device=d.device)
+        return mark_symmetric(csr_tensor(ar, ar[:-1], d, (d.numel(), d.numel())))
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None):
+        """The batch on ``device`` with floating tensors in ``dtype``."""
+        crow, col, values = self.L_csr
+        return MeshBatch(
+            self.meshes.to(device, dtype),
+            self.spectrum.to(device, dtype),
+            (crow.to(device), col.to(device), values.to(device, dtype)),
+            None if self.labels is None else self.labels.to(device),
+        )
+
+
+def collate_meshes(items: Sequence[dict[str, Any]]) -> MeshBatch:
+    """Pack dataset items into a :class:`MeshBatch` (use as ``DataLoader(collate_fn=...)``).
+
+    ``L`` is concatenated block by block from the items' CSR arrays (no re-assembly); the
+    packed faces carry global vertex indices (shifted by each mesh's first packed vertex).
+    """
+    meshes = PolygonMeshes([it["verts"] for it in items], [it["faces"] for it in items])
+    spectrum = Spectrum(
+        torch.stack([it["evals"] for it in items]),
+        torch.cat([it["evecs"] for it in items]),
+        torch.cat([it["mass"] for it in items]),
+        meshes.num_verts_per_mesh(),
+    )
+    blocks = []
+    for it in items:
+        n = it["verts"].shape[0]
+        blocks.append(mark_symmetric(csr_tensor(*it["L"], (n, n))))
+    L = block_diagonal(blocks)
+    L_csr = (L.crow_indices(), L.col_indices(), csr_parts(L)[2])
+    labels = [it["label"] for it in items]
+    return MeshBatch(
+        meshes,
+        spectrum,
+        L_csr,
+        None if any(lb is None for lb in labels) else torch.tensor(labels, dtype=torch.int64),
+    )
