@@ -1,0 +1,475 @@
+"""Benchmark the Laplacian smoothing loss on polygon mesh batches against a triangle cotan loss.
+
+Measured, forward + backward with respect to the packed vertex positions (one training step):
+
+1. ``torch_polylap.losses.laplacian_smoothing(method="polygon")`` on a batch of ``--batch``
+   perturbed quad spheres of about ``--faces`` faces each (sizes vary by mesh) and on one quad
+   sphere of about ``--big-faces`` faces, with live weights (``L`` differentiated) and frozen
+   weights (``L`` under ``no_grad``);
+2. the same loss on the triangulated meshes (two triangles per quad), where ``L`` is the cotan
+   Laplacian;
+3. the baseline on the triangulated meshes: pytorch3d's ``mesh_laplacian_smoothing(method="cot")``
+   when pytorch3d is importable (frozen weights only: pytorch3d builds them under ``no_grad``),
+   otherwise a plain-torch cotan smoothing loss written below (cotan weights by ``index_add``,
+   frozen: a torch CSR product; live: the same product as gather + ``index_add``, whose backward
+   is O(nnz));
+4. peak memory of each step, in a fresh process per case (``VmHWM`` after resetting it through
+   ``/proc/self/clear_refs``, as ``bench_laplacian.py`` does; ``ru_maxrss`` where unavailable).
+
+The topology (``PolygonMeshes.topology()``) is built once outside the timed step, as in a
+training loop with fixed connectivity; its one-off cost is reported separately.
+
+Run from the repository root::
+
+    python benchmarks/bench_losses.py                               # 64 x 5k faces and 1M faces
+    python benchmarks/bench_losses.py --batch 4 --faces 500 --big-faces 20000 --repeat 1
+
+Progress goes to stderr, Markdown tables to stdout, JSON to ``--json`` (default
+``benchmarks/results/losses.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import ctypes
+import gc
+import json
+import multiprocessing
+import platform
+import resource
+import statistics
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+# Benchmark the checkout this file lives in, installed or not.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np
+import torch
+
+import torch_polylap as tp
+from torch_polylap.batch import PolygonMeshes, per_mesh_mean
+from torch_polylap.losses import laplacian_smoothing
+
+# the plain-torch baseline builds a torch sparse matrix: silence torch's "beta" notices
+warnings.filterwarnings("ignore", message="Sparse (CSR tensor support|invariant checks)")
+
+RESULTS = Path(__file__).resolve().parent / "results"
+MIN_SAMPLE_SECONDS = 0.05
+
+
+# ----------------------------------------------------------------------------- meshes
+
+
+def quad_sphere(n: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A cube subdivided into ``6 n^2`` quads, projected to the unit sphere, radially perturbed.
+
+    The per-vertex radial noise (relative amplitude ``noise``) makes every quad non-planar.
+    Returns float64 ``(V, 3)`` positions and ``(F, 4)`` faces oriented outward.
+    """
+    t = np.linspace(-1.0, 1.0, n + 1)
+    a, b = np.meshgrid(t, t, indexing="ij")
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    pts, faces = [], []
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            p = np.empty((a.size, 3))
+            p[:, axis] = side
+            p[:, (axis + 1) % 3] = a.ravel()
+            p[:, (axis + 2) % 3] = b.ravel()
+            # (u, v, w) = (e_{axis+1}, e_{axis+2}, e_axis) is right-handed, so the quads run
+            # counter-clockwise around +e_axis; flip them on the negative side
+            f = quads if side > 0 else quads[:, ::-1]
+            faces.append(f + sum(len(q) for q in pts))
+            pts.append(p)
+    p = np.concatenate(pts)
+    # weld the duplicated vertices along the cube's edges (coordinates are exact grid values)
+    _, first, inverse = np.unique(
+        np.round(p * n).astype(np.int64), axis=0, return_index=True, return_inverse=True
+    )
+    faces = inverse.reshape(-1)[np.concatenate(faces)]
+    p = p[first]
+    rng = np.random.default_rng(seed)
+    radius = 1.0 + noise * rng.standard_normal(len(p))
+    return p / np.linalg.norm(p, axis=1, keepdims=True) * radius[:, None], faces
+
+
+def sphere_resolution(faces: int) -> int:
+    return max(2, round(np.sqrt(faces / 6)))
+
+
+def triangulate(quads: np.ndarray) -> np.ndarray:
+    """Two triangles ``(0, 1, 2), (0, 2, 3)`` per quad, same orientation."""
+    return np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+
+
+def make_case(name: str, sizes: list[int], noise: float, dtype: torch.dtype) -> dict:
+    meshes = [quad_sphere(sphere_resolution(f), noise, seed) for seed, f in enumerate(sizes)]
+    verts = [torch.tensor(v, dtype=dtype) for v, _ in meshes]
+    quads = [torch.from_numpy(np.ascontiguousarray(f)) for _, f in meshes]
+    tris = [torch.from_numpy(triangulate(f)) for _, f in meshes]
+    return {"name": name, "verts": verts, "quads": quads, "tris": tris}
+
+
+# ----------------------------------------------------------------------------- baselines
+
+
+def cotan_smoothing(
+    verts: torch.Tensor,
+    tris: torch.Tensor,
+    mesh_idx: torch.Tensor,
+    num_meshes: int,
+    frozen: bool,
+) -> torch.Tensor:
+    """pytorch3d's "cot" smoothing in plain torch: per vertex ``|sum_q w_pq X_q / sum_q w_pq -
+    X_p|``, ``w = (cot a + cot b) / 2``, mean per mesh, mean over the batch.
+
+    Args:
+        verts: ``(V, 3)`` packed positions; tris: ``(T, 3)`` packed triangles;
+        mesh_idx: ``(V,)`` mesh of each vertex; frozen: weights under ``no_grad``.
+    """
+    n = verts.shape[0]
+    with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen):
+        x = verts[tris]  # (T, 3, 3)
+        rows, cols, weights = [], [], []
+        for c in range(3):
+            u = x[:, (c + 1) % 3] - x[:, c]
+            v = x[:, (c + 2) % 3] - x[:, c]
+            cot = (u * v).sum(1) / torch.linalg.vector_norm(torch.cross(u, v, dim=1), dim=1)
+            rows.append(tris[:, (c + 1) % 3])
+            cols.append(tris[:, (c + 2) % 3])
+            weights.append(0.5 * cot)
+        i, j, w = torch.cat(rows), torch.cat(cols), torch.cat(weights)
+        rows_all, cols_all, w_all = torch.cat([i, j]), torch.cat([j, i]), torch.cat([w, w])
+        rowsum = verts.new_zeros(n).index_add(0, rows_all, w_all)
+        inv = torch.where(rowsum > 0, 1.0 / rowsum, torch.zeros_like(rowsum))
+    if frozen:
+        W = torch.sparse_coo_tensor(torch.stack([rows_all, cols_all]), w_all, (n, n))
+        wx = W.coalesce().to_sparse_csr() @ verts
+    else:
+        wx = verts.new_zeros(n, 3).index_add(0, rows_all, w_all[:, None] * verts[cols_all])
+    per_vertex = torch.linalg.vector_norm(wx * inv[:, None] - verts, dim=1)
+    return per_mesh_mean(per_vertex, mesh_idx, num_meshes).mean()
+
+
+def pytorch3d_available() -> bool:
+    try:
+        import pytorch3d.loss  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+# ----------------------------------------------------------------------------- steps
+
+
+def build_steps(case: dict, baseline: str) -> dict[str, Callable[[], None]]:
+    """Forward + backward closures; connectivity prepared once, outside the closures."""
+    quad_batch = PolygonMeshes(case["verts"], case["quads"])
+    tri_batch = PolygonMeshes(case["verts"], case["tris"])
+    quad_batch.topology()
+    tri_batch.topology()
+    X = quad_batch.verts_packed().detach()
+    tris_packed = tri_batch.faces_packed().as_uniform()
+    mesh_idx = tri_batch.verts_packed_to_mesh_idx()
+    B = len(quad_batch)
+
+    def ours(batch: PolygonMeshes, frozen: bool) -> Callable[[], None]:
+        def step() -> None:
+            x = X.clone().requires_grad_(True)
+            laplacian_smoothing(batch.update_packed(x), "polygon", frozen_weights=frozen).backward()
+
+        return step
+
+    def reference(frozen: bool) -> Callable[[], None]:
+        def step() -> None:
+            x = X.clone().requires_grad_(True)
+            cotan_smoothing(x, tris_packed, mesh_idx, B, frozen).backward()
+
+        return step
+
+    steps = {
+        "ours quads live": ours(quad_batch, False),
+        "ours quads frozen": ours(quad_batch, True),
+        "ours tris live": ours(tri_batch, False),
+        "ours tris frozen": ours(tri_batch, True),
+    }
+    if baseline == "pytorch3d":
+        from pytorch3d.loss import mesh_laplacian_smoothing
+        from pytorch3d.structures import Meshes
+
+        def p3d() -> None:
+            x = X.clone().requires_grad_(True)
+            meshes = Meshes(
+                list(torch.split(x, tri_batch.num_verts_per_mesh().tolist())), case["tris"]
+            )
+            mesh_laplacian_smoothing(meshes, method="cot").backward()
+
+        steps["pytorch3d cot frozen"] = p3d
+    else:
+        steps["torch cot live"] = reference(False)
+        steps["torch cot frozen"] = reference(True)
+    return steps
+
+
+def median_time(fn: Callable[[], None], repeat: int) -> float:
+    """Median seconds per call over ``repeat`` samples after a warm-up (fast calls batched)."""
+    number = 1
+    while True:
+        start = time.perf_counter()
+        for _ in range(number):
+            fn()
+        if time.perf_counter() - start >= MIN_SAMPLE_SECONDS or number >= 1024:
+            break
+        number *= 2
+    samples = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        for _ in range(number):
+            fn()
+        samples.append((time.perf_counter() - start) / number)
+    return statistics.median(samples)
+
+
+def _rss_bytes(field: str) -> int | None:
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def _reset_peak_rss() -> bool:
+    try:
+        with open("/proc/self/clear_refs", "w") as clear_refs:
+            clear_refs.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _trim_heap() -> None:
+    """Return freed heap memory to the OS (glibc), so that a step's peak is not hidden in it."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
+def memory_child(
+    sizes: list[int], noise: float, dtype_name: str, baseline: str, threads: int
+) -> dict:
+    """Peak RSS growth of each step, in a fresh process, after the setup.
+
+    Every step runs once first (lazy caches such as the Laplacian's diagonal positions are
+    then filled, as in a training loop after its first iteration).  Before each measured step
+    the heap is trimmed and the kernel's peak counter reset, so the peak is measured from the
+    resident memory left by the setup and the warm-up.
+    """
+    if threads:
+        torch.set_num_threads(threads)
+    case = make_case("memory", sizes, noise, getattr(torch, dtype_name))
+    steps = build_steps(case, baseline)
+    for step in steps.values():
+        step()
+    out = {}
+    for name, step in steps.items():
+        gc.collect()
+        _trim_heap()
+        exact = _reset_peak_rss()
+        start = _rss_bytes("VmRSS")
+        step()
+        if exact:
+            peak = _rss_bytes("VmHWM")
+        else:
+            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+        out[name] = {
+            "method": "VmHWM after clear_refs" if exact else "ru_maxrss since start",
+            "delta_bytes": None if start is None else peak - start,
+        }
+    return out
+
+
+def measure_memory(sizes, noise, dtype, baseline, threads) -> dict:
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(1, mp_context=context) as pool:
+        name = str(dtype).removeprefix("torch.")
+        return pool.submit(memory_child, sizes, noise, name, baseline, threads).result()
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def progress(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = [
+        "| " + " | ".join(header) + " |",
+        "| " + " | ".join(["---"] + ["--:"] * (len(header) - 1)) + " |",
+    ]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def check_agreement(case: dict) -> dict:
+    """Ours on triangles vs the plain cotan loss (same formula where cotan row sums are > 0)."""
+    tri_batch = PolygonMeshes([v.double() for v in case["verts"]], case["tris"])
+    ours = float(laplacian_smoothing(tri_batch, "polygon"))
+    ref = float(
+        cotan_smoothing(
+            tri_batch.verts_packed(),
+            tri_batch.faces_packed().as_uniform(),
+            tri_batch.verts_packed_to_mesh_idx(),
+            len(tri_batch),
+            frozen=True,
+        )
+    )
+    return {
+        "ours_on_tris": ours,
+        "cotan_reference": ref,
+        "relative_difference": abs(ours - ref) / ref,
+    }
+
+
+def run(args: argparse.Namespace) -> dict:
+    dtype = getattr(torch, args.dtype)
+    baseline = "pytorch3d" if pytorch3d_available() else "torch"
+    rng = np.random.default_rng(0)
+    # heterogeneous batch: sizes within +-20% of --faces
+    batch_sizes = [int(args.faces * s) for s in rng.uniform(0.8, 1.2, args.batch)]
+    specs = [(f"batch {args.batch} x ~{args.faces} quads", batch_sizes)]
+    if args.big_faces:
+        specs.append((f"one mesh of ~{args.big_faces} quads", [args.big_faces]))
+    results = []
+    for name, sizes in specs:
+        progress(f"{name}: generating")
+        case = make_case(name, sizes, args.noise, dtype)
+        start = time.perf_counter()
+        PolygonMeshes(case["verts"], case["quads"]).topology()
+        topo_seconds = time.perf_counter() - start
+        steps = build_steps(case, baseline)
+        times = {}
+        for step_name, fn in steps.items():
+            progress(f"{name}: {step_name}")
+            times[step_name] = median_time(fn, args.repeat)
+        memory = {}
+        if args.memory:
+            progress(f"{name}: peak memory (fresh process)")
+            memory = measure_memory(sizes, args.noise, dtype, baseline, args.threads)
+        results.append(
+            {
+                "name": name,
+                "num_meshes": len(sizes),
+                "num_quads": int(sum(len(f) for f in case["quads"])),
+                "num_verts": int(sum(len(v) for v in case["verts"])),
+                "topology_seconds": topo_seconds,
+                "seconds": times,
+                "memory": memory,
+                "check": check_agreement(case) if len(sizes) <= 64 else None,
+            }
+        )
+        del case, steps
+        gc.collect()
+    return {"baseline": baseline, "cases": results}
+
+
+def report(env: dict, data: dict) -> str:
+    base = "pytorch3d cot frozen" if data["baseline"] == "pytorch3d" else "torch cot frozen"
+    out = [
+        f"torch {env['torch']}, {env['threads']} threads, {env['dtype']}, {env['cpu']}; "
+        f"median of {env['repeat']}; baseline: {data['baseline']} (on the triangulated meshes)"
+    ]
+    for case in data["cases"]:
+        out.append(
+            f"\n#### {case['name']}: {case['num_quads']:,} quads, {case['num_verts']:,} vertices "
+            f"(topology built once: {case['topology_seconds'] * 1e3:.0f} ms)\n"
+        )
+        rows = []
+        for step, seconds in case["seconds"].items():
+            mem = case["memory"].get(step)
+            mb = (
+                f"{mem['delta_bytes'] / 2**20:.0f}"
+                if mem and mem["delta_bytes"] is not None
+                else "-"
+            )
+            rows.append(
+                [step, f"{seconds * 1e3:.1f}", f"{seconds / case['seconds'][base]:.2f}", mb]
+            )
+        out.append(markdown_table(["fwd+bwd", "ms", f"/ {base}", "peak MB"], rows))
+        if case["check"]:
+            c = case["check"]
+            out.append(
+                f"\nCheck (float64): ours on triangles {c['ours_on_tris']:.6g}, cotan reference "
+                f"{c['cotan_reference']:.6g}, relative difference {c['relative_difference']:.1e}."
+            )
+    return "\n".join(out)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--batch", type=int, default=64, help="meshes in the batch (default 64)")
+    p.add_argument("--faces", type=int, default=5000, help="faces per batch mesh (default 5000)")
+    p.add_argument(
+        "--big-faces",
+        type=int,
+        default=1_000_000,
+        help="faces of the single large mesh; 0 skips it (default 1M)",
+    )
+    p.add_argument("--noise", type=float, default=0.01, help="radial noise (default 0.01)")
+    p.add_argument("--repeat", type=int, default=3, help="timed samples (default 3)")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument(
+        "--memory",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="peak memory per step in fresh processes (default on)",
+    )
+    p.add_argument("--threads", type=int, default=0, help="torch threads; 0 keeps torch's default")
+    p.add_argument("--json", type=Path, default=RESULTS / "losses.json")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as info:
+            cpu = next(line.split(":", 1)[1].strip() for line in info if "model name" in line)
+    except (OSError, StopIteration):
+        pass
+    env = {
+        "cpu": cpu,
+        "cpu_count": multiprocessing.cpu_count(),
+        "threads": torch.get_num_threads(),
+        "dtype": args.dtype,
+        "repeat": args.repeat,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torch_polylap": tp.__version__,
+        "args": {k: str(v) for k, v in vars(args).items()},
+    }
+    start = time.perf_counter()
+    data = run(args)
+    env["total_seconds"] = time.perf_counter() - start
+    print(report(env, data))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"environment": env, **data}, indent=2))
+        progress(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
