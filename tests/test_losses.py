@@ -280,6 +280,19 @@ def test_thin_faces_give_finite_values_and_gradients(name, dtype, aspect):
     assert torch.isfinite(out) and torch.isfinite(g).all()
 
 
+def test_vertices_with_zero_residual_have_finite_gradients():
+    """On a flat regular grid the Laplacian vanishes at interior vertices, where |.| has a kink."""
+    v, f = quad_grid(4)
+    x = v.clone().requires_grad_(True)
+    for method in ("uniform", "polygon"):
+        per_mesh = losses.laplacian_smoothing((x, f), method, reduction="none")
+        (g,) = torch.autograd.grad(per_mesh.sum(), x)
+        assert torch.isfinite(g).all()
+        # only the 16 boundary vertices of the 25 contribute: the interior residual is zero
+        L, _ = tp.laplacian(v, f)
+        assert torch.linalg.norm((L @ v)[[6, 7, 8, 11, 12, 13, 16, 17, 18]]) < 1e-14
+
+
 def test_float32_agrees_with_float64():
     verts, faces = batch()
     m64 = PolygonMeshes(verts, faces)

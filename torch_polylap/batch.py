@@ -15,6 +15,7 @@ or :meth:`PolygonMeshes.to`, so a training loop with fixed connectivity builds i
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 from typing import Any
 
@@ -248,8 +249,12 @@ class PolygonMeshes:
     def __getitem__(self, i: int) -> tuple[torch.Tensor, PolygonFaces]:
         """``(verts_i (V_i, 3), faces_i)`` of mesh ``i`` with local indices."""
         b = len(self)
-        if not isinstance(i, int) or not -b <= i < b:
-            raise IndexError(f"mesh index {i!r} is out of range for a batch of {b} meshes.")
+        try:
+            i = operator.index(i)
+        except TypeError:
+            raise TypeError(f"mesh index must be an integer, got {type(i).__name__}.") from None
+        if not -b <= i < b:
+            raise IndexError(f"mesh index {i} is out of range for a batch of {b} meshes.")
         return self.verts_list()[i], self.faces_list()[i]
 
     def __repr__(self) -> str:

@@ -183,7 +183,8 @@ def dirichlet_energy(
     m = _as_meshes(meshes)
     f = _packed_signal(m, signal, "signal")
     L, _ = m.laplacian(lam)
-    per_vertex = 0.5 * (f * spmm(L, f.to(L.dtype))).sum(1)
+    f = f.to(L.dtype)
+    per_vertex = 0.5 * (f * spmm(L, f)).sum(1)
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
 
@@ -207,7 +208,7 @@ def bending_energy(
     m = _as_meshes(meshes)
     f = m.verts_packed() if u is None else _packed_signal(m, u, "u")
     L, M0 = m.laplacian(lam)
-    Lu = spmm(L, f)
+    Lu = spmm(L, f.to(L.dtype))
     per_vertex = 0.5 * (Lu * Lu).sum(1) * _safe_inverse(sparse_values(M0))
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
