@@ -88,10 +88,11 @@ def quad_sphere(n: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray
             faces.append(f + sum(len(q) for q in pts))
             pts.append(p)
     p = np.concatenate(pts)
-    # weld the duplicated vertices along the cube's edges (coordinates are exact grid values)
-    _, first, inverse = np.unique(
-        np.round(p * n).astype(np.int64), axis=0, return_index=True, return_inverse=True
-    )
+    # weld the duplicated vertices along the cube's edges: the coordinates times n are exact
+    # integers in [-n, n], so one int64 key per vertex identifies it
+    q = np.round(p * n).astype(np.int64) + n
+    key = (q[:, 0] * (2 * n + 1) + q[:, 1]) * (2 * n + 1) + q[:, 2]
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     faces = inverse.reshape(-1)[np.concatenate(faces)]
     p = p[first]
     rng = np.random.default_rng(seed)
