@@ -170,6 +170,10 @@ def test_errors_name_the_mesh_and_vertex():
         PolygonMeshes([verts[0][:, :2]], [faces[0]])
     with pytest.raises(ValueError, match="mesh 0: face 0 has 2 vertices"):
         PolygonMeshes([verts[0]], [[[0, 1], [1, 2, 3]]])
+    flipped = list(faces)
+    flipped[2] = [list(reversed(f)) if i == 4 else f for i, f in enumerate(faces[2])]
+    with pytest.raises(ValueError, match="mesh 2: faces .* not consistently oriented"):
+        PolygonMeshes(verts, flipped).topology()
     with pytest.raises(TypeError, match="list of"):
         PolygonMeshes(verts[0], faces[0])
 

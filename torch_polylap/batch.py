@@ -23,7 +23,7 @@ import torch
 
 from .faces import FacesLike, PolygonFaces, as_faces
 from .operators import Lam, get_topology, laplacian
-from .topology import Topology, half_edge_vertices
+from .topology import Topology, build_topology, half_edge_vertices
 
 __all__ = ["PolygonMeshes", "per_mesh_sum", "per_mesh_mean"]
 
@@ -356,7 +356,17 @@ class PolygonMeshes:
         if conn.topology is None:
             total = sum(conn.num_verts)
             faces = conn.source if conn.source is not None else conn.packed()
-            conn.topology = get_topology(faces, total)
+            try:
+                conn.topology = get_topology(faces, total)
+            except ValueError:
+                # the packed message names packed faces and vertices: find the mesh at fault
+                # and report its own, local, message (only paid on failure)
+                for i, (f, nv) in enumerate(zip(conn.faces, conn.num_verts, strict=True)):
+                    try:
+                        build_topology(f, nv)
+                    except ValueError as err:
+                        raise ValueError(f"mesh {i}: {err}") from None
+                raise
         return conn.topology
 
     def interior_edge_faces(self) -> tuple[torch.Tensor, torch.Tensor]:
