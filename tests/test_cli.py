@@ -1,24 +1,90 @@
-"""The polylap command, run as a user would: in a subprocess."""
+"""The polylap command, run as a user would: in a subprocess (one per command), and in-process
+through ``main`` for option variations and errors (no interpreter start per case).
+
+The expected values are recomputed here from the files the commands write, with numpy/scipy
+formulas independent of the package where one exists (shoelace areas, corner angles, plane fits).
+"""
 
 from __future__ import annotations
 
+import json
+import math
+import os
 import re
 import subprocess
 import sys
 
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
 from conftest import DATA
 
+import torch_polylap as tp
+from torch_polylap.cli import main
+from torch_polylap.cli.common import DATA_DIR, DEFAULT_MESH, DISK_MESH
+
 COMMAND = [sys.executable, "-m", "torch_polylap.cli"]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# one torch thread: on a busy machine every tiny parallel kernel otherwise waits for its threads
+ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 
 
 def run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([*COMMAND, *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([*COMMAND, *args], capture_output=True, text=True, timeout=120, env=ENV)
 
 
 def field(out: str, label: str) -> str:
     match = re.search(rf"^  {re.escape(label)}\s+(.*)$", out, re.MULTILINE)
     assert match, f"{label!r} missing from:\n{out}"
     return match.group(1)
+
+
+def numbers(text: str) -> list[float]:
+    return [float(x) for x in re.findall(r"[-+]?\d+(?:\.\d*)?(?:e[-+]?\d+)?", text)]
+
+
+def is_png(path) -> bool:
+    return path.is_file() and path.read_bytes()[:8] == PNG_MAGIC and path.stat().st_size > 1000
+
+
+def polygons(verts: np.ndarray, faces: tp.PolygonFaces) -> list[np.ndarray]:
+    return np.split(verts[faces.indices.numpy()], faces.offsets.numpy()[1:-1])
+
+
+def shoelace_normal(poly: np.ndarray) -> np.ndarray:
+    """Vector area 1/2 sum p_i x p_{i+1} of a (possibly non-planar) polygon."""
+    return 0.5 * np.cross(poly, np.roll(poly, -1, axis=0)).sum(0)
+
+
+def corner_angles(poly: np.ndarray) -> np.ndarray:
+    """Interior angles of a convex polygon (2D or 3D), by arccos of the edge vectors."""
+    a = np.roll(poly, 1, axis=0) - poly
+    b = np.roll(poly, -1, axis=0) - poly
+    cos = (a * b).sum(1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+    return np.arccos(np.clip(cos, -1, 1))
+
+
+def plane_fit_nonplanarity(poly: np.ndarray) -> float:
+    """Largest distance from the least-squares plane over the diameter (an independent measure;
+    the package uses the plane of the maximal projection instead)."""
+    c = poly - poly.mean(0)
+    normal = np.linalg.svd(c)[2][-1]
+    diameter = max(np.linalg.norm(p - q) for p in poly for q in poly)
+    return float(np.abs(c @ normal).max() / diameter)
+
+
+@pytest.fixture
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+# ------------------------------------------------------------------------------------------
+# info (the first command; its behaviour is kept)
+# ------------------------------------------------------------------------------------------
 
 
 def test_info_on_embedded_mesh():
@@ -35,31 +101,239 @@ def test_info_on_embedded_mesh():
     assert "first assembly" in out and result.stderr == ""
 
 
-def test_info_without_command_defaults_to_info():
-    assert run().stdout.startswith("polylap")
+def test_info_without_command_defaults_to_info(capsys, one_thread):
+    assert main([]) == 0
+    assert capsys.readouterr().out.startswith("polylap")
+    assert main(["--threads", "1"]) == 0  # a global option alone still runs info
+    assert "(embedded default mesh)" in capsys.readouterr().out
 
 
-def test_info_on_a_file_with_options():
-    result = run("info", str(DATA / "tetris.obj"), "--lam", "2", "--dtype", "float32")
-    assert result.returncode == 0, result.stderr
-    assert "lambda = 2.0, float32" in result.stdout
-    assert field(result.stdout, "vertices / faces / edges").startswith("52 / 16 /")
+def test_info_on_a_file_with_options(capsys, one_thread):
+    assert main(["info", str(DATA / "tetris.obj"), "--lam", "2", "--dtype", "float32"]) == 0
+    out = capsys.readouterr().out
+    assert "lambda = 2.0, float32" in out
+    assert field(out, "vertices / faces / edges").startswith("52 / 16 /")
 
 
-def test_bad_files_give_one_line_errors(tmp_path):
-    result = run("info", str(DATA / "moebius.obj"))
-    assert result.returncode == 2
-    assert result.stderr.startswith("polylap: error: faces ")
-    assert "not consistently oriented" in result.stderr
-    assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
-    missing = run("info", str(tmp_path / "nope.obj"))
-    assert missing.returncode == 2 and "No such file" in missing.stderr
+def test_bad_files_give_one_line_errors(tmp_path, capsys, one_thread):
+    assert main(["info", str(DATA / "moebius.obj")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("polylap: error: faces ") and "not consistently oriented" in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert main(["info", str(tmp_path / "nope.obj")]) == 2
+    assert "No such file" in capsys.readouterr().err
     broken = tmp_path / "broken.off"
     broken.write_text("OFF\n4 1 0\n0 0 0\n1 0 0\n")
-    result = run("info", str(broken))
-    assert result.returncode == 2 and result.stderr.startswith("polylap: error:")
+    assert main(["info", str(broken)]) == 2
+    assert capsys.readouterr().err.startswith("polylap: error:")
 
 
-def test_help():
-    result = run("info", "--help")
-    assert result.returncode == 0 and "--lam" in result.stdout
+# ------------------------------------------------------------------------------------------
+# demo: smooth, param and planarize on their default meshes plus the plate, in one process
+# ------------------------------------------------------------------------------------------
+
+
+def test_demo_writes_report_meshes_and_figures(tmp_path):
+    out = tmp_path / "report"
+    result = run("demo", "-o", str(out), "--no-progress")
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == ""
+    stdout = result.stdout
+    report = (out / "report.md").read_text()
+    figures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report)
+    assert len(figures) == 4 and all(is_png(out / f) for f in figures)
+    assert report.count("## ") == 4 and "| --" not in report.splitlines()[0]
+
+    # mean-curvature flow with area normalization: same connectivity, same total area
+    v0, f0 = tp.read_mesh(DEFAULT_MESH)
+    v1, f1 = tp.read_mesh(out / "spot_control_mesh_smooth.obj")
+    assert torch.equal(f1.indices, f0.indices) and torch.equal(f1.sizes, f0.sizes)
+    area = [
+        sum(np.linalg.norm(shoelace_normal(p)) for p in polygons(v.numpy(), f0)) for v in (v0, v1)
+    ]
+    assert area[1] == pytest.approx(area[0], rel=1e-9)
+    assert numbers(field(stdout, "total area before / after")) == pytest.approx(area, rel=1e-4)
+    # the flow spreads curvature out: the (scale-free) curvature varies less afterwards
+    std = numbers(field(stdout, "|H| sqrt(A/4pi) std before / after"))
+    assert std[1] < 0.7 * std[0]
+
+    # conformal map of the hemisphere: a flat (z = 0) copy, no flipped polygon, angles kept
+    vd, fd = tp.read_mesh(DISK_MESH)
+    uv, fu = tp.read_mesh(out / "hex_hemisphere_param.obj")
+    assert uv.shape == vd.shape and torch.equal(fu.indices, fd.indices)
+    assert torch.all(uv[:, 2] == 0)
+    flat, curved = polygons(uv.numpy(), fd), polygons(vd.numpy(), fd)
+    assert all(shoelace_normal(p)[2] > 0 for p in flat)
+    err = np.concatenate(
+        [corner_angles(p[:, :2]) - corner_angles(q) for p, q in zip(flat, curved, strict=True)]
+    )
+    mean_deg = math.degrees(np.abs(err).mean())
+    # a hemisphere cannot be flattened isometrically, but conformally up to discretization
+    assert mean_deg < 5.0
+    printed = numbers(field(stdout, "angle error mean / rms / max (deg)"))
+    assert printed[0] == pytest.approx(mean_deg, abs=0.05)  # faces are planar to ~2e-3
+    assert field(stdout, "flipped faces") == "0"
+
+    # planarization: every face planar by an independent least-squares plane fit
+    vp, fp = tp.read_mesh(out / "spot_control_mesh_planar.obj")
+    before = max(plane_fit_nonplanarity(p) for p in polygons(v0.numpy(), f0))
+    after = max(plane_fit_nonplanarity(p) for p in polygons(vp.numpy(), fp))
+    assert before > 0.1 and after < 1e-3
+    assert field(stdout, "converged") == "yes"
+
+    # plate: the deflection mesh is the plate with z = u, close to Navier's series solution
+    vg, fg = tp.read_mesh(DATA_DIR / "grid_voronoi_1.obj")
+    plate, _ = tp.read_mesh(out / "plate_deflection.obj")
+    assert torch.allclose(plate[:, :2], vg[:, :2] + 0.5, atol=1e-15)
+    ours, navier = numbers(field(stdout, "max deflection: ours / Navier"))
+    assert float(plate[:, 2].max()) == pytest.approx(ours, rel=1e-3)
+    # Navier's double series (Timoshenko & Woinowsky-Krieger eq. 134), summed here directly
+    m = np.arange(1, 120, 2)[:, None, None]
+    n = np.arange(1, 120, 2)[None, :, None]
+    x, y = vg[:, 0].numpy() + 0.5, vg[:, 1].numpy() + 0.5
+    terms = np.sin(m * np.pi * x) * np.sin(n * np.pi * y) / (m * n * (m**2 + n**2) ** 2)
+    assert navier == pytest.approx(16 / np.pi**6 * terms.sum((0, 1)).max(), rel=1e-3)
+    errors = numbers(field(stdout, "relative L2 error, lambda = 0.5 / 1 / 2"))
+    assert errors[1] < 0.05
+
+
+# ------------------------------------------------------------------------------------------
+# spectrum (in-process) and bench (subprocess)
+# ------------------------------------------------------------------------------------------
+
+
+def test_spectrum_default_output_directory_and_npz(tmp_path, monkeypatch, capsys, one_thread):
+    monkeypatch.chdir(tmp_path)
+    assert main(["spectrum", "-k", "8", "--npz", "--show", "3"]) == 0
+    stdout = capsys.readouterr().out
+    out = tmp_path / "polylap_out"  # the documented default output directory
+    assert is_png(out / "spot_control_mesh_spectrum.png")
+    data = np.load(out / "spot_control_mesh_spectrum.npz")
+    verts, faces = tp.read_mesh(DEFAULT_MESH)
+    L, M0 = tp.laplacian(verts, faces)
+    Ld, Md = tp.to_scipy(L).toarray(), tp.to_scipy(M0).toarray()
+    expected = scipy.linalg.eigh(Ld, Md, eigvals_only=True)[:8]
+    assert data["eigenvalues"] == pytest.approx(expected, abs=1e-9 * expected[-1])
+    phi = data["eigenvectors"]
+    assert phi.shape == (188, 8)
+    assert np.abs(Ld @ phi - Md @ phi * data["eigenvalues"]).max() < 1e-9 * np.abs(Ld).max()
+    # lumped masses add up to the total area (shoelace, independent of the package)
+    area = sum(np.linalg.norm(shoelace_normal(p)) for p in polygons(verts.numpy(), faces))
+    assert data["mass"].sum() == pytest.approx(area, rel=1e-12)
+    printed = numbers(" ".join(re.findall(r"\d+: (\S+)", stdout)))
+    assert printed == pytest.approx(expected, rel=1e-5, abs=1e-9)
+
+
+def test_bench_json(tmp_path):
+    result = run(
+        "bench", str(DATA / "dodecahedron_poly.obj"), "--repeat", "1", "-k", "4", "--json",
+        "--no-progress", "-o", str(tmp_path),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    data = json.loads((tmp_path / "dodecahedron_poly_bench.json").read_text())
+    rows = {r["operation"]: r for r in data["results"]}
+    assert len(rows) == 7 and data["faces"] == 12 and data["verts"] == 20
+    for r in rows.values():
+        assert r["torch_polylap_s"] > 0
+        if r["reference_s"] is not None:
+            assert r["ratio"] == pytest.approx(r["torch_polylap_s"] / r["reference_s"])
+    assert rows["spmm(L, X), X (V, 3)"]["reference"] == "scipy CSR @ X"
+    assert result.stdout.count("\n| ") == 8  # header and 7 rows
+
+
+# ------------------------------------------------------------------------------------------
+# option variations in-process
+# ------------------------------------------------------------------------------------------
+
+
+def test_smooth_frozen_volume_on_a_file(tmp_path, capsys, one_thread):
+    mesh = DATA / "dodecahedron_poly.obj"
+    argv = ["smooth", str(mesh), "--steps", "3", "--frozen", "--normalize", "volume"]
+    assert main([*argv, "--no-plot", "--no-progress", "-o", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    v0, f0 = tp.read_mesh(mesh)
+    v1, _ = tp.read_mesh(tmp_path / "dodecahedron_poly_smooth.obj")
+    # divergence theorem: V = 1/3 sum_f c_f . a_f for the closed, outward-oriented mesh
+    vol = [
+        sum(p.mean(0) @ shoelace_normal(p) for p in polygons(v.numpy(), f0)) / 3 for v in (v0, v1)
+    ]
+    assert vol[1] == pytest.approx(vol[0], rel=1e-9)
+    assert numbers(field(out, "enclosed volume before / after")) == pytest.approx(vol, rel=1e-4)
+    assert not list(tmp_path.glob("*.png"))  # --no-plot
+
+
+def test_param_free_boundary_and_pins(tmp_path, capsys, one_thread):
+    assert main(["param", "--free-boundary", "--no-plot", "-o", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    uv, faces = tp.read_mesh(tmp_path / "hex_hemisphere_param.obj")
+    verts, _ = tp.read_mesh(DISK_MESH)
+    # the free-boundary map is scaled to the source's total area (AW11 eq. 13-15)
+    flat = sum(shoelace_normal(p)[2] for p in polygons(uv.numpy(), faces))
+    area = sum(np.linalg.norm(shoelace_normal(p)) for p in polygons(verts.numpy(), faces))
+    assert flat == pytest.approx(area, rel=1e-6)
+    assert "free boundary" in field(out, "mode")
+
+    boundary = tp.build_topology(faces, verts.shape[0]).boundary_edges
+    i, j = (int(boundary[0, 0]), int(boundary[5, 1]))
+    assert main(["param", "--pins", str(i), str(j), "--no-plot", "-o", str(tmp_path)]) == 0
+    uv, _ = tp.read_mesh(tmp_path / "hex_hemisphere_param.obj")
+    # the pins land at (0, 0) and (|x_i - x_j|, 0)
+    assert uv[i].tolist() == pytest.approx([0.0, 0.0, 0.0], abs=1e-12)
+    d = float(torch.linalg.vector_norm(verts[i] - verts[j]))
+    assert uv[j].tolist() == pytest.approx([d, 0.0, 0.0], abs=1e-12)
+
+
+def test_planarize_on_a_file_without_convergence(tmp_path, capsys, one_thread):
+    argv = ["planarize", str(DATA / "spot_control_mesh.obj"), "--max-iter", "1", "--tol", "1e-9"]
+    assert main([*argv, "--no-plot", "--no-progress", "-o", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert field(out, "converged").startswith("no")
+    assert field(out, "iterations / time").startswith("1 /")
+    v, f = tp.read_mesh(tmp_path / "spot_control_mesh_planar.obj")
+    assert v.shape == (188, 3) and f.num_faces == 180
+
+
+def test_argument_and_input_errors_are_one_line(tmp_path, capsys, one_thread):
+    cases = [
+        (["smooth", "--dt", "-1"], "argument --dt: expected a positive number"),
+        (["spectrum", "-k", "0"], "expected a positive integer"),
+        (["planarize", "--tol", "nan"], "expected a positive number"),
+        (["frobnicate"], "invalid choice"),
+    ]
+    for argv, message in cases:
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and message in err, err
+    errors = [
+        (["param", str(DEFAULT_MESH)], "no boundary"),  # a closed mesh cannot be flattened
+        (["spectrum", "-k", "500"], "too large"),
+        (["smooth", str(DATA / "moebius.obj")], "not consistently oriented"),
+        (["param", "--pins", "0", "1", "--free-boundary"], "exclude each other"),
+        (["--threads", "0", "info"], "--threads"),
+    ]
+    for argv, message in errors:
+        assert main([*argv, "-o", str(tmp_path)] if argv[0] != "--threads" else argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("polylap: error:") and message in err, err
+        assert len(err.strip().splitlines()) == 1
+    not_a_dir = tmp_path / "file"
+    not_a_dir.write_text("")
+    assert main(["spectrum", "-o", str(not_a_dir)]) == 2
+    assert "not a directory" in capsys.readouterr().err
+
+
+def test_every_command_has_help(capsys):
+    for command in ("info", "smooth", "param", "planarize", "spectrum", "bench", "demo"):
+        with pytest.raises(SystemExit) as exit_info:
+            main([command, "--help"])
+        assert exit_info.value.code == 0
+        assert f"usage: polylap {command}" in capsys.readouterr().out
+
+
+def test_console_script_entry_point():
+    from importlib.metadata import entry_points
+
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "polylap"]
+    assert script.value == "torch_polylap.cli:main" and script.load() is main

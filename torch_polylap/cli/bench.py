@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
             "igl.cotmatrix + massmatrix (fan)",
             igl_cot,
         ),
-        ("forward + backward of |L X|^2", forward_backward, "-", None),
+        ("forward + backward of sum((L X)^2)", forward_backward, "-", None),
         ("spmm(L, X), X (V, 3)", lambda: spmm(L, X), "scipy CSR @ X", lambda: Ls @ Xs),
         (
             f"solve(M0 + {args.h:g} L, X)",

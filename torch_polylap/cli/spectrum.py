@@ -6,6 +6,7 @@ import argparse
 import time
 
 import numpy as np
+import torch
 
 from ..linalg import eigs
 from ..operators import laplacian
@@ -64,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     scale = float(to_scipy(L).diagonal().max())
     rel_residual = float(residual.abs().max()) / scale
     gram = evecs.T @ spmm(M0, evecs)
-    ortho = float((gram - np.eye(args.k)).abs().max())
+    ortho = float((gram - torch.eye(args.k, dtype=gram.dtype)).abs().max())
 
     print_table(
         f"polylap spectrum: {label}",
