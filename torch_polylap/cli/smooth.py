@@ -91,7 +91,10 @@ def compute(args: argparse.Namespace) -> Result:
     closed = topo.boundary_edges.numel() == 0
     h_before = scaled_mean_curvature(verts, topo, args.lam)
     h_after = scaled_mean_curvature(smoothed, topo, args.lam)
-    interior = ~_boundary_mask(topo, verts.shape[0])
+    interior = torch.ones(verts.shape[0], dtype=torch.bool)
+    interior[topo.boundary_vertices] = False
+    if not bool(interior.any()):  # a strip of faces: report the boundary values after all
+        interior[:] = True
     shift = torch.linalg.vector_norm(smoothed - verts, dim=1).max()
     diag = torch.linalg.vector_norm(verts.amax(0) - verts.amin(0))
     rows = [
@@ -153,12 +156,6 @@ def compute(args: argparse.Namespace) -> Result:
         )
         files.append(png)
     return Result(f"polylap smooth: {label}", rows, files)
-
-
-def _boundary_mask(topo, num_verts: int) -> torch.Tensor:
-    mask = torch.zeros(num_verts, dtype=torch.bool)
-    mask[topo.boundary_edges.reshape(-1)] = True
-    return mask
 
 
 def run(args: argparse.Namespace) -> int:
