@@ -10,11 +10,13 @@ Measured, forward + backward with respect to the packed vertex positions (one tr
    Laplacian;
 3. the baseline on the triangulated meshes: pytorch3d's ``mesh_laplacian_smoothing(method="cot")``
    when pytorch3d is importable (frozen weights only: pytorch3d builds them under ``no_grad``),
-   otherwise a plain-torch cotan smoothing loss written below (cotan weights by ``index_add``,
-   frozen: a torch CSR product; live: the same product as gather + ``index_add``, whose backward
-   is O(nnz));
-4. peak memory of each step, in a fresh process per case (``VmHWM`` after resetting it through
-   ``/proc/self/clear_refs``, as ``bench_laplacian.py`` does; ``ru_maxrss`` where unavailable).
+   otherwise a plain-torch cotan smoothing loss written below (cotan weights by ``index_add``;
+   live: the product as gather + ``index_add``, whose backward is O(nnz); frozen: a torch CSR
+   product, its matrix coalesced every call or, the fair comparison and the ratio's
+   denominator, scattered onto a CSR pattern built once like ours);
+4. peak memory of each step, in one fresh process per mesh case (``VmHWM`` after trimming the
+   heap and resetting the counter through ``/proc/self/clear_refs``, as ``bench_laplacian.py``
+   does; ``ru_maxrss`` where unavailable), after one warm-up step of each kind.
 
 The topology (``PolygonMeshes.topology()``) is built once outside the timed step, as in a
 training loop with fixed connectivity; its one-off cost is reported separately.
@@ -23,6 +25,11 @@ Run from the repository root::
 
     python benchmarks/bench_losses.py                               # 64 x 5k faces and 1M faces
     python benchmarks/bench_losses.py --batch 4 --faces 500 --big-faces 20000 --repeat 1
+    # the recorded runs (results/losses_batch.json, results/losses_1m.json):
+    python benchmarks/bench_losses.py --big-faces 0 --threads 1 \\
+        --json benchmarks/results/losses_batch.json
+    python benchmarks/bench_losses.py --batch 0 --repeat 1 --threads 1 --no-memory \\
+        --json benchmarks/results/losses_1m.json
 
 Progress goes to stderr, Markdown tables to stdout, JSON to ``--json`` (default
 ``benchmarks/results/losses.json``).
@@ -374,7 +381,7 @@ def run(args: argparse.Namespace) -> dict:
     rng = np.random.default_rng(0)
     # heterogeneous batch: sizes within +-20% of --faces
     batch_sizes = [int(args.faces * s) for s in rng.uniform(0.8, 1.2, args.batch)]
-    specs = [(f"batch {args.batch} x ~{args.faces} quads", batch_sizes)]
+    specs = [(f"batch {args.batch} x ~{args.faces} quads", batch_sizes)] if args.batch else []
     if args.big_faces:
         specs.append((f"one mesh of ~{args.big_faces} quads", [args.big_faces]))
     results = []
@@ -450,7 +457,9 @@ def report(env: dict, data: dict) -> str:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--batch", type=int, default=64, help="meshes in the batch (default 64)")
+    p.add_argument(
+        "--batch", type=int, default=64, help="meshes in the batch; 0 skips the batch (default 64)"
+    )
     p.add_argument("--faces", type=int, default=5000, help="faces per batch mesh (default 5000)")
     p.add_argument(
         "--big-faces",
