@@ -121,7 +121,12 @@ def test_flow_is_differentiable_in_the_initial_positions():
     def loss(X):
         return (mean_curvature_flow(X, faces, 0.05, 3, lam=2.0) * weights).sum()
 
+    def loss_fixed_frozen(X):
+        flowed = mean_curvature_flow(X, faces, 0.05, 3, frozen=True, fixed=torch.tensor([6, 7]))
+        return (flowed * weights).sum()
+
     assert_directional_derivative(loss, verts, rtol=1e-6)
+    assert_directional_derivative(loss_fixed_frozen, verts, rtol=1e-6)
 
 
 def test_trajectory_progress_and_argument_checks():

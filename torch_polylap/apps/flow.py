@@ -139,7 +139,8 @@ def _fixed_mask(fixed: torch.Tensor | None, num_verts: int, device: torch.device
 class _StepSystem:
     """``M0 + dt L`` on ``L``'s pattern, with the rows and columns of fixed vertices eliminated.
 
-    A fixed vertex keeps its position: its row and column become the identity's, and the
+    A fixed vertex keeps its position: its row and column keep only the diagonal mass ``m_p``
+    (with right-hand side ``m_p x_p``; the mass rather than 1 keeps the scale uniform), and the
     coupling ``-(dt L)_{free, fixed} X_fixed`` moves to the right-hand side.  The matrix stays
     symmetric positive definite, so :func:`solve` applies and its cached factorization is reused
     for every step when the system is built once (``frozen``).
@@ -161,14 +162,14 @@ class _StepSystem:
             self.coupling = csr_tensor(
                 crow, col, torch.where(coupling, values, torch.zeros_like(values)), (n, n)
             )
-            values = torch.where(touches_fixed, on_diag.to(values.dtype), values)
+            values = torch.where(touches_fixed, diag_mass, values)
         self.A = mark_symmetric(csr_tensor(crow, col, values, (n, n)))
 
     def step(self, X: torch.Tensor) -> torch.Tensor:
         rhs = self.mass[:, None] * X
         if self.any_fixed:
             X_fixed = torch.where(self.fixed[:, None], X, torch.zeros_like(X))
-            rhs = torch.where(self.fixed[:, None], X, rhs - spmm(self.coupling, X_fixed))
+            rhs = torch.where(self.fixed[:, None], rhs, rhs - spmm(self.coupling, X_fixed))
         return solve(self.A, rhs)
 
 
