@@ -2,8 +2,9 @@
 
 Each time is the median of ``--repeat`` calls after a warm-up call. References: libigl's
 triangle ``cotmatrix`` on the fan triangulation of the same mesh (when libigl is installed),
-scipy's CSR product, scipy ``splu`` with the same SPD settings as :func:`torch_polylap.solve`,
-and scipy ``eigsh`` with the same shift and Lanczos basis size as :func:`torch_polylap.eigs`.
+scipy's CSR product, scipy ``splu`` with the same SPD settings as :func:`torch_polylap.solve`
+(COLAMD, symmetric mode), and scipy's shift-invert ``eigsh`` with the first shift
+:func:`torch_polylap.eigs` tries (``-1e-8 max|L| / max M0``) and ``ncv = max(2k + 1, 20)``.
 For the full benchmarks (large grids, peak memory) see ``benchmarks/``.
 """
 
