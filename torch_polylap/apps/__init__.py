@@ -1,12 +1,28 @@
 """Applications of the polygon Laplacian (AW11 sec. 5): flows, plates, parameterizations."""
 
-from .flow import enclosed_volume, mean_curvature_flow
+from .conformal import (
+    AngleDistortion,
+    angle_distortion,
+    conformal_energy,
+    conformal_matrix,
+    conformal_parameterization,
+)
+from .flow import enclosed_volume, mean_curvature_flow, schwarz_lantern
+from .planarize import PlanarizeResult, planarize
 from .plate import navier_deflection, plate_bending, plate_error
 
 __all__ = [
     "mean_curvature_flow",
     "enclosed_volume",
+    "schwarz_lantern",
     "plate_bending",
     "navier_deflection",
     "plate_error",
+    "conformal_parameterization",
+    "conformal_energy",
+    "conformal_matrix",
+    "angle_distortion",
+    "AngleDistortion",
+    "planarize",
+    "PlanarizeResult",
 ]

@@ -1,0 +1,281 @@
+"""Conformal parameterization of polygon meshes (AW11 sec. 5.2)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import assert_directional_derivative, hex_pent_mesh, mixed_mesh, quad_grid
+
+import torch_polylap as tp
+from torch_polylap.apps.conformal import (
+    angle_distortion,
+    conformal_energy,
+    conformal_matrix,
+    conformal_parameterization,
+)
+from torch_polylap.sparse import to_scipy
+
+
+def _rotation(seed: int) -> torch.Tensor:
+    """A proper rotation of R^3 (QR of a Gaussian matrix, sign-fixed)."""
+    g = torch.Generator().manual_seed(seed)
+    q, r = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+    q = q * torch.sign(torch.diagonal(r))
+    return q if torch.det(q) > 0 else -q
+
+
+def _similarity_residual(uv: torch.Tensor, target: torch.Tensor) -> float:
+    """Relative residual of the best orientation-preserving similarity ``uv ~ a target + b``
+    (complex least squares: rotation and scale ``a``, translation ``b``)."""
+    w = torch.complex(uv[:, 0], uv[:, 1])
+    z = torch.complex(target[:, 0], target[:, 1])
+    A = torch.stack((z, torch.ones_like(z)), 1)
+    coef = torch.linalg.lstsq(A, w[:, None]).solution
+    resid = torch.linalg.vector_norm(A @ coef - w[:, None])
+    return float(resid / torch.linalg.vector_norm(w - w.mean()))
+
+
+def _flat_mesh(name: str):
+    """A planar mesh: its 2D coordinates and the same mesh rotated into a generic 3D plane."""
+    if name == "jittered_grid":
+        V, F = quad_grid(4, 3, seed=2)
+    elif name == "mixed":
+        V, F = mixed_mesh()
+    else:
+        V, F = hex_pent_mesh()
+    xy = V[:, :2].clone()
+    V3 = torch.cat((xy, torch.zeros_like(xy[:, :1])), 1) @ _rotation(7).T + torch.tensor(
+        [0.3, -1.0, 2.0], dtype=torch.float64
+    )
+    return xy, V3, F
+
+
+def _annulus(n_ring: int = 12, n_layers: int = 3):
+    """Planar quad annulus (two boundary loops), counter-clockwise quads seen from +z."""
+    r = torch.linspace(1.0, 2.0, n_layers + 1, dtype=torch.float64)
+    t = torch.arange(n_ring, dtype=torch.float64) * (2 * math.pi / n_ring)
+    xy = torch.stack(
+        (torch.outer(r, torch.cos(t)).reshape(-1), torch.outer(r, torch.sin(t)).reshape(-1)), 1
+    )
+    idx = torch.arange((n_layers + 1) * n_ring).reshape(n_layers + 1, n_ring)
+    nxt = torch.roll(idx, -1, 1)
+    F = torch.stack((idx[:-1], idx[1:], nxt[1:], nxt[:-1]), -1).reshape(-1, 4)
+    return xy, F
+
+
+def _single_polygon():
+    """A non-planar hexagon (heights alternating in a non-symmetric pattern) with a reflex-free
+    but irregular outline."""
+    ang = torch.tensor([0.0, 0.9, 2.1, 3.0, 4.0, 5.3], dtype=torch.float64)
+    rad = torch.tensor([1.0, 1.3, 0.9, 1.2, 1.0, 1.1], dtype=torch.float64)
+    h = torch.tensor([0.3, -0.2, 0.5, 0.1, -0.4, 0.2], dtype=torch.float64)
+    V = torch.stack((rad * torch.cos(ang), rad * torch.sin(ang), h), 1) @ _rotation(3).T
+    return V, [[0, 1, 2, 3, 4, 5]]
+
+
+def _maximal_projection(V: torch.Tensor) -> torch.Tensor:
+    """2D coordinates of the projection of a polygon onto the plane orthogonal to its vector
+    area ``1/2 sum x_i x x_{i+1}`` (independent of the library), in a right-handed frame."""
+    a = 0.5 * torch.linalg.cross(V, torch.roll(V, -1, 0), dim=1).sum(0)
+    n = a / torch.linalg.vector_norm(a)
+    t1 = torch.linalg.cross(n, torch.tensor([0.3, 0.5, 0.8], dtype=V.dtype), dim=0)
+    t1 = t1 / torch.linalg.vector_norm(t1)
+    t2 = torch.linalg.cross(n, t1, dim=0)
+    return torch.stack((V @ t1, V @ t2), 1)
+
+
+@pytest.mark.parametrize("name", ["jittered_grid", "mixed", "hexpent"])
+@pytest.mark.parametrize("free", [False, True])
+def test_planar_mesh_maps_to_itself_up_to_similarity(name, free):
+    xy, V3, F = _flat_mesh(name)
+    uv = conformal_parameterization(V3, F, free_boundary=free)
+    assert _similarity_residual(uv, xy) < 1e-9
+    assert abs(float(conformal_energy(uv, V3, F))) < 1e-10 * float((uv * uv).sum())
+
+
+def test_pinned_at_true_positions_reproduces_planar_mesh_exactly():
+    xy, V3, F = _flat_mesh("mixed")
+    pins = [0, 11]
+    uv = conformal_parameterization(V3, F, pins=pins, pin_uv=xy[pins])
+    torch.testing.assert_close(uv, xy, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("free", [False, True])
+def test_planar_annulus_with_two_boundary_loops(free):
+    xy, F = _annulus()
+    V3 = torch.cat((xy, torch.zeros_like(xy[:, :1])), 1) @ _rotation(11).T
+    uv = conformal_parameterization(V3, F, free_boundary=free)
+    assert _similarity_residual(uv, xy) < 1e-9
+
+
+@pytest.mark.parametrize("pins", [None, [0, 1], [2, 5], [4, 1]])
+def test_single_nonplanar_polygon_maps_to_its_maximal_projection(pins):
+    V, F = _single_polygon()
+    target = _maximal_projection(V)
+    # the polygon really is non-planar: its corners are not a similarity of any projection
+    assert _similarity_residual(V[:, :2], target) > 1e-2
+    uv = conformal_parameterization(V, F, pins=pins)
+    assert _similarity_residual(uv, target) < 1e-10
+    assert angle_distortion(uv, V, F).max < 1e-9
+
+
+def test_single_nonplanar_polygon_free_boundary():
+    V, F = _single_polygon()
+    uv = conformal_parameterization(V, F, free_boundary=True)
+    assert _similarity_residual(uv, _maximal_projection(V)) < 1e-10
+    # scaled to the area of the maximal projection
+    area = 0.5 * (uv[:, 0] * torch.roll(uv[:, 1], -1) - torch.roll(uv[:, 0], -1) * uv[:, 1]).sum()
+    a = 0.5 * torch.linalg.cross(V, torch.roll(V, -1, 0), dim=1).sum(0)
+    torch.testing.assert_close(area, torch.linalg.vector_norm(a))
+
+
+def _shoelace_total(uv: torch.Tensor, faces) -> torch.Tensor:
+    total = uv.new_zeros(())
+    for f in faces:
+        p = uv[torch.as_tensor(f)]
+        q = torch.roll(p, -1, 0)
+        total = total + 0.5 * (p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]).sum()
+    return total
+
+
+def test_energy_is_dirichlet_minus_sum_of_face_areas_and_matches_matrix():
+    V, F = hex_pent_mesh()
+    uv = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(0), dtype=V.dtype)
+    L, _ = tp.laplacian(V, F, 1.5)
+    expected = 0.5 * (uv * (L.to_dense() @ uv)).sum() - _shoelace_total(uv, F)
+    torch.testing.assert_close(conformal_energy(uv, V, F, lam=1.5), expected)
+    z = torch.cat((uv[:, 0], uv[:, 1]))
+    LC = conformal_matrix(V, F, 1.5).to_dense()
+    torch.testing.assert_close(LC, LC.T, rtol=0, atol=0)
+    torch.testing.assert_close(0.5 * z @ LC @ z, expected)
+
+
+@pytest.mark.parametrize("lam", [0.25, 1.0, 3.0])
+def test_conformal_matrix_is_psd_with_similarity_kernel_on_planar_mesh(lam):
+    xy, V3, F = _flat_mesh("hexpent")
+    ev = np.linalg.eigvalsh(to_scipy(conformal_matrix(V3, F, lam)).toarray())
+    assert ev[0] > -1e-12
+    # translations (2) and the rotation-scale pair (2) have zero energy on a planar mesh
+    assert np.all(np.abs(ev[:4]) < 1e-12) and ev[4] > 1e-4
+
+
+def test_pinned_solution_is_a_constrained_minimizer():
+    V, F = quad_grid(5, 4, bump=0.4, seed=1)
+    pins = [0, 29]
+    uv = conformal_parameterization(V, F, pins=pins)
+    e0 = float(conformal_energy(uv, V, F))
+    assert e0 > 0  # a curved patch is not flattened conformally
+    g = torch.Generator().manual_seed(5)
+    for _ in range(5):
+        d = torch.randn(uv.shape, generator=g, dtype=uv.dtype)
+        d[pins] = 0
+        for h in (1e-4, 1e-2):
+            assert float(conformal_energy(uv + h * d, V, F)) > e0
+
+
+def test_free_boundary_minimizes_energy_per_area():
+    V, F = quad_grid(5, 4, bump=0.4, seed=1)
+    uv = conformal_parameterization(V, F, free_boundary=True)
+
+    def ratio(y):  # E_C / A is the constrained objective of AW11 eq. 13 (E_C is 2-homogeneous)
+        return float(conformal_energy(y, V, F) / _shoelace_total(y, F.tolist()))
+
+    r0 = ratio(uv)
+    assert r0 >= 0
+    g = torch.Generator().manual_seed(6)
+    for _ in range(5):
+        d = torch.randn(uv.shape, generator=g, dtype=uv.dtype)
+        assert ratio(uv + 1e-3 * d) > r0
+    # the pinned solution with the same two boundary points is no better
+    pins = [0, 29]
+    uv_p = conformal_parameterization(V, F, pins=pins, pin_uv=uv[pins])
+    assert ratio(uv_p) >= r0 - 1e-12
+
+
+def test_triangle_mesh_matches_libigl_lscm():
+    igl = pytest.importorskip("igl")
+    V, Fq = quad_grid(5, 4, bump=0.5, seed=4)
+    F = torch.cat((Fq[:, [0, 1, 2]], Fq[:, [0, 2, 3]]))
+    pins = torch.tensor([0, 29])
+    pin_uv = torch.tensor([[0.0, 0.0], [1.0, 0.2]], dtype=torch.float64)
+    uv = conformal_parameterization(V, F, pins=pins, pin_uv=pin_uv)
+    out = igl.lscm(V.numpy(), F.numpy(), pins.numpy(), pin_uv.numpy())
+    uv_igl = out[0] if isinstance(out, tuple) else out
+    np.testing.assert_allclose(uv.numpy(), uv_igl, atol=1e-9)
+
+
+def test_pinned_is_differentiable_in_verts():
+    V, F = quad_grid(3, bump=0.3, seed=0)
+    pins = [0, 15]
+
+    def f(X):
+        uv = conformal_parameterization(X, F, pins=pins)
+        return (uv * torch.tensor([0.3, -0.7], dtype=X.dtype)).sum() + uv.square().sum()
+
+    assert_directional_derivative(f, V, rtol=1e-5)
+
+
+def test_float32_matches_float64():
+    V, F = quad_grid(4, bump=0.3, seed=3)
+    uv64 = conformal_parameterization(V, F)
+    uv32 = conformal_parameterization(V.float(), F)
+    assert uv32.dtype == torch.float32
+    torch.testing.assert_close(uv32.double(), uv64, atol=1e-5, rtol=1e-5)
+    uvf = conformal_parameterization(V.float(), F, free_boundary=True)
+    assert uvf.dtype == torch.float32
+
+
+def test_angle_distortion_of_known_maps():
+    # an L-shaped hexagon (one reflex corner): the identity has zero error
+    xy = torch.tensor([[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=torch.float64)
+    V = torch.cat((xy, torch.zeros(6, 1, dtype=torch.float64)), 1)
+    F = [[0, 1, 2, 3, 4, 5]]
+    assert angle_distortion(xy, V, F).max < 1e-14
+    # a stretch keeps the right angles of an axis-aligned L
+    stretch = xy * torch.tensor([3.0, 0.5], dtype=torch.float64)
+    assert angle_distortion(stretch, V, F).max < 1e-14
+    # a shear of the unit square: corner 0 becomes atan2(1, s), corner 1 its supplement
+    sq = torch.tensor([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=torch.float64)
+    Vs = torch.cat((sq, torch.zeros(4, 1, dtype=torch.float64)), 1)
+    s = 0.4
+    sheared = sq + s * sq[:, 1:] * torch.tensor([1.0, 0.0], dtype=torch.float64)
+    err = angle_distortion(sheared, Vs, [[0, 1, 2, 3]]).per_corner
+    beta = math.atan2(1.0, s) - math.pi / 2
+    torch.testing.assert_close(err, torch.tensor([beta, -beta, beta, -beta], dtype=torch.float64))
+
+
+def test_errors():
+    V, F = quad_grid(2)
+    with pytest.raises(ValueError, match="not a boundary vertex"):
+        conformal_parameterization(V, F, pins=[4, 0])
+    with pytest.raises(ValueError, match="out of range"):
+        conformal_parameterization(V, F, pins=[0, 9])
+    with pytest.raises(ValueError, match="same vertex"):
+        conformal_parameterization(V, F, pins=[0, 0])
+    with pytest.raises(ValueError, match="exactly two"):
+        conformal_parameterization(V, F, pins=[0, 1, 2])
+    with pytest.raises(ValueError, match="do not pass pins"):
+        conformal_parameterization(V, F, pins=[0, 8], free_boundary=True)
+    with pytest.raises(ValueError, match="without pins"):
+        conformal_parameterization(V, F, pin_uv=torch.zeros(2, 2, dtype=V.dtype))
+    # a closed mesh: the surface of a cube
+    cube = torch.tensor(
+        [[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=torch.float64
+    )
+    cube_faces = [
+        [0, 1, 3, 2],
+        [4, 6, 7, 5],
+        [0, 4, 5, 1],
+        [2, 3, 7, 6],
+        [0, 2, 6, 4],
+        [1, 5, 7, 3],
+    ]
+    with pytest.raises(ValueError, match="no boundary"):
+        conformal_parameterization(cube, cube_faces)
+    # two separate quads
+    V2 = torch.cat((V[:4], V[:4] + 5.0))
+    with pytest.raises(ValueError, match="2 connected components"):
+        conformal_parameterization(V2, [[0, 1, 2, 3], [4, 5, 6, 7]])

@@ -1,0 +1,375 @@
+"""Conformal parameterization of polygon meshes (AW11 sec. 5.2): polygonal LSCM / DCP.
+
+The conformal energy of a flat image ``Y = (u, v)`` of a mesh is (AW11 eq. 11)
+
+    E_C(Y) = E_D(Y) - A(Y),   E_D = 1/2 (u^T L u + v^T L v),
+    A(Y) = 1/2 sum over boundary half-edges (s -> t) of (u_s v_t - u_t v_s),
+
+the Dirichlet energy with the polygon Laplacian ``L`` minus the signed area of the image, a
+quadratic form in the boundary vertices only (the half-edges of interior edges cancel). In the
+stacked unknown ``z = [u; v]`` (length ``2V``), ``E_C = 1/2 z^T L_C z`` with
+
+    L_C = [[L, -S], [-S^T, L]],   S[s, t] = +1/2, S[t, s] = -1/2 for each boundary half-edge,
+
+so the area couples ``u`` and ``v`` on the boundary only. Two ways to remove the similarity
+freedom (translation, rotation, scale):
+
+* pinned (LSCM, Levy et al. 2002): prescribe two boundary vertices and solve ``L_C z = 0`` on
+  the rest (AW11 eq. 12), a sparse ``2(V-2)`` system;
+* free boundary (Mullen et al. 2008, AW11 eq. 13-15): minimize ``E_C`` subject to
+  ``A(Y) = 1`` (``Q`` = the area form, AW11 Fig. 3). Interior vertices are eliminated with the
+  Schur complement ``L_B = L_BB - L_IB^T L_II^{-1} L_IB`` (AW11 eq. 15), which leaves a dense
+  generalized eigenproblem over the boundary vertices only.
+
+On triangle meshes ``L`` is the cotan Laplacian (AW11 Theorem 2) and both reduce to cotan LSCM
+and spectral conformal parameterization.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.csgraph
+import scipy.sparse.linalg as spla
+import torch
+
+from ..linalg import dirichlet_solve
+from ..operators import MeshFaces, face_normals, get_topology, laplacian, vector_area
+from ..sparse import csr_tensor, mark_symmetric, spmm, to_scipy
+from ..topology import Topology, half_edge_vertices
+
+__all__ = [
+    "conformal_parameterization",
+    "conformal_energy",
+    "conformal_matrix",
+    "angle_distortion",
+    "AngleDistortion",
+]
+
+
+def _boundary_half_edges(topo: Topology) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(src, dst)`` of the half-edges on the boundary, oriented as their faces."""
+    src, dst = half_edge_vertices(topo.faces)
+    on_boundary = topo.edge_faces[topo.half_edge_edge] == 1
+    return src[on_boundary], dst[on_boundary]
+
+
+def _check_mesh(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
+    """Raise for meshes the parameterization cannot handle; return the boundary vertices."""
+    if bool(topo.isolated.any()):
+        v = int(torch.nonzero(topo.isolated)[0, 0])
+        raise ValueError(
+            f"vertex {v} is used by no face; remove unreferenced vertices before parameterizing."
+        )
+    boundary = topo.boundary_vertices
+    if boundary.numel() == 0:
+        raise ValueError(
+            "the mesh has no boundary: a conformal map to the plane needs a disk-like mesh. "
+            "Cut the surface open (e.g. remove a face or cut along a seam) first."
+        )
+    n_verts = topo.num_verts
+    pattern = sp.csr_matrix(
+        (np.ones(topo.nnz), topo.col.numpy(), topo.crow.numpy()), shape=(n_verts, n_verts)
+    )
+    n_comp, _ = scipy.sparse.csgraph.connected_components(pattern, directed=False)
+    if n_comp > 1:
+        raise ValueError(
+            f"the mesh has {n_comp} connected components; parameterize each component separately."
+        )
+    return boundary
+
+
+def conformal_matrix(verts: torch.Tensor, faces: MeshFaces, lam: float = 1.0) -> torch.Tensor:
+    """The ``(2V, 2V)`` matrix ``L_C`` of the conformal energy ``E_C = 1/2 z^T L_C z``.
+
+    Args:
+        verts: ``(V, 3)`` positions of the source mesh.
+        faces: polygon faces (any form accepted by :func:`torch_polylap.as_faces`).
+        lam: stabilizer weight of :func:`torch_polylap.laplacian`.
+
+    Returns:
+        Sparse CSR, symmetric, acting on ``z = [u; v]`` (AW11 eq. 11-12); its values are
+        differentiable in ``verts``. Multiply with :func:`torch_polylap.spmm`.
+    """
+    topo = get_topology(faces, verts.shape[0])
+    L, _ = laplacian(verts, topo, lam)
+    n = topo.num_verts
+    crow, col, values = L.crow_indices(), L.col_indices(), L.values()
+    row = torch.repeat_interleave(torch.arange(n, device=crow.device), crow.diff())
+    s, t = _boundary_half_edges(topo)
+    s, t = s.to(crow.device), t.to(crow.device)
+    half = torch.full((s.numel(),), 0.5, dtype=verts.dtype, device=verts.device)
+    # -dA/d(u_s v_t) entries; on a manifold boundary no (u, v) pair repeats, so no duplicates
+    a_rows = torch.cat((s, n + t, t, n + s))
+    a_cols = torch.cat((n + t, s, n + s, t))
+    a_vals = torch.cat((-half, -half, half, half))
+    rows = torch.cat((row, row + n, a_rows))
+    cols = torch.cat((col, col + n, a_cols))
+    vals = torch.cat((values, values, a_vals))
+    order = torch.argsort(rows * (2 * n) + cols)
+    new_crow = torch.zeros(2 * n + 1, dtype=torch.int64, device=crow.device)
+    torch.cumsum(torch.bincount(rows, minlength=2 * n), 0, out=new_crow[1:])
+    return mark_symmetric(csr_tensor(new_crow, cols[order], vals[order], (2 * n, 2 * n)))
+
+
+def _signed_area(uv: torch.Tensor, topo: Topology) -> torch.Tensor:
+    """Signed area of the flat image: 1/2 sum over boundary half-edges of ``u_s v_t - u_t v_s``."""
+    s, t = _boundary_half_edges(topo)
+    s, t = s.to(uv.device), t.to(uv.device)
+    return 0.5 * (uv[s, 0] * uv[t, 1] - uv[t, 0] * uv[s, 1]).sum()
+
+
+def conformal_energy(
+    uv: torch.Tensor, verts: torch.Tensor, faces: MeshFaces, lam: float = 1.0
+) -> torch.Tensor:
+    """``E_C(Y) = E_D(Y) - A(Y)`` (AW11 eq. 11), a differentiable scalar.
+
+    Args:
+        uv: ``(V, 2)`` flat image of the vertices.
+        verts: ``(V, 3)`` source positions (``L`` is built from them).
+        faces: polygon faces, consistently oriented.
+        lam: stabilizer weight of the Laplacian.
+
+    Returns:
+        ``1/2 sum_c uv_c^T L uv_c`` minus the signed area of the image. Non-negative for
+        ``lam`` large enough that ``L_C`` is PSD (``lam >= 1`` on the meshes we tested); zero
+        exactly for similarities of a planar mesh (linear precision of ``L``).
+    """
+    if uv.dim() != 2 or uv.shape[1] != 2 or uv.shape[0] != verts.shape[0]:
+        raise ValueError(f"uv must have shape ({verts.shape[0]}, 2), got {tuple(uv.shape)}.")
+    topo = get_topology(faces, verts.shape[0])
+    L, _ = laplacian(verts, topo, lam)
+    dirichlet = 0.5 * (uv * spmm(L, uv.to(L.dtype))).sum()
+    return dirichlet - _signed_area(uv, topo)
+
+
+def _default_pins(verts: torch.Tensor, boundary: torch.Tensor) -> torch.Tensor:
+    """Two far-apart boundary vertices: the one farthest from the first boundary vertex, and
+    the one farthest from it (a deterministic double sweep)."""
+    xb = verts.detach()[boundary.to(verts.device)]
+    a = int(torch.argmax(torch.linalg.vector_norm(xb - xb[0], dim=1)))
+    b = int(torch.argmax(torch.linalg.vector_norm(xb - xb[a], dim=1)))
+    return boundary[torch.tensor([a, b])]
+
+
+def _check_pins(pins, pin_uv, verts: torch.Tensor, boundary: torch.Tensor):
+    n = verts.shape[0]
+    pins = torch.as_tensor(pins, dtype=torch.int64).reshape(-1).cpu()
+    if pins.numel() != 2:
+        raise ValueError(f"pins must hold exactly two vertex indices, got {pins.numel()}.")
+    for p in pins.tolist():
+        if not 0 <= p < n:
+            raise ValueError(f"pin {p} is out of range for a mesh with {n} vertices.")
+        if not bool((boundary == p).any()):
+            raise ValueError(
+                f"pin {p} is not a boundary vertex; pin two vertices of the boundary "
+                "(see Topology.boundary_vertices)."
+            )
+    if int(pins[0]) == int(pins[1]):
+        raise ValueError(f"the two pins are the same vertex {int(pins[0])}; pin two vertices.")
+    if pin_uv is None:
+        # differentiable in verts, like the rest of the pinned solution
+        dist = torch.linalg.vector_norm(verts[pins[0]] - verts[pins[1]])
+        zero = torch.zeros_like(dist)
+        pin_uv = torch.stack((torch.stack((zero, zero)), torch.stack((dist, zero))))
+    else:
+        pin_uv = torch.as_tensor(pin_uv, dtype=verts.dtype, device=verts.device)
+        if pin_uv.shape != (2, 2):
+            raise ValueError(f"pin_uv must have shape (2, 2), got {tuple(pin_uv.shape)}.")
+        if not bool(torch.isfinite(pin_uv).all()) or bool((pin_uv[0] == pin_uv[1]).all()):
+            raise ValueError("pin_uv must be two distinct finite points.")
+    return pins, pin_uv
+
+
+def _pinned(verts, topo, lam, pins, pin_uv) -> torch.Tensor:
+    n = topo.num_verts
+    LC = conformal_matrix(verts, topo, lam)
+    fixed = torch.cat((pins, pins + n)).to(verts.device)
+    fixed_values = torch.cat((pin_uv[:, 0], pin_uv[:, 1]))
+    z = dirichlet_solve(LC, verts.new_zeros(2 * n), fixed, fixed_values)
+    return torch.stack((z[:n], z[n:]), 1)
+
+
+def _orthonormal_complement_of_ones(m: int) -> np.ndarray:
+    """``(m, m-1)`` orthonormal basis of the vectors summing to zero (a Householder reflection)."""
+    w = np.full(m, 1.0 / np.sqrt(m))
+    w[0] -= 1.0
+    w /= np.linalg.norm(w)
+    H = np.eye(m) - 2.0 * np.outer(w, w)  # maps e_0 to the unit constant vector
+    return H[:, 1:]
+
+
+def _free_boundary(verts, topo, lam, boundary) -> torch.Tensor:
+    n = topo.num_verts
+    L = to_scipy(laplacian(verts.detach(), topo, lam)[0]).astype(np.float64).tocsc()
+    b = boundary.numpy()
+    interior = np.setdiff1d(np.arange(n), b)
+    L_BB = L[b][:, b].toarray()
+    if interior.size:
+        L_II = L[interior][:, interior].tocsc()
+        L_IB = L[interior][:, b].toarray()
+        lu = spla.splu(L_II, permc_spec="COLAMD")
+        harmonic = lu.solve(L_IB)  # L_II^{-1} L_IB, (I, B)
+        L_schur = L_BB - L_IB.T @ harmonic  # AW11 eq. 15
+    else:
+        L_schur = L_BB
+    L_schur = 0.5 * (L_schur + L_schur.T)
+    m = b.size
+    index = np.full(n, -1)
+    index[b] = np.arange(m)
+    s, t = (index[x.numpy()] for x in _boundary_half_edges(topo))
+    # area form on the boundary: A(Y_B) = 1/2 z_B^T Q z_B, z_B = [u_B; v_B]
+    Q = np.zeros((2 * m, 2 * m))
+    np.add.at(Q, (s, m + t), 0.5)
+    np.add.at(Q, (t, m + s), -0.5)
+    Q = Q + Q.T
+    # translations lie in the kernel of both forms: restrict to zero-mean u and v
+    N = _orthonormal_complement_of_ones(m)
+    N2 = scipy.linalg.block_diag(N, N)
+    K = N2.T @ scipy.linalg.block_diag(L_schur, L_schur) @ N2
+    A = N2.T @ Q @ N2
+    # minimize E_D - A subject to A = 1  <=>  maximize A / E_D: the top eigenpair of (A, K).
+    # Its eigenvalue nu relates to AW11 eq. 14 by mu = 1/nu - 1.
+    nu, vec = scipy.linalg.eigh(A, K, subset_by_index=[2 * (m - 1) - 1, 2 * (m - 1) - 1])
+    if not nu[0] > 0:
+        raise ValueError(
+            "free-boundary parameterization found no orientation-preserving solution "
+            f"(largest area / Dirichlet ratio {nu[0]:.3g}); check the face orientation."
+        )
+    zb = N2 @ vec[:, 0]
+    yb = np.stack((zb[:m], zb[m:]), 1)
+    y = np.zeros((n, 2))
+    y[b] = yb
+    if interior.size:
+        y[interior] = -harmonic @ yb
+    # scale so that the image has the source's total area (vector areas of the faces)
+    area = 0.5 * float(np.sum(yb[s, 0] * yb[t, 1] - yb[t, 0] * yb[s, 1]))  # > 0 since nu > 0
+    total = float(torch.linalg.vector_norm(vector_area(verts.detach(), topo), dim=1).sum())
+    y *= np.sqrt(total / area)
+    y -= y.mean(0)
+    return torch.from_numpy(y).to(dtype=verts.dtype, device=verts.device)
+
+
+def conformal_parameterization(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    pins: torch.Tensor | list[int] | None = None,
+    pin_uv: torch.Tensor | None = None,
+    free_boundary: bool = False,
+    lam: float = 1.0,
+) -> torch.Tensor:
+    """Flat conformal map of a disk-like polygon mesh minimizing ``E_C`` (AW11 sec. 5.2).
+
+    Args:
+        verts: ``(V, 3)`` positions, float32 or float64.
+        faces: polygon faces of one connected, consistently oriented mesh with boundary (any
+            number of boundary loops; the area form sums over all of them).
+        pins: two boundary vertex indices to prescribe (pinned mode). Default: two far-apart
+            boundary vertices (a deterministic double farthest-point sweep).
+        pin_uv: ``(2, 2)`` their target positions. Default: ``(0, 0)`` and ``(d, 0)`` with
+            ``d`` their distance in 3D.
+        free_boundary: solve AW11 eq. 13-15 instead (no pins): minimize ``E_C`` subject to
+            ``A(Y) = 1`` via the boundary Schur complement (eq. 15); the result is scaled to
+            the source's total face area and centered at the origin.
+        lam: stabilizer weight of the Laplacian (``lam >= 1`` keeps ``E_C`` PSD in our tests).
+
+    Returns:
+        ``uv``: ``(V, 2)``, dtype and device of ``verts``. The pinned result is differentiable
+        in ``verts`` and ``pin_uv`` (sparse solve with adjoint backward); the free-boundary
+        result is detached (dense eigensolver on the CPU).
+
+    Raises:
+        ValueError: no boundary, several connected components, unreferenced vertices, pins
+            that are not two distinct boundary vertices, ``pins`` with ``free_boundary``.
+    """
+    if verts.dim() != 2 or verts.shape[1] != 3:
+        raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
+    topo = get_topology(faces, verts.shape[0])
+    boundary = _check_mesh(verts, topo)
+    if free_boundary:
+        if pins is not None or pin_uv is not None:
+            raise ValueError("free_boundary=True places the whole boundary; do not pass pins.")
+        return _free_boundary(verts, topo, lam, boundary)
+    if pins is None:
+        if pin_uv is not None:
+            raise ValueError("pin_uv was given without pins; pass the two pinned vertices too.")
+        pins = _default_pins(verts, boundary)
+    pins, pin_uv = _check_pins(pins, pin_uv, verts, boundary)
+    return _pinned(verts, topo, lam, pins, pin_uv)
+
+
+@dataclass
+class AngleDistortion:
+    """Corner-angle error of a flat map, see :func:`angle_distortion`.
+
+    Attributes:
+        per_corner: ``(N,)`` signed error ``theta_2D - theta_3D`` in radians, in the packed
+            corner order of the faces (face by face, corner by corner).
+        mean: mean absolute error (radians).
+        rms: root mean square error (radians).
+        max: largest absolute error (radians).
+    """
+
+    per_corner: torch.Tensor
+    mean: float
+    rms: float
+    max: float
+
+
+def _interior_angle(p: torch.Tensor, q: torch.Tensor, n: torch.Tensor | None) -> torch.Tensor:
+    """Angle from ``q`` to ``p``, counter-clockwise about ``n`` (in 2D if ``n`` is None), in
+    ``[0, 2 pi)``."""
+    if n is None:
+        sin = q[:, 0] * p[:, 1] - q[:, 1] * p[:, 0]
+        cos = (q * p).sum(1)
+    else:
+        sin = (n * torch.linalg.cross(q, p, dim=1)).sum(1)
+        # the in-plane parts of p and q: the normal components leave sin unchanged
+        cos = (q * p).sum(1) - (q * n).sum(1) * (p * n).sum(1)
+    return torch.remainder(torch.atan2(sin, cos), 2 * torch.pi)
+
+
+def angle_distortion(uv: torch.Tensor, verts: torch.Tensor, faces: MeshFaces) -> AngleDistortion:
+    """Per-corner angle error of a flat map ``uv`` of a polygon mesh.
+
+    The source angle of corner ``i`` of face ``f`` is measured in the plane of ``f``'s maximal
+    projection (normal ``a_f / |a_f|``, AW11 sec. 3.2): the counter-clockwise angle about that
+    normal from ``x_{i+1} - x_i`` to ``x_{i-1} - x_i`` after projecting both to the plane, in
+    ``[0, 2 pi)`` (reflex corners of non-convex faces included). The image angle is the same in
+    the plane. For planar faces this is the ordinary corner angle; for a non-planar face it is
+    the angle of the maximal projection, which the parameterization of a single polygon
+    reproduces exactly (AW11 sec. 5.2). Flipped image corners show errors near ``2 pi``.
+
+    Args:
+        uv: ``(V, 2)`` image positions.
+        verts: ``(V, 3)`` source positions.
+        faces: the polygon faces.
+
+    Returns:
+        :class:`AngleDistortion` with the per-corner errors and their mean/RMS/max magnitude.
+    """
+    if uv.dim() != 2 or uv.shape[1] != 2 or uv.shape[0] != verts.shape[0]:
+        raise ValueError(f"uv must have shape ({verts.shape[0]}, 2), got {tuple(uv.shape)}.")
+    topo = get_topology(faces, verts.shape[0])
+    pf = topo.faces.to(verts.device)
+    pos = torch.arange(pf.num_corners, device=verts.device)
+    first = torch.repeat_interleave(pf.offsets[:-1], pf.sizes)
+    last = torch.repeat_interleave(pf.offsets[1:] - 1, pf.sizes)
+    nxt = pf.indices[torch.where(pos == last, first, pos + 1)]
+    prv = pf.indices[torch.where(pos == first, last, pos - 1)]
+    cur = pf.indices
+    normals = face_normals(verts, topo)[torch.repeat_interleave(pf.sizes)]
+    theta_3d = _interior_angle(verts[prv] - verts[cur], verts[nxt] - verts[cur], normals)
+    uv = uv.to(verts.dtype)
+    theta_2d = _interior_angle(uv[prv] - uv[cur], uv[nxt] - uv[cur], None)
+    err = theta_2d - theta_3d
+    mag = err.detach().abs()
+    return AngleDistortion(
+        per_corner=err,
+        mean=float(mag.mean()),
+        rms=float(mag.square().mean().sqrt()),
+        max=float(mag.max()),
+    )
