@@ -14,8 +14,9 @@ unlike a few power iterations, which approach it from below; pass ``lambda_max``
 ``T_k x = 2 S_hat T_{k-1} x - T_{k-2} x``: ``K - 1`` sparse products through
 :func:`torch_polylap.spmm` (O(nnz) backward, gradients to ``L``'s and ``M0``'s values).
 
-torch.compile: the sparse products graph-break (CSR tensors and the custom autograd function);
-the dense weight contraction between them compiles.
+torch.compile: Dynamo does not trace frames that take sparse CSR tensors; a compiled
+``ChebyshevFilter`` runs eagerly (correct results, no graph: checked with
+``torch._dynamo.explain`` on torch 2.13, CPU). Compile the dense parts of a model around it.
 """
 
 from __future__ import annotations
