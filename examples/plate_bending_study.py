@@ -15,8 +15,8 @@ The support is imposed in mixed form (``L_II w = M0 q``, ``L_II u = M0 w``; see
 with *all* rows of ``L`` (``u^T L^T M0^-1 L u`` with only ``u_B = 0``): that is a clamped plate
 (center deflection 0.00126 q), so it does not converge to the Navier plate.
 
-Writes ``plate_bending.md``, ``plate_lambda_sweep.png`` and ``plate_refinement.png`` to
-``examples/output/``.
+Writes ``plate_bending.md``, ``plate_lambda_sweep.png``, ``plate_refinement.png`` and
+``plate_pointwise_error.png`` to ``examples/output/``.
 """
 
 from __future__ import annotations
@@ -91,6 +91,7 @@ def main() -> None:
         refinement[family] = (sizes, errors)
 
     sweep: dict[str, list[float]] = {}
+    pointwise: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # (x, y), |u - u*| at lambda = 1
     for family in FAMILIES:
         verts, faces = unit_square_mesh(args.shared / "grid" / f"{family}_{args.sweep_level}.obj")
         reference = navier_deflection(verts[:, 0], verts[:, 1])
@@ -99,6 +100,8 @@ def main() -> None:
             try:
                 u = plate_bending(verts, faces, lam=lam)
                 sweep[family].append(float(plate_error(verts, faces, u, reference)))
+                if lam == 1.0:
+                    pointwise[family] = (verts[:, :2].numpy(), (u - reference).abs().numpy())
             except ValueError:  # a singular system (spurious modes at lambda = 0)
                 sweep[family].append(float("nan"))
 
@@ -138,13 +141,12 @@ def main() -> None:
     report = "\n".join(lines) + "\n"
     (args.out / "plate_bending.md").write_text(report)
     print(report)
-    plot(refinement, sweep, args)
-    print(
-        f"wrote {args.out / 'plate_bending.md'} and two PNGs in {time.perf_counter() - start:.1f} s"
-    )
+    plot(refinement, sweep, pointwise, args)
+    elapsed = time.perf_counter() - start
+    print(f"wrote {args.out / 'plate_bending.md'} and three PNGs in {elapsed:.1f} s")
 
 
-def plot(refinement, sweep, args) -> None:
+def plot(refinement, sweep, pointwise, args) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -173,6 +175,18 @@ def plot(refinement, sweep, args) -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(args.out / "plate_refinement.png", dpi=120)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, len(FAMILIES), figsize=(3.2 * len(FAMILIES), 3.4))
+    for ax, family in zip(axes, FAMILIES, strict=True):
+        xy, err = pointwise[family]
+        ax.scatter(xy[:, 0], xy[:, 1], c=err, s=3, cmap="jet", vmin=0.0, linewidths=0)
+        ax.set_title(f"{family}: max |u - u*| = {err.max():.1e}", fontsize=8)
+        ax.set_aspect("equal")
+        ax.set_axis_off()
+    fig.suptitle(f"Pointwise error, lambda = 1, level {args.sweep_level} (red: largest)")
+    fig.tight_layout()
+    fig.savefig(args.out / "plate_pointwise_error.png", dpi=80)
     plt.close(fig)
 
 
