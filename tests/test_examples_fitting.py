@@ -98,6 +98,12 @@ def test_large_steps_keeps_quality_at_comparable_error():
     q_plain, q_ls = mesh_quality(X_plain, faces), mesh_quality(X_ls, faces)
     assert q_ls["folded_edges"] == 0 < 0.05 < q_plain["folded_edges"]
     assert q_ls["min_angle_deg"] > 30 > 10 > q_plain["min_angle_deg"]
+    rows = {
+        label: {"history": h, "quality": q, "hausdorff": 0.0, "seconds": 0.0}
+        for label, h, q in (("plain, lr 0.01", h_plain, q_plain), ("Large Steps", h_ls, q_ls))
+    }
+    text = large_steps_fit.tables(rows) + large_steps_fit.findings(rows)
+    assert f"| Large Steps | {h_ls[0][1]:.4f} |" in text and "last step (step 80)" in text
 
 
 def test_large_steps_system_matrix_is_spd_with_the_laplacian_kernel():
@@ -112,3 +118,5 @@ def test_large_steps_system_matrix_is_spd_with_the_laplacian_kernel():
 def test_report_tables(fits):
     text = fitting_example.table(fits)
     assert text.count("\n") == len(fits) + 1 and "| quads, AW polygon L, frozen |" in text
+    best = min((r["mean_dist"], k) for k, r in fits.items() if "first_loss" in r)[1]
+    assert f"Lowest fit error: {best} " in fitting_example.findings(fits)
