@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import fit_quad_sphere_to_target as fitting_example  # noqa: E402
 import large_steps_fit  # noqa: E402
 
+import torch_polylap as tp  # noqa: E402
 from torch_polylap.fitting import mesh_quality, sample_points  # noqa: E402
 
 SMALL = dict(n=6, steps=80, num_samples=1000, target_samples=2000, eval_samples=4000)
@@ -120,3 +121,16 @@ def test_report_tables(fits):
     assert text.count("\n") == len(fits) + 1 and "| quads, AW polygon L, frozen |" in text
     best = min((r["mean_dist"], k) for k, r in fits.items() if "first_loss" in r)[1]
     assert f"Lowest fit error: {best} " in fitting_example.findings(fits)
+
+
+def test_bending_energy_agrees_with_the_losses_module():
+    """The example's E(X) = sum_v |(L X)_v|^2 / m_v is twice torch_polylap.losses.bending_energy;
+    with L frozen at X itself the value is the same (only the gradient differs)."""
+    from torch_polylap import losses
+
+    verts, faces = fitting_example.quad_sphere(4)
+    X = verts * (1 + 0.2 * verts[:, :1])  # an egg: non-constant curvature
+    live = fitting_example.bending_energy(X, faces, None)
+    assert torch.allclose(live, 2 * losses.bending_energy((X, faces), reduction="sum"))
+    L_frozen = tp.laplacian(X, faces)[0]
+    assert torch.allclose(fitting_example.bending_energy(X, faces, L_frozen), live)
