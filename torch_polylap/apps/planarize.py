@@ -134,6 +134,7 @@ def planarize(
         [param],
         lr=1.0,
         max_iter=check_every,
+        max_eval=25 * check_every,  # the default (5/4 max_iter) starves short line searches
         history_size=history_size,
         line_search_fn="strong_wolfe",
         tolerance_grad=0.0,
@@ -155,7 +156,8 @@ def planarize(
     iterations = 0
     start = time.perf_counter()
     while worst >= tol and iterations < max_iter and free.numel():
-        optimizer.param_groups[0]["max_iter"] = min(check_every, max_iter - iterations)
+        chunk = min(check_every, max_iter - iterations)
+        optimizer.param_groups[0].update(max_iter=chunk, max_eval=25 * chunk)
         optimizer.step(closure)
         done = optimizer.state[param]["n_iter"] - iterations
         iterations += done
@@ -172,7 +174,8 @@ def planarize(
         bar.close()
 
     with torch.no_grad():
-        out = positions(param) * scale + center
+        # add the displacement, so that vertices that did not move keep their exact input values
+        out = x0.index_put((free,), x0[free] + (param - y0[free]) * scale)
         after = face_nonplanarity(out, topo)
         disp = torch.linalg.vector_norm(out - x0, dim=1) / scale
     return PlanarizeResult(
