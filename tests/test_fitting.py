@@ -79,6 +79,33 @@ def test_sample_points_density_is_proportional_to_area():
     assert torch.all(pts[:, 2] == 0)
 
 
+@pytest.mark.parametrize("shape", ["triangle", "square", "hexagon"])
+def test_sample_points_are_uniform_inside_a_face(shape):
+    """Empirical distribution of the samples against exact CDFs. Triangle (0,0),(1,0),(0,1):
+    P(x + y <= t) = t^2 and P(x <= t) = 1 - (1 - t)^2. Unit square: x, y uniform on [0, 1].
+    Regular hexagon of circumradius 1: P(|p| <= t) = t^2 for t below the inradius."""
+    if shape == "triangle":
+        verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=torch.float64)
+    elif shape == "square":
+        verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
+    else:
+        a = torch.arange(6, dtype=torch.float64) * math.pi / 3
+        verts = torch.stack([a.cos(), a.sin(), torch.zeros(6, dtype=torch.float64)], 1)
+    faces = [list(range(verts.shape[0]))]
+    S = 40_000
+    p = sample_points(verts, faces, S, generator=torch.Generator().manual_seed(6))
+    ts = torch.linspace(0.1, 0.8, 8, dtype=torch.float64)
+    if shape == "triangle":
+        checks = [(p[:, 0] + p[:, 1], ts.square()), (p[:, 0], 1 - (1 - ts).square())]
+    elif shape == "square":
+        checks = [(p[:, 0], ts), (p[:, 1], ts)]
+    else:
+        checks = [(p[:, :2].norm(dim=1), ts.square() * (math.pi / (1.5 * math.sqrt(3))))]
+    for values, cdf in checks:
+        empirical = (values[:, None] <= ts[None]).double().mean(0)
+        assert (empirical - cdf).abs().max() < 4.5 * math.sqrt(0.25 / S)  # binomial 4.5 sigma
+
+
 def test_sample_points_lie_inside_their_faces():
     verts, faces = _planar_mixed()
     pts, fid = sample_points(

@@ -114,11 +114,12 @@ def chamfer_distance(
 
 def _fan_triangles(
     verts: torch.Tensor, topo: Topology
-) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
-    """Per degree group: face ids ``(F_k,)``, corners ``(3, k, F_k)`` and fan areas ``(k, F_k)``.
+) -> list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Per degree group: ``k``, face ids ``(F_k,)``, corners ``(3, k, F_k)`` and fan areas
+    ``(T, F_k)``.
 
-    Triangles are their own fan (one entry); a ``k``-gon with ``k > 3`` is split into the ``k``
-    triangles ``(c, x_i, x_{i+1})`` around its corner centroid ``c``.
+    Triangles are their own fan (``T = 1``); a ``k``-gon with ``k > 3`` is split into the
+    ``T = k`` triangles ``(c, x_i, x_{i+1})`` around its corner centroid ``c``.
     """
     groups, _, _ = topo.on(verts.device)
     verts_t = verts.t().contiguous()
@@ -133,7 +134,7 @@ def _fan_triangles(
             areas = 0.5 * torch.linalg.vector_norm(
                 torch.linalg.cross(r, torch.roll(r, -1, dims=1), dim=0), dim=0
             )
-        out.append((grp.face_ids, x, areas))
+        out.append((grp.k, grp.face_ids, x, areas))
     return out
 
 
@@ -171,7 +172,7 @@ def sample_points(
         raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
     topo = get_topology(faces, verts.shape[0])
     fans = _fan_triangles(verts, topo)
-    weights = torch.cat([areas.detach().reshape(-1) for _, _, areas in fans])
+    weights = torch.cat([areas.detach().reshape(-1) for _, _, _, areas in fans])
     if not bool(torch.isfinite(weights).all()) or float(weights.sum()) <= 0:
         raise ValueError("sample_points: the mesh has no finite positive area to sample from.")
     tri = torch.multinomial(weights, num_samples, replacement=True, generator=generator)
@@ -183,12 +184,12 @@ def sample_points(
     points = verts.new_zeros(num_samples, 3)
     face_of = torch.empty(num_samples, dtype=torch.int64, device=verts.device)
     start = 0
-    for face_ids, x, areas in fans:
-        k, nf = areas.shape
-        mine = (tri >= start) & (tri < start + k * nf)
+    for k, face_ids, x, areas in fans:
+        num_tri, nf = areas.shape
+        mine = (tri >= start) & (tri < start + num_tri * nf)
         sel = mine.nonzero().squeeze(1)
         local = tri[sel] - start
-        i, f = local // nf, local % nf  # fan triangle i of face f (areas is (k, F_k), row major)
+        i, f = local // nf, local % nf  # fan triangle i of face f (areas is (T, F_k), row major)
         xf = x[:, :, f]  # (3, k, s)
         bs = b[:, sel]
         if k == 3:
@@ -200,7 +201,7 @@ def sample_points(
             p = xf.mean(dim=1) * bs[0] + xi * bs[1] + xj * bs[2]
         points = points.index_copy(0, sel, p.t())
         face_of[sel] = face_ids[f]
-        start += k * nf
+        start += num_tri * nf
     return (points, face_of) if return_face_ids else points
 
 
