@@ -9,14 +9,16 @@ every step) and the target points, plus ``w`` times the bending energy
 
     E(X) = sum_v m_v |(M0^-1 L X)_v|^2          (the squared mean-curvature vector, AW11 sec. 3.2)
 
-with ``L`` and ``M0`` rebuilt from the current positions at every step, so the gradient also
-flows through the Laplacian's weights. The same fit is run with
+with ``L`` and ``M0`` rebuilt from the current positions at every step ("live": the gradient
+also flows through the Laplacian's weights) or with ``L`` built once on the initial sphere
+("frozen"; ``M0`` stays live). Compared:
 
 - no regularizer (``w = 0``),
-- the polygon Laplacian of this package on the quads (AW11, ``lambda = 1``),
+- the polygon Laplacian of this package on the quads (AW11, ``lambda = 1``), live and frozen,
 - uniform weights: ``L`` replaced by the graph Laplacian of the quad mesh, scaled to the trace
   of the polygon ``L`` of the initial sphere (same lumped mass ``M0``),
-- the quad sphere split into triangles, where this package's ``L`` is the cotan Laplacian.
+- the quad sphere split into triangles, where this package's ``L`` is the cotan Laplacian,
+  live and frozen.
 
 Printed (and written to ``examples/output/mesh_fitting.md``): the fit error against dense
 target samples (symmetric mean distance and the larger of the two one-sided maximal distances,
@@ -108,7 +110,9 @@ def uniform_laplacian(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return A.coalesce().to_sparse_csr()
 
 
-def bending_energy(X: torch.Tensor, faces: torch.Tensor, L_fixed: torch.Tensor | None):
+def bending_energy(
+    X: torch.Tensor, faces: torch.Tensor, L_fixed: torch.Tensor | None
+) -> torch.Tensor:
     """``sum_v m_v |(M0^-1 L X)_v|^2 = sum_v |(L X)_v|^2 / m_v`` with live ``L`` (or ``L_fixed``)
     and live lumped masses."""
     if L_fixed is None:
