@@ -250,6 +250,10 @@ def _free_boundary(verts, topo, lam, boundary) -> torch.Tensor:
     total = float(torch.linalg.vector_norm(vector_area(verts.detach(), topo), dim=1).sum())
     y *= np.sqrt(total / area)
     y -= y.mean(0)
+    # the eigenvector's rotation is arbitrary: fix it so that the default pins lie along +u
+    a, b = _default_pins(verts, boundary).tolist()
+    c = complex(*(y[b] - y[a]))
+    y = y @ (np.array([[c.real, -c.imag], [c.imag, c.real]]) / abs(c))
     return torch.from_numpy(y).to(dtype=verts.dtype, device=verts.device)
 
 
@@ -273,7 +277,8 @@ def conformal_parameterization(
             ``d`` their distance in 3D.
         free_boundary: solve AW11 eq. 13-15 instead (no pins): minimize ``E_C`` subject to
             ``A(Y) = 1`` via the boundary Schur complement (eq. 15); the result is scaled to
-            the source's total face area and centered at the origin.
+            the source's total face area, centered at the origin and rotated so that the
+            default pins (see ``pins``) lie along the ``u`` axis.
         lam: stabilizer weight of the Laplacian (``lam >= 1`` keeps ``E_C`` PSD in our tests).
 
     Returns:
