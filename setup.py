@@ -21,9 +21,11 @@ setup(
     extras_require={
         # libigl: the independent cotan Laplacian the tests and benchmarks compare against
         # matplotlib: the figures the command line and the examples write
-        "test": ["pytest>=7", "ruff>=0.4", "libigl>=2.5", "matplotlib>=3.5"],
+        # cholespy: CHOLMOD's supernodal Cholesky, the fast factorization behind eigs
+        "test": ["pytest>=7", "ruff>=0.4", "libigl>=2.5", "matplotlib>=3.5", "cholespy>=2.0"],
+        "cholmod": ["cholespy>=2.0"],
         "plot": ["matplotlib>=3.5"],
-        "bench": ["libigl>=2.5", "matplotlib>=3.5"],
+        "bench": ["libigl>=2.5", "matplotlib>=3.5", "cholespy>=2.0", "robust-laplacian"],
     },
     entry_points={"console_scripts": ["polylap=torch_polylap.cli:main"]},
     classifiers=[

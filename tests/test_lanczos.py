@@ -1,0 +1,101 @@
+"""Block Lanczos (torch_polylap.lanczos) and the sparse eigensolver route of eigs that uses it."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+from conftest import DATA
+
+import torch_polylap as tp
+import torch_polylap.linalg as linalg
+from torch_polylap.lanczos import block_lanczos
+
+
+def test_block_lanczos_finds_a_known_spectrum_with_multiplicities():
+    """A symmetric matrix with prescribed eigenvalues, the top one repeated 12 times (more
+    than the block of 8): every copy must be found, with orthonormal vectors."""
+    rng = np.random.default_rng(3)
+    n = 600
+    values = np.concatenate([np.full(12, 50.0), np.linspace(40.0, 30.0, 20), rng.random(n - 32)])
+    basis = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    C = (basis * values) @ basis.T
+    theta, Y, converged = block_lanczos(lambda X: C @ X, n, 32, max_dim=300)
+    assert converged
+    np.testing.assert_allclose(theta, np.sort(values)[::-1][:32], rtol=1e-12)
+    np.testing.assert_allclose(Y.T @ Y, np.eye(32), atol=1e-12)
+    residual = C @ Y - Y * theta
+    assert np.abs(residual).max() < 1e-9 * theta.max()
+
+
+def test_block_lanczos_reports_failure_when_the_basis_is_too_small():
+    rng = np.random.default_rng(4)
+    n = 400
+    values = 1.0 + 1e-6 * rng.random(n)  # no gap: Lanczos cannot separate the top 20
+    basis = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    C = (basis * values) @ basis.T
+    _, _, converged = block_lanczos(lambda X: C @ X, n, 20, max_dim=40)
+    assert not converged
+
+
+def _mesh_operators(name: str):
+    V, F = tp.read_mesh(DATA / name, dtype=torch.float64)
+    return tp.laplacian(V, F)
+
+
+@pytest.mark.parametrize("cholmod", [True, False], ids=["cholmod", "superlu"])
+def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
+    """2310 vertices: above the dense threshold, so eigs runs block Lanczos; it must agree with
+    scipy's ARPACK to round-off, with M0-orthonormal vectors spanning the same subspaces."""
+    if cholmod:
+        pytest.importorskip("cholespy")
+    else:
+        monkeypatch.setitem(sys.modules, "cholespy", None)  # import fails: SuperLU route
+    L, M0 = _mesh_operators("mixedFaring.off")
+    n, k = L.shape[0], 40
+    assert n > max(linalg._DENSE_EIGS_SIZE, 6 * k)
+    calls = []
+    monkeypatch.setattr(linalg, "_eigs_arpack", lambda *a: calls.append(a))  # must not be used
+    evals, evecs = tp.eigs(L, M0, k)
+    assert not calls
+    Ls, Ms = tp.to_scipy(L), tp.to_scipy(M0)
+    ref_vals, ref_vecs = spla.eigsh(Ls, k=k, M=Ms, sigma=-1e-6, which="LM", tol=0)
+    np.testing.assert_allclose(evals.numpy(), np.sort(ref_vals), rtol=1e-9, atol=1e-11)
+    phi = evecs.numpy()
+    np.testing.assert_allclose(phi.T @ (Ms @ phi), np.eye(k), atol=1e-9)
+    residual = Ls @ phi - (Ms @ phi) * evals.numpy()
+    assert np.abs(residual).max() < 1e-7 * evals.max().item() * np.abs(Ms @ phi).max()
+    # same invariant subspaces, up to round-off, whatever the basis within a cluster
+    overlap = phi.T @ (Ms @ ref_vecs[:, np.argsort(ref_vals)])
+    singular = np.linalg.svd(overlap[:-4, :], compute_uv=False)  # last ones may cut a cluster
+    assert singular.min() > 1 - 1e-8
+
+
+def test_sparse_eigs_count_components():
+    """Three copies of a 2310-vertex mesh: three zero eigenvalues, found by block Lanczos."""
+    V, F = tp.read_mesh(DATA / "mixedFaring.off", dtype=torch.float64)
+    n = V.shape[0]
+    blocks = [tp.laplacian(V + 10.0 * i, F) for i in range(3)]
+    L = tp.from_scipy(sp.block_diag([tp.to_scipy(b[0]) for b in blocks], format="csr"))
+    M0 = tp.from_scipy(sp.block_diag([tp.to_scipy(b[1]) for b in blocks], format="csr"))
+    evals, evecs = tp.eigs(L, M0, 6)
+    assert (evals[:3].abs() < 1e-9).all() and evals[3] > 1e-4
+    # the kernel is spanned by the indicator functions of the three copies
+    indicator = np.kron(np.eye(3), np.ones((n, 1)))
+    kernel = evecs[:, :3].numpy()
+    projection = kernel @ (kernel.T @ (tp.to_scipy(M0) @ indicator))
+    np.testing.assert_allclose(projection, indicator, atol=1e-8)
+
+
+def test_sparse_eigs_are_accurate_to_round_off_on_a_sphere():
+    """Near-multiple eigenvalues (the cube-sphere's l(l+1) clusters) against LAPACK: a shift
+    too close to zero once made the shifted solves lose digits (1e-9 relative error here)."""
+    L, M0 = _mesh_operators("sphere/quad_3.obj")
+    evals, _ = tp.eigs(L, M0, 64)
+    ref = scipy.linalg.eigh(L.to_dense().numpy(), M0.to_dense().numpy(), eigvals_only=True)[:64]
+    np.testing.assert_allclose(evals.numpy(), ref, rtol=0, atol=1e-11 * ref.max())
