@@ -4,9 +4,35 @@ Differentiable with respect to vertex positions, on CPU and CUDA, for faces of a
 (non-planar, non-convex, mixed).  See README.md for the conventions.
 """
 
+from . import apps, losses
+from .apps import (
+    PlanarizeResult,
+    angle_distortion,
+    conformal_energy,
+    conformal_parameterization,
+    mean_curvature_flow,
+    navier_deflection,
+    planarize,
+    plate_bending,
+)
+from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
 from .faces import PolygonFaces, as_faces
 from .io import from_trimesh, read_mesh, to_trimesh, write_mesh
 from .linalg import dirichlet_solve, eigs, solve
+from .losses import (
+    BendingEnergy,
+    DirichletEnergy,
+    LaplacianSmoothingLoss,
+    MeanCurvatureSmoothingLoss,
+    NormalConsistencyLoss,
+    PlanarityLoss,
+    bending_energy,
+    dirichlet_energy,
+    laplacian_smoothing,
+    mean_curvature_smoothing,
+    normal_consistency,
+    planarity_loss,
+)
 from .operators import (
     PolygonLaplacian,
     coboundary,
@@ -71,4 +97,29 @@ __all__ = [
     "write_mesh",
     "from_trimesh",
     "to_trimesh",
+    "PolygonMeshes",
+    "per_mesh_sum",
+    "per_mesh_mean",
+    "losses",
+    "laplacian_smoothing",
+    "mean_curvature_smoothing",
+    "dirichlet_energy",
+    "planarity_loss",
+    "bending_energy",
+    "normal_consistency",
+    "LaplacianSmoothingLoss",
+    "MeanCurvatureSmoothingLoss",
+    "DirichletEnergy",
+    "PlanarityLoss",
+    "BendingEnergy",
+    "NormalConsistencyLoss",
+    "apps",
+    "mean_curvature_flow",
+    "conformal_parameterization",
+    "conformal_energy",
+    "angle_distortion",
+    "planarize",
+    "PlanarizeResult",
+    "plate_bending",
+    "navier_deflection",
 ]
