@@ -4,7 +4,7 @@ Differentiable with respect to vertex positions, on CPU and CUDA, for faces of a
 (non-planar, non-convex, mixed).  See README.md for the conventions.
 """
 
-from . import apps, losses
+from . import apps, fitting, losses
 from .apps import (
     PlanarizeResult,
     angle_distortion,
@@ -17,6 +17,7 @@ from .apps import (
 )
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
 from .faces import PolygonFaces, as_faces
+from .fitting import chamfer_distance, mesh_quality, nearest_neighbors, sample_points
 from .io import from_trimesh, read_mesh, to_trimesh, write_mesh
 from .linalg import dirichlet_solve, eigs, solve
 from .losses import (
@@ -122,4 +123,9 @@ __all__ = [
     "PlanarizeResult",
     "plate_bending",
     "navier_deflection",
+    "fitting",
+    "chamfer_distance",
+    "nearest_neighbors",
+    "sample_points",
+    "mesh_quality",
 ]
