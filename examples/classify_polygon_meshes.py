@@ -190,6 +190,7 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=32)
     parser.add_argument("--lr", type=float, default=5e-3)
     parser.add_argument("--workers", type=int, default=2, help="processes for eigenpairs")
+    parser.add_argument("--output", default=str(OUTPUT), help="where to write the report")
     parser.add_argument(
         "--cache-dir",
         default=str(Path(tempfile.gettempdir()) / "torch_polylap_classify_cache"),
@@ -270,8 +271,9 @@ def main() -> None:
     )
     text = "\n".join(table) + "\n"
     print(setup + "\n\n" + text + "\n" + "\n".join(conf))
-    OUTPUT.parent.mkdir(parents=True, exist_ok=True)
-    OUTPUT.write_text(
+    output = Path(args.output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(
         "# Classifying polygon meshes (examples/classify_polygon_meshes.py)\n\n"
         + setup
         + "\n\nTest meshes use deformation seeds and resolutions never seen in training; the "
