@@ -92,6 +92,19 @@ def test_spectral_and_implicit_diffusion_agree_for_small_times(sphere):
         errors.append(diff)
     # once the truncation part dominates the difference stops shrinking, at the residual level
     assert errors[-1] <= 1.01 * residual + 1e-12
+    # on the band-limited part the gap is exactly sum_i c_i (exp(-t mu_i) - 1/(1 + t mu_i))
+    # phi_i, second order in t: ten times smaller t, a hundred times smaller gap
+    coeffs = spectrum.project(u)[0]  # (k, 2)
+    gaps = []
+    for t in (1e-3, 1e-4):
+        times = torch.full((2,), t, **D64)
+        factor = (torch.exp(-t * evals) - 1 / (1 + t * evals))[:, None]
+        diff = tnn.spectral_diffusion(projected, spectrum, times) - tnn.implicit_diffusion(
+            projected, L, M0, times
+        )
+        gaps.append(m_norm(M0, diff))
+        assert torch.isclose(gaps[-1], torch.linalg.norm(factor * coeffs), rtol=1e-6)
+    assert 80 < gaps[0] / gaps[1] < 101
 
 
 def test_zero_time_is_the_identity(sphere):
