@@ -155,6 +155,7 @@ def test_batch_equals_meshes_one_by_one(batch):
     wks = tnn.SpectralFeatures("wks", 6)
     torch.manual_seed(0)
     model = tnn.DiffusionNetLike(4, 3, width=8, num_blocks=2, hks_features=4).double()
+    segmenter = tnn.DiffusionNetLike(4, 2, width=8, num_blocks=1, task="segmentation").double()
     batched = {
         "spectral": spectral(x, spectrum),
         "implicit": implicit(x, L=L, M0=M0),
@@ -162,6 +163,7 @@ def test_batch_equals_meshes_one_by_one(batch):
         "hks": hks(spectrum),
         "wks": wks(spectrum),
         "model": model(x, spectrum),
+        "segmenter": segmenter(x, spectrum),
     }
     singles = {name: [] for name in batched}
     for b, (V, _, Lb, M0b, evals, evecs) in enumerate(meshes):
@@ -174,6 +176,8 @@ def test_batch_equals_meshes_one_by_one(batch):
         singles["hks"].append(hks(sb))
         singles["wks"].append(wks(sb))
         singles["model"].append(model(xb, sb))
+        singles["segmenter"].append(segmenter(xb, sb))
+    assert batched["model"].shape == (3, 3) and batched["segmenter"].shape == (x.shape[0], 2)
     for name, out in batched.items():
         assert torch.allclose(out, torch.cat(singles[name]), atol=1e-12), name
     # the batch's own block-diagonal assembly equals the concatenated blocks

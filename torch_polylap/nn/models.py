@@ -5,6 +5,11 @@ Alexa-Wardetzky Laplacian, with residual connections; optional HKS input feature
 the batch's eigenpairs; ``M0``-weighted global mean pooling per mesh for classification.
 Unlike DiffusionNet there are no spatial-gradient features (the layer needs a tangent-vector
 gradient operator, which this package does not provide for polygon faces yet).
+
+torch.compile (torch 2.13, CPU, checked with ``torch._dynamo.explain``): a spectral
+:class:`DiffusionBlock` is one graph without breaks; the whole model with HKS inputs splits
+into eight graphs, all breaks in the HKS layer (see :mod:`torch_polylap.nn.spectral_features`);
+``mode="implicit"`` breaks at every solve (see :mod:`torch_polylap.nn.diffusion`).
 """
 
 from __future__ import annotations
