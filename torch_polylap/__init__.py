@@ -4,7 +4,7 @@ Differentiable with respect to vertex positions, on CPU and CUDA, for faces of a
 (non-planar, non-convex, mixed).  See README.md for the conventions.
 """
 
-from . import apps, fitting, losses
+from . import apps, datasets, fitting, losses, nn
 from .apps import (
     PlanarizeResult,
     angle_distortion,
@@ -16,6 +16,7 @@ from .apps import (
     plate_bending,
 )
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
+from .datasets import PolygonMeshDataset, collate_meshes
 from .faces import PolygonFaces, as_faces
 from .fitting import chamfer_distance, mesh_quality, nearest_neighbors, sample_points
 from .io import from_trimesh, read_mesh, to_trimesh, write_mesh
@@ -128,4 +129,8 @@ __all__ = [
     "nearest_neighbors",
     "sample_points",
     "mesh_quality",
+    "nn",
+    "datasets",
+    "PolygonMeshDataset",
+    "collate_meshes",
 ]
