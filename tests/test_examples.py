@@ -62,3 +62,38 @@ def test_convergence_study_reproduces_reference_values(tmp_path):
     for key, values in expected.items():
         for ours, ref in zip(rows[key], values, strict=True):
             assert abs(ours - ref) <= 0.006 * ref, (key, ours, ref)  # printed to 3 digits
+
+
+def test_lantern_flow_does_not_depend_on_a_triangulation(tmp_path):
+    """AW11 Fig. 2: the quad lantern keeps its rotational symmetry under mean-curvature flow,
+    the alternating triangulation breaks it, and the triangulations disagree with each other."""
+    out = run(
+        "mean_curvature_flow_lantern.py",
+        "--sides",
+        "6",
+        "--rings",
+        "5",
+        "--steps",
+        "10",
+        "--out",
+        str(tmp_path),
+    )
+    defects = {m[0]: float(m[1]) for m in re.findall(r"^(\w+)\s+\d+\s+([\d.e+-]+)\s", out, re.M)}
+    assert defects["quad"] < 1e-10 and defects["alternating"] > 1e-2
+    horizontal_vs_vertical = re.search(r"^horizontal\s+[\d.]+\s+[\d.]+\s+([\d.]+)", out, re.M)
+    assert float(horizontal_vs_vertical.group(1)) > 1e-2
+    assert (tmp_path / "lantern_flow.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_classification_example_learns(tmp_path):
+    out = run(
+        "classify_polygon_meshes.py",
+        "--epochs",
+        "30",
+        "--output",
+        str(tmp_path / "c.md"),
+        "--cache-dir",
+        str(tmp_path / "cache"),
+    )
+    overall = float(re.search(r"\| test, all \| \d+ \| ([\d.]+)%", out).group(1))
+    assert overall > 60  # five classes: chance is 20%
