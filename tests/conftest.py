@@ -93,3 +93,13 @@ def assert_directional_derivative(f, X: torch.Tensor, rtol: float, seed: int = 3
     h = 1e-6
     fd = (f(X + h * d) - f(X - h * d)) / (2 * h)
     assert torch.isclose((grad * d).sum(), fd, rtol=rtol), ((grad * d).sum(), fd)
+
+
+@pytest.fixture
+def one_thread():
+    """Tiny meshes: when another process holds a core, torch's 2-thread CSR product waits
+    ~25 ms per call for a descheduled worker thread; one thread takes microseconds."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -12,15 +12,7 @@ from conftest import hex_pent_mesh, mixed_mesh, quad_grid
 import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny meshes: on the shared, oversubscribed CPU torch's 2-thread CSR product waits ~25 ms
-    for descheduled worker threads per call; one thread takes microseconds."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def three_meshes():
