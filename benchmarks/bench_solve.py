@@ -162,7 +162,9 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="*", default=[100, 316, 1000])
     parser.add_argument("--eig-sizes", type=int, nargs="*", default=[100, 316])
     parser.add_argument("--k", type=int, default=64)
-    parser.add_argument("--precompute-k", type=int, default=128)
+    parser.add_argument(
+        "--precompute-k", type=int, default=128, help="0 skips the sword precompute"
+    )
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -204,7 +206,7 @@ def main() -> None:
             f"| {r['faces']:,} | {r['ours']:.2f} s | {r['scipy_eigsh']:.2f} s "
             f"| {r['ours'] / r['scipy_eigsh']:.2f} |"
         )
-    pre = bench_precompute(args.precompute_k, args.repeat)
+    pre = bench_precompute(args.precompute_k, args.repeat) if args.precompute_k > 0 else None
     report["precompute"] = pre
     if pre is not None:
         lines += [
