@@ -25,11 +25,8 @@ Run from the repository root::
 
     python benchmarks/bench_losses.py                               # 64 x 5k faces and 1M faces
     python benchmarks/bench_losses.py --batch 4 --faces 500 --big-faces 20000 --repeat 1
-    # the recorded runs (results/losses_batch.json, results/losses_1m.json):
-    python benchmarks/bench_losses.py --big-faces 0 --threads 1 \\
-        --json benchmarks/results/losses_batch.json
-    python benchmarks/bench_losses.py --batch 0 --repeat 1 --threads 1 --no-memory \\
-        --json benchmarks/results/losses_1m.json
+    # the run recorded in benchmarks/README.md (idle machine, default threads):
+    python benchmarks/bench_losses.py --json benchmarks/results/losses.json
 
 Progress goes to stderr, Markdown tables to stdout, JSON to ``--json`` (default
 ``benchmarks/results/losses.json``).
