@@ -368,3 +368,27 @@ def test_generalized_eigenvalues_of_dodecahedron():
     assert abs(ev[0]) < 1e-10
     np.testing.assert_allclose(ev[1:4], 1.0, rtol=1e-8)  # threefold first eigenvalue
     assert ev[4] > 1.5
+
+
+def test_fitted_plane_nonplanarity_against_svd():
+    """plane="fit": the least-squares plane of the corners (independent per-face SVD here), and
+    the projection plane never fits the corners better in the least-squares sense."""
+    V, F = tp.read_mesh(DATA / "mixedFaring.off")
+    fit = tp.face_nonplanarity(V, F, plane="fit")
+    projection = tp.face_nonplanarity(V, F)
+    normals = tp.face_normals(V, F)
+    for f, face in enumerate(F.tolist()[:300]):
+        x = V[face].numpy()
+        centered = x - x.mean(0)
+        normal = np.linalg.svd(centered)[2][-1]
+        diameter = max(np.linalg.norm(a - b) for a in x for b in x)
+        assert fit[f].item() == pytest.approx(np.abs(centered @ normal).max() / diameter, abs=1e-12)
+        squares_fit = ((centered @ normal) ** 2).sum()
+        squares_projection = ((centered @ normals[f].numpy()) ** 2).sum()
+        assert squares_fit <= squares_projection + 1e-15
+    assert (projection[F.sizes == 3] < 1e-14).all() and (fit[F.sizes == 3] < 1e-14).all()
+    X = V.clone().requires_grad_(True)
+    assert not tp.face_nonplanarity(X, F, plane="fit").requires_grad
+    assert tp.face_nonplanarity(X, F).requires_grad
+    with pytest.raises(ValueError, match="plane must be"):
+        tp.face_nonplanarity(V, F, plane="best")

@@ -353,18 +353,37 @@ def face_normals(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     return a / torch.linalg.vector_norm(a, dim=1, keepdim=True)
 
 
-def face_nonplanarity(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
-    """``(F,)`` non-planarity of every face: the largest distance of a corner from the plane of the
-    maximal projection (through the corners' centroid, normal ``a_f / |a_f|``), over the face
-    diameter. Zero for planar faces and for triangles; scale invariant.
+def face_nonplanarity(
+    verts: torch.Tensor, faces: MeshFaces, plane: str = "projection"
+) -> torch.Tensor:
+    """``(F,)`` non-planarity of every face: the largest distance of a corner from a plane through
+    the corners' centroid, over the face diameter. Zero for planar faces and for triangles; scale
+    invariant.
+
+    Args:
+        verts: ``(V, 3)`` vertex positions.
+        faces: faces in any accepted form, or a :class:`Topology`.
+        plane: ``"projection"``: the plane of the maximal projection (normal ``a_f / |a_f|``,
+            AW11 sec. 3), differentiable; ``"fit"``: the least-squares plane of the corners
+            (normal: the eigenvector of the smallest eigenvalue of their covariance), the usual
+            measure in planarization papers. ``"fit"`` is a measure, not a loss: it is computed
+            without gradient (an eigenvector's derivative is unstable where the two smallest
+            eigenvalues meet); use ``planarity_energy`` as a loss.
     """
+    if plane not in ("projection", "fit"):
+        raise ValueError(f'face_nonplanarity: plane must be "projection" or "fit", got {plane!r}.')
     out = verts.new_zeros(0)
-    for topo, grp, x in _face_loop(verts, faces):
+    for topo, grp, x in _face_loop(verts if plane == "projection" else verts.detach(), faces):
         if out.numel() == 0:
             out = verts.new_zeros(topo.num_faces)
-        _, _, a = corner_terms(x)
-        n = a / torch.linalg.vector_norm(a, dim=0)
-        height = ((x - x.mean(1, keepdim=True)) * n[:, None]).sum(0).abs().amax(0)
+        centered = x - x.mean(1, keepdim=True)  # (3, k, F)
+        if plane == "projection":
+            _, _, a = corner_terms(x)
+            n = a / torch.linalg.vector_norm(a, dim=0)
+        else:
+            covariance = torch.einsum("ikf,jkf->fij", centered, centered)
+            n = torch.linalg.eigh(covariance)[1][:, :, 0].T
+        height = (centered * n[:, None]).sum(0).abs().amax(0)
         diff = x.index_select(1, grp.pair_i) - x.index_select(1, grp.pair_j)
         diameter = torch.linalg.vector_norm(diff, dim=0).amax(0)
         out = out.index_copy(0, grp.face_ids, height / diameter)
