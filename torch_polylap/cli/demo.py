@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -82,7 +83,9 @@ def run(args: argparse.Namespace) -> int:
     for title, section, command, task in tqdm(tasks, desc="demo", disable=args.no_progress):
         t0 = time.perf_counter()
         result = task()
-        result.print()
+        # clear the bar (stderr) while the table goes to stdout, so the two do not interleave
+        with tqdm.external_write_mode(file=sys.stderr):
+            result.print()
         sections.append((title, section, command, result, time.perf_counter() - t0))
     total = time.perf_counter() - start
     report = out / "report.md"
