@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import gc
 import json
 import multiprocessing
 import os
@@ -48,6 +47,7 @@ import igl
 import numpy as np
 import scipy
 import torch
+from peak_memory import peak_rss_growth
 
 import torch_polylap as tp
 
@@ -202,28 +202,6 @@ def bench_mesh(mesh: Mesh, dtype: torch.dtype, device: torch.device, repeat: int
     }
 
 
-def _rss_bytes(field: str) -> int | None:
-    """``VmRSS`` / ``VmHWM`` of this process from ``/proc/self/status`` (None off Linux)."""
-    try:
-        with open("/proc/self/status") as status:
-            for line in status:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
-
-
-def _reset_peak_rss() -> bool:
-    """Reset the kernel's peak-RSS counter (``VmHWM``) to the current RSS; False if unsupported."""
-    try:
-        with open("/proc/self/clear_refs", "w") as clear_refs:
-            clear_refs.write("5")
-        return True
-    except OSError:
-        return False
-
-
 def peak_memory_child(n: int, dtype_name: str, device_name: str) -> dict:
     """Peak memory of one forward + backward on the ``n x n`` grid; runs in a fresh process.
 
@@ -237,24 +215,11 @@ def peak_memory_child(n: int, dtype_name: str, device_name: str) -> dict:
     topo = tp.build_topology(mesh.faces, verts.shape[0])
     topo.on(device)
     del mesh
-    gc.collect()
-    exact = _reset_peak_rss()
-    baseline = _rss_bytes("VmRSS")
     if device.type == "cuda":
         torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
         cuda_baseline = torch.cuda.memory_allocated(device)
-    forward_backward(verts, topo)
-    if exact:
-        peak = _rss_bytes("VmHWM")
-    else:
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    result = {
-        "method": "VmHWM after clear_refs" if exact else "ru_maxrss since start",
-        "rss_baseline_bytes": baseline,
-        "rss_peak_bytes": peak,
-        "rss_delta_bytes": None if baseline is None else peak - baseline,
-    }
+    result = peak_rss_growth(lambda: forward_backward(verts, topo))
     if device.type == "cuda":
         torch.cuda.synchronize(device)
         result["cuda_delta_bytes"] = torch.cuda.max_memory_allocated(device) - cuda_baseline

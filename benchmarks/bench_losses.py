@@ -36,12 +36,10 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import ctypes
 import gc
 import json
 import multiprocessing
 import platform
-import resource
 import statistics
 import sys
 import time
@@ -54,6 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch
+from peak_memory import peak_rss_growth
 
 import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes, per_mesh_mean
@@ -267,34 +266,6 @@ def median_time(fn: Callable[[], None], repeat: int) -> float:
     return statistics.median(samples)
 
 
-def _rss_bytes(field: str) -> int | None:
-    try:
-        with open("/proc/self/status") as status:
-            for line in status:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
-
-
-def _reset_peak_rss() -> bool:
-    try:
-        with open("/proc/self/clear_refs", "w") as clear_refs:
-            clear_refs.write("5")
-        return True
-    except OSError:
-        return False
-
-
-def _trim_heap() -> None:
-    """Return freed heap memory to the OS (glibc), so that a step's peak is not hidden in it."""
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
 def memory_child(
     sizes: list[int], noise: float, dtype_name: str, baseline: str, threads: int
 ) -> dict:
@@ -313,19 +284,8 @@ def memory_child(
         step()
     out = {}
     for name, step in steps.items():
-        gc.collect()
-        _trim_heap()
-        exact = _reset_peak_rss()
-        start = _rss_bytes("VmRSS")
-        step()
-        if exact:
-            peak = _rss_bytes("VmHWM")
-        else:
-            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-        out[name] = {
-            "method": "VmHWM after clear_refs" if exact else "ru_maxrss since start",
-            "delta_bytes": None if start is None else peak - start,
-        }
+        growth = peak_rss_growth(step)
+        out[name] = {"method": growth["method"], "delta_bytes": growth["rss_delta_bytes"]}
     return out
 
 
