@@ -196,7 +196,9 @@ def test_free_boundary_minimizes_energy_per_area():
 
 
 def test_triangle_mesh_matches_libigl_lscm():
-    igl = pytest.importorskip("igl")
+    igl = pytest.importorskip(
+        "igl", reason="libigl (the independent LSCM) not installed: pip install libigl"
+    )
     V, Fq = quad_grid(5, 4, bump=0.5, seed=4)
     F = torch.cat((Fq[:, [0, 1, 2]], Fq[:, [0, 2, 3]]))
     pins = torch.tensor([0, 29])

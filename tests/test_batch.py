@@ -171,7 +171,7 @@ def test_errors_name_the_mesh_and_vertex():
 
 
 def test_from_list_and_trimesh():
-    trimesh = pytest.importorskip("trimesh")
+    trimesh = pytest.importorskip("trimesh", reason="trimesh not installed: pip install trimesh")
     box = trimesh.creation.box()
     ico = trimesh.creation.icosphere(1)
     m = PolygonMeshes.from_trimesh([box, ico])
@@ -199,7 +199,10 @@ def test_from_pyg_duck_typed_data():
 
 
 def test_from_pyg_real_data():
-    tg = pytest.importorskip("torch_geometric")
+    tg = pytest.importorskip(
+        "torch_geometric",
+        reason="torch_geometric not installed (optional adapter; not a dependency)",
+    )
     v, f = quad_grid(2)
     tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
     data = tg.data.Data(pos=v, face=tris.t().contiguous())
@@ -208,7 +211,10 @@ def test_from_pyg_real_data():
 
 
 def test_from_pytorch3d():
-    structures = pytest.importorskip("pytorch3d.structures")
+    structures = pytest.importorskip(
+        "pytorch3d.structures",
+        reason="pytorch3d not installed (optional adapter; not a dependency)",
+    )
     v, f = quad_grid(2)
     tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
     meshes = structures.Meshes([v.float(), v.float() * 2], [tris, tris])
@@ -217,7 +223,7 @@ def test_from_pytorch3d():
     assert torch.equal(m.faces_packed().as_uniform(), meshes.faces_packed())
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (CPU-only torch or no GPU)")
 def test_cuda_batch_follows_device():
     verts, faces = three_meshes()
     m = PolygonMeshes(verts, faces).to("cuda")

@@ -53,7 +53,9 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
     """2310 vertices: above the dense threshold, so eigs runs block Lanczos; it must agree with
     scipy's ARPACK to round-off, with M0-orthonormal vectors spanning the same subspaces."""
     if cholmod:
-        pytest.importorskip("cholespy")
+        pytest.importorskip(
+            "cholespy", reason='cholespy not installed: pip install -e ".[cholmod]"'
+        )
     else:
         monkeypatch.setitem(sys.modules, "cholespy", None)  # import fails: SuperLU route
     L, M0 = _mesh_operators("mixedFaring.off")

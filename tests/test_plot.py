@@ -12,7 +12,7 @@ from conftest import mixed_mesh, quad_grid
 
 import torch_polylap as tp
 
-pytest.importorskip("matplotlib")
+pytest.importorskip("matplotlib", reason='matplotlib not installed: pip install -e ".[plot]"')
 
 from matplotlib import colormaps  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
