@@ -223,7 +223,9 @@ def test_from_pytorch3d():
     assert torch.equal(m.faces_packed().as_uniform(), meshes.faces_packed())
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (CPU-only torch or no GPU)")
+@pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device here (CPU-only torch or no GPU)"
+)
 def test_cuda_batch_follows_device():
     verts, faces = three_meshes()
     m = PolygonMeshes(verts, faces).to("cuda")

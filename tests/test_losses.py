@@ -318,7 +318,9 @@ def test_modules_match_functionals_and_reject_bad_options():
         losses.normal_consistency(verts[0])
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine (CPU-only torch or no GPU)")
+@pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device here (CPU-only torch or no GPU)"
+)
 @pytest.mark.parametrize("name", sorted(ALL_LOSSES))
 def test_cuda_matches_cpu(name):
     verts, faces = batch()
