@@ -22,8 +22,7 @@ from torch import nn
 
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
 from .faces import FacesLike
-from .geometry import corner_terms, gather_corners, plane_basis
-from .operators import Lam, vector_area
+from .operators import Lam, face_planarity_energy, vector_area
 from .sparse import sparse_values, spmm
 
 __all__ = [
@@ -225,23 +224,7 @@ def planarity_loss(
     """
     _check_reduction(reduction)
     m = _as_meshes(meshes)
-    X = m.verts_packed()
-    topo = m.topology()
-    groups, _, _ = topo.on(X.device)
-    verts_t = X.t().contiguous()
-    per_face = X.new_zeros(topo.num_faces)
-    for grp in groups:
-        if grp.k == 3:
-            continue
-        e, _, a = corner_terms(gather_corners(verts_t, grp.corners_t))
-        n = a / torch.linalg.vector_norm(a, dim=0).clamp_min(torch.finfo(X.dtype).tiny)
-        q1, q2 = plane_basis(e, n)
-        # Pi E formed explicitly (see planarity_energy): subtracting squared norms would cancel
-        # catastrophically near planarity, exactly where this loss is driven.
-        residual = e - q1 * (e * q1).sum(1, keepdim=True) - q2 * (e * q2).sum(1, keepdim=True)
-        per_face = per_face.index_add(
-            0, grp.face_ids, 0.5 * lam * (residual * residual).sum((0, 1))
-        )
+    per_face = face_planarity_energy(m.verts_packed(), m.topology(), lam)
     per_mesh = per_mesh_sum(per_face, m.faces_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
 

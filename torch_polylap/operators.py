@@ -38,6 +38,7 @@ __all__ = [
     "PolygonLaplacian",
     "planarity_laplacian",
     "planarity_energy",
+    "face_planarity_energy",
     "coboundary",
     "one_form_inner_product",
     "mean_curvature_normal",
@@ -390,25 +391,34 @@ def face_nonplanarity(
     return out
 
 
-def planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
-    """``E_plan = 1/2 sum_c X_c^T Lplan X_c`` (AW11 sec. 5.3), a differentiable scalar.
+def face_planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
+    """``(F,)`` per-face planarity energy ``lambda/2 |Pi E|_F^2`` (AW11 sec. 5.3).
 
-    Per face this is ``lambda/2 |Pi E|_F^2``: the part of the edge matrix ``E`` (``k x 3``)
-    outside the column space of the maximal projection's edges, which vanishes exactly for
-    planar faces. Evaluated face by face without building ``Lplan``.
+    ``E`` is the face's ``k x 3`` edge matrix and ``Pi E`` its part outside the column space of
+    the maximal projection's edges, which vanishes exactly for planar faces (and triangles).
+    Summed over faces it is ``E_plan = 1/2 sum_c X_c^T Lplan X_c``; evaluated face by face
+    without building ``Lplan``.
     """
-    total = verts.new_zeros(())
-    for _, grp, x in _face_loop(verts, faces):
+    out = verts.new_zeros(0)
+    for topo, grp, x in _face_loop(verts, faces):
+        if out.numel() == 0:
+            out = verts.new_zeros(topo.num_faces)
         if grp.k == 3:
             continue
         e, _, a = corner_terms(x)
-        n = a / torch.linalg.vector_norm(a, dim=0)
+        n = a / torch.linalg.vector_norm(a, dim=0).clamp_min(torch.finfo(verts.dtype).tiny)
         q1, q2 = plane_basis(e, n)
         # Pi E = E - q1 (q1^T E) - q2 (q2^T E), formed explicitly: subtracting squared norms
         # instead would cancel catastrophically exactly where a planarizing flow converges.
         residual = e - q1 * (e * q1).sum(1, keepdim=True) - q2 * (e * q2).sum(1, keepdim=True)
-        total = total + 0.5 * lam * (residual * residual).sum()
-    return total
+        out = out.index_copy(0, grp.face_ids, 0.5 * lam * (residual * residual).sum((0, 1)))
+    return out
+
+
+def planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
+    """``E_plan = 1/2 sum_c X_c^T Lplan X_c`` (AW11 sec. 5.3), a differentiable scalar: the sum
+    of :func:`face_planarity_energy`."""
+    return face_planarity_energy(verts, faces, lam).sum()
 
 
 def local_laplacians(

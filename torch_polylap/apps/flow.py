@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from ..geometry import gather_corners
+from ..geometry import corner_terms, gather_corners
 from ..linalg import solve
 from ..operators import MeshFaces, face_areas, get_topology, laplacian
 from ..sparse import csr_parts, csr_tensor, mark_symmetric, spmm
@@ -44,7 +44,7 @@ def enclosed_volume(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     total = verts.new_zeros(())
     for grp in groups:
         x = gather_corners(verts_t, grp.corners_t)  # (3, k, F_k)
-        a = 0.5 * torch.linalg.cross(x, x.roll(-1, dims=1), dim=0).sum(1)  # (3, F_k)
+        _, _, a = corner_terms(x)  # vector area, (3, F_k)
         total = total + (x.mean(1) * a).sum() / 3.0
     return total
 
