@@ -47,7 +47,7 @@ import igl
 import numpy as np
 import scipy
 import torch
-from peak_memory import peak_rss_growth
+from common import cpu_model, peak_rss_growth
 
 import torch_polylap as tp
 
@@ -421,12 +421,7 @@ def other_processes_cores(
 
 
 def environment(args: argparse.Namespace, device: torch.device) -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as info:
-            cpu = next(line.split(":", 1)[1].strip() for line in info if "model name" in line)
-    except (OSError, StopIteration):
-        pass
+    cpu = cpu_model()
     return {
         "cpu": cpu,
         "cpu_count": multiprocessing.cpu_count(),

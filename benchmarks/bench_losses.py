@@ -52,7 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch
-from peak_memory import peak_rss_growth
+from common import cpu_model, peak_rss_growth
 
 import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes, per_mesh_mean
@@ -442,12 +442,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as info:
-            cpu = next(line.split(":", 1)[1].strip() for line in info if "model name" in line)
-    except (OSError, StopIteration):
-        pass
+    cpu = cpu_model()
     env = {
         "cpu": cpu,
         "cpu_count": multiprocessing.cpu_count(),

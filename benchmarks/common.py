@@ -1,12 +1,23 @@
-"""Peak resident memory of one step, for the benchmark scripts (Linux ``/proc``; an upper bound
-from ``ru_maxrss`` elsewhere). Imported by ``bench_laplacian.py`` and ``bench_losses.py``."""
+"""What the benchmark scripts share: the CPU's name, and the peak resident memory of one step
+(Linux ``/proc``; an upper bound from ``ru_maxrss`` elsewhere). Imported by
+``bench_laplacian.py`` and ``bench_losses.py``."""
 
 from __future__ import annotations
 
 import ctypes
 import gc
+import platform
 import resource
 from collections.abc import Callable
+
+
+def cpu_model() -> str:
+    """The CPU's model name from ``/proc/cpuinfo`` (``platform``'s guess elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            return next(line.split(":", 1)[1].strip() for line in info if "model name" in line)
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
 
 
 def rss_bytes(field: str) -> int | None:
