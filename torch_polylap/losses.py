@@ -22,7 +22,7 @@ from torch import nn
 
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
 from .faces import FacesLike
-from .operators import Lam, face_planarity_energy, vector_area
+from .operators import Lam, face_planarity_energy, strong_laplacian, vector_area
 from .sparse import sparse_values, spmm
 
 __all__ = [
@@ -151,7 +151,7 @@ def mean_curvature_smoothing(
     m = _as_meshes(meshes)
     X = m.verts_packed()
     L, M0 = m.laplacian(lam)
-    H = spmm(L, X) * _safe_inverse(sparse_values(M0))[:, None]
+    H = strong_laplacian(L, M0, X)
     per_mesh = per_mesh_mean(_vertex_norm(H), m.verts_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
 
