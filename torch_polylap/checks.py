@@ -1,0 +1,195 @@
+"""One vocabulary for validating user input, modelled on kornia's ``kornia/core/check.py``.
+
+Every ``check_*`` function either returns (a normalized form of) its argument or raises a
+:class:`TypeError` (wrong kind of object) or :class:`ValueError` (right kind, bad content)
+whose message names the argument, the first offending element and what to do about it.
+Entry points call them first thing, so a bad input fails at the call that received it, not
+deep inside an assembly loop.
+
+    >>> from torch_polylap.checks import check_verts, check_lam
+    >>> check_lam(-1.0)
+    Traceback (most recent call last):
+    ...
+    ValueError: lam must be a finite number >= 0, got -1.0; ...
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+import torch
+
+__all__ = [
+    "check_verts",
+    "check_lam",
+    "check_index_or_mask",
+    "check_positive_int",
+    "check_finite",
+]
+
+# Half precision cannot hold the products the per-face formulas form (squared lengths of a
+# unit-size face times a 1e-3 relative spacing already underflow float16), and the sparse
+# kernels L and M0 feed into have no half-precision CPU implementation. Refusing is clearer
+# than a silent upcast that would hand back a matrix of a different dtype.
+_SUPPORTED_FLOATS = (torch.float32, torch.float64)
+
+
+def check_verts(verts: object, name: str = "verts", *, finite: bool = True) -> torch.Tensor:
+    """``verts`` must be a ``(V, 3)`` float32/float64 tensor with finite entries.
+
+    ``finite=False`` skips the finiteness test (it costs one reduction and a device sync; the
+    assembly's own ``validate`` pass can do it later at no extra sync).
+
+    Returns:
+        ``verts`` unchanged.
+
+    Raises:
+        TypeError: not a tensor, or not floating point, or half precision (float16/bfloat16
+            are refused: convert with ``verts.float()`` and cast the results back).
+        ValueError: wrong shape, or a non-finite entry (names the first vertex).
+    """
+    if not isinstance(verts, torch.Tensor):
+        raise TypeError(
+            f"{name} must be a torch.Tensor of shape (V, 3), got {type(verts).__name__}."
+        )
+    if verts.dim() != 2 or verts.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (V, 3), got {tuple(verts.shape)}.")
+    if verts.dtype not in _SUPPORTED_FLOATS:
+        hint = (
+            f"use {name}.float() and cast the results back"
+            if verts.is_floating_point()
+            else f"use {name}.double()"
+        )
+        raise TypeError(
+            f"{name} must be floating point (float32 or float64), got {verts.dtype}; {hint}."
+        )
+    if finite:
+        check_finite(verts, name, what="vertex")
+    return verts
+
+
+def check_finite(x: torch.Tensor, name: str, what: str = "row") -> None:
+    """Raise a ValueError naming the first row of ``x`` that holds a NaN or an infinity.
+
+    One reduction and one host sync when everything is finite.
+    """
+    finite = torch.isfinite(x)
+    if bool(finite.all()):
+        return
+    bad = ~finite.reshape(x.shape[0], -1).all(1) if x.dim() else ~finite.reshape(1)
+    first = int(torch.nonzero(bad)[0, 0])
+    value = x[first].tolist() if x.dim() else x.item()
+    raise ValueError(
+        f"{what} {first} of {name} is not finite ({value}; {int(bad.sum())} such {what}(s)); "
+        f"fix or remove it before building operators."
+    )
+
+
+def check_lam(lam: object, name: str = "lam") -> float | torch.Tensor:
+    """The stabilizer weight: a finite number ``>= 0`` (0 keeps only the geometric part).
+
+    Accepts a Python/numpy real number or a 0-dim (or one-element) floating tensor, which is
+    returned as is so that it can carry a gradient. Reading a tensor's value syncs once.
+
+    Raises:
+        TypeError: not a real number (e.g. a string, a complex number, a bool, a vector).
+        ValueError: NaN, infinite or negative.
+    """
+    if isinstance(lam, torch.Tensor):
+        if lam.numel() != 1 or not lam.is_floating_point():
+            raise TypeError(
+                f"{name} must be a real number or a 0-dim floating tensor, got a tensor of "
+                f"shape {tuple(lam.shape)} and dtype {lam.dtype}."
+            )
+        value = float(lam.detach())
+    elif isinstance(lam, numbers.Real) and not isinstance(lam, (bool, np.bool_)):
+        value = float(lam)
+    else:
+        raise TypeError(f"{name} must be a real number, got {type(lam).__name__} {lam!r}.")
+    if not np.isfinite(value) or value < 0:
+        raise ValueError(
+            f"{name} must be a finite number >= 0, got {value}; the stabilizer weight lambda of "
+            "AW11 eq. 9 is usually between 1 and 3 (0 keeps only the geometric part)."
+        )
+    return lam
+
+
+def check_positive_int(k: object, name: str) -> int:
+    """``k`` must be a Python or numpy integer ``>= 1`` (not a bool, not a float like ``2.0``)."""
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)):
+        raise TypeError(
+            f"{name} must be a positive integer, got {type(k).__name__} {k!r}; "
+            f"pass int({name}) if the value is integral."
+        )
+    if k < 1:
+        raise ValueError(f"{name} must be a positive integer, got {int(k)}.")
+    return int(k)
+
+
+def check_index_or_mask(x: object, n: int, name: str) -> torch.Tensor:
+    """Indices into ``range(n)`` or a length-``n`` boolean mask, as int64 indices.
+
+    Args:
+        x: a bool mask of shape ``(n,)``, or integer indices (tensor, array or sequence), each
+            in ``[0, n)``; negative indices are refused (a mesh index never counts from the
+            end, so a negative one is a bug upstream).
+        n: the size of the indexed dimension (e.g. the number of vertices).
+        name: the argument's name in messages.
+
+    Returns:
+        ``(m,)`` int64 indices on the input's device (CPU for non-tensors).
+
+    Raises:
+        TypeError: floating or complex indices (name the first one), or an unusable object.
+        ValueError: a mask of the wrong length, an index out of range, or a repeated index
+            (each names the first offending entry).
+    """
+    t = x if isinstance(x, torch.Tensor) else _as_tensor(x, name)
+    if t.dtype == torch.bool:
+        if t.dim() != 1 or t.numel() != n:
+            raise ValueError(
+                f"{name} is a boolean mask of shape {tuple(t.shape)}, but it must have shape "
+                f"({n},), one entry per element."
+            )
+        return torch.nonzero(t).reshape(-1)
+    if t.is_floating_point() or t.is_complex():
+        first = t.reshape(-1)[0].item() if t.numel() else None
+        raise TypeError(
+            f"{name} must hold integer indices or be a boolean mask, got dtype {t.dtype} "
+            f"(first entry {first!r}); convert integral values with .long()."
+        )
+    if t.dim() > 1:
+        raise ValueError(f"{name} must be one-dimensional, got shape {tuple(t.shape)}.")
+    idx = t.reshape(-1).to(torch.int64)
+    bad = (idx < 0) | (idx >= n)
+    if bool(bad.any()):
+        i = int(torch.nonzero(bad)[0, 0])
+        raise ValueError(
+            f"{name}[{i}] = {int(idx[i])} is out of range for {n} elements (valid: 0..{n - 1}); "
+            "negative indices are not accepted."
+        )
+    if idx.numel() > 1:
+        order = torch.sort(idx, stable=True)
+        repeat = order.values[1:] == order.values[:-1]
+        if bool(repeat.any()):
+            j = int(torch.nonzero(repeat)[0, 0])
+            i = int(order.indices[j + 1])
+            raise ValueError(
+                f"{name}[{i}] = {int(idx[i])} repeats an earlier index; pass each index once "
+                f"(e.g. torch.unique({name}))."
+            )
+    return idx
+
+
+def _as_tensor(x: object, name: str) -> torch.Tensor:
+    try:
+        arr = np.asarray(x)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name} must be indices or a boolean mask: {err}") from None
+    if arr.dtype == object:
+        raise TypeError(
+            f"{name} must be indices or a boolean mask, got an object array from "
+            f"{type(x).__name__}."
+        )
+    return torch.from_numpy(np.ascontiguousarray(arr))
