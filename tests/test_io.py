@@ -2,15 +2,32 @@
 
 from __future__ import annotations
 
+import bz2
+import gzip
+import io
+import os
+import re
 import struct
+import warnings
+import zipfile
 
 import numpy as np
 import pytest
 import torch
 import trimesh
+from conftest import DATA
 
 from torch_polylap.faces import PolygonFaces
-from torch_polylap.io import from_trimesh, read_mesh, to_trimesh, write_mesh
+from torch_polylap.io import (
+    MeshAttributes,
+    SkippedContentWarning,
+    common,
+    from_trimesh,
+    read_mesh,
+    to_trimesh,
+    triangulate_faces,
+    write_mesh,
+)
 
 # A triangle, a quad, a pentagon and a hexagon, each sharing vertices with the next.
 MIXED_FACES = [[0, 1, 2], [1, 3, 4, 2], [3, 5, 6, 7, 4], [5, 8, 9, 10, 11, 6]]
@@ -490,20 +507,16 @@ def test_to_trimesh_quads_area_matches_fan_triangulation():
     assert mesh.area == pytest.approx(area.sum(), rel=1e-12)
 
 
-def test_to_trimesh_fans_mixed_faces_from_first_corner(mixed_verts):
-    mesh = to_trimesh(mixed_verts, MIXED_FACES)
-    assert mesh.faces.tolist() == [
-        [0, 1, 2],
-        [1, 3, 4],
-        [1, 4, 2],
-        [3, 5, 6],
-        [3, 6, 7],
-        [3, 7, 4],
-        [5, 8, 9],
-        [5, 9, 10],
-        [5, 10, 11],
-        [5, 11, 6],
-    ]
+def test_to_trimesh_fans_convex_faces_from_first_corner():
+    # a convex (regular) polygon of each degree, in the plane z = 0
+    verts, faces = [], []
+    for k in (3, 4, 5, 6):
+        t = np.linspace(0, 2 * np.pi, k, endpoint=False)
+        faces.append(list(range(len(verts), len(verts) + k)))
+        verts += np.stack([np.cos(t) + 3 * k, np.sin(t), 0 * t], axis=1).tolist()
+    mesh = to_trimesh(np.array(verts), faces)
+    fans = [[f[0], f[j], f[j + 1]] for f in faces for j in range(1, len(f) - 1)]
+    assert mesh.faces.tolist() == fans
 
 
 def _two_list_ply(fmt: str) -> bytes:
@@ -545,3 +558,285 @@ def test_ply_ascii_record_with_wrong_number_of_values(tmp_path):
     path = write_text(tmp_path / "w.ply", head + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2 0\n3 0 1 2 0 7\n")
     with pytest.raises(ValueError, match=r"line 15: element 'face' record 1 has 6 values, but its"):
         read_mesh(path)
+
+
+# --------------------------------------------------------------------------------------------
+# files as people download them: wrong content, encodings, line endings, absurd headers
+# --------------------------------------------------------------------------------------------
+
+DODECAHEDRON = DATA / "dodecahedron_poly.obj"
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        ("m.obj", lambda d: gzip.compress(d), r"gzip-compressed data.*decompress it first"),
+        ("m.obj", lambda d: bz2.compress(d), r"bzip2-compressed data.*decompress it first"),
+        ("m.off", lambda d: _zipped(d), r"a zip archive.*extract the mesh file"),
+        ("m.obj", lambda d: d.decode().encode("utf-16"), r"UTF-16.*re-save it as UTF-8"),
+        ("m.obj", lambda d: d.decode().encode("utf-16-le"), r"UTF-16.*re-save it as UTF-8"),
+        ("m.obj", lambda d: b"<!DOCTYPE html><html>Not found</html>", r"HTML page"),
+        (
+            "m.obj",
+            lambda d: b"ply\nformat ascii 1.0\n",
+            r"looks like a PLY file.*rename it to m\.ply",
+        ),
+        ("m.ply", lambda d: d, r"looks like an OBJ file.*rename it to m\.obj"),
+        ("m.obj", lambda d: b"OFF\n3 1 0\n", r"looks like an OFF file.*rename it to m\.off"),
+        ("m.obj", lambda d: b"", r"the file is empty"),
+        ("m.obj", lambda d: b"v 0 0 0\n" + bytes(range(256)), r"line 2: binary data"),
+        ("m.obj", lambda d: b"v 0 0 0\nv 1 0 0\nv 0 1 0\n", r"3 vertices but no faces"),
+        ("m.off", lambda d: b"OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n", r"3 vertices but no faces"),
+        ("m.off", lambda d: b"OFF\n1000000000000 1 0\n0 0 0\n", r"line 2 declares 1000000000000"),
+        ("m.ply", lambda d: _ply_declaring(10**12), r"declares 1000000000000 records of element"),
+    ],
+)
+def test_what_is_not_a_mesh_is_named(tmp_path, name, content, message):
+    path = tmp_path / name
+    path.write_bytes(content(DODECAHEDRON.read_bytes()))
+    with pytest.raises(ValueError, match=re.escape(str(path)) + r".*" + message):
+        read_mesh(path)
+
+
+def _zipped(data: bytes) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as z:
+        z.writestr("mesh.off", data)
+    return buffer.getvalue()
+
+
+def _ply_declaring(num_verts: int) -> bytes:
+    return (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {num_verts}\nproperty float x\n"
+        "property float y\nproperty float z\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n"
+    ).encode() + bytes(40)
+
+
+def test_directory_device_and_fifo_are_refused_without_hanging(tmp_path):
+    (tmp_path / "folder.obj").mkdir()
+    with pytest.raises(ValueError, match=r"folder\.obj: is a directory"):
+        read_mesh(tmp_path / "folder.obj")
+    os.symlink("/dev/zero", tmp_path / "zero.obj")
+    with pytest.raises(ValueError, match=r"zero\.obj: is not a regular file"):
+        read_mesh(tmp_path / "zero.obj")
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(tmp_path / "pipe.ply")  # opening it for reading would block forever
+        with pytest.raises(ValueError, match=r"pipe\.ply: is not a regular file"):
+            read_mesh(tmp_path / "pipe.ply")
+
+
+@pytest.mark.parametrize("newline", [b"\r\n", b"\r"])
+@pytest.mark.parametrize("bom", [b"", b"\xef\xbb\xbf"])
+@pytest.mark.parametrize(
+    ("name", "binary"), [("m.obj", 0), ("m.off", 0), ("m.ply", 0), ("m.ply", 1)]
+)
+def test_line_endings_and_byte_order_mark(tmp_path, mixed_verts, newline, bom, name, binary):
+    path = tmp_path / name
+    write_mesh(path, mixed_verts, MIXED_FACES, binary=bool(binary))
+    data = path.read_bytes()
+    if binary:  # only the header is text
+        end = data.index(b"end_header\n") + len(b"end_header\n")
+        data = data[:end].replace(b"\n", newline) + data[end:]
+    else:
+        data = data.replace(b"\n", newline)
+    path.write_bytes(bom + data)
+    verts, faces = read_mesh(path)
+    assert torch.equal(verts, mixed_verts)
+    assert faces.tolist() == MIXED_FACES
+
+
+def test_line_numbers_count_lone_carriage_returns(tmp_path):
+    path = tmp_path / "cr.obj"
+    path.write_bytes(b"v 0 0 0\rv 1 0 0\rv 0 1 0\rf 1 2 3\rf 1 2 7\r")
+    with pytest.raises(ValueError, match=r"cr\.obj, line 5: face 1 refers to vertex 7"):
+        read_mesh(path)
+
+
+def test_integer_dtype_is_refused(tmp_path, mixed_verts):
+    write_mesh(tmp_path / "m.obj", mixed_verts, MIXED_FACES)
+    with pytest.raises(ValueError, match=r"dtype must be a floating dtype.*torch\.int64"):
+        read_mesh(tmp_path / "m.obj", dtype=torch.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# one warning naming what was skipped; texture coordinates and normals on request
+# --------------------------------------------------------------------------------------------
+
+
+def test_skipped_obj_content_is_named_in_one_warning(tmp_path):
+    path = write_text(tmp_path / "d.obj", OBJ_TEXT)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read_mesh(path)
+    assert len(caught) == 1 and issubclass(caught[0].category, SkippedContentWarning)
+    message = str(caught[0].message)
+    assert message.startswith(str(path))
+    for what in ("texture coordinates (vt) (2)", "normals (vn) (1)", "groups (g) (1)"):
+        assert what in message
+    for what in ("objects (o)", "materials (usemtl)", "polylines (l)", "return_attributes=True"):
+        assert what in message
+
+
+def test_nothing_skipped_means_no_warning(tmp_path, mixed_verts):
+    for name in ("m.obj", "m.off", "m.ply"):
+        write_mesh(tmp_path / name, mixed_verts, MIXED_FACES)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            read_mesh(tmp_path / name)
+
+
+def test_skipped_off_and_ply_content_is_named(tmp_path):
+    path = write_text(tmp_path / "d.off", "COFF\n6 3 0\n" + OFF_BODY.replace("COFF", ""))
+    with pytest.warns(SkippedContentWarning, match=r"vertex colours \(1\), face colours \(2\)"):
+        read_mesh(path)
+    path = tmp_path / "hand.ply"
+    path.write_bytes(_hand_ply("ascii", PLY_QUADS, vertex_list=False))
+    with pytest.warns(SkippedContentWarning, match=r"element 'material'.*nx ny nz red.*'edge'"):
+        read_mesh(path)
+
+
+def test_obj_attributes_round_trip_exactly(tmp_path):
+    path = write_text(tmp_path / "d.obj", OBJ_TEXT)
+    verts, faces, attrs = read_mesh(path, return_attributes=True)
+    assert faces.tolist() == OBJ_FACES
+    assert attrs.uv.tolist() == [[0, 0], [1, 0]]
+    assert attrs.normals.tolist() == [[0, 0, 1]]
+    # f 1/1/1 2/2/1 3/1/1 4/2/1, f 2//1 5//1 3//1, f 2/1 5/2 3/1, then two faces without
+    assert attrs.corner_uv.tolist() == [0, 1, 0, 1, -1, -1, -1, 0, 1, 0] + [-1] * 6
+    assert attrs.corner_normals.tolist() == [0] * 7 + [-1] * 9
+    rng = np.random.default_rng(3)
+    attrs.uv = torch.from_numpy(rng.random((2, 2)))
+    attrs.normals = torch.from_numpy(rng.normal(size=(1, 3)))
+    write_mesh(tmp_path / "out.obj", verts, faces, attributes=attrs)
+    again_verts, again_faces, again = read_mesh(tmp_path / "out.obj", return_attributes=True)
+    assert torch.equal(again_verts, verts) and again_faces.tolist() == faces.tolist()
+    for key in ("uv", "normals", "corner_uv", "corner_normals"):
+        assert torch.equal(getattr(again, key), getattr(attrs, key)), key
+
+
+def test_attributes_default_return_is_unchanged_and_off_has_none(tmp_path, mixed_verts):
+    write_mesh(tmp_path / "m.off", mixed_verts, MIXED_FACES)
+    assert len(read_mesh(tmp_path / "m.off")) == 2
+    _, _, attrs = read_mesh(tmp_path / "m.off", return_attributes=True)
+    assert attrs == MeshAttributes()
+
+
+def test_ply_per_vertex_normals_as_attributes(tmp_path):
+    path = tmp_path / "hand.ply"
+    path.write_bytes(_hand_ply("binary_big_endian", PLY_MIXED, vertex_list=False))
+    _, faces, attrs = read_mesh(path, return_attributes=True)
+    assert attrs.normals.tolist() == [[0.0, 0.0, 1.0]] * 5
+    assert torch.equal(attrs.corner_normals, faces.indices) and attrs.uv is None
+
+
+def test_write_attributes_checks(tmp_path, mixed_verts):
+    attrs = MeshAttributes(uv=torch.zeros(2, 2), corner_uv=torch.zeros(3, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"corner_uv has 3 entries, but the faces have 18"):
+        write_mesh(tmp_path / "m.obj", mixed_verts, MIXED_FACES, attributes=attrs)
+    attrs.corner_uv = torch.full((18,), 2)
+    with pytest.raises(ValueError, match=r"face 0 refers to uv row 2, out of range for 2"):
+        write_mesh(tmp_path / "m.obj", mixed_verts, MIXED_FACES, attributes=attrs)
+    with pytest.raises(ValueError, match=r"only be written to \.obj"):
+        write_mesh(tmp_path / "m.ply", mixed_verts, MIXED_FACES, attributes=attrs)
+
+
+# --------------------------------------------------------------------------------------------
+# atomic writes
+# --------------------------------------------------------------------------------------------
+
+
+def test_failed_write_leaves_old_file_and_no_temporary(tmp_path, mixed_verts, monkeypatch):
+    path = tmp_path / "m.ply"
+    write_mesh(path, mixed_verts, MIXED_FACES)
+    old = path.read_bytes()
+
+    def broken_fsync(fd):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(common.os, "fsync", broken_fsync)
+    with pytest.raises(OSError, match="disk full"):
+        write_mesh(path, mixed_verts * 2, MIXED_FACES, binary=True)
+    assert path.read_bytes() == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.ply"]
+
+
+def test_write_keeps_permissions(tmp_path, mixed_verts):
+    path = tmp_path / "m.obj"
+    write_mesh(path, mixed_verts, MIXED_FACES)
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's 0o600
+    path.chmod(0o640)
+    write_mesh(path, mixed_verts, MIXED_FACES)
+    assert path.stat().st_mode & 0o777 == 0o640
+
+
+# --------------------------------------------------------------------------------------------
+# triangulation of non-convex polygons
+# --------------------------------------------------------------------------------------------
+
+
+def _tiled_arrows(n: int, tilt: np.ndarray) -> tuple[np.ndarray, list[list[int]]]:
+    """``n * n`` non-convex octagons (arrow heads pointing at +y), each with its own corners,
+    on a plane through the origin spanned by ``tilt``'s columns."""
+    arrow = np.array(
+        [[0, 0], [1, 0.6], [2, 0], [2, 1], [1, 2], [0, 1], [0.4, 0.8], [0.2, 0.5]], dtype=float
+    )
+    verts, faces = [], []
+    for i in range(n):
+        for j in range(n):
+            faces.append(list(range(len(verts), len(verts) + len(arrow))))
+            verts += (arrow + [3 * i, 3 * j]).tolist()
+    return np.array(verts) @ tilt.T, faces
+
+
+def _polygon_area(points: np.ndarray) -> float:
+    return 0.5 * np.linalg.norm(np.cross(points, np.roll(points, -1, axis=0)).sum(axis=0))
+
+
+def _check_triangulation(verts: np.ndarray, faces: list[list[int]], tris: np.ndarray) -> None:
+    sizes = np.array([len(f) for f in faces])
+    owner = np.repeat(np.arange(len(faces)), sizes - 2)
+    a, b, c = (verts[tris[:, i]] for i in range(3))
+    tri_normal = 0.5 * np.cross(b - a, c - a)
+    for f, face in enumerate(faces):
+        pts = verts[face]
+        normal = 0.5 * np.cross(pts, np.roll(pts, -1, axis=0)).sum(axis=0)
+        mine = owner == f
+        assert set(tris[mine].ravel()) <= set(face)
+        dots = tri_normal[mine] @ normal / np.linalg.norm(normal)
+        assert (dots > 1e-9 * _polygon_area(pts)).all(), f"face {f}: flipped or degenerate"
+        assert dots.sum() == pytest.approx(_polygon_area(pts), rel=1e-12)
+
+
+def test_non_convex_faces_are_ear_clipped_with_their_orientation():
+    tilt = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0][:, :2]
+    verts, faces = _tiled_arrows(4, tilt)
+    tris = triangulate_faces(verts, faces)
+    _check_triangulation(verts, faces, tris)
+    flipped = [f[::-1] for f in faces]  # the other orientation is kept too
+    _check_triangulation(verts, flipped, triangulate_faces(verts, flipped))
+    mesh = to_trimesh(verts, faces)
+    assert np.array_equal(mesh.faces, tris)
+    assert mesh.area == pytest.approx(sum(_polygon_area(verts[f]) for f in faces), rel=1e-12)
+
+
+def test_collinear_corners_give_no_degenerate_triangle():
+    # a square with extra corners on its edges: convex but not strictly, so not fanned
+    verts = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [2, 1, 0], [2, 2, 0], [0, 2, 0], [0, 1, 0]])
+    faces = [list(range(7))]
+    _check_triangulation(verts.astype(float), faces, triangulate_faces(verts, faces))
+
+
+@pytest.mark.parametrize("name", ["concave_3.obj"])
+def test_triangulated_concave_grid(name):
+    shared = DATA.parents[2] / "shared" / "data" / "meshes" / "grid"
+    paths = sorted(shared.glob("concave_*.obj"))[:3] if shared.is_dir() else []
+    paths.append(DATA / "grid" / name)
+    for path in paths:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SkippedContentWarning)
+            verts, faces = read_mesh(path)
+        v, face_lists = verts.numpy(), faces.tolist()
+        _check_triangulation(v, face_lists, triangulate_faces(v, faces))

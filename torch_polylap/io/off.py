@@ -1,0 +1,238 @@
+"""Object File Format: ASCII ``OFF``/``COFF``/``NOFF``/``CNOFF``/``STOFF`` and ``OFF BINARY``."""
+
+from __future__ import annotations
+
+import re
+import struct
+
+import numpy as np
+
+from .common import (
+    BadNumber,
+    Parsed,
+    Skipped,
+    check_count,
+    check_faces,
+    check_sizes_binary,
+    check_text,
+    content_lines,
+    numbers,
+    text_lines,
+)
+
+_OFF_KEYWORD = re.compile(r"(?:ST|C|N)*OFF")
+_FIRST_LINE = re.compile(rb"([^\r\n]*)(\r\n|\r|\n|$)")
+
+
+def _vertex_extras(keyword: str) -> str:
+    """What the values after ``x y z`` of a vertex record are, by the header keyword."""
+    kinds = [
+        kind
+        for flag, kind in (("ST", "texture coordinates"), ("N", "normals"), ("C", "colours"))
+        if flag in keyword
+    ]
+    return "vertex " + " and ".join(kinds) if kinds else "extra vertex values (colours?)"
+
+
+def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) -> Parsed:
+    """Parse ASCII or binary OFF.  OFF files carry no per-corner attributes; per-vertex
+    normals, colours and texture coordinates are skipped (and named in the warning)."""
+    first = _FIRST_LINE.match(data)
+    toks = first.group(1).decode("latin-1").split()
+    if len(toks) >= 2 and toks[1].upper() == "BINARY" and _OFF_KEYWORD.fullmatch(toks[0]):
+        return _read_off_binary(data[first.end() :], toks[0], name, skipped)
+
+    check_text(data, name, "OFF")
+    content = content_lines(text_lines(data), 0)
+    head = next(content, None)
+    if head is None:
+        raise ValueError(f"{name}: the file holds only comments, no OFF header.")
+    no, toks = head
+    keyword = toks[0]
+    if _OFF_KEYWORD.fullmatch(keyword):
+        toks = toks[1:]
+        if not toks:
+            head = next(content, None)
+            if head is None:
+                raise ValueError(f"{name}: the file ends after the {keyword!r} header.")
+            no, toks = head
+    elif keyword.endswith("OFF"):
+        raise ValueError(
+            f"{name}, line {no}: unsupported OFF variant {keyword!r} "
+            "(supported: OFF, COFF, NOFF, CNOFF, STOFF and 'OFF BINARY')."
+        )
+    else:
+        keyword = ""
+    try:
+        num_verts, num_faces = int(toks[0]), int(toks[1])
+        if num_verts < 0 or num_faces < 0:
+            raise ValueError
+    except (ValueError, IndexError):
+        raise ValueError(
+            f"{name}, line {no}: expected the counts 'vertices faces [edges]', got "
+            f"{' '.join(toks)!r}."
+        ) from None
+    # Only absurd counts are caught here (every record takes more than a byte); a merely
+    # truncated file gets the precise message of the record loops below.
+    check_count(name, "vertices", num_verts, len(data), f"line {no}")
+    check_count(name, "faces", num_faces, len(data), f"line {no}")
+    verts = _ascii_vertices(content, num_verts, name, skipped, keyword)
+    indices, sizes, face_lines = _ascii_faces(content, num_faces, name, skipped)
+    check_faces(name, indices, sizes, num_verts, lambda f: f"line {face_lines[f]}")
+    return Parsed(verts, indices, sizes)
+
+
+def _ascii_vertices(content, num_verts: int, name: str, skipped: Skipped, keyword: str):
+    # Only flat lists of strings and ints are kept: millions of retained per-line lists would
+    # make the cyclic GC rescan them over and over.
+    coords: list[str] = []
+    vert_lines: list[int] = []
+    extra = 0
+    for vno, vtoks in content if num_verts else ():
+        if len(vtoks) < 3:
+            raise ValueError(
+                f"{name}, line {vno}: a vertex needs 3 coordinates, got {' '.join(vtoks)!r}."
+            )
+        coords.extend(vtoks[:3])
+        vert_lines.append(vno)
+        extra += len(vtoks) > 3
+        if len(vert_lines) == num_verts:
+            break
+    if len(vert_lines) < num_verts:
+        raise ValueError(
+            f"{name}: the file ends after {len(vert_lines)} of the {num_verts} vertices "
+            "declared in the header (truncated file)."
+        )
+    skipped.add(_vertex_extras(keyword), extra)
+    try:
+        return numbers(coords, float).reshape(-1, 3)
+    except BadNumber as e:
+        raise ValueError(
+            f"{name}, line {vert_lines[e.position // 3]}: cannot parse vertex coordinate "
+            f"{e.token!r}."
+        ) from None
+
+
+def _ascii_faces(content, num_faces: int, name: str, skipped: Skipped):
+    """Face records are a token stream: k, then k indices, possibly wrapped over several lines;
+    tokens left on the line where a record ends are its colour."""
+    corners: list[str] = []
+    sizes: list[int] = []
+    face_lines: list[int] = []
+    need = 0
+    coloured = 0
+    for fno, ftoks in content:
+        if len(sizes) == num_faces and need == 0:
+            raise ValueError(
+                f"{name}, line {fno}: data after the {num_faces} faces declared in the header."
+            )
+        pos = 0
+        if need == 0:
+            try:
+                need = int(ftoks[0])
+            except ValueError:
+                raise ValueError(
+                    f"{name}, line {fno}: face {len(sizes)} starts with {ftoks[0]!r}, "
+                    "expected its vertex count."
+                ) from None
+            if need < 3:
+                raise ValueError(
+                    f"{name}, line {fno}: face {len(sizes)} has {need} vertices; "
+                    "a polygon needs at least 3."
+                )
+            sizes.append(need)
+            face_lines.append(fno)
+            pos = 1
+        taken = ftoks[pos : pos + need]
+        corners.extend(taken)
+        need -= len(taken)
+        coloured += need == 0 and pos + len(taken) < len(ftoks)
+    if len(sizes) < num_faces or need:
+        complete = len(sizes) - (1 if need else 0)
+        raise ValueError(
+            f"{name}: the file ends after {complete} of the {num_faces} faces declared in the "
+            "header (truncated file)."
+        )
+    skipped.add("face colours", coloured)
+    size_arr = np.asarray(sizes, dtype=np.int64)
+    try:
+        indices = numbers(corners, int)
+    except BadNumber as e:
+        f = int(np.searchsorted(np.cumsum(size_arr), e.position, side="right"))
+        raise ValueError(
+            f"{name}, line {face_lines[f]}: face {f} has an unparsable vertex index {e.token!r}."
+        ) from None
+    return indices, size_arr, face_lines
+
+
+def _read_off_binary(body: bytes, keyword: str, name: str, skipped: Skipped) -> Parsed:
+    """Binary OFF: int32 counts, float32 vertex records, int32 face records.
+
+    Geomview's specification is big endian with a colour count (and colours) after each face;
+    common writers (PMP, OpenMesh) use the machine's little endian and no colour count.  The
+    byte order is the one giving plausible counts, the face layout the one that ends exactly at
+    the end of the file.
+    """
+    floats_per_vert = 3 + 3 * ("N" in keyword) + 4 * ("C" in keyword) + 2 * ("ST" in keyword)
+    if len(body) < 12:
+        raise ValueError(f"{name}: binary OFF ends inside its counts (truncated file).")
+    for order in ("<", ">"):
+        num_verts, num_faces, _ = struct.unpack_from(order + "iii", body)
+        if 0 <= num_verts and 0 <= num_faces and 12 + 4 * floats_per_vert * num_verts <= len(body):
+            break
+    else:
+        raise ValueError(
+            f"{name}: binary OFF counts do not fit the file size (truncated, corrupt, or not "
+            "binary OFF); re-export or re-download it."
+        )
+    vert_end = 12 + 4 * floats_per_vert * num_verts
+    check_count(name, "faces", num_faces, (len(body) - vert_end) // 16, "the binary OFF header")
+    verts = np.frombuffer(body, order + "f4", floats_per_vert * num_verts, 12)
+    verts = verts.reshape(num_verts, floats_per_vert)[:, :3].astype(np.float64)
+    skipped.add(_vertex_extras(keyword), num_verts if floats_per_vert > 3 else 0)
+    words = np.frombuffer(body, order + "i4", (len(body) - vert_end) // 4, vert_end)
+    for with_colours in (False, True):
+        starts = _walk_off_faces(words, num_faces, with_colours)
+        if starts is not None:
+            break
+    else:
+        raise ValueError(
+            f"{name}: binary OFF face records do not match the {num_faces} faces declared "
+            "(truncated file or unknown layout)."
+        )
+    sizes = words[starts].astype(np.int64)
+    check_sizes_binary(name, sizes, "binary OFF face record")
+    if with_colours:
+        skipped.add("face colours", int((words[starts + sizes + 1] > 0).sum()))
+    first = np.repeat(starts + 1, sizes)
+    within = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    indices = words[first + within].astype(np.int64)
+    check_faces(name, indices, sizes, num_verts, lambda f: f"binary OFF face record {f}")
+    return Parsed(verts, indices, sizes)
+
+
+def _walk_off_faces(words: np.ndarray, num_faces: int, with_colours: bool) -> np.ndarray | None:
+    """Start of each face record in ``words``, or None if they do not end at the file's end."""
+    if num_faces == 0:
+        return np.zeros(0, dtype=np.int64) if len(words) == 0 else None
+    k = int(words[0]) if len(words) else -1
+    if not with_colours and k >= 0 and len(words) == num_faces * (k + 1):
+        starts = np.arange(num_faces, dtype=np.int64) * (k + 1)
+        if (words[starts] == k).all():
+            return starts
+    seq = words.tolist()
+    starts_list = []
+    p = 0
+    n = len(seq)
+    try:
+        for _ in range(num_faces):
+            starts_list.append(p)
+            k = seq[p]
+            if k < 0:
+                return None
+            p += k + 1
+            if with_colours:
+                p += seq[p] + 1
+    except IndexError:
+        return None
+    return np.asarray(starts_list, dtype=np.int64) if p == n else None

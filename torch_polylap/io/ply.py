@@ -1,0 +1,558 @@
+"""Polygon File Format (Stanford PLY): ASCII and binary, any extra properties and elements."""
+
+from __future__ import annotations
+
+import re
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .common import (
+    BadNumber,
+    Parsed,
+    Skipped,
+    check_count,
+    check_faces,
+    check_sizes_binary,
+    check_text,
+    numbers,
+    text_lines,
+)
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+_STRUCT_CODES = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
+_FACE_LISTS = ("vertex_indices", "vertex_index")
+_PLY_FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
+
+
+@dataclass
+class _PlyProperty:
+    name: str
+    dtype: str  # numpy type code without byte order, e.g. "f4"
+    count_dtype: str | None = None  # set for list properties
+
+
+@dataclass
+class _PlyElement:
+    name: str
+    count: int
+    props: list[_PlyProperty] = field(default_factory=list)
+
+    def find(self, prop: str) -> _PlyProperty | None:
+        return next((p for p in self.props if p.name == prop), None)
+
+
+# per-vertex attributes returned with return_attributes=True: property names by common writer
+_NORMAL_NAMES = ("nx", "ny", "nz")
+_UV_NAMES = (("u", "v"), ("s", "t"), ("texture_u", "texture_v"), ("texture_s", "texture_t"))
+
+
+def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) -> Parsed:
+    """Parse an ASCII or binary PLY; with ``want_attributes``, per-vertex normals
+    (``nx ny nz``) and texture coordinates (``u v``, ``s t``, ``texture_u texture_v``)."""
+    fmt, elements, body, header_lines = _parse_ply_header(data, name)
+    vertex = next((e for e in elements if e.name == "vertex"), None)
+    face = next((e for e in elements if e.name == "face"), None)
+    if vertex is None:
+        raise ValueError(f"{name}: the PLY header declares no 'vertex' element.")
+    for axis in "xyz":
+        prop = vertex.find(axis)
+        if prop is None or prop.count_dtype is not None:
+            raise ValueError(f"{name}: PLY element 'vertex' has no scalar property {axis!r}.")
+    if face is None:
+        raise ValueError(
+            f"{name}: the PLY header declares no 'face' element, so the file holds no polygons."
+        )
+    face_list = next((face.find(n) for n in _FACE_LISTS if face.find(n) is not None), None)
+    if face_list is None or face_list.count_dtype is None:
+        raise ValueError(
+            f"{name}: PLY element 'face' has no list property 'vertex_indices' "
+            f"(or 'vertex_index'); its properties are {[p.name for p in face.props]}."
+        )
+    _check_counts(data, body, elements, name)
+    normals, uv = _vertex_attributes(vertex)
+    wanted = {"vertex": {"x", "y", "z"}, "face": {face_list.name}}
+    if want_attributes:
+        wanted["vertex"] |= set(normals) | set(uv)
+    _name_skipped(elements, wanted, skipped, bool(normals or uv) and not want_attributes)
+    if fmt == "ascii":
+        check_text(data[body:], name, "ASCII PLY", header_lines + 1)
+        columns = _read_ply_ascii(data, body, header_lines, elements, wanted, name)
+    else:
+        columns = _read_ply_binary(data, body, _PLY_FORMATS[fmt], elements, wanted, name)
+    vcols = columns["vertex"]
+    verts = np.stack([vcols[a].astype(np.float64) for a in "xyz"], axis=1)
+    values, counts = columns["face"][face_list.name]
+    indices = values.astype(np.int64)
+    sizes = counts.astype(np.int64)
+    check_faces(name, indices, sizes, len(verts), lambda f: f"element 'face' record {f}")
+    parsed = Parsed(verts, indices, sizes)
+    for key, names in (("normals", normals), ("uv", uv)):
+        if want_attributes and names:
+            parsed.attributes[key] = np.stack([vcols[n].astype(np.float64) for n in names], 1)
+            parsed.attributes["corner_" + key] = indices.copy()
+    return parsed
+
+
+def _vertex_attributes(vertex: _PlyElement) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Names of the vertex's normal and texture-coordinate properties (empty when absent)."""
+
+    def scalars(names: tuple[str, ...]) -> bool:
+        return all((p := vertex.find(n)) is not None and p.count_dtype is None for n in names)
+
+    normals = _NORMAL_NAMES if scalars(_NORMAL_NAMES) else ()
+    uv = next((names for names in _UV_NAMES if scalars(names)), ())
+    return normals, uv
+
+
+def _name_skipped(
+    elements: list[_PlyElement], wanted: dict[str, set[str]], skipped: Skipped, hint: bool
+) -> None:
+    """Count the properties and elements the reader does not return, for the warning."""
+    for el in elements:
+        if el.name not in wanted:
+            skipped.add(f"PLY element {el.name!r}", el.count)
+            continue
+        extra = [p.name for p in el.props if p.name not in wanted[el.name]]
+        if extra:
+            skipped.add(f"PLY {el.name} properties {' '.join(extra)}", el.count)
+    skipped.attributes_hint |= hint
+
+
+def _check_counts(data: bytes, body: int, elements: list[_PlyElement], name: str) -> None:
+    """Reject absurd element counts (every record takes at least a byte) before reading; a
+    merely truncated file gets the precise message of the element readers."""
+    for el in elements:
+        if el.props:
+            check_count(name, f"records of element {el.name!r}", el.count, len(data) - body)
+
+
+def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], int, int]:
+    """Format, elements, byte offset of the body, and number of header lines.
+
+    The header's line ending (LF, CRLF or a lone CR) is the one ending the ``ply`` line; the
+    body starts right after the ``end_header`` line's ending.
+    """
+    first = re.match(rb"ply[ \t]*(\r\n|\r|\n)", data)
+    if first is None:
+        raise ValueError(f"{name}: not a PLY file (it does not start with a 'ply' line).")
+    newline = first.group(1)
+    fmt = None
+    elements: list[_PlyElement] = []
+    pos = first.end()
+    no = 1
+    while True:
+        end = data.find(newline, pos)
+        if end < 0:
+            raise ValueError(
+                f"{name}: the PLY header has no 'end_header' line (truncated or corrupt file)."
+            )
+        no += 1
+        line = data[pos:end]
+        pos = end + len(newline)
+        if re.search(rb"[\x00-\x08\x0e-\x1f\x7f]", line):
+            raise ValueError(
+                f"{name}, line {no}: binary data in the PLY header (corrupt file); re-export or "
+                "re-download it."
+            )
+        toks = line.decode("latin-1").split()
+        if not toks or toks[0] in ("comment", "obj_info"):
+            continue
+        if toks[0] == "end_header":
+            break
+        if toks[0] == "format":
+            if len(toks) < 2 or toks[1] not in _PLY_FORMATS:
+                raise ValueError(
+                    f"{name}, line {no}: unknown PLY format {' '.join(toks[1:])!r} "
+                    f"(supported: {', '.join(_PLY_FORMATS)})."
+                )
+            fmt = toks[1]
+        elif toks[0] == "element":
+            try:
+                count = int(toks[2])
+                if count < 0:
+                    raise ValueError
+                elements.append(_PlyElement(toks[1], count))
+            except (IndexError, ValueError):
+                raise ValueError(
+                    f"{name}, line {no}: expected 'element <name> <count>', got {' '.join(toks)!r}."
+                ) from None
+        elif toks[0] == "property":
+            prop = _parse_ply_property(toks, no, name)
+            if not elements:
+                raise ValueError(f"{name}, line {no}: property before any element.")
+            elements[-1].props.append(prop)
+        else:
+            raise ValueError(f"{name}, line {no}: unknown PLY header line {' '.join(toks)!r}.")
+    if fmt is None:
+        raise ValueError(f"{name}: the PLY header has no 'format' line.")
+    return fmt, elements, pos, no
+
+
+def _parse_ply_property(toks: list[str], no: int, name: str) -> _PlyProperty:
+    def type_code(t: str) -> str:
+        if t not in _PLY_TYPES:
+            raise ValueError(
+                f"{name}, line {no}: unknown PLY property type {t!r} "
+                f"(known: {', '.join(_PLY_TYPES)})."
+            )
+        return _PLY_TYPES[t]
+
+    if len(toks) == 3:
+        return _PlyProperty(toks[2], type_code(toks[1]))
+    if len(toks) == 5 and toks[1] == "list":
+        count = type_code(toks[2])
+        if count[0] == "f":
+            raise ValueError(f"{name}, line {no}: a list count type must be an integer type.")
+        return _PlyProperty(toks[4], type_code(toks[3]), count)
+    raise ValueError(f"{name}, line {no}: malformed property line {' '.join(toks)!r}.")
+
+
+_Columns = dict[str, dict[str, object]]
+
+
+def _read_ply_binary(
+    data: bytes,
+    pos: int,
+    order: str,
+    elements: list[_PlyElement],
+    wanted: dict[str, set[str]],
+    name: str,
+) -> _Columns:
+    """Per wanted element, each wanted property: an array (scalar) or (values, sizes) (list)."""
+    out: _Columns = {}
+    for el in elements:
+        if set(out) == set(wanted):
+            break  # later elements (edges, materials...) are not needed
+        if any(p.count_dtype is not None for p in el.props):
+            cols, pos = _binary_list_element(data, pos, order, el, wanted.get(el.name, set()), name)
+        else:
+            cols, pos = _binary_fixed_element(
+                data, pos, order, el, wanted.get(el.name, set()), name
+            )
+        if el.name in wanted:
+            out[el.name] = cols
+    return out
+
+
+def _binary_fixed_element(
+    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
+) -> tuple[dict[str, object], int]:
+    dt = np.dtype([(f"p{i}", order + p.dtype) for i, p in enumerate(el.props)])
+    available = (len(data) - pos) // dt.itemsize if dt.itemsize else el.count
+    if available < el.count:
+        raise ValueError(
+            f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
+            f"after {available} (truncated file)."
+        )
+    rec = np.frombuffer(data, dt, el.count, pos) if dt.itemsize else None
+    cols = {p.name: rec[f"p{i}"] for i, p in enumerate(el.props) if p.name in want}
+    return cols, pos + el.count * dt.itemsize
+
+
+def _binary_list_element(
+    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
+) -> tuple[dict[str, object], int]:
+    """An element with list properties: records of varying length.
+
+    When every record's lists have the lengths of the first record's (all-triangle or all-quad
+    faces), one structured ``frombuffer`` reads everything.  Otherwise a Python loop walks the
+    records reading only the list counts, and numpy gathers all values from those positions.
+    """
+    if el.count == 0:
+        return {p.name: _empty_column(p) for p in el.props if p.name in want}, pos
+    uniform = _binary_uniform_lists(data, pos, order, el, want)
+    if uniform is not None:
+        return uniform
+
+    # Records split into segments: segment j is the scalars before list j followed by list j;
+    # the last segment is the scalars after the last list.
+    lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
+    seg_of = np.searchsorted(lists, np.arange(len(el.props)))  # segment of each property
+    seg_scalar_bytes = [0] * (len(lists) + 1)
+    prop_offset: list[int] = []
+    for i, prop in enumerate(el.props):
+        prop_offset.append(seg_scalar_bytes[seg_of[i]])
+        if prop.count_dtype is None:
+            seg_scalar_bytes[seg_of[i]] += np.dtype(prop.dtype).itemsize
+    readers: list[Callable[[int], int]] = []
+    steps: list[tuple[int, int, int]] = []  # (scalar bytes before the count, count size, item size)
+    for j, i in enumerate(lists):
+        prop = el.props[i]
+        if prop.count_dtype == "u1":
+            readers.append(data.__getitem__)
+        else:
+            unpack = struct.Struct(order + _STRUCT_CODES[prop.count_dtype]).unpack_from
+            readers.append(lambda q, unpack=unpack: unpack(data, q)[0])
+        steps.append(
+            (
+                seg_scalar_bytes[j],
+                np.dtype(prop.count_dtype).itemsize,
+                np.dtype(prop.dtype).itemsize,
+            )
+        )
+    tail = seg_scalar_bytes[-1]
+    seg_starts: list[list[int]] = [[] for _ in range(len(lists) + 1)]
+    # seg_starts has one more list (the tail after the last list property) than readers
+    plan = list(zip(readers, steps, seg_starts, strict=False))
+    last = seg_starts[-1]
+    p = pos
+    try:
+        for record in range(el.count):
+            for read, (before, count_size, item_size), starts in plan:
+                starts.append(p)
+                p += before
+                k = read(p)
+                if k < 0:
+                    raise ValueError(
+                        f"{name}: PLY element {el.name!r} record {record} has a list of "
+                        f"negative length {k}."
+                    )
+                p += count_size + k * item_size
+            last.append(p)
+            p += tail
+    except (IndexError, struct.error):
+        p = len(data) + 1
+    if p > len(data):
+        record = min(len(last), el.count - 1)  # the first record not fully inside the file
+        raise ValueError(
+            f"{name}: the file ends before record {record} of the {el.count} records of PLY "
+            f"element {el.name!r} is complete (truncated file)."
+        )
+    buf = np.frombuffer(data, np.uint8)
+    cols: dict[str, object] = {}
+    for i, prop in enumerate(el.props):
+        if prop.name not in want:
+            continue
+        at = np.asarray(seg_starts[seg_of[i]], dtype=np.int64) + prop_offset[i]
+        if prop.count_dtype is None:
+            cols[prop.name] = _gather(buf, at, order + prop.dtype)
+            continue
+        sizes = _gather(buf, at, order + prop.count_dtype).astype(np.int64)
+        check_sizes_binary(name, sizes, f"element {el.name!r} record")
+        item = np.dtype(prop.dtype).itemsize
+        first = np.repeat(at + np.dtype(prop.count_dtype).itemsize, sizes)
+        within = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+        cols[prop.name] = (_gather(buf, first + within * item, order + prop.dtype), sizes)
+    return cols, p
+
+
+def _binary_uniform_lists(
+    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str]
+) -> tuple[dict[str, object], int] | None:
+    """Read a list element in one go if all its lists have the first record's lengths."""
+    fields = []
+    lengths: dict[int, int] = {}
+    p = pos
+    for i, prop in enumerate(el.props):
+        if prop.count_dtype is None:
+            fields.append((f"p{i}", order + prop.dtype))
+            p += np.dtype(prop.dtype).itemsize
+            continue
+        count_dt = np.dtype(order + prop.count_dtype)
+        if p + count_dt.itemsize > len(data):
+            return None
+        k = int(np.frombuffer(data, count_dt, 1, p)[0])
+        if k < 0:
+            return None
+        lengths[i] = k
+        fields.append((f"c{i}", count_dt))
+        fields.append((f"p{i}", order + prop.dtype, (k,)))
+        p += count_dt.itemsize + k * np.dtype(prop.dtype).itemsize
+    dt = np.dtype(fields)
+    if pos + el.count * dt.itemsize > len(data):
+        return None
+    rec = np.frombuffer(data, dt, el.count, pos)
+    if not all((rec[f"c{i}"] == k).all() for i, k in lengths.items()):
+        return None
+    cols: dict[str, object] = {}
+    for i, prop in enumerate(el.props):
+        if prop.name not in want:
+            continue
+        if prop.count_dtype is None:
+            cols[prop.name] = rec[f"p{i}"]
+        else:
+            sizes = np.full(el.count, lengths[i], dtype=np.int64)
+            cols[prop.name] = (rec[f"p{i}"].reshape(-1), sizes)
+    return cols, pos + el.count * dt.itemsize
+
+
+def _gather(buf: np.ndarray, at: np.ndarray, dtype: str) -> np.ndarray:
+    """Values of ``dtype`` stored (unaligned) at byte offsets ``at`` of ``buf``."""
+    dt = np.dtype(dtype)
+    raw = buf[at[:, None] + np.arange(dt.itemsize)]
+    return raw.view(dt).reshape(-1)
+
+
+def _empty_column(prop: _PlyProperty) -> object:
+    if prop.count_dtype is None:
+        return np.zeros(0, dtype=prop.dtype)
+    return np.zeros(0, dtype=prop.dtype), np.zeros(0, dtype=np.int64)
+
+
+def _read_ply_ascii(
+    data: bytes,
+    pos: int,
+    header_lines: int,
+    elements: list[_PlyElement],
+    wanted: dict[str, set[str]],
+    name: str,
+) -> _Columns:
+    lines = text_lines(data[pos:])
+    # Records are found by line index; tokens are split from the line when needed, so no
+    # per-record lists stay alive (millions of them make the cyclic GC rescan quadratically).
+    records = [i for i, line in enumerate(lines) if line and not line.isspace()]
+    out: _Columns = {}
+    start = 0
+    for el in elements:
+        if set(out) == set(wanted):
+            break
+        rows = records[start : start + el.count]
+        start += el.count
+        if len(rows) < el.count:
+            raise ValueError(
+                f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
+                f"after {len(rows)} (truncated file)."
+            )
+        if el.name in wanted:
+            table = _AsciiRows(lines, rows, header_lines + 1)
+            out[el.name] = _ascii_element(table, el, wanted[el.name], name)
+    return out
+
+
+@dataclass
+class _AsciiRows:
+    """The records of one ASCII PLY element: ``lines[rows[r]]`` is record ``r``."""
+
+    lines: list[str]
+    rows: list[int]
+    first_line: int  # file line number of lines[0]
+
+    def line_no(self, record: int) -> int:
+        return self.rows[record] + self.first_line
+
+
+_Tokens = tuple[dict[str, list[str]], dict[str, list[int] | np.ndarray]]
+
+
+def _ascii_element(
+    table: _AsciiRows, el: _PlyElement, want: set[str], name: str
+) -> dict[str, object]:
+    """Wanted properties of an ASCII element: arrays (scalars) or (values, sizes) (lists)."""
+    scalars, sizes = _ascii_tokens_fast(table, el, want) or _ascii_tokens(table, el, want, name)
+    cols: dict[str, object] = {}
+    for prop in el.props:
+        if prop.name not in scalars:
+            continue
+        kind = int if prop.count_dtype is not None and prop.dtype[0] != "f" else float
+        try:
+            values = numbers(scalars[prop.name], kind)
+        except BadNumber as e:
+            record = e.position
+            if prop.count_dtype is not None:
+                record = int(np.searchsorted(np.cumsum(sizes[prop.name]), e.position, "right"))
+            raise ValueError(
+                f"{name}, line {table.line_no(record)}: element {el.name!r} record {record}: "
+                f"cannot parse {prop.name!r} value {e.token!r}."
+            ) from None
+        if prop.count_dtype is None:
+            cols[prop.name] = values
+        else:
+            cols[prop.name] = (values, np.asarray(sizes[prop.name], dtype=np.int64))
+    return cols
+
+
+def _ascii_tokens_fast(table: _AsciiRows, el: _PlyElement, want: set[str]) -> _Tokens | None:
+    """Tokens of the wanted properties, column-wise, for elements with at most one list.
+
+    Then a record's layout follows from its list length alone, so every record is sliced the
+    same way and the lengths are checked afterwards, all at once.  None when some record does
+    not fit (the caller's record-by-record walk then reports where).
+    """
+    lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
+    if len(lists) > 1:
+        return None
+    n = len(el.props)
+    at = lists[0] if lists else n
+    after = n - at - 1 if lists else 0
+    # Scalars after the list are addressed from the end of the record.
+    picks = [i if i < at else i - n for i, p in enumerate(el.props) if i != at and p.name in want]
+    picked: list[str] = []
+    counts: list[str] = []
+    values: list[str] = []
+    lengths: list[int] = []
+    end = -after or None
+    lines = table.lines
+    try:
+        for r in table.rows:
+            toks = lines[r].split()
+            lengths.append(len(toks))
+            picked.extend([toks[i] for i in picks])
+            if lists:
+                counts.append(toks[at])
+                values.extend(toks[at + 1 : end])
+    except IndexError:
+        return None
+    length = np.asarray(lengths, dtype=np.int64)
+    if lists:
+        try:
+            sizes = numbers(counts, int)
+        except BadNumber:
+            return None
+        if (sizes < 0).any() or (length != at + 1 + after + sizes).any():
+            return None
+    elif (length != n).any():
+        return None
+    scalar_names = [p.name for i, p in enumerate(el.props) if i != at and p.name in want]
+    scalars = {nm: picked[j :: len(picks)] for j, nm in enumerate(scalar_names)}
+    if lists and el.props[at].name in want:
+        scalars[el.props[at].name] = values
+        return scalars, {el.props[at].name: sizes}
+    return scalars, {}
+
+
+def _ascii_tokens(table: _AsciiRows, el: _PlyElement, want: set[str], name: str) -> _Tokens:
+    """Tokens of the wanted properties, walking each record property by property."""
+    scalars: dict[str, list[str]] = {p.name: [] for p in el.props if p.name in want}
+    sizes: dict[str, list[int]] = {
+        p.name: [] for p in el.props if p.name in want and p.count_dtype is not None
+    }
+    for record, r in enumerate(table.rows):
+        toks = table.lines[r].split()
+        no = table.line_no(record)
+        at = 0
+        for prop in el.props:
+            if prop.count_dtype is None:
+                if prop.name in scalars:
+                    scalars[prop.name].append(toks[at] if at < len(toks) else "")
+                at += 1
+                continue
+            try:
+                k = int(toks[at])
+            except (IndexError, ValueError):
+                raise ValueError(
+                    f"{name}, line {no}: element {el.name!r} record {record}: expected the "
+                    f"length of list {prop.name!r}."
+                ) from None
+            if k < 0:
+                raise ValueError(
+                    f"{name}, line {no}: element {el.name!r} record {record}: list "
+                    f"{prop.name!r} has negative length {k}."
+                )
+            if prop.name in scalars:
+                scalars[prop.name].extend(toks[at + 1 : at + 1 + k])
+                sizes[prop.name].append(k)
+            at += 1 + k
+        if at != len(toks):
+            raise ValueError(
+                f"{name}, line {no}: element {el.name!r} record {record} has {len(toks)} values, "
+                f"but its properties need {at}."
+            )
+    return scalars, sizes
