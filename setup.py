@@ -22,7 +22,15 @@ setup(
         # libigl: the independent cotan Laplacian the tests and benchmarks compare against
         # matplotlib: the figures the command line and the examples write
         # cholespy: CHOLMOD's supernodal Cholesky, the fast factorization behind eigs
-        "test": ["pytest>=7", "ruff>=0.4", "libigl>=2.5", "matplotlib>=3.5", "cholespy>=2.0"],
+        # hypothesis: the property-based tests of the mesh readers and writers
+        "test": [
+            "pytest>=7",
+            "ruff>=0.4",
+            "libigl>=2.5",
+            "matplotlib>=3.5",
+            "cholespy>=2.0",
+            "hypothesis>=6",
+        ],
         "cholmod": ["cholespy>=2.0"],
         "plot": ["matplotlib>=3.5"],
         "bench": ["libigl>=2.5", "matplotlib>=3.5", "cholespy>=2.0", "robust-laplacian"],
