@@ -31,7 +31,7 @@ from .io import read_mesh
 from .nn.spectrum import Spectrum, block_diagonal
 from .operators import laplacian, mass
 from .sparse import csr_parts, csr_tensor, mark_symmetric
-from .spectral import cached_eigs
+from .spectral import cached_eigs, check_cache_dir
 
 __all__ = ["PolygonMeshDataset", "MeshBatch", "collate_meshes"]
 
@@ -57,7 +57,9 @@ class PolygonMeshDataset(Dataset):
             ``(verts (V, 3), faces)`` pairs.
         labels: one integer label per item (classification), or ``None``.
         k: eigenpairs per mesh (every mesh needs more than ``k`` vertices).
-        cache_dir: directory of the eigenpair cache.
+        cache_dir: directory of the eigenpair cache (created when missing; a path naming an
+            existing file is a ``ValueError`` at construction).  Unusable cache files are
+            recomputed and replaced, see :func:`torch_polylap.cached_eigs`.
         lam: stabilization weight of the Laplacian (AW11 eq. 9).
         normalize: center and scale each mesh to unit area (:func:`normalize_mesh`).
         dtype: dtype of the returned tensors (eigenpairs are computed in float64).
@@ -82,6 +84,7 @@ class PolygonMeshDataset(Dataset):
             raise ValueError(f"got {len(items)} meshes but {len(labels)} labels.")
         self.items, self.labels = list(items), None if labels is None else list(labels)
         self.k, self.cache_dir, self.lam = k, Path(cache_dir), lam
+        check_cache_dir(self.cache_dir)  # before any mesh is read or eigenpair computed
         self.normalize, self.dtype = normalize, dtype
 
     def __len__(self) -> int:

@@ -17,11 +17,15 @@ dtype and device of their inputs.
 from __future__ import annotations
 
 import hashlib
+import warnings
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from .io.common import atomic_write
 from .linalg import eigs, solve
 from .operators import MeshFaces, get_topology, laplacian
 from .sparse import csr_parts, csr_tensor, spmm
@@ -142,17 +146,70 @@ def cached_eigs(
     The key hashes the vertex positions, the faces, ``k`` and ``lam``: any change recomputes.
     Returned tensors have ``verts``' dtype and device and carry no gradient (precomputation for
     datasets; use :func:`eigs` directly for differentiable eigenvalues).
+
+    A cache file that cannot be used (truncated, corrupted, or holding arrays of the wrong shape
+    for ``k`` and this mesh) counts as a miss: the eigenpairs are recomputed, the file replaced,
+    and one warning names it.  Files are written to a unique temporary and moved into place
+    (:func:`~torch_polylap.io.common.atomic_write`), so concurrent processes computing the same
+    key never see or leave half a file.
+
+    Raises:
+        ValueError: ``cache_dir`` exists but is not a directory (checked before any work).
     """
-    path = Path(cache_dir) / f"eigs-{_mesh_key(verts, faces, k, lam)}.npz"
-    if path.exists():
-        data = np.load(path)
-        evals, evecs = torch.from_numpy(data["evals"]), torch.from_numpy(data["evecs"])
-    else:
+    cache = Path(cache_dir)
+    check_cache_dir(cache)
+    path = cache / f"eigs-{_mesh_key(verts, faces, k, lam)}.npz"
+    cached = _load_eigs(path, k, verts.shape[0]) if path.exists() else None
+    if cached is None:
         with torch.no_grad():
             L, M0 = laplacian(verts.detach(), faces, lam)
             evals, evecs = eigs(L, M0, k)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, evals=evals.cpu().numpy(), evecs=evecs.cpu().numpy())
-        tmp.replace(path)  # atomic: concurrent workers never read a half-written file
+        cache.mkdir(parents=True, exist_ok=True)
+        arrays = {"evals": evals.cpu().numpy(), "evecs": evecs.cpu().numpy()}
+        atomic_write(path, lambda f: np.savez(f, **arrays))
+    else:
+        evals, evecs = (torch.from_numpy(a) for a in cached)
     return evals.to(verts), evecs.to(verts)
+
+
+def check_cache_dir(cache_dir: Path) -> None:
+    """Reject a cache folder path that names an existing file (or other non-folder)."""
+    if cache_dir.exists() and not cache_dir.is_dir():
+        raise ValueError(
+            f"cache_dir {cache_dir} exists but is not a directory; pass a folder path (it is "
+            "created if missing)."
+        )
+
+
+# TypeError: a bare .npy (np.load returns an array, not an archive); the others: truncated or
+# corrupted archives and members
+_UNREADABLE = (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile, zlib.error)
+
+
+def _load_eigs(path: Path, k: int, num_verts: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(evals (k,), evecs (V, k))`` from a cache file, or None (with a warning naming the
+    file) when it is unreadable or does not hold eigenpairs of this shape."""
+    try:
+        # our own handle: np.load leaks the one it opens when the archive is unreadable
+        with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
+            evals, evecs = data["evals"], data["evecs"]
+        problem = None
+        if evals.shape != (k,) or evecs.shape != (num_verts, k):
+            problem = (
+                f"it holds evals {evals.shape} and evecs {evecs.shape}, expected ({k},) and "
+                f"({num_verts}, {k})"
+            )
+        elif evals.dtype.kind != "f" or evecs.dtype.kind != "f":
+            problem = f"it holds {evals.dtype} and {evecs.dtype} arrays, not floating point"
+        elif not (np.isfinite(evals).all() and np.isfinite(evecs).all()):
+            problem = "it holds non-finite values"
+    except _UNREADABLE as e:
+        problem = f"it cannot be read ({type(e).__name__}: {e})"
+    if problem is None:
+        return evals, evecs
+    warnings.warn(
+        f"eigenpair cache file {path}: {problem}; recomputing and replacing it.",
+        UserWarning,
+        stacklevel=3,
+    )
+    return None
