@@ -8,7 +8,7 @@ Python sequences and numpy arrays all convert to this one form through :func:`as
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import torch
@@ -135,16 +135,28 @@ class PolygonFaces:
 FacesLike = PolygonFaces | torch.Tensor | np.ndarray | Sequence[Sequence[int]]
 
 
-def _as_index_tensor(x: object, name: str) -> torch.Tensor:
-    if isinstance(x, torch.Tensor):
-        t = x
-    else:
-        t = torch.as_tensor(np.asarray(x))
-    if t.dtype == torch.bool or t.is_floating_point() or t.is_complex():
-        if t.is_floating_point() and t.numel() and bool((t == t.round()).all()):
-            t = t.to(torch.int64)
-        else:
-            raise ValueError(f"`{name}` must hold integer vertex indices, got dtype {t.dtype}.")
+def _as_index_tensor(x: object, name: str, k: int | None = None) -> torch.Tensor:
+    """``x`` as a flat int64 tensor of indices.
+
+    Floating-point input is accepted only where every value is an integer (text loaders such
+    as ``np.loadtxt`` return float64 faces); a fractional, NaN or infinite value is refused,
+    naming the entry (and its face, when the faces have a uniform degree ``k``), never
+    truncated to a different vertex.
+    """
+    t = x if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x))
+    if t.dtype == torch.bool or t.is_complex():
+        raise ValueError(f"`{name}` must hold integer vertex indices, got dtype {t.dtype}.")
+    if t.is_floating_point():
+        flat = t.reshape(-1)
+        fractional = ~torch.isfinite(flat) | (flat != flat.round())
+        if bool(fractional.any()):
+            i = int(torch.nonzero(fractional)[0, 0])
+            where = f"face {i // k} (entry {i})" if k else f"{name}[{i}]"
+            raise ValueError(
+                f"`{name}` must hold integer vertex indices: {where} is {flat[i].item()!r} "
+                f"(dtype {t.dtype}); a fractional index would silently be truncated to another "
+                "vertex. Fix the faces (integer-valued floats are accepted)."
+            )
     return t.reshape(-1).to(torch.int64)
 
 
@@ -166,24 +178,48 @@ def as_faces(faces: FacesLike) -> PolygonFaces:
                 "degree pass a list of index lists or PolygonFaces(indices, sizes=...)."
             )
         f, k = faces.shape
-        t = _as_index_tensor(faces, "faces")
+        t = _as_index_tensor(faces, "faces", k)
         return PolygonFaces(t, sizes=torch.full((f,), k, dtype=torch.int64, device=t.device))
     if isinstance(faces, Sequence) and not isinstance(faces, (str, bytes)):
         sizes = []
-        flat: list[int] = []
-        for i, face in enumerate(faces):
-            try:
-                face_list = [int(v) for v in face]
-            except TypeError:
+        flat: list = []
+        for i, face in enumerate(faces):  # a ragged list has to be walked once
+            if isinstance(face, (str, bytes)) or not isinstance(face, Iterable):
                 raise ValueError(
                     f"face {i} is {face!r}; each face must be a sequence of vertex indices."
-                ) from None
+                )
+            face_list = list(face)
             sizes.append(len(face_list))
             flat.extend(face_list)
         return PolygonFaces(
-            torch.tensor(flat, dtype=torch.int64), sizes=torch.tensor(sizes, dtype=torch.int64)
+            _flat_indices(flat, sizes), sizes=torch.tensor(sizes, dtype=torch.int64)
         )
     raise ValueError(
         f"cannot interpret faces of type {type(faces).__name__}; pass an (F, k) integer "
         "tensor/array, a list of index lists, or PolygonFaces."
     )
+
+
+def _flat_indices(flat: list, sizes: list[int]) -> torch.Tensor:
+    """The concatenated corners of a list of faces as int64, refusing (and naming the face
+    of) the first entry that is not an integer index."""
+    arr = np.asarray(flat)
+    if arr.size == 0:
+        return torch.zeros(0, dtype=torch.int64)
+    if arr.dtype.kind not in "iuf":
+        bad = next(i for i, v in enumerate(flat) if not isinstance(v, (int, np.integer, float)))
+        face = int(np.searchsorted(np.cumsum(sizes), bad, side="right"))
+        raise ValueError(
+            f"face {face} holds {flat[bad]!r}; each face must be a sequence of vertex indices."
+        )
+    if arr.dtype.kind == "f":
+        fractional = ~np.isfinite(arr) | (arr != np.round(arr))
+        if fractional.any():
+            bad = int(np.flatnonzero(fractional)[0])
+            face = int(np.searchsorted(np.cumsum(sizes), bad, side="right"))
+            raise ValueError(
+                f"face {face} holds the vertex index {flat[bad]!r}, which is not an integer; a "
+                "fractional index would silently be truncated to another vertex. Fix the faces "
+                "(integer-valued floats are accepted)."
+            )
+    return torch.from_numpy(arr.astype(np.int64))

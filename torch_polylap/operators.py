@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .faces import FacesLike, PolygonFaces
+from .faces import FacesLike
 from .geometry import (
     corner_terms,
     gather_coordinates,
@@ -30,7 +30,7 @@ from .geometry import (
     stabilizer_factors,
 )
 from .sparse import coo_tensor, csr_tensor, mark_symmetric, sparse_values, spmm
-from .topology import DegreeGroup, Topology, build_topology, half_edge_vertices
+from .topology import DegreeGroup, Topology, build_topology, get_topology, half_edge_vertices
 
 __all__ = [
     "laplacian",
@@ -53,34 +53,6 @@ __all__ = [
 
 Lam = float | torch.Tensor
 MeshFaces = FacesLike | Topology
-
-
-def get_topology(faces: MeshFaces, num_verts: int) -> Topology:
-    """The :class:`Topology` of ``faces``, cached on the faces object where possible.
-
-    A :class:`Topology` is used as is.  For a ``PolygonFaces`` or an index tensor the topology is
-    stored on the object and reused while its content is unchanged (tensor version counter), so
-    repeated functional calls with the same faces pay for validation and sorting once.  Lists
-    and numpy arrays are converted anew on every call: keep a ``PolygonFaces``, a tensor, a
-    ``Topology`` or a :class:`PolygonLaplacian` for repeated use.
-    """
-    if isinstance(faces, Topology):
-        if faces.num_verts != num_verts:
-            raise ValueError(
-                f"the topology was built for {faces.num_verts} vertices "
-                f"but verts has {num_verts} rows."
-            )
-        return faces
-    holder = faces.indices if isinstance(faces, PolygonFaces) else faces
-    if isinstance(holder, torch.Tensor):
-        cached = getattr(holder, "_polylap_topology", None)
-        stamp = (holder._version, holder.data_ptr(), tuple(holder.shape), num_verts)
-        if cached is not None and cached[0] == stamp:
-            return cached[1]
-        topo = build_topology(faces, num_verts)
-        holder._polylap_topology = (stamp, topo)
-        return topo
-    return build_topology(faces, num_verts)
 
 
 def _check_verts(verts: torch.Tensor) -> None:
@@ -578,21 +550,9 @@ class PolygonLaplacian(nn.Module):
             if self.topology is None:
                 raise ValueError("PolygonLaplacian: pass faces on the first call.")
             return self.topology
-        # Identity plus the tensor version counter: the module holds a reference to the faces
-        # it was built from, so their id cannot be recycled by a different object meanwhile.
-        holder = faces.indices if isinstance(faces, PolygonFaces) else faces
-        version = getattr(holder, "_version", None)
-        cached = self._faces_key
-        if (
-            self.topology is None
-            or cached is None
-            or cached[0] is not faces
-            or cached[1] != version
-            or cached[2] != num_verts
-            or not isinstance(holder, (torch.Tensor, Topology))
-        ):
-            self.topology = get_topology(faces, num_verts)
-            self._faces_key = (faces, version, num_verts)
+        # The package's one topology cache (keyed weakly on the faces tensor): the module
+        # keeps no reference to the faces, so a loop over fresh tensors pins no memory.
+        self.topology = get_topology(faces, num_verts)
         return self.topology
 
     def forward(
