@@ -24,6 +24,7 @@ __all__ = [
     "stabilizer_factors",
     "plane_basis",
     "quad_entries",
+    "polygon_entries",
     "gather_coordinates",
 ]
 
@@ -185,19 +186,25 @@ def quad_entries(
     x0, x1, x2, x3 = ((X[c], Y[c], Z[c]) for c in range(4))
     g0 = tuple(a - b for a, b in zip(x1, x3, strict=True))  # 2 g_0
     g1 = tuple(a - b for a, b in zip(x2, x0, strict=True))  # 2 g_1
-    a2 = (  # g0 x g1 = 2 a
-        torch.addcmul(g0[1] * g1[2], g0[2], g1[1], value=-1),
-        torch.addcmul(g0[2] * g1[0], g0[0], g1[2], value=-1),
-        torch.addcmul(g0[0] * g1[1], g0[1], g1[0], value=-1),
-    )
     tiny = torch.finfo(X.dtype).tiny
-    a2_sq = torch.addcmul(torch.addcmul(a2[0] * a2[0], a2[1], a2[1]), a2[2], a2[2])
-    a2_norm = a2_sq.clamp_min(tiny).sqrt()  # 2 |f|
     d00 = torch.addcmul(torch.addcmul(g0[0] * g0[0], g0[1], g0[1]), g0[2], g0[2])
     d11 = torch.addcmul(torch.addcmul(g1[0] * g1[0], g1[1], g1[1]), g1[2], g1[2])
-    size2 = d00 + d11  # squared diagonals: the length scale of the zero-area test
+    size2 = d00 + d11  # squared diagonals: the length scale s^2 of the face
+    # Per-face scaled frame: quantities of order s^2 (a, d_ij, t_i) are divided by s^2 before
+    # they are squared, so nothing of order s^4 is ever formed (it underflows below s ~ 1e-77
+    # in float64 and 1e-10 in float32, and overflows above the reciprocals). L_f is scale
+    # invariant; only the area is rescaled by s^2 at the end.
+    r2 = 1.0 / size2.clamp_min(tiny)
+    a2 = (  # (g0 x g1) / s^2 = 2 a / s^2
+        torch.addcmul(g0[1] * g1[2], g0[2], g1[1], value=-1) * r2,
+        torch.addcmul(g0[2] * g1[0], g0[0], g1[2], value=-1) * r2,
+        torch.addcmul(g0[0] * g1[1], g0[1], g1[0], value=-1) * r2,
+    )
+    a2_sq = torch.addcmul(torch.addcmul(a2[0] * a2[0], a2[1], a2[1]), a2[2], a2[2])
+    a2_norm = a2_sq.clamp_min(tiny).sqrt()  # 2 |f| / s^2
+    inv = 1.0 / a2_norm
     if geometric:
-        scale = 0.5 / a2_norm  # (g_i . g_j) / |f| with the factors 2 of g0, g1 folded in
+        scale = (0.5 * r2) * inv  # (g_i . g_j) / |f| with the factors 2 of g0, g1 folded in
         d01 = torch.addcmul(torch.addcmul(g0[0] * g1[0], g0[1], g1[1]), g0[2], g1[2]) * scale
         neg = -scale
         d00n, d11n, d01n = d00 * neg, d11 * neg, -d01
@@ -206,13 +213,12 @@ def quad_entries(
         zero = torch.zeros_like(a2_norm)
         rows = [zero] * 6
     if not (isinstance(lam, (int, float)) and lam == 0):
-        inv = 1.0 / a2_norm
         n = tuple(c * inv for c in a2)
         e0 = tuple(a - b for a, b in zip(x1, x0, strict=True))
         e1 = tuple(a - b for a, b in zip(x2, x1, strict=True))
         e2 = tuple(a - b for a, b in zip(x3, x2, strict=True))
-        t0 = _cross_dot(n, e0, e1)
-        t1 = _cross_dot(n, e1, e2)
+        t0 = _cross_dot(n, e0, e1) * r2  # t_i / s^2
+        t1 = _cross_dot(n, e1, e2) * r2
         t2 = a2_norm - t0
         t3 = a2_norm - t1
         p, r = t0 - t1, t1 - t2
@@ -229,4 +235,62 @@ def quad_entries(
             torch.addcmul(rows[4], wt0, t2),
             torch.addcmul(rows[5], wt3, t0, value=-1),
         ]
-    return torch.stack(rows), 0.5 * a2_norm, size2
+    return torch.stack(rows), (0.5 * a2_norm) * size2, size2
+
+
+def polygon_entries(
+    x: torch.Tensor,
+    pair_i: torch.Tensor,
+    pair_j: torch.Tensor,
+    lam: float | torch.Tensor,
+    geometric: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of every face of one degree ``k``.
+
+    ``L_f = G G^T / |f| + lambda d^T Pi d`` (AW11 eq. 3 and 9), evaluated in a per-face scaled
+    frame: with ``s^2 = sum_i |g_i|^2``, the vector area is divided by ``s^2`` before its norm
+    is taken, so no quantity of order ``s^4`` is formed. ``L_f`` is scale invariant, so the
+    entries are those of the unscaled face to round-off for any ``s`` whose square is a normal
+    number (float64: ``1e-150 .. 1e150``; float32: ``1e-18 .. 1e18``); the area is rescaled by
+    ``s^2``. Triangles carry no stabilizer (AW11 Theorem 2).
+
+    Args:
+        x: ``(3, k, F)`` corner positions.
+        pair_i, pair_j: ``(P,)`` local corner pairs ``i < j``.
+        lam: stabilizer weight; ``geometric=False`` keeps only ``lam d^T Pi d`` (the planarity
+            operator's blocks).
+
+    Returns:
+        ``off`` ``(P, F)``; ``area`` ``(F,)``: ``|f|``; ``size2`` ``(F,)``: ``s^2``, against which
+        a zero area is judged.
+    """
+    k = x.shape[1]
+    e, g, a = corner_terms(x)
+    size2 = (g * g).sum((0, 1))
+    tiny = torch.finfo(x.dtype).tiny
+    r2 = 1.0 / size2.clamp_min(tiny)
+    a_scaled = a * r2  # a / s^2, of order 1
+    area_scaled = torch.sqrt((a_scaled * a_scaled).sum(0).clamp_min(tiny))  # |f| / s^2
+    off = None
+    if geometric:
+        # g_i . g_j one coordinate at a time: row gathers of (k, F) blocks and fused
+        # multiply-adds beat a (3, P, F) product reduced over its leading axis.
+        gx, gy, gz = g.unbind(0)
+        off = gx.index_select(0, pair_i) * gx.index_select(0, pair_j)
+        off = torch.addcmul(off, gy.index_select(0, pair_i), gy.index_select(0, pair_j))
+        off = torch.addcmul(off, gz.index_select(0, pair_i), gz.index_select(0, pair_j))
+        off = off * (r2 / area_scaled)
+    if k > 3 and not (isinstance(lam, (int, float)) and lam == 0):
+        alpha, beta = stabilizer_factors(e, a_scaled / area_scaled)
+        stab = torch.addcmul(
+            alpha.index_select(0, pair_i) * alpha.index_select(0, pair_j),
+            beta.index_select(0, pair_i),
+            beta.index_select(0, pair_j),
+        )
+        # (d^T d)_ij for i < j: -1 for neighbours on the cycle (including the pair (0, k-1)).
+        dtd = -((pair_j - pair_i == 1) | (pair_j - pair_i == k - 1)).to(x.dtype)
+        stab = dtd[:, None] - stab
+        off = lam * stab if off is None else off + lam * stab
+    elif off is None:
+        off = x.new_zeros(pair_i.numel(), x.shape[2])
+    return off, area_scaled * size2, size2
