@@ -58,7 +58,7 @@ def fit(noisy, faces, steps: int, weight: float, lam: float) -> torch.Tensor:
     opt = torch.optim.Adam([X], lr=1e-3)
     for _ in range(steps):
         L, M0 = module(X, faces)
-        m = tp.sparse.sparse_values(M0)
+        m = M0.diagonal()
         H = tp.strong_laplacian(L, M0, X)  # mean-curvature vector, differentiable in X
         radius2 = (m[:, None] * X.square()).sum() / m.sum()
         H = H - 2 / radius2 * X  # a sphere of radius r has H = 2 X / r^2

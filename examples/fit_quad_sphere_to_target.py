@@ -104,10 +104,7 @@ def uniform_laplacian(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
         / float(degree.sum())
         * torch.cat([-torch.ones(2 * edges.shape[0], dtype=dtype), degree])
     )
-    A = torch.sparse_coo_tensor(
-        torch.stack([rows, cols]), values, (num_verts, num_verts), check_invariants=True
-    )
-    return A.coalesce().to_sparse_csr()
+    return tp.sparse.from_coo(rows, cols, values, (num_verts, num_verts), symmetric=True)
 
 
 def bending_energy(
@@ -117,10 +114,10 @@ def bending_energy(
     and live lumped masses."""
     if L_fixed is None:
         L, M0 = tp.laplacian(X, faces)
-        m = tp.sparse.sparse_values(M0)
+        m = M0.diagonal()
     else:
         L, m = L_fixed, tp.mass(X, faces)
-    return (tp.spmm(L, X).square().sum(1) / m).sum()
+    return ((L @ X).square().sum(1) / m).sum()
 
 
 @dataclass

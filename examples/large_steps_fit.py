@@ -31,16 +31,9 @@ from torch_polylap.fitting import chamfer_distance, mesh_quality, sample_points
 
 
 def system_matrix(verts0: torch.Tensor, faces: torch.Tensor, alpha: float) -> torch.Tensor:
-    """``I + alpha L0``: ``(V, V)`` sparse CSR, symmetric positive definite, built once."""
+    """``I + alpha L0``: ``(V, V)`` sparse, symmetric positive definite, built once."""
     L0, _ = tp.laplacian(verts0, faces)
-    n = verts0.shape[0]
-    eye = torch.sparse_coo_tensor(
-        torch.arange(n).repeat(2, 1),
-        torch.ones(n, dtype=verts0.dtype),
-        (n, n),
-        check_invariants=True,
-    )
-    return (eye + alpha * L0.to_sparse_coo()).coalesce().to_sparse_csr()
+    return tp.sparse.identity(verts0.shape[0], dtype=verts0.dtype) + alpha * L0
 
 
 def fit(
@@ -62,7 +55,7 @@ def fit(
     wall time of the optimization (evaluation excluded).
     """
     A = system_matrix(verts0, faces, alpha) if alpha > 0 else None
-    u = (tp.spmm(A, verts0) if A is not None else verts0.clone()).requires_grad_(True)
+    u = (A @ verts0 if A is not None else verts0.clone()).requires_grad_(True)
     opt = torch.optim.Adam([u], lr=lr)
     gen = torch.Generator().manual_seed(seed)
     history, seconds = [], 0.0

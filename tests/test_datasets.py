@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-import scipy.sparse
 import torch
 from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
 from torch.utils.data import DataLoader
@@ -40,9 +39,7 @@ def test_items_hold_the_operators_and_eigenpairs_of_the_normalized_mesh(dataset)
         assert torch.isclose(tp.mass(V, F).sum(), torch.tensor(1.0, dtype=V.dtype))  # unit area
         L, M0 = tp.laplacian(V, F)
         assert torch.equal(item["verts"], V)
-        n = V.shape[0]
-        crow, col, values = (a.numpy() for a in item["L"])
-        L_item = torch.from_numpy(scipy.sparse.csr_matrix((values, col, crow), (n, n)).toarray())
+        L_item = torch.from_numpy(tp.to_scipy(item["L"]).toarray())
         assert torch.allclose(L_item, L.to_dense())
         assert torch.allclose(item["mass"], tnn.diagonal(M0))
         # L phi = mu M0 phi, M0-orthonormal

@@ -10,18 +10,14 @@ from conftest import DATA, assert_directional_derivative, hex_pent_mesh, mixed_m
 from meshes import require_shared
 
 import torch_polylap as tp
-from torch_polylap.sparse import csr_tensor, sparse_values
+from torch_polylap.sparse import operator_from_parts
 
 D64 = {"dtype": torch.float64}
 
 
 def implicit_matrix(V, F, h=0.1, lam=1.0):
     L, M0 = tp.laplacian(V, F, lam)
-    crow, col = L.crow_indices(), L.col_indices()
-    diag = torch.zeros_like(sparse_values(L))
-    row = torch.repeat_interleave(torch.arange(V.shape[0]), crow.diff())
-    diag[row == col] = sparse_values(M0)
-    return csr_tensor(crow, col, diag + h * sparse_values(L), tuple(L.shape))
+    return M0 + h * L
 
 
 @pytest.mark.parametrize("backend", ["splu", "cg"])
@@ -41,13 +37,13 @@ def test_gradcheck_solve_values_and_rhs(backend):
     V, F = mixed_mesh()
     A = implicit_matrix(V, F, h=0.3)
     crow, col = A.crow_indices(), A.col_indices()
-    values = sparse_values(A).detach().clone().requires_grad_(True)
+    values = A.values().detach().clone().requires_grad_(True)
     B = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(1), **D64)
     B.requires_grad_(True)
 
     def f(v, B):
         # symmetrize so that perturbations keep A symmetric, as the adjoint for CG assumes
-        A = csr_tensor(crow, col, v, (V.shape[0],) * 2)
+        A = operator_from_parts(crow, col, v, (V.shape[0],) * 2)
         return tp.solve(A, B, backend=backend, tol=1e-13)
 
     if backend == "cg":
@@ -71,18 +67,30 @@ def test_solve_gradient_reaches_vertex_positions():
     assert_directional_derivative(loss, V, rtol=1e-6)
 
 
-def test_factorization_is_cached_and_invalidated():
+def test_factorization_is_cached_and_invalidated(monkeypatch):
     V, F = quad_grid(5, bump=0.2)
     A = implicit_matrix(V, F)
     B = torch.ones(V.shape[0], **D64)
+    built = []
+    original = tp.linalg.Factorization
+
+    def counting(*args):
+        built.append(1)
+        return original(*args)
+
+    monkeypatch.setattr(tp.linalg, "Factorization", counting)
     tp.solve(A, B)
-    factor = A._polylap_factorization
     tp.solve(A, 2 * B)
-    assert A._polylap_factorization is factor
-    sparse_values(A).mul_(2.0)  # in-place change of the values: the cache must notice
+    tp.solve(A.detach(), 3 * B)  # same value storage: same factorization
+    assert len(built) == 1
+    A.values().mul_(2.0)  # in-place change of the values: the cache must notice
     X = tp.solve(A, B)
-    assert A._polylap_factorization is not factor
+    assert len(built) == 2
     assert torch.allclose(A.to_dense() @ X, B)
+    # gradients through a solve reuse the forward's factorization in the backward solve
+    Vg = V.clone().requires_grad_(True)
+    tp.solve(implicit_matrix(Vg, F), B).sum().backward()
+    assert len(built) == 3
 
 
 def test_singular_system_is_a_clear_error():
@@ -121,7 +129,7 @@ def test_gradcheck_dirichlet_solve():
 
     def f(X, b, g):
         L, M0 = tp.laplacian(X, topo)
-        return tp.dirichlet_solve(L, tp.spmm(M0, b), boundary, g)
+        return tp.dirichlet_solve(L, M0 @ b, boundary, g)
 
     args = (V.clone().requires_grad_(True), b.requires_grad_(True), g.requires_grad_(True))
     assert torch.autograd.gradcheck(f, args)

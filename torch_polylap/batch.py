@@ -399,25 +399,16 @@ class PolygonMeshes:
             "half_edges", self.device, lambda: half_edge_vertices(self.faces_packed())
         )
 
-    def laplacian_diagonal_index(self) -> torch.Tensor:
-        """``(sum V_i,)`` position of each diagonal entry ``L_pp`` in the value array of the CSR
-        ``L`` returned by :meth:`laplacian` (every vertex has one, isolated ones included)."""
-
-        def make() -> torch.Tensor:
-            topo = self.topology()
-            return torch.nonzero(topo.row == topo.col)[:, 0].to(self.device)
-
-        return self._conn.cached("diag", self.device, make)
-
     # ----------------------------------------------------------------- operators
 
     def laplacian(
         self, lam: Lam = 1.0, *, validate: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Block-diagonal ``(L, M0)``, each ``(sum V_i, sum V_i)`` sparse CSR (AW11 eq. 3, 9, 10).
+        """Block-diagonal ``(L, M0)``, each a ``(sum V_i, sum V_i)`` sparse operator (AW11 eq. 3,
+        9, 10).
 
         One assembly over the packed faces; block ``i`` equals ``laplacian(verts_i, faces_i)``.
-        Differentiable in the vertices; multiply with :func:`torch_polylap.spmm`.
+        Differentiable in the vertices with O(nnz) gradients (``L @ X``, ``L.diagonal()``).
         """
         return laplacian(self.verts_packed(), self.topology(), lam, validate=validate)
 

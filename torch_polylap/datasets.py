@@ -28,9 +28,9 @@ from torch.utils.data import Dataset
 from .batch import PolygonMeshes
 from .faces import FacesLike, PolygonFaces, as_faces
 from .io import read_mesh
-from .nn.spectrum import Spectrum, block_diagonal
+from .nn.spectrum import Spectrum
 from .operators import laplacian, mass
-from .sparse import csr_parts, csr_tensor, mark_symmetric
+from .sparse import SparseOperator, block_diag, diag
 from .spectral import cached_eigs, check_cache_dir
 
 __all__ = ["PolygonMeshDataset", "MeshBatch", "collate_meshes"]
@@ -108,15 +108,14 @@ class PolygonMeshDataset(Dataset):
         verts, faces = self.mesh(i)
         evals, evecs = cached_eigs(verts, faces, self.k, self.cache_dir, lam=self.lam)
         L, M0 = laplacian(verts, faces, self.lam)
-        crow, col, values = csr_parts(L)
         return {
             "verts": verts.to(self.dtype),
             "faces": faces,
             "label": None if self.labels is None else int(self.labels[i]),
             "evals": evals.to(self.dtype),
             "evecs": evecs.to(self.dtype),
-            "mass": csr_parts(M0)[2].to(self.dtype),
-            "L": (crow, col, values.to(self.dtype)),
+            "mass": M0.diagonal().to(self.dtype),
+            "L": L.to(self.dtype),
         }
 
     def _fill_cache(self, i: int) -> None:
@@ -148,35 +147,28 @@ class MeshBatch:
     Attributes:
         meshes: :class:`PolygonMeshes` of the ``B`` meshes (packed vertices and faces).
         spectrum: :class:`Spectrum` (``evals (B, k)``, ``evecs (sumV, k)``, masses, index maps).
-        L_csr: ``(crow, col, values)`` of the block-diagonal Laplacian (plain tensors, so a
-            batch collated in a DataLoader worker crosses processes without sparse pickling).
+        L: ``(sumV, sumV)`` block-diagonal Laplacian, a
+            :class:`~torch_polylap.sparse.SparseOperator` (it pickles as its index and value
+            arrays, so a batch collated in a DataLoader worker crosses processes).
         labels: ``(B,)`` int64, or ``None`` when the items have none.
-    Properties ``L`` and ``M0``: ``(sumV, sumV)`` sparse CSR operators built on access.
+    Property ``M0``: the ``(sumV, sumV)`` diagonal mass operator.
     """
 
     meshes: PolygonMeshes
     spectrum: Spectrum
-    L_csr: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+    L: SparseOperator
     labels: torch.Tensor | None
 
     @property
-    def L(self) -> torch.Tensor:
-        n = self.spectrum.mass.numel()
-        return mark_symmetric(csr_tensor(*self.L_csr, (n, n)))
-
-    @property
-    def M0(self) -> torch.Tensor:
-        d = self.spectrum.mass
-        ar = torch.arange(d.numel() + 1, device=d.device)
-        return mark_symmetric(csr_tensor(ar, ar[:-1], d, (d.numel(), d.numel())))
+    def M0(self) -> SparseOperator:
+        return diag(self.spectrum.mass)
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None):
         """The batch on ``device`` with floating tensors in ``dtype``."""
-        crow, col, values = self.L_csr
         return MeshBatch(
             self.meshes.to(device, dtype),
             self.spectrum.to(device, dtype),
-            (crow.to(device), col.to(device), values.to(device, dtype)),
+            self.L.to(device=device, dtype=dtype),
             None if self.labels is None else self.labels.to(device),
         )
 
@@ -184,7 +176,7 @@ class MeshBatch:
 def collate_meshes(items: Sequence[dict[str, Any]]) -> MeshBatch:
     """Pack dataset items into a :class:`MeshBatch` (use as ``DataLoader(collate_fn=...)``).
 
-    ``L`` is concatenated block by block from the items' CSR arrays (no re-assembly); the
+    ``L`` is concatenated block by block from the items' operators (no re-assembly); the
     packed faces carry global vertex indices (shifted by each mesh's first packed vertex).
     """
     meshes = PolygonMeshes([it["verts"] for it in items], [it["faces"] for it in items])
@@ -194,16 +186,11 @@ def collate_meshes(items: Sequence[dict[str, Any]]) -> MeshBatch:
         torch.cat([it["mass"] for it in items]),
         meshes.num_verts_per_mesh(),
     )
-    blocks = []
-    for it in items:
-        n = it["verts"].shape[0]
-        blocks.append(mark_symmetric(csr_tensor(*it["L"], (n, n))))
-    L = block_diagonal(blocks)
-    L_csr = (L.crow_indices(), L.col_indices(), csr_parts(L)[2])
+    L = block_diag([it["L"] for it in items])
     labels = [it["label"] for it in items]
     return MeshBatch(
         meshes,
         spectrum,
-        L_csr,
+        L,
         None if any(lb is None for lb in labels) else torch.tensor(labels, dtype=torch.int64),
     )

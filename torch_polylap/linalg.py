@@ -22,11 +22,17 @@ import scipy.sparse.linalg as spla
 import torch
 
 from .lanczos import block_lanczos
-from .sparse import csr_parts, csr_tensor, mark_symmetric, spmm, to_scipy
+from .sparse import (
+    SparseOperator,
+    as_operator,
+    sampled_gradient,
+    solver_cache,
+    sparse_values,
+    submatrix,
+    to_scipy,
+)
 
 __all__ = ["solve", "dirichlet_solve", "eigs", "Factorization", "spd_splu"]
-
-_FACTOR_CACHE = "_polylap_factorization"
 
 
 def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:
@@ -44,11 +50,12 @@ def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:
 class Factorization:
     """A sparse LU factorization (SuperLU, symmetric mode) of a CSR matrix, in float64.
 
-    Built from ``A``'s values at one point in time; :func:`solve` checks the values' version
-    counter and data pointer before reusing it.
+    Built from ``A``'s values at one point in time and cached on ``A`` by
+    :func:`torch_polylap.sparse.solver_cache`, which checks the values' storage and version
+    counter before reusing it.
     """
 
-    def __init__(self, A: torch.Tensor, values: torch.Tensor) -> None:
+    def __init__(self, A: torch.Tensor) -> None:
         S = sp.csc_matrix(to_scipy(A).astype(np.float64))
         try:
             self.lu = spd_splu(S)
@@ -63,7 +70,6 @@ class Factorization:
         growth = np.abs(self.lu.solve(b)).max() * abs(S).max() / np.abs(b).max() if n else 0.0
         if not np.isfinite(growth) or growth * n * np.finfo(float).eps >= 1.0:
             raise ValueError(_singular_message(A, f"solution growth {growth:.1e}"))
-        self.stamp = _stamp(values)
         self.shape = tuple(A.shape)
 
     def solve(self, B: np.ndarray, transpose: bool = False) -> np.ndarray:
@@ -86,29 +92,17 @@ def _singular_message(A: torch.Tensor, detail: str) -> str:
     )
 
 
-def _stamp(values: torch.Tensor) -> tuple:
-    return (values.data_ptr(), values._version, values.numel(), values.dtype)
-
-
-def _factorization(A: torch.Tensor, values: torch.Tensor) -> Factorization:
-    cached = getattr(A, _FACTOR_CACHE, None)
-    if cached is not None and cached.stamp == _stamp(values):
-        return cached
-    factor = Factorization(A, values)
-    setattr(A, _FACTOR_CACHE, factor)
-    return factor
+def _factorization(A: SparseOperator) -> Factorization:
+    return solver_cache(A, "splu", lambda: Factorization(A))
 
 
 def _cg(A: torch.Tensor, B: torch.Tensor, tol: float, max_iter: int) -> torch.Tensor:
     """Jacobi-preconditioned conjugate gradients on every column of ``B`` at once (SPD ``A``)."""
-    crow, col, values = csr_parts(A)
-    row = torch.repeat_interleave(torch.arange(A.shape[0], device=A.device), crow.diff())
-    diag = torch.zeros(A.shape[0], dtype=values.dtype, device=values.device)
-    diag.index_add_(0, row, torch.where(row == col, values, torch.zeros_like(values)))
+    Ad = A.detach()
+    diag = Ad.diagonal()
     if bool((diag <= 0).any()):
         raise ValueError("conjugate gradients needs a positive diagonal (an SPD matrix).")
-    Ad = csr_tensor(crow, col, values.detach(), tuple(A.shape))
-    inv_diag = (1.0 / diag.detach())[:, None]
+    inv_diag = (1.0 / diag)[:, None]
     X = torch.zeros_like(B)
     R = B.clone()
     Z = inv_diag * R
@@ -136,33 +130,70 @@ def _cg(A: torch.Tensor, B: torch.Tensor, tol: float, max_iter: int) -> torch.Te
     )
 
 
+def _solve_values(
+    A: SparseOperator, B: torch.Tensor, backend: str, tol: float, max_iter: int
+) -> torch.Tensor:
+    """``A^{-1} B`` for ``(n, c)`` ``B``, no autograd."""
+    if backend == "splu":
+        X = _factorization(A).solve(B.detach().cpu().numpy())
+        return torch.from_numpy(X).to(B)
+    return _cg(A, B.detach(), tol, max_iter)
+
+
+def _solve(
+    A: SparseOperator, B: torch.Tensor, backend: str, tol: float, max_iter: int
+) -> torch.Tensor:
+    values = sparse_values(A)
+    if not (torch.is_grad_enabled() and (values.requires_grad or B.requires_grad)):
+        return _solve_values(A, B, backend, tol, max_iter)
+    return _Solve.apply(values, B, _Held(A), backend, tol, max_iter)
+
+
+class _Held:
+    """A sparse operator passed to an autograd.Function as a plain object: autograd and
+    torch.func must see only its value array as the differentiable input."""
+
+    __slots__ = ("A",)
+
+    def __init__(self, A: SparseOperator) -> None:
+        self.A = A
+
+
 class _Solve(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, values, B, wrapped, backend, tol, max_iter):
-        (A,) = wrapped  # a 1-tuple: autograd must not treat the sparse tensor as an input
-        if backend == "splu":
-            factor = _factorization(A, values)
-            X = torch.from_numpy(factor.solve(B.detach().cpu().numpy())).to(B)
-        else:
-            factor = None
-            X = _cg(A, B.detach(), tol, max_iter)
-        ctx.save_for_backward(values, X)
-        ctx.A, ctx.factor, ctx.backend, ctx.tol, ctx.max_iter = A, factor, backend, tol, max_iter
-        return X
+    """``X = A^{-1} B``; backward ``dB = A^{-T} G``, ``dvalues = -(A^{-T} G) X^T`` on the pattern.
+
+    The backward is written with :func:`_solve` and the sampled product, so it is itself
+    differentiable (second derivatives through solves, e.g. Hessian-vector products).
+    """
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
+    def forward(values, B, held, backend, tol, max_iter):
+        # `values` here is the plain tensor even under torch.func, whose wrapped tensors have no
+        # storage for the factorization cache to check
+        A = held.A.with_values(values, share_cache=True)
+        return _solve_values(A, B, backend, tol, max_iter)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        values, B, held, backend, tol, max_iter = inputs
+        ctx.save_for_backward(values, output)
+        ctx.A, ctx.options = held.A, (backend, tol, max_iter)
+
+    @staticmethod
     def backward(ctx, G):
         values, X = ctx.saved_tensors
-        if ctx.backend == "splu":
-            gB = torch.from_numpy(ctx.factor.solve(G.cpu().numpy(), transpose=True)).to(G)
+        backend = ctx.options[0]
+        if not torch.is_grad_enabled() and backend == "splu":
+            # first-order backward: reuse the factorization for A^T directly
+            factor = _factorization(ctx.A)
+            gB = torch.from_numpy(factor.solve(G.cpu().numpy(), transpose=True)).to(G)
         else:
-            gB = _cg(ctx.A, G.contiguous(), ctx.tol, ctx.max_iter)  # A symmetric: A^T = A
+            # A^T = A for the SPD matrices solve() takes (CG needs it anyway)
+            A = ctx.A.with_values(values, share_cache=True)
+            gB = _solve(A if A.symmetric else A.T, G, *ctx.options)
         grad_values = None
         if ctx.needs_input_grad[0]:
-            crow, col, _ = csr_parts(ctx.A)
-            pattern = csr_tensor(crow, col, torch.zeros_like(values), tuple(ctx.A.shape))
-            grad_values = -torch.sparse.sampled_addmm(pattern, gB, X.t(), beta=0.0).values()
+            grad_values = -sampled_gradient(ctx.A, gB, X)
         return grad_values, gB if ctx.needs_input_grad[1] else None, None, None, None, None
 
 
@@ -193,6 +224,7 @@ def solve(
         ValueError: ``A`` singular (e.g. ``L`` without a mass term or Dirichlet values), shapes
             or dtypes that do not match, or CG that does not converge.
     """
+    A = as_operator(A)
     if A.dim() != 2 or A.shape[0] != A.shape[1]:
         raise ValueError(f"solve needs a square matrix, got shape {tuple(A.shape)}.")
     if B.dim() not in (1, 2) or B.shape[0] != A.shape[0]:
@@ -205,12 +237,8 @@ def solve(
         backend = "splu" if A.device.type == "cpu" else "cg"
     if backend not in ("splu", "cg"):
         raise ValueError(f"backend must be 'auto', 'splu' or 'cg', got {backend!r}.")
-    if A.layout != torch.sparse_csr:
-        crow, col, values = csr_parts(A)
-        A = csr_tensor(crow, col, values, tuple(A.shape))
-    values = csr_parts(A)[2]
     vec = B.dim() == 1
-    X = _Solve.apply(values, B[:, None] if vec else B, (A,), backend, tol, max_iter)
+    X = _solve(A, B[:, None] if vec else B, backend, tol, max_iter)
     return X[:, 0] if vec else X
 
 
@@ -238,70 +266,99 @@ def dirichlet_solve(
     Returns:
         ``X`` of ``B``'s shape, equal to ``fixed_values`` on ``fixed``.
     """
+    A = as_operator(A)
     n = A.shape[0]
-    is_fixed = torch.zeros(n, dtype=torch.bool, device=B.device)
-    if fixed.dtype == torch.bool:
-        is_fixed = fixed.to(B.device)
-        fixed = torch.nonzero(is_fixed).reshape(-1)
-    else:
-        is_fixed[fixed] = True
-    if int(is_fixed.sum()) != fixed.numel():
-        raise ValueError("dirichlet_solve: `fixed` lists a vertex more than once.")
+    if A.dim() != 2 or A.shape[1] != n:
+        raise ValueError(f"dirichlet_solve needs a square matrix, got shape {tuple(A.shape)}.")
+    if B.dim() not in (1, 2) or B.shape[0] != n:
+        raise ValueError(
+            f"dirichlet_solve: B of shape {tuple(B.shape)} does not fit A of shape "
+            f"{tuple(A.shape)}."
+        )
+    fixed, is_fixed = _fixed_rows(fixed, n, B.device)
     free = torch.nonzero(~is_fixed).reshape(-1)
-    crow, col, values = csr_parts(A)
-    row = torch.repeat_interleave(torch.arange(n, device=crow.device), crow.diff())
-    new_index = torch.full((n,), -1, dtype=torch.int64, device=crow.device)
-    new_index[free] = torch.arange(free.numel(), device=crow.device)
-    fixed_index = torch.full((n,), -1, dtype=torch.int64, device=crow.device)
-    fixed_index[fixed] = torch.arange(fixed.numel(), device=crow.device)
-
-    def block(col_mask: torch.Tensor, col_map: torch.Tensor, n_cols: int) -> torch.Tensor:
-        keep = torch.nonzero(~is_fixed[row] & col_mask[col]).reshape(-1)
-        sub_row = new_index[row[keep]]
-        sub_crow = torch.zeros(free.numel() + 1, dtype=torch.int64, device=crow.device)
-        torch.cumsum(torch.bincount(sub_row, minlength=free.numel()), 0, out=sub_crow[1:])
-        return csr_tensor(sub_crow, col_map[col[keep]], values[keep], (free.numel(), n_cols))
-
-    A_ff = block(~is_fixed, new_index, free.numel())
-    if getattr(A, "_polylap_symmetric", False):
-        mark_symmetric(A_ff)
-    A_fc = block(is_fixed, fixed_index, fixed.numel())
+    if free.numel() == 0:
+        raise ValueError("dirichlet_solve: every row is fixed; there is nothing to solve for.")
     vec = B.dim() == 1
     Bm = B[:, None] if vec else B
-    Xc = fixed_values.reshape(fixed.numel(), -1).to(B.dtype)
-    rhs = Bm[free] - spmm(A_fc, Xc)
+    try:
+        Xc = fixed_values.reshape(fixed.numel(), -1).to(B.dtype)
+    except RuntimeError:
+        raise ValueError(
+            f"dirichlet_solve: fixed_values of shape {tuple(fixed_values.shape)} do not fit "
+            f"{fixed.numel()} fixed rows and {Bm.shape[1]} column(s)."
+        ) from None
+    if Xc.shape[1] not in (1, Bm.shape[1]):
+        raise ValueError(
+            f"dirichlet_solve: fixed_values have {Xc.shape[1]} columns, B has {Bm.shape[1]}."
+        )
+    order = torch.argsort(fixed)  # submatrix wants increasing indices
+    fixed_sorted, Xc_sorted = fixed[order], Xc[order.to(Xc.device)]
+    A_ff = submatrix(A, free, free)
+    A_fc = submatrix(A, free, fixed_sorted)
+    rhs = Bm[free] - A_fc @ Xc_sorted
     Xf = solve(A_ff, rhs, **solve_options)
     X = torch.zeros_like(Bm).index_put((free,), Xf).index_put((fixed,), Xc.expand_as(Bm[fixed]))
     return X[:, 0] if vec else X
+
+
+def _fixed_rows(
+    fixed: torch.Tensor, n: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(indices (m,), mask (n,))`` of the prescribed rows, from indices or a boolean mask."""
+    fixed = torch.as_tensor(fixed, device=device)
+    if fixed.dtype == torch.bool:
+        if fixed.shape != (n,):
+            raise ValueError(
+                f"dirichlet_solve: a boolean `fixed` mask needs shape ({n},), got "
+                f"{tuple(fixed.shape)}."
+            )
+        return torch.nonzero(fixed).reshape(-1), fixed
+    if fixed.is_floating_point() or fixed.is_complex() or fixed.dim() > 1:
+        raise ValueError(
+            "dirichlet_solve: `fixed` must be a 1-D tensor of vertex indices or a boolean mask, "
+            f"got dtype {fixed.dtype} and shape {tuple(fixed.shape)}."
+        )
+    fixed = fixed.reshape(-1).to(torch.int64)
+    bad = (fixed < 0) | (fixed >= n)
+    if bool(bad.any()):
+        i = int(torch.nonzero(bad)[0, 0])
+        raise ValueError(
+            f"dirichlet_solve: fixed[{i}] = {int(fixed[i])} is not a row of the {n} x {n} matrix."
+        )
+    is_fixed = torch.zeros(n, dtype=torch.bool, device=device)
+    is_fixed[fixed] = True
+    if int(is_fixed.sum()) != fixed.numel():
+        raise ValueError("dirichlet_solve: `fixed` lists a vertex more than once.")
+    return fixed, is_fixed
 
 
 class _Eigenvalues(torch.autograd.Function):
     """Eigenvalues ``mu`` of ``L phi = mu M phi`` with the first-order perturbation gradient."""
 
     @staticmethod
-    def forward(ctx, l_values, m_values, evals, evecs, patterns):
+    def forward(ctx, l_values, m_values, evals, evecs, held_l, held_m):
         ctx.save_for_backward(evals, evecs)
-        ctx.patterns = patterns  # ((crow, col, shape) of L, of M), outside autograd's view
+        ctx.operators = (held_l.A, held_m.A)
         return evals.clone()
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, g):
+        if torch.is_grad_enabled():
+            raise RuntimeError(
+                "torch_polylap.eigs: second derivatives of eigenvalues (create_graph=True through "
+                "eigs) need eigenvector derivatives, which are not implemented. Take the gradient "
+                "of the eigenvalues without create_graph, or detach them in the second-order term."
+            )
         evals, evecs = ctx.saved_tensors
         grads = []
-        for (crow, col, shape), weights, needed in (
-            (ctx.patterns[0], g, ctx.needs_input_grad[0]),
-            (ctx.patterns[1], -g * evals, ctx.needs_input_grad[1]),
+        for A, weights, needed in (
+            (ctx.operators[0], g, ctx.needs_input_grad[0]),
+            (ctx.operators[1], -g * evals, ctx.needs_input_grad[1]),
         ):
-            if not needed:
-                grads.append(None)
-                continue
-            pattern = csr_tensor(crow, col, evals.new_zeros(col.numel()), shape)
             # sum_i w_i phi_i phi_i^T, sampled on the pattern: O(nnz * k)
-            grads.append(
-                torch.sparse.sampled_addmm(pattern, evecs * weights, evecs.t(), beta=0.0).values()
-            )
-        return grads[0], grads[1], None, None, None
+            grads.append(sampled_gradient(A, evecs * weights, evecs) if needed else None)
+        return grads[0], grads[1], None, None, None, None
 
 
 class _EigenvectorsWithoutGradient(torch.autograd.Function):
@@ -457,9 +514,18 @@ def eigs(
     Raises:
         ValueError: ``k`` out of range, or no convergence after the retries.
     """
+    L, M = as_operator(L), as_operator(M)
     n = L.shape[0]
+    if isinstance(k, bool) or not isinstance(k, int | np.integer):
+        raise TypeError(f"eigs: k must be an integer, got {k!r} ({type(k).__name__}).")
+    k = int(k)
     if not 1 <= k < n:
         raise ValueError(f"eigs: k must satisfy 1 <= k < n = {n}, got {k}.")
+    if L.shape != (n, n) or M.shape != (n, n):
+        raise ValueError(
+            f"eigs: L and M must be square and of one size, got {tuple(L.shape)} and "
+            f"{tuple(M.shape)}."
+        )
     if tol < 0:
         raise ValueError(f"eigs: tol must be >= 0, got {tol}.")
     Ls = to_scipy(L).astype(np.float64)
@@ -483,12 +549,10 @@ def eigs(
     evecs = evecs / np.sqrt(np.einsum("ik,ik->k", evecs, Ms @ evecs))
     signs = np.sign(evecs[np.abs(evecs).argmax(0), np.arange(k)])
     evecs = evecs * np.where(signs == 0, 1.0, signs)
-    l_crow, l_col, l_values = csr_parts(L)
-    m_crow, m_col, m_values = csr_parts(M)
+    l_values, m_values = sparse_values(L), sparse_values(M)
     evals_t = torch.from_numpy(evals).to(l_values)
     evecs_t = torch.from_numpy(evecs).to(l_values)
-    patterns = ((l_crow, l_col, tuple(L.shape)), (m_crow, m_col, tuple(M.shape)))
-    mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, patterns)
+    mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
     if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
         evecs_t = _EigenvectorsWithoutGradient.apply(l_values, m_values, evecs_t)
     return mu, evecs_t

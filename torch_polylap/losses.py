@@ -9,7 +9,7 @@ pair, computes one value per mesh and reduces over the batch:
 
 Per-vertex quantities are averaged within a mesh (weight ``1 / V_i``), per-edge ones over the
 mesh's interior edges, energies are summed within a mesh.  All operators are assembled once on
-the packed batch (block diagonal) and multiplied with :func:`torch_polylap.spmm`, so gradients
+the packed batch (block diagonal) and multiplied as ``L @ X`` (a sparse operator), so gradients
 cost O(nnz).  Each function has a thin ``nn.Module`` wrapper holding its options.
 """
 
@@ -23,7 +23,6 @@ from torch import nn
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
 from .faces import FacesLike
 from .operators import Lam, face_planarity_energy, strong_laplacian, vector_area
-from .sparse import sparse_values, spmm
 
 __all__ = [
     "laplacian_smoothing",
@@ -130,8 +129,7 @@ def laplacian_smoothing(
     elif method in ("polygon", "cot"):
         with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen_weights):
             L, _ = m.laplacian(lam)
-        diag = sparse_values(L)[m.laplacian_diagonal_index()]
-        per_vertex = _vertex_norm(spmm(L, X)) * _safe_inverse(diag)
+        per_vertex = _vertex_norm(L @ X) * _safe_inverse(L.diagonal())
     else:
         raise ValueError(f"method must be 'uniform' or 'polygon' ('cot'), got {method!r}.")
     per_mesh = per_mesh_mean(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
@@ -183,7 +181,7 @@ def dirichlet_energy(
     f = _packed_signal(m, signal, "signal")
     L, _ = m.laplacian(lam)
     f = f.to(L.dtype)
-    per_vertex = 0.5 * (f * spmm(L, f)).sum(1)
+    per_vertex = 0.5 * (f * (L @ f)).sum(1)
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
 
@@ -207,8 +205,8 @@ def bending_energy(
     m = _as_meshes(meshes)
     f = m.verts_packed() if u is None else _packed_signal(m, u, "u")
     L, M0 = m.laplacian(lam)
-    Lu = spmm(L, f.to(L.dtype))
-    per_vertex = 0.5 * (Lu * Lu).sum(1) * _safe_inverse(sparse_values(M0))
+    Lu = L @ f.to(L.dtype)
+    per_vertex = 0.5 * (Lu * Lu).sum(1) * _safe_inverse(M0.diagonal())
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
 

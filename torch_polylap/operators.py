@@ -29,7 +29,7 @@ from .geometry import (
     quad_entries,
     stabilizer_factors,
 )
-from .sparse import coo_tensor, csr_tensor, mark_symmetric, sparse_values, spmm
+from .sparse import SparseOperator, diag, operator_from_parts
 from .topology import DegreeGroup, Topology, build_topology, get_topology, half_edge_vertices
 
 __all__ = [
@@ -191,30 +191,17 @@ def _assemble(
     return values, masses
 
 
-def _csr(topo: Topology, values: torch.Tensor, layout: torch.layout) -> torch.Tensor:
+def _check_layout(layout: torch.layout) -> None:
+    if layout not in (torch.sparse_csr, torch.sparse_coo):
+        raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
+
+
+def _operator(topo: Topology, values: torch.Tensor, layout: torch.layout) -> SparseOperator:
+    """The symmetric ``V x V`` operator with ``values`` on the topology's cached pattern."""
+    _check_layout(layout)
     _, crow, col = topo.on(values.device)
     n = topo.num_verts
-    if layout == torch.sparse_csr:
-        A = csr_tensor(crow, col, values, (n, n))
-    elif layout == torch.sparse_coo:
-        row = topo.row.to(values.device)
-        A = coo_tensor(torch.stack((row, col)), values, (n, n))
-    else:
-        raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
-    return mark_symmetric(A)
-
-
-def _diag_matrix(d: torch.Tensor, layout: torch.layout) -> torch.Tensor:
-    n = d.numel()
-    ar = torch.arange(n, device=d.device)
-    if layout == torch.sparse_csr:
-        crow = torch.arange(n + 1, device=d.device)
-        A = csr_tensor(crow, ar, d, (n, n))
-    elif layout == torch.sparse_coo:
-        A = coo_tensor(torch.stack((ar, ar)), d, (n, n))
-    else:
-        raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
-    return mark_symmetric(A)
+    return operator_from_parts(crow, col, values, (n, n), symmetric=True, layout=layout)
 
 
 def laplacian(
@@ -237,24 +224,29 @@ def laplacian(
             ``U = lambda Id``);
             a float or a 0-dim tensor (which may require grad). Default 1 (the paper finds
             ``1 <= lambda <= 3`` comparable). Triangles do not depend on it (Theorem 2).
-        layout: ``torch.sparse_csr`` (default; fastest products) or ``torch.sparse_coo``
-            (coalesced).
+        layout: the layout the operators report, ``torch.sparse_csr`` (default) or
+            ``torch.sparse_coo``; either way they store CSR indices and offer ``crow_indices()``,
+            ``col_indices()`` and the COO ``indices()``.
         validate: check for non-finite coordinates and zero-area faces (one device sync). With
             ``False`` a zero-area face gives huge but finite entries instead of an error.
 
     Returns:
-        ``L``: ``(V, V)`` sparse, symmetric positive semi-definite, rows sum to zero, kernel the
-        constants on each connected component. ``M0``: ``(V, V)`` sparse diagonal.
-        Multiply them with :func:`torch_polylap.spmm` (O(nnz) backward).
+        ``L``: ``(V, V)`` :class:`~torch_polylap.sparse.SparseOperator`, symmetric positive
+        semi-definite, rows sum to zero, kernel the constants on each connected component.
+        ``M0``: ``(V, V)`` diagonal :class:`~torch_polylap.sparse.SparseOperator`.  Both are torch
+        tensors whose algebra keeps O(nnz) gradients: ``L @ X``, ``M0 + t * L``, ``L.T``,
+        ``M0.diagonal()``, the value array ``tp.sparse.sparse_values(L)`` (see
+        :mod:`torch_polylap.sparse`).
 
     Raises:
         ValueError: bad connectivity (see :func:`~torch_polylap.topology.build_topology`),
             non-finite coordinates or zero-area faces, naming the vertex or face.
     """
     _check_verts(verts)
+    _check_layout(layout)
     topo = get_topology(faces, verts.shape[0])
     values, masses = _assemble(verts, topo, lam, True, True, validate)
-    return _csr(topo, values, layout), _diag_matrix(masses, layout)
+    return _operator(topo, values, layout), diag(masses, layout=layout)
 
 
 def mass(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
@@ -288,7 +280,7 @@ def planarity_laplacian(
     _check_verts(verts)
     topo = get_topology(faces, verts.shape[0])
     values, _ = _assemble(verts, topo, lam, False, False, validate)
-    return _csr(topo, values, layout)
+    return _operator(topo, values, layout)
 
 
 def _face_loop(verts: torch.Tensor, faces: MeshFaces):
@@ -433,7 +425,7 @@ def coboundary(
     sign = torch.where(this_v < next_v, 1.0, -1.0).to(dtype)
     vals = torch.stack((-sign, sign), 1)  # -1 at the tail, +1 at the head, sorted by column
     crow = torch.arange(0, 2 * n + 1, 2)
-    return csr_tensor(
+    return operator_from_parts(
         crow.to(device),
         cols.reshape(-1).to(device),
         vals.reshape(-1).to(device),
@@ -462,7 +454,7 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
         )
         parts.append((grp, geo + lam * proj))
     if topo is None:
-        return csr_tensor(
+        return operator_from_parts(
             torch.zeros(1, dtype=torch.int64),
             torch.zeros(0, dtype=torch.int64),
             verts.new_zeros(0),
@@ -488,7 +480,7 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
             .reshape(-1)
         )
         values = values.index_put((slots.reshape(-1),), blocks.reshape(-1))
-    return csr_tensor(crow, col, values, (n, n))
+    return operator_from_parts(crow, col, values, (n, n), symmetric=True)
 
 
 def strong_laplacian(L: torch.Tensor, M0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -496,8 +488,8 @@ def strong_laplacian(L: torch.Tensor, M0: torch.Tensor, u: torch.Tensor) -> torc
 
     Rows of isolated vertices (zero mass) are set to zero rather than divided by zero.
     """
-    m = sparse_values(M0)
-    Lu = spmm(L, u)
+    m = M0.diagonal()
+    Lu = L @ u
     inv = torch.where(m > 0, 1.0 / torch.where(m > 0, m, torch.ones_like(m)), torch.zeros_like(m))
     return Lu * (inv if u.dim() == 1 else inv[:, None])
 

@@ -28,7 +28,6 @@ import torch
 from .io.common import atomic_write
 from .linalg import eigs, solve
 from .operators import MeshFaces, get_topology, laplacian
-from .sparse import csr_parts, csr_tensor, spmm
 
 __all__ = [
     "heat_kernel_signature",
@@ -95,7 +94,7 @@ def spectral_heat_diffusion(
     """
     vec = u0.dim() == 1
     U = u0[:, None] if vec else u0
-    coeffs = evecs.t() @ spmm(M0, U)  # (k, C)
+    coeffs = evecs.t() @ (M0 @ U)  # (k, C)
     t = torch.as_tensor(times, dtype=U.dtype, device=U.device)
     decay = torch.exp(-evals[:, None] * (t[None, :] if t.dim() else t))
     out = evecs @ (decay * coeffs)
@@ -108,19 +107,9 @@ def implicit_heat_diffusion(
     """One implicit Euler step of the heat equation: ``(M0 + t L) u = M0 u0``.
 
     Differentiable in ``L``'s and ``M0``'s values, ``u0`` and ``time`` (one time for all
-    channels; call once per time for several). ``M0 + t L`` is formed on ``L``'s pattern, so
-    ``L`` must store its diagonal (as :func:`torch_polylap.laplacian`'s does) and ``M0`` be
-    diagonal.
+    channels; call once per time for several), at O(nnz) memory.
     """
-    crow, col, l_values = csr_parts(L)
-    m = csr_parts(M0)[2]
-    n = L.shape[0]
-    row = torch.repeat_interleave(torch.arange(n, device=crow.device), crow.diff())
-    on_diag = row == col
-    diag_mass = torch.zeros_like(l_values).masked_scatter(on_diag, m)
-    A = csr_tensor(crow, col, diag_mass + time * l_values, (n, n))
-    A._polylap_symmetric = True
-    return solve(A, spmm(M0, u0))
+    return solve(M0 + time * L, M0 @ u0)
 
 
 def _mesh_key(verts: torch.Tensor, faces: MeshFaces, k: int, lam: float) -> str:

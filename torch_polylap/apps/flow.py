@@ -19,7 +19,7 @@ import torch
 from ..geometry import corner_terms, gather_corners
 from ..linalg import solve
 from ..operators import MeshFaces, face_areas, get_topology, laplacian
-from ..sparse import csr_parts, csr_tensor, mark_symmetric, spmm
+from ..sparse import eliminate
 from ..topology import Topology
 
 __all__ = ["mean_curvature_flow", "enclosed_volume", "schwarz_lantern"]
@@ -137,7 +137,7 @@ def _fixed_mask(fixed: torch.Tensor | None, num_verts: int, device: torch.device
 
 
 class _StepSystem:
-    """``M0 + dt L`` on ``L``'s pattern, with the rows and columns of fixed vertices eliminated.
+    """``M0 + dt L`` with the rows and columns of fixed vertices eliminated.
 
     A fixed vertex keeps its position: its row and column keep only the diagonal mass ``m_p``
     (with right-hand side ``m_p x_p``; the mass rather than 1 keeps the scale uniform), and the
@@ -147,29 +147,18 @@ class _StepSystem:
     """
 
     def __init__(self, L: torch.Tensor, M0: torch.Tensor, dt: float, fixed: torch.Tensor):
-        crow, col, l_values = csr_parts(L)
-        self.mass = csr_parts(M0)[2]
-        n = L.shape[0]
-        row = torch.repeat_interleave(torch.arange(n, device=crow.device), crow.diff())
-        on_diag = row == col
-        diag_mass = torch.zeros_like(l_values).masked_scatter(on_diag, self.mass)
-        values = diag_mass + dt * l_values
+        self.mass = M0.diagonal()
         self.fixed = fixed
         self.any_fixed = bool(fixed.any())
+        self.A = M0 + dt * L
         if self.any_fixed:
-            touches_fixed = fixed[row] | fixed[col]
-            coupling = (~fixed[row]) & fixed[col]
-            self.coupling = csr_tensor(
-                crow, col, torch.where(coupling, values, torch.zeros_like(values)), (n, n)
-            )
-            values = torch.where(touches_fixed, diag_mass, values)
-        self.A = mark_symmetric(csr_tensor(crow, col, values, (n, n)))
+            self.A, self.coupling = eliminate(self.A, fixed, self.mass)
 
     def step(self, X: torch.Tensor) -> torch.Tensor:
         rhs = self.mass[:, None] * X
         if self.any_fixed:
             X_fixed = torch.where(self.fixed[:, None], X, torch.zeros_like(X))
-            rhs = torch.where(self.fixed[:, None], rhs, rhs - spmm(self.coupling, X_fixed))
+            rhs = torch.where(self.fixed[:, None], rhs, rhs - self.coupling @ X_fixed)
         return solve(self.A, rhs)
 
 

@@ -27,7 +27,7 @@ import torch
 
 from ..linalg import solve
 from ..operators import MeshFaces, get_topology, laplacian, mass
-from ..sparse import csr_parts, csr_tensor, mark_symmetric
+from ..sparse import eliminate
 
 __all__ = ["plate_bending", "navier_deflection", "plate_error"]
 
@@ -87,13 +87,10 @@ def plate_bending(
             "`boundary` with the vertex indices to hold."
         )
     L, M0 = laplacian(verts, topo, lam)
-    m = csr_parts(M0)[2]
-    crow, col, values = csr_parts(L)
-    row = torch.repeat_interleave(torch.arange(L.shape[0], device=crow.device), crow.diff())
+    m = M0.diagonal()
     # Dirichlet zeros: the support's rows and columns become the identity's; the matrix stays
     # symmetric positive definite and one factorization (cached by solve) serves both solves.
-    reduced = torch.where(support[row] | support[col], (row == col).to(values.dtype), values)
-    A = mark_symmetric(csr_tensor(crow, col, reduced, tuple(L.shape)))
+    A, _ = eliminate(L, support, torch.ones_like(m))
     q = torch.as_tensor(load, dtype=verts.dtype, device=verts.device)
     zero = torch.zeros((), dtype=verts.dtype, device=verts.device)
     moment = solve(A, torch.where(support, zero, m * q))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,7 +14,7 @@ import numpy as np
 import torch
 
 from ..faces import PolygonFaces
-from ..io import read_mesh
+from ..io import SkippedContentWarning, read_mesh
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 DEFAULT_MESH = DATA_DIR / "spot_control_mesh.obj"
@@ -95,9 +96,20 @@ def load_mesh(
 ) -> tuple[torch.Tensor, PolygonFaces, Path, str]:
     """``(verts, faces, path, label)`` of the mesh argument or the command's default mesh."""
     path = Path(args.mesh) if args.mesh else args.default_mesh
-    verts, faces = read_mesh(path, dtype=dtype)
+    verts, faces = read_mesh_quietly(path, not args.mesh, dtype=dtype)
     label = path.name + ("" if args.mesh else " (embedded default mesh)")
     return verts, faces, path, label
+
+
+def read_mesh_quietly(
+    path: Path, embedded: bool, **options: object
+) -> tuple[torch.Tensor, PolygonFaces]:
+    """``read_mesh``; for the package's embedded meshes without the warning about the texture
+    coordinates and materials they carry, which the commands have no use for."""
+    with warnings.catch_warnings():
+        if embedded:
+            warnings.simplefilter("ignore", SkippedContentWarning)
+        return read_mesh(path, **options)  # type: ignore[arg-type]
 
 
 def output_dir(args: argparse.Namespace) -> Path:

@@ -18,9 +18,9 @@ from pathlib import Path
 import torch
 
 from .. import __version__
-from ..io import read_mesh, write_mesh
+from ..io import write_mesh
 from ..operators import get_topology
-from .common import DATA_DIR, DEFAULT_OUTPUT, Result, output_dir, table
+from .common import DATA_DIR, DEFAULT_OUTPUT, Result, output_dir, read_mesh_quietly, table
 
 PLATE_MESH = DATA_DIR / "grid_voronoi_1.obj"
 
@@ -103,7 +103,7 @@ def plate(out: Path, with_plot: bool) -> Result:
     Navier's solution (AW11 sec. 5.4, Fig. 6-7), for three values of lambda."""
     from ..apps.plate import navier_deflection, plate_bending, plate_error
 
-    verts, faces = read_mesh(PLATE_MESH)
+    verts, faces = read_mesh_quietly(PLATE_MESH, True)
     # the polyLaplace grid covers [-1/2, 1/2]^2; Navier's solution is for [0, 1]^2
     verts = verts + torch.tensor([0.5, 0.5, 0.0], dtype=verts.dtype)
     topo = get_topology(faces, verts.shape[0])

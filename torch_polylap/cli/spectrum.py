@@ -10,7 +10,7 @@ import torch
 
 from ..linalg import eigs
 from ..operators import laplacian
-from ..sparse import spmm, to_scipy
+from ..sparse import to_scipy
 from .common import (
     add_mesh_argument,
     add_output_arguments,
@@ -61,10 +61,10 @@ def run(args: argparse.Namespace) -> int:
     t_eigs = time.perf_counter() - start
 
     # checks a reader can trust: residual of each pair and M0-orthonormality
-    residual = spmm(L, evecs) - spmm(M0, evecs) * evals
+    residual = L @ evecs - (M0 @ evecs) * evals
     scale = float(to_scipy(L).diagonal().max())
     rel_residual = float(residual.abs().max()) / scale
-    gram = evecs.T @ spmm(M0, evecs)
+    gram = evecs.T @ (M0 @ evecs)
     ortho = float((gram - torch.eye(args.k, dtype=gram.dtype)).abs().max())
 
     print_table(

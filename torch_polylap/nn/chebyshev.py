@@ -11,8 +11,8 @@ The operator is the Alexa-Wardetzky Laplacian (AW11 eq. 3, 9) normalized by the 
 unlike a few power iterations, which approach it from below; pass ``lambda_max`` from
 :func:`torch_polylap.eigs` for a tight one).  A filter of ``K`` terms computes
 ``y = sum_{k<K} T_k(S_hat) x W_k`` with the recursion ``T_0 x = x``, ``T_1 x = S_hat x``,
-``T_k x = 2 S_hat T_{k-1} x - T_{k-2} x``: ``K - 1`` sparse products through
-:func:`torch_polylap.spmm` (O(nnz) backward, gradients to ``L``'s and ``M0``'s values).
+``T_k x = 2 S_hat T_{k-1} x - T_{k-2} x``: ``K - 1`` sparse products ``S_hat @ x`` (O(nnz)
+backward, gradients to ``L``'s and ``M0``'s values).
 
 torch.compile: Dynamo does not trace frames that take sparse CSR tensors; a compiled
 ``ChebyshevFilter`` runs eagerly (correct results, no graph: checked with
@@ -26,7 +26,7 @@ import math
 import torch
 from torch import nn
 
-from ..sparse import csr_parts, csr_tensor, mark_symmetric, spmm
+from ..sparse import as_operator, identity, mark_symmetric
 from .spectrum import diagonal
 
 __all__ = ["chebyshev_operator", "chebyshev_filter", "ChebyshevFilter"]
@@ -44,7 +44,7 @@ def chebyshev_operator(
     """``S_hat = 2 S / lambda_max - I`` on ``L``'s sparsity pattern (see the module docstring).
 
     Args:
-        L: ``(V, V)`` sparse Laplacian storing its diagonal (block-diagonal for a batch).
+        L: ``(V, V)`` sparse Laplacian (block-diagonal for a batch).
         M0: ``(V, V)`` sparse diagonal mass matrix, or its ``(V,)`` diagonal.
         normalization: ``"sym"`` or ``"rw"``.
         vert_to_mesh: ``(V,)`` mesh index of each vertex of a packed batch; each mesh gets its
@@ -53,38 +53,31 @@ def chebyshev_operator(
         lambda_max: upper bound(s) on the spectrum, a scalar or ``(B,)``; default Gershgorin.
 
     Returns:
-        ``(V, V)`` sparse CSR, differentiable in ``L``'s and ``M0``'s values.
+        ``(V, V)`` sparse operator, differentiable in ``L``'s and ``M0``'s values.
     """
     if normalization not in ("sym", "rw"):
         raise ValueError(f"normalization must be 'sym' or 'rw', got {normalization!r}.")
-    crow, col, values = csr_parts(L)
-    m = diagonal(M0).to(values.dtype)
+    L = as_operator(L)
+    m = diagonal(M0).to(L.dtype)
     n = L.shape[0]
-    row = torch.repeat_interleave(torch.arange(n, device=crow.device), crow.diff())
-    on_diag = row == col
-    if int(on_diag.sum()) != n:
-        raise ValueError(
-            "chebyshev_operator: L must store every diagonal entry (torch_polylap.laplacian's "
-            "L does); add explicit zeros on the diagonal of a custom L."
-        )
     if normalization == "sym":
         r = torch.rsqrt(m)
-        s_values = values * r[row] * r[col]
+        S = L * r[:, None] * r[None, :]
     else:
-        s_values = values / m[row]
+        S = L / m[:, None]
     if vert_to_mesh is None:
-        vert_to_mesh = torch.zeros(n, dtype=torch.int64, device=crow.device)
+        vert_to_mesh = torch.zeros(n, dtype=torch.int64, device=L.device)
         num_meshes = 1
     elif num_meshes is None:
         num_meshes = int(vert_to_mesh.max()) + 1
     if lambda_max is None:
-        row_sums = s_values.new_zeros(n).index_add(0, row, s_values.abs())
-        lambda_max = s_values.new_zeros(num_meshes).scatter_reduce(
-            0, vert_to_mesh, row_sums, "amax", include_self=False
+        lambda_max = m.new_zeros(num_meshes).scatter_reduce(
+            0, vert_to_mesh, S.abs().sum(1), "amax", include_self=False
         )
-    lam = torch.as_tensor(lambda_max, dtype=values.dtype, device=values.device)
-    lam_row = lam.expand(num_meshes)[vert_to_mesh][row]
-    S_hat = csr_tensor(crow, col, 2.0 * s_values / lam_row - on_diag.to(values.dtype), (n, n))
+    lam = torch.as_tensor(lambda_max, dtype=L.dtype, device=L.device)
+    lam_v = lam.expand(num_meshes)[vert_to_mesh]
+    S_hat = S * (2.0 / lam_v)[:, None] - identity(n, dtype=L.dtype, device=L.device)
+    # the per-vertex factors are constant on each mesh's block: D^-1/2 L D^-1/2 stays symmetric
     return mark_symmetric(S_hat) if normalization == "sym" else S_hat
 
 
@@ -103,9 +96,9 @@ def chebyshev_filter(x: torch.Tensor, S_hat: torch.Tensor, weight: torch.Tensor)
     out = x @ weight[0]
     for k in range(1, K):
         if k == 1:
-            t_cur = spmm(S_hat, x)
+            t_cur = S_hat @ x
         else:
-            t_prev, t_cur = t_cur, 2.0 * spmm(S_hat, t_cur) - t_prev
+            t_prev, t_cur = t_cur, 2.0 * (S_hat @ t_cur) - t_prev
         out = out + t_cur @ weight[k]
     return out
 

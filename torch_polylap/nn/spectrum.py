@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..sparse import csr_parts
+from ..sparse import as_operator, block_diag, is_operator
 
 if TYPE_CHECKING:
     from ..batch import PolygonMeshes
@@ -34,44 +34,27 @@ def diagonal(M0: torch.Tensor) -> torch.Tensor:
     A ``(V,)`` dense tensor is returned unchanged, so callers may pass masses directly.
 
     Raises:
-        ValueError: ``M0`` is sparse but not diagonal with one stored entry per row.
+        ValueError: ``M0`` is sparse but not diagonal.
     """
-    if M0.layout == torch.strided:
+    if M0.layout == torch.strided and not is_operator(M0):
         if M0.dim() != 1:
             raise ValueError(
                 f"expected masses of shape (V,) or a sparse M0, got {tuple(M0.shape)}."
             )
         return M0
-    crow, col, values = csr_parts(M0)
-    n = M0.shape[0]
-    if values.numel() != n or not torch.equal(col, torch.arange(n, device=col.device)):
+    M0 = as_operator(M0)
+    d = M0.diagonal()
+    if M0._nnz() != d.numel() or M0.shape[0] != M0.shape[1]:
         raise ValueError(
-            "M0 must be diagonal with its diagonal stored (as torch_polylap.laplacian returns "
-            "it); pass the (V,) masses instead."
+            "M0 must be a diagonal matrix (as torch_polylap.laplacian returns it); pass the (V,) "
+            "masses instead."
         )
-    return values
+    return d
 
 
 def block_diagonal(mats: Sequence[torch.Tensor]) -> torch.Tensor:
-    """The block-diagonal CSR matrix of square sparse ``mats`` (values stay differentiable).
-
-    Concatenates the CSR arrays with row/column offsets: O(total nnz), no densification.
-    """
-    from ..sparse import csr_tensor, mark_symmetric
-
-    crows, cols, vals = [], [], []
-    row_off = nnz_off = 0
-    for A in mats:
-        crow, col, values = csr_parts(A)
-        crows.append(crow[(1 if crows else 0) :] + nnz_off)
-        cols.append(col + row_off)
-        vals.append(values)
-        row_off += A.shape[0]
-        nnz_off += values.numel()
-    B = csr_tensor(torch.cat(crows), torch.cat(cols), torch.cat(vals), (row_off, row_off))
-    if all(getattr(A, "_polylap_symmetric", False) for A in mats):
-        mark_symmetric(B)
-    return B
+    """The block-diagonal operator of square sparse ``mats`` (values stay differentiable)."""
+    return block_diag(mats)
 
 
 def per_mesh_weighted_mean(

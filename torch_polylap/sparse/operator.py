@@ -1,0 +1,664 @@
+"""``SparseOperator``: a sparse matrix as a torch tensor, O(nnz) gradients under torch algebra.
+
+``L`` and ``M0`` are returned as :class:`SparseOperator`: a :class:`torch.Tensor` subclass that
+holds a :class:`~torch_polylap.sparse.pattern.SparsityPattern` and a differentiable value array.
+What a user writes with it in plain torch -- ``L @ X``, ``torch.mm``, ``torch.sparse.mm``,
+``M0 + t * L``, ``L - s * M0``, ``-L``, ``L / 2``, ``L.T``, ``L.to(torch.float32)`` -- is routed by
+``__torch_function__`` to the products of :mod:`torch_polylap.sparse.autograd` or to arithmetic on
+the value array, so gradients reach the vertices (and a learnable ``lam``) at O(nnz) memory.
+An operation that has no O(nnz) gradient raises :class:`UnsupportedOperation` naming it and the
+alternative,
+instead of silently building a dense ``V x V`` matrix.
+
+Why a wrapper subclass and not a torch sparse tensor: torch's sparse tensors cannot be subclassed
+(``as_subclass`` fails on CSR and COO), their autograd materializes dense gradients, and any torch
+op on them drops whatever link a library keeps to the differentiable values.  The wrapper reports
+the sparse layout it models (``torch.sparse_csr`` by default) while its storage is the pattern and
+value array; nothing reaches torch's dispatcher with it.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from .autograd import csr_product
+from .pattern import SparsityPattern
+
+__all__ = ["SparseOperator", "UnsupportedOperation", "is_operator"]
+
+_LAYOUTS = (torch.sparse_csr, torch.sparse_coo)
+
+
+class UnsupportedOperation(RuntimeError):
+    """A torch operation that a :class:`SparseOperator` cannot do with O(nnz) gradients.
+
+    A ``RuntimeError`` (as torch's own operator errors are) rather than a ``TypeError``: torch
+    turns a ``TypeError`` raised inside ``A + B`` or ``A @ B`` into Python's generic
+    "unsupported operand type(s)" message, which would hide what to do instead.
+    """
+
+
+class SparseOperator(torch.Tensor):
+    """An ``(n, m)`` sparse matrix: a :class:`SparsityPattern` and a differentiable value array.
+
+    Construct with :func:`torch_polylap.sparse.operator_from_parts` or get one from
+    :func:`torch_polylap.laplacian`.  Attributes (read-only): ``pattern``, ``symmetric``
+    (``A = A^T`` is known, so products' backward reuse ``A``).
+
+    Supported torch operations (all keep O(nnz) gradients):
+
+    - products with dense tensors: ``A @ X``, ``X @ A``, ``torch.mm``, ``torch.matmul``,
+      ``torch.sparse.mm``, ``torch.mv``, ``torch.addmm``; ``X`` of shape ``(m,)``, ``(m, c)`` or
+      ``(..., m, c)``;
+    - linear combinations: ``A + B``, ``A - B`` (any two patterns of one shape), ``-A``,
+      ``s * A``, ``A * s``, ``A / s`` with a number or 0-dim tensor ``s`` (which may require
+      grad), and row or column scaling ``A * w[:, None]``, ``A * w[None, :]``, ``A / w[:, None]``;
+    - ``A.t()``, ``A.T``, ``A.mT``, ``A.transpose(0, 1)``;
+    - ``A.to(dtype / device)``, ``.double()``, ``.float()``, ``.cpu()``, ``.cuda()``,
+      ``.detach()``, ``.clone()``, ``.to_sparse_csr()``, ``.to_sparse_coo()``, ``.coalesce()``;
+    - ``A.values()`` (differentiable), ``A.crow_indices()``, ``A.col_indices()``,
+      ``A.indices()``, ``A._nnz()``, ``A.diagonal()`` (differentiable), ``A.sum(dim)``,
+      ``A.to_dense()`` (differentiable; ``n x m`` memory by request).
+
+    Everything else raises :class:`UnsupportedOperation`, which says what to use instead.
+    """
+
+    pattern: SparsityPattern
+    symmetric: bool
+    _vals: torch.Tensor
+    _reported_layout: torch.layout
+    _solver_cache: dict[str, Any]
+
+    @staticmethod
+    def __new__(
+        cls,
+        pattern: SparsityPattern,
+        values: torch.Tensor,
+        *,
+        symmetric: bool = False,
+        layout: torch.layout = torch.sparse_csr,
+    ) -> SparseOperator:
+        if values.dim() != 1 or values.numel() != pattern.nnz:
+            raise ValueError(
+                f"a sparse operator needs one value per stored entry: the pattern has "
+                f"{pattern.nnz}, the values have shape {tuple(values.shape)}."
+            )
+        if values.device != pattern.device:
+            pattern = pattern.to(values.device)
+        if layout not in _LAYOUTS:
+            raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
+        A = torch.Tensor._make_wrapper_subclass(
+            cls, pattern.shape, dtype=values.dtype, device=values.device, requires_grad=False
+        )
+        A.pattern = pattern
+        A._vals = values
+        A.symmetric = bool(symmetric and pattern.shape[0] == pattern.shape[1])
+        A._reported_layout = layout
+        A._solver_cache = {}
+        return A
+
+    def with_values(
+        self, values: torch.Tensor, symmetric: bool | None = None, *, share_cache: bool = False
+    ) -> SparseOperator:
+        """The operator on the same pattern with other values (same layout).
+
+        ``share_cache``: share the solver cache (factorizations) with this operator, for values
+        that are this operator's values (a detached view, or a solve's saved input in its
+        backward).  Entries are checked against the values' storage and version counter, which
+        a write through ``.data`` does not change: keep it off for values that may be such.
+        """
+        A = SparseOperator(
+            self.pattern,
+            values,
+            symmetric=self.symmetric if symmetric is None else symmetric,
+            layout=self._reported_layout,
+        )
+        if share_cache:
+            A._solver_cache = self._solver_cache
+        return A
+
+    @classmethod
+    def __torch_function__(cls, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        handler = _HANDLERS.get(func)
+        if handler is not None:
+            return handler(*args, **kwargs)
+        if func in _PASSTHROUGH:
+            with torch._C.DisableTorchFunctionSubclass():
+                return func(*args, **kwargs)
+        raise UnsupportedOperation(_unsupported_message(func))
+
+    @classmethod
+    def __torch_dispatch__(cls, func, types, args=(), kwargs=None):
+        # Only reached by code that bypasses __torch_function__ (e.g. torch internals in C++).
+        raise UnsupportedOperation(_unsupported_message(func))
+
+    def __repr__(self, *, tensor_contents: Any = None) -> str:
+        values = self._vals
+        grad = f", grad_fn=<{type(values.grad_fn).__name__}>" if values.grad_fn is not None else ""
+        if values.grad_fn is None and values.requires_grad:
+            grad = ", requires_grad=True"
+        with torch._C.DisableTorchFunctionSubclass():
+            body = repr(values.detach()).replace("\n", "\n" + " " * 7)
+        return (
+            f"SparseOperator(shape={self.pattern.shape}, nnz={self.pattern.nnz}, "
+            f"dtype={values.dtype}, device={values.device}, symmetric={self.symmetric}, "
+            f"layout={self._reported_layout}{grad},\n       values={body})"
+        )
+
+    def __reduce_ex__(self, protocol):
+        return (
+            _rebuild,
+            (
+                self.pattern.crow,
+                self.pattern.col,
+                self.pattern.shape,
+                self._vals,
+                self.symmetric,
+                str(self._reported_layout),
+            ),
+        )
+
+    def __deepcopy__(self, memo):
+        return self.with_values(self._vals.clone())
+
+
+def _rebuild(crow, col, shape, values, symmetric, layout) -> SparseOperator:
+    layout = torch.sparse_coo if layout == str(torch.sparse_coo) else torch.sparse_csr
+    return SparseOperator(
+        SparsityPattern(crow, col, shape), values, symmetric=symmetric, layout=layout
+    )
+
+
+def is_operator(x: object) -> bool:
+    return isinstance(x, SparseOperator)
+
+
+def _name(func: Callable) -> str:
+    name = getattr(func, "__qualname__", None) or getattr(func, "__name__", None) or repr(func)
+    if name == "__get__":
+        name = repr(func)
+    for internal, public in (("_VariableFunctionsClass.", "torch."), ("TensorBase.", "Tensor.")):
+        name = name.replace(internal, public)
+    return name
+
+
+def _unsupported_message(func: Callable) -> str:
+    return (
+        f"torch_polylap: {_name(func)} is not supported on a SparseOperator (L, M0 and what is "
+        "built from them): it has no O(nnz) gradient here, or would build a dense V x V matrix. "
+        "Supported: products with dense tensors (A @ X, torch.mm, torch.sparse.mm), sums and "
+        "differences of operators, scalar multiples, row/column scaling, transposes, .to(), "
+        "A.values(), A.diagonal(), A.sum(dim). For other uses take A.to_dense() (small meshes), "
+        "torch_polylap.to_scipy(A), or A.detach().to_sparse_csr() and convert it with "
+        "torch_polylap.sparse.to_torch_sparse."
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# products
+# --------------------------------------------------------------------------------------------
+
+
+def _check_dense(A: SparseOperator, X: object, what: str) -> torch.Tensor:
+    if isinstance(X, SparseOperator):
+        raise UnsupportedOperation(
+            f"torch_polylap: {what} of two sparse operators (a sparse-sparse product) is not "
+            "supported: its gradient has no O(nnz) form here. Multiply step by step with a dense "
+            "tensor instead, e.g. L @ (L @ X) for L^2 X."
+        )
+    if not isinstance(X, torch.Tensor) or X.layout != torch.strided:
+        raise UnsupportedOperation(
+            f"torch_polylap: {what} needs a dense torch tensor, got {type(X).__name__}"
+            f"{'' if not isinstance(X, torch.Tensor) else ' of layout ' + str(X.layout)}."
+        )
+    if X.dtype != A.dtype:
+        raise UnsupportedOperation(
+            f"torch_polylap: {what} with an operator of dtype {A.dtype} and a tensor of dtype "
+            f"{X.dtype} is not supported; convert one of them (X.to(A.dtype) or A.to(X.dtype))."
+        )
+    if X.device != A.device:
+        raise UnsupportedOperation(
+            f"torch_polylap: {what} with an operator on {A.device} and a tensor on {X.device} is "
+            "not supported; move one of them."
+        )
+    return X
+
+
+def apply(A: SparseOperator, X: torch.Tensor) -> torch.Tensor:
+    """``A @ X`` with ``X`` of shape ``(m,)``, ``(m, c)`` or ``(..., m, c)`` (batched)."""
+    X = _check_dense(A, X, "A @ X")
+    n, m = A.pattern.shape
+    if X.dim() == 0 or X.shape[-2 if X.dim() > 1 else 0] != m:
+        raise ValueError(
+            f"torch_polylap: cannot multiply an operator of shape {(n, m)} with a tensor of shape "
+            f"{tuple(X.shape)}."
+        )
+    if X.dim() == 1:
+        return csr_product(A.pattern, A._vals, X[:, None], A.symmetric)[:, 0]
+    if X.dim() == 2:
+        return csr_product(A.pattern, A._vals, X, A.symmetric)
+    # (..., m, c): one product with the batch folded into the columns
+    batch, c = X.shape[:-2], X.shape[-1]
+    flat = X.movedim(-2, 0).reshape(m, -1)
+    Y = csr_product(A.pattern, A._vals, flat, A.symmetric)
+    return Y.reshape(n, *batch, c).movedim(0, -2)
+
+
+def _matmul(a: object, b: object, **kwargs: Any) -> torch.Tensor:
+    if kwargs.get("out") is not None:
+        raise UnsupportedOperation("torch_polylap: out= is not supported with a sparse operator.")
+    if isinstance(a, SparseOperator):
+        return apply(a, b)  # type: ignore[arg-type]
+    assert isinstance(b, SparseOperator)
+    return _rmatmul(b, a)
+
+
+def _rmatmul(B: SparseOperator, X: object) -> torch.Tensor:
+    """``X @ B`` = ``(B^T X^T)^T`` for ``X`` of shape ``(n,)`` or ``(..., k, n)``."""
+    X = _check_dense(B, X, "X @ A")
+    if X.dim() == 1:
+        return apply(_transpose(B), X)
+    return apply(_transpose(B), X.transpose(-1, -2)).transpose(-1, -2)
+
+
+def _sparse_mm(a: object, b: object, reduce: str | None = None) -> torch.Tensor:
+    if reduce not in (None, "sum"):
+        raise UnsupportedOperation(
+            f"torch_polylap: torch.sparse.mm with reduce={reduce!r} is not supported."
+        )
+    return _matmul(a, b)
+
+
+def _addmm(
+    input: torch.Tensor, mat1: object, mat2: object, *, beta: float = 1, alpha: float = 1, **kw: Any
+) -> torch.Tensor:
+    if isinstance(input, SparseOperator):
+        raise UnsupportedOperation(_unsupported_message(torch.addmm) + " (a sparse `input`)")
+    return beta * input + alpha * _matmul(mat1, mat2, **kw)
+
+
+# --------------------------------------------------------------------------------------------
+# linear combinations and scaling
+# --------------------------------------------------------------------------------------------
+
+
+def _is_scalar(s: object) -> bool:
+    if isinstance(s, SparseOperator):
+        return False
+    if isinstance(s, torch.Tensor):
+        return s.dim() == 0 or s.numel() == 1 and s.dim() <= 2 and max(s.shape, default=1) == 1
+    return isinstance(s, numbers.Number) and not isinstance(s, bool | complex)
+
+
+def _scalar_tensor(A: SparseOperator, s: object) -> torch.Tensor | float:
+    if isinstance(s, torch.Tensor):
+        if s.device != A.device and s.device.type != "cpu":
+            raise UnsupportedOperation(
+                f"torch_polylap: scalar on {s.device}, operator on {A.device}."
+            )
+        return s.reshape(()).to(dtype=A.dtype, device=A.device)
+    return float(s)  # type: ignore[arg-type]
+
+
+def _scale(A: SparseOperator, w: object, op: str) -> SparseOperator:
+    """``A * w`` or ``A / w``: a scalar, a row ``(n, 1)`` or a column ``(m,)``/``(1, m)`` vector."""
+    if _is_scalar(w):
+        s = _scalar_tensor(A, w)
+        return A.with_values(A._vals * s if op == "mul" else A._vals / s)
+    if (
+        isinstance(w, torch.Tensor)
+        and w.layout == torch.strided
+        and not isinstance(w, SparseOperator)
+    ):
+        n, m = A.pattern.shape
+        w = _check_dense(A, w, f"A {'*' if op == 'mul' else '/'} w")
+        if w.shape == (n, 1):
+            factor = w[:, 0][A.pattern.row]
+        elif w.shape in ((m,), (1, m)):
+            factor = w.reshape(-1)[A.pattern.col]
+        else:
+            factor = None
+        if factor is not None:
+            values = A._vals * factor if op == "mul" else A._vals / factor
+            return A.with_values(values, symmetric=False)
+    raise UnsupportedOperation(
+        f"torch_polylap: A {'*' if op == 'mul' else '/'} {_describe(w)} is not supported on a "
+        "sparse operator: only a number, a 0-dim tensor, a row vector (n, 1) or a column vector "
+        "(m,) / "
+        "(1, m) keeps the result sparse (an elementwise product of two operators is not supported)."
+    )
+
+
+def _describe(x: object) -> str:
+    if isinstance(x, SparseOperator):
+        return "a sparse operator"
+    if isinstance(x, torch.Tensor):
+        return f"a tensor of shape {tuple(x.shape)}"
+    return type(x).__name__
+
+
+def _mul(a: object, b: object, **kwargs: Any) -> SparseOperator:
+    if kwargs.get("out") is not None:
+        raise UnsupportedOperation("torch_polylap: out= is not supported with a sparse operator.")
+    if isinstance(a, SparseOperator) and isinstance(b, SparseOperator):
+        raise UnsupportedOperation(
+            "torch_polylap: the elementwise product of two sparse operators is not supported; "
+            "for the matrix product multiply with a dense tensor step by step (L @ (M @ X))."
+        )
+    if isinstance(a, SparseOperator):
+        return _scale(a, b, "mul")
+    assert isinstance(b, SparseOperator)
+    return _scale(b, a, "mul")
+
+
+def _div(
+    a: object, b: object, *, rounding_mode: str | None = None, **kwargs: Any
+) -> SparseOperator:
+    if not isinstance(a, SparseOperator) or rounding_mode is not None:
+        raise UnsupportedOperation(
+            f"torch_polylap: {_describe(a)} / {_describe(b)} is not supported (dividing by a "
+            "sparse operator would fill the zeros with infinities); divide the operator by a "
+            "number."
+        )
+    return _scale(a, b, "div")
+
+
+def _combine(A: SparseOperator, B: SparseOperator, alpha: object) -> SparseOperator:
+    """``A + alpha B`` on the union of the two patterns (cached per pattern pair)."""
+    if B.dtype != A.dtype:
+        raise UnsupportedOperation(
+            f"torch_polylap: cannot add operators of dtypes {A.dtype} and {B.dtype}; "
+            "convert one with .to(dtype)."
+        )
+    if B.device != A.device:
+        raise UnsupportedOperation(
+            f"torch_polylap: cannot add operators on {A.device} and {B.device}; "
+            "move one with .to()."
+        )
+    b_vals = B._vals
+    if not (isinstance(alpha, numbers.Number) and alpha == 1):
+        b_vals = b_vals * _scalar_tensor(A, alpha)
+    pattern, at_a, at_b = A.pattern.union(B.pattern)
+    if at_a is None and at_b is None:
+        values = A._vals + b_vals
+    elif at_a is None:
+        values = A._vals.index_add(0, at_b, b_vals)  # type: ignore[arg-type]
+    elif at_b is None:
+        values = b_vals.index_add(0, at_a, A._vals)
+    else:
+        values = A._vals.new_zeros(pattern.nnz).index_add(0, at_a, A._vals)
+        values = values.index_add(0, at_b, b_vals)
+    return SparseOperator(
+        pattern, values, symmetric=A.symmetric and B.symmetric, layout=A._reported_layout
+    )
+
+
+def _is_zero(x: object) -> bool:
+    return isinstance(x, numbers.Number) and not isinstance(x, bool) and x == 0
+
+
+def _add(a: object, b: object, *, alpha: object = 1, **kwargs: Any) -> torch.Tensor:
+    if kwargs.get("out") is not None:
+        raise UnsupportedOperation("torch_polylap: out= is not supported with a sparse operator.")
+    if isinstance(a, SparseOperator) and isinstance(b, SparseOperator):
+        return _combine(a, b, alpha)
+    # 0 + A (Python's sum() starts from 0) leaves A as it is
+    if isinstance(a, SparseOperator) and _is_zero(b):
+        return a
+    if isinstance(b, SparseOperator) and _is_zero(a) and _is_zero_alpha_one(alpha):
+        return b
+    raise UnsupportedOperation(
+        f"torch_polylap: {_describe(a)} + {_describe(b)} is not supported: adding a dense "
+        "tensor or a non-zero number to a sparse operator gives a dense V x V matrix. Add sparse "
+        "operators "
+        "instead, e.g. torch_polylap.sparse.identity(n) or torch_polylap.sparse.diag(d)."
+    )
+
+
+def _is_zero_alpha_one(alpha: object) -> bool:
+    return isinstance(alpha, numbers.Number) and alpha == 1
+
+
+def _sub(a: object, b: object, *, alpha: object = 1, **kwargs: Any) -> torch.Tensor:
+    if isinstance(a, SparseOperator) and isinstance(b, SparseOperator):
+        if not isinstance(alpha, numbers.Number):
+            alpha = -alpha  # type: ignore[operator]
+            return _combine(a, b, alpha)
+        return _combine(a, b, -alpha)
+    if isinstance(a, SparseOperator) and _is_zero(b):
+        return a
+    if isinstance(b, SparseOperator) and _is_zero(a):
+        return _neg(b)
+    raise UnsupportedOperation(
+        f"torch_polylap: {_describe(a)} - {_describe(b)} is not supported: it would give a dense "
+        "V x V matrix. Subtract sparse operators instead (e.g. torch_polylap.sparse.identity(n))."
+    )
+
+
+def _rsub(a: object, b: object, *, alpha: object = 1, **kwargs: Any) -> torch.Tensor:
+    # torch.rsub(a, b) = b - alpha * a
+    if isinstance(a, SparseOperator) and isinstance(b, SparseOperator):
+        return _sub(b, a, alpha=alpha)
+    if isinstance(a, SparseOperator) and _is_zero(b):
+        return _neg(a) if _is_zero_alpha_one(alpha) else _scale(a, -alpha, "mul")  # type: ignore[operator]
+    raise UnsupportedOperation(
+        f"torch_polylap: {_describe(b)} - {_describe(a)} is not supported: it would give a dense "
+        "V x V matrix. Subtract sparse operators instead (e.g. torch_polylap.sparse.identity(n))."
+    )
+
+
+def _neg(A: SparseOperator, **kwargs: Any) -> SparseOperator:
+    return A.with_values(-A._vals)
+
+
+# --------------------------------------------------------------------------------------------
+# structure: transpose, conversions, accessors
+# --------------------------------------------------------------------------------------------
+
+
+def _transpose(A: SparseOperator, *args: Any) -> SparseOperator:
+    if args and sorted(d % 2 for d in args) != [0, 1]:
+        raise UnsupportedOperation(
+            f"torch_polylap: a sparse operator is 2-D; transpose(0, 1) only, got {args}."
+        )
+    if A.symmetric:
+        return A
+    transposed, perm = A.pattern.transpose()
+    return SparseOperator(transposed, A._vals[perm], layout=A._reported_layout)
+
+
+def _to(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
+    dtype, device = A.dtype, A.device
+    for arg in (*args, kwargs.get("dtype"), kwargs.get("device")):
+        if arg is None:
+            continue
+        if isinstance(arg, torch.dtype):
+            dtype = arg
+        elif isinstance(arg, str | torch.device):
+            device = torch.device(arg)
+        elif isinstance(arg, torch.Tensor):
+            dtype, device = arg.dtype, arg.device
+        elif isinstance(arg, bool):
+            continue  # non_blocking / copy
+        else:
+            raise UnsupportedOperation(
+                f"torch_polylap: .to({arg!r}) is not supported on a sparse operator."
+            )
+    if kwargs.get("memory_format") is not None:
+        raise UnsupportedOperation(
+            "torch_polylap: memory_format is not supported on a sparse operator."
+        )
+    if not (dtype.is_floating_point or dtype.is_complex):
+        raise UnsupportedOperation(
+            f"torch_polylap: a sparse operator holds floating values; .to({dtype}) is not "
+            "supported."
+        )
+    values = A._vals.to(device=device, dtype=dtype, copy=bool(kwargs.get("copy", False)))
+    return A if values is A._vals else A.with_values(values)
+
+
+def _cast(dtype: torch.dtype) -> Callable[..., SparseOperator]:
+    def cast(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
+        return _to(A, dtype)
+
+    return cast
+
+
+def _cuda(A: SparseOperator, device: object = None, **kwargs: Any) -> SparseOperator:
+    if isinstance(device, int):
+        device = f"cuda:{device}"
+    return _to(A, torch.device(device or "cuda"))
+
+
+def _layout_as(layout: torch.layout) -> Callable[..., SparseOperator]:
+    def convert(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
+        return SparseOperator(A.pattern, A._vals, symmetric=A.symmetric, layout=layout)
+
+    return convert
+
+
+def _to_dense(A: SparseOperator, *args: Any, **kwargs: Any) -> torch.Tensor:
+    dense = A._vals.new_zeros(A.pattern.shape)
+    return dense.index_put((A.pattern.row, A.pattern.col), A._vals)
+
+
+def _diagonal(A: SparseOperator, offset: int = 0, dim1: int = 0, dim2: int = 1) -> torch.Tensor:
+    if offset != 0 or sorted((dim1 % 2, dim2 % 2)) != [0, 1]:
+        raise UnsupportedOperation(
+            "torch_polylap: only the main diagonal of a sparse operator is supported."
+        )
+    pos = A.pattern.diagonal_positions()
+    stored = pos >= 0
+    gathered = A._vals[pos.clamp_min(0)]
+    return torch.where(stored, gathered, torch.zeros_like(gathered))
+
+
+def _sum(
+    A: SparseOperator, dim: int | None = None, keepdim: bool = False, **kw: Any
+) -> torch.Tensor:
+    if kw.get("dtype") is not None:
+        raise UnsupportedOperation(
+            "torch_polylap: sum(dtype=...) is not supported on a sparse operator."
+        )
+    if dim is None:
+        return A._vals.sum()
+    dim = dim % 2
+    index = A.pattern.row if dim == 1 else A.pattern.col
+    out = A._vals.new_zeros(A.pattern.shape[1 - dim]).index_add(0, index, A._vals)
+    return out.unsqueeze(dim) if keepdim else out
+
+
+def _refuse_grad(A: SparseOperator, requires_grad: bool = True) -> SparseOperator:
+    if requires_grad:
+        raise UnsupportedOperation(
+            "torch_polylap: requires_grad_() is not supported on a sparse operator: its gradient "
+            "lives on its values. Make the vertices "
+            "(or lam) require grad before building it, or build your own operator with "
+            "torch_polylap.sparse.operator_from_parts(crow, col, values, shape) from values that "
+            "require grad."
+        )
+    return A
+
+
+def _metadata(name: str) -> Callable[..., Any]:
+    def get(A: SparseOperator, *args: Any) -> Any:
+        return {
+            "layout": A._reported_layout,
+            "is_sparse": A._reported_layout == torch.sparse_coo,
+            "is_sparse_csr": A._reported_layout == torch.sparse_csr,
+            "requires_grad": A._vals.requires_grad,
+            "grad_fn": A._vals.grad_fn,
+            "is_leaf": A._vals.grad_fn is None,
+        }[name]
+
+    return get
+
+
+def _getter(prop: Any) -> Callable:
+    return prop.__get__
+
+
+def _build_handlers() -> dict[Callable, Callable]:
+    T = torch.Tensor
+    handlers: dict[Callable, Callable] = {}
+
+    def add(funcs: list, handler: Callable) -> None:
+        for f in funcs:
+            if f is not None:
+                handlers[f] = handler
+
+    add([T.matmul, T.__matmul__, torch.matmul, T.mm, torch.mm, T.mv, torch.mv], _matmul)
+    add([T.__rmatmul__], lambda a, b: _matmul(b, a))
+    add([torch.sparse.mm], _sparse_mm)
+    add([torch.addmm, T.addmm, torch.sparse.addmm], _addmm)
+    add([T.mul, T.__mul__, T.__rmul__, torch.mul, T.multiply, torch.multiply], _mul)
+    add([T.div, T.__truediv__, torch.div, T.divide, torch.divide, torch.true_divide], _div)
+    add([T.__rtruediv__, T.__rdiv__], lambda a, b: _div(b, a))
+    add([T.add, T.__add__, T.__radd__, torch.add], _add)
+    add([T.sub, T.__sub__, torch.sub, T.subtract, torch.subtract], _sub)
+    add([T.__rsub__, torch.rsub], _rsub)
+    add([T.neg, T.__neg__, torch.neg, T.negative, torch.negative], _neg)
+    add(
+        [T.abs, T.__abs__, torch.abs, T.absolute, torch.absolute],
+        lambda A: A.with_values(A._vals.abs()),
+    )
+    add([T.__pos__, torch.positive, T.positive], lambda A: A)
+    add([T.t, torch.t, T.transpose, torch.transpose, T.adjoint, torch.adjoint], _transpose)
+    add([_getter(T.T), _getter(T.mT), _getter(T.H), _getter(T.mH)], _transpose)
+    add([T.conj, torch.conj, T.resolve_conj, T.resolve_neg, T.contiguous], lambda A, *a, **k: A)
+    add([T.to], _to)
+    add([T.double], _cast(torch.float64))
+    add([T.float], _cast(torch.float32))
+    add([T.half], _cast(torch.float16))
+    add([T.bfloat16], _cast(torch.bfloat16))
+    add([T.cpu], lambda A, *a, **k: _to(A, torch.device("cpu")))
+    add([T.cuda], _cuda)
+    add([T.detach], lambda A: A.with_values(A._vals.detach(), share_cache=True))
+    add([T.clone], lambda A, **k: A.with_values(A._vals.clone()))
+    add([T.requires_grad_], _refuse_grad)
+    add([T.to_sparse_csr], _layout_as(torch.sparse_csr))
+    add([T.to_sparse_coo, T.to_sparse], _layout_as(torch.sparse_coo))
+    add([T.coalesce], lambda A: A)
+    add([T.is_coalesced], lambda A: True)
+    add([T.to_dense], _to_dense)
+    add([T.values, T._values], lambda A: A._vals)
+    add([T.crow_indices], lambda A: A.pattern.crow)
+    add([T.col_indices], lambda A: A.pattern.col)
+    add([T.indices, T._indices], lambda A: torch.stack((A.pattern.row, A.pattern.col)))
+    add([T._nnz], lambda A: A.pattern.nnz)
+    add([T.diagonal, torch.diagonal], _diagonal)
+    add([T.sum, torch.sum], _sum)
+    for name in ("layout", "is_sparse", "is_sparse_csr", "requires_grad", "grad_fn", "is_leaf"):
+        add([_getter(getattr(T, name))], _metadata(name))
+    return handlers
+
+
+_HANDLERS = _build_handlers()
+
+_PASSTHROUGH = {
+    torch.Tensor.shape.__get__,
+    torch.Tensor.dtype.__get__,
+    torch.Tensor.device.__get__,
+    torch.Tensor.ndim.__get__,
+    torch.Tensor.is_cuda.__get__,
+    torch.Tensor.is_cpu.__get__,
+    torch.Tensor.is_meta.__get__,
+    torch.Tensor.is_quantized.__get__,
+    torch.Tensor.is_nested.__get__,
+    torch.Tensor.size,
+    torch.Tensor.dim,
+    torch.Tensor.ndimension,
+    torch.Tensor.numel,
+    torch.Tensor.__len__,
+    torch.Tensor.is_floating_point,
+    torch.Tensor.is_complex,
+    torch.Tensor.element_size,
+    torch.Tensor.get_device,
+    torch.Tensor.__hash__,
+    torch.Tensor.__format__,
+}
