@@ -4,7 +4,7 @@ Differentiable with respect to vertex positions, on CPU and CUDA, for faces of a
 (non-planar, non-convex, mixed).  See README.md for the conventions.
 """
 
-from . import apps, datasets, fitting, losses, nn
+from . import apps, checks, datasets, fitting, losses, nn, repair, sparse
 from .apps import (
     PlanarizeResult,
     angle_distortion,
@@ -86,6 +86,9 @@ __all__ = [
     "face_normals",
     "face_nonplanarity",
     "face_planarity_energy",
+    "sparse",
+    "checks",
+    "repair",
     "spmm",
     "solve",
     "dirichlet_solve",

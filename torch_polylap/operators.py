@@ -20,14 +20,15 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from .checks import check_lam, check_verts
 from .faces import FacesLike
 from .geometry import (
     corner_terms,
     gather_coordinates,
     gather_corners,
     plane_basis,
+    polygon_entries,
     quad_entries,
-    stabilizer_factors,
 )
 from .sparse import SparseOperator, diag, operator_from_parts
 from .topology import DegreeGroup, Topology, build_topology, get_topology, half_edge_vertices
@@ -55,20 +56,6 @@ Lam = float | torch.Tensor
 MeshFaces = FacesLike | Topology
 
 
-def _check_verts(verts: torch.Tensor) -> None:
-    if not isinstance(verts, torch.Tensor):
-        raise TypeError(
-            f"verts must be a torch.Tensor of shape (V, 3), got {type(verts).__name__}."
-        )
-    if verts.dim() != 2 or verts.shape[1] != 3:
-        raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
-    if not verts.is_floating_point():
-        raise ValueError(
-            f"verts must be floating point (float32 or float64), got {verts.dtype}; "
-            "use verts.double()."
-        )
-
-
 def _block_entries(
     x: torch.Tensor, grp: DegreeGroup, lam: Lam, geometric: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -87,32 +74,7 @@ def _block_entries(
     """
     if grp.k == 4:
         return quad_entries(x.unbind(0), lam, geometric)
-    e, g, a = corner_terms(x)
-    area = torch.sqrt((a * a).sum(0).clamp_min(torch.finfo(x.dtype).tiny))
-    pi, pj = grp.pair_i, grp.pair_j
-    off = None
-    if geometric:
-        # g_i . g_j one coordinate at a time: row gathers of (k, F) blocks and fused
-        # multiply-adds beat a (3, P, F) product reduced over its leading axis.
-        gx, gy, gz = g.unbind(0)
-        off = gx.index_select(0, pi) * gx.index_select(0, pj)
-        off = torch.addcmul(off, gy.index_select(0, pi), gy.index_select(0, pj))
-        off = torch.addcmul(off, gz.index_select(0, pi), gz.index_select(0, pj)) / area
-    if grp.k > 3 and not (isinstance(lam, (int, float)) and lam == 0):
-        alpha, beta = stabilizer_factors(e, a / area)
-        stab = torch.addcmul(
-            alpha.index_select(0, pi) * alpha.index_select(0, pj),
-            beta.index_select(0, pi),
-            beta.index_select(0, pj),
-        )
-        # (d^T d)_ij for i < j: -1 for neighbours on the cycle (including the pair (0, k-1)).
-        dtd = -((pj - pi == 1) | (pj - pi == grp.k - 1)).to(x.dtype)
-        stab = dtd[:, None] - stab
-        off = lam * stab if off is None else off + lam * stab
-    elif off is None:
-        # Triangles: the stabilizer vanishes identically (AW11 Theorem 2).
-        off = x.new_zeros(pi.numel(), x.shape[2])
-    return off, area, (g * g).sum((0, 1))
+    return polygon_entries(x, grp.pair_i, grp.pair_j, lam, geometric)
 
 
 def _row_sums(off: torch.Tensor, grp: DegreeGroup) -> torch.Tensor:
@@ -191,6 +153,11 @@ def _assemble(
     return values, masses
 
 
+def _checked_lam(lam: Lam, validate: bool = True) -> Lam:
+    """``lam`` checked finite and >= 0; a tensor only with ``validate`` (reading it syncs)."""
+    return check_lam(lam) if validate or not isinstance(lam, torch.Tensor) else lam
+
+
 def _check_layout(layout: torch.layout) -> None:
     if layout not in (torch.sparse_csr, torch.sparse_coo):
         raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
@@ -199,9 +166,7 @@ def _check_layout(layout: torch.layout) -> None:
 def _operator(topo: Topology, values: torch.Tensor, layout: torch.layout) -> SparseOperator:
     """The symmetric ``V x V`` operator with ``values`` on the topology's cached pattern."""
     _check_layout(layout)
-    _, crow, col = topo.on(values.device)
-    n = topo.num_verts
-    return operator_from_parts(crow, col, values, (n, n), symmetric=True, layout=layout)
+    return SparseOperator(topo.pattern(values.device), values, symmetric=True, layout=layout)
 
 
 def laplacian(
@@ -242,8 +207,9 @@ def laplacian(
         ValueError: bad connectivity (see :func:`~torch_polylap.topology.build_topology`),
             non-finite coordinates or zero-area faces, naming the vertex or face.
     """
-    _check_verts(verts)
+    check_verts(verts, finite=False)
     _check_layout(layout)
+    lam = _checked_lam(lam, validate)
     topo = get_topology(faces, verts.shape[0])
     values, masses = _assemble(verts, topo, lam, True, True, validate)
     return _operator(topo, values, layout), diag(masses, layout=layout)
@@ -251,7 +217,7 @@ def laplacian(
 
 def mass(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     """``(V,)`` lumped masses ``m_p = sum_{f ni p} |f| / k_f`` (AW11 eq. 10), diagonal of ``M0``."""
-    _check_verts(verts)
+    check_verts(verts, finite=False)
     topo = get_topology(faces, verts.shape[0])
     groups, _, _ = topo.on(verts.device)
     verts_t = verts.t().contiguous()
@@ -277,14 +243,15 @@ def planarity_laplacian(
     :func:`planarity_energy` for that energy without building the matrix. Triangles contribute
     nothing.
     """
-    _check_verts(verts)
+    check_verts(verts, finite=False)
+    lam = _checked_lam(lam, validate)
     topo = get_topology(faces, verts.shape[0])
     values, _ = _assemble(verts, topo, lam, False, False, validate)
     return _operator(topo, values, layout)
 
 
 def _face_loop(verts: torch.Tensor, faces: MeshFaces):
-    _check_verts(verts)
+    check_verts(verts, finite=False)
     topo = get_topology(faces, verts.shape[0])
     groups, _, _ = topo.on(verts.device)
     verts_t = verts.t().contiguous()
@@ -361,12 +328,14 @@ def face_planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0)
     ``E`` is the face's ``k x 3`` edge matrix and ``Pi E`` its part outside the column space of
     the maximal projection's edges, which vanishes exactly for planar faces (and triangles).
     Summed over faces it is ``E_plan = 1/2 sum_c X_c^T Lplan X_c``; evaluated face by face
-    without building ``Lplan``.
+    without building ``Lplan``.  On a mesh of triangles only it is zero, and still connected to
+    ``verts`` (a zero gradient, so a loss built on it can always call ``backward()``).
     """
+    lam = _checked_lam(lam)
     out = verts.new_zeros(0)
     for topo, grp, x in _face_loop(verts, faces):
         if out.numel() == 0:
-            out = verts.new_zeros(topo.num_faces)
+            out = verts.new_zeros(topo.num_faces) + 0.0 * verts.sum()
         if grp.k == 3:
             continue
         e, _, a = corner_terms(x)
@@ -393,6 +362,7 @@ def local_laplacians(
     For inspection and tests; :func:`laplacian` never materializes them.
     ``geometric=False`` gives the planarity blocks ``lambda d^T Pi d``.
     """
+    lam = _checked_lam(lam)
     out = []
     for _, grp, x in _face_loop(verts, faces):
         off, _, _ = _block_entries(x, grp, lam, geometric)
@@ -440,6 +410,7 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
     centroid (the paper's choice for stability; ``M_f`` itself depends on the origin, ``d^T M_f d``
     does not). Positive definite for ``lambda > 0`` (Theorem 1). Rows follow :func:`coboundary`.
     """
+    lam = _checked_lam(lam)
     parts = []
     topo = None
     for topo, grp, x in _face_loop(verts, faces):  # noqa: B007 (topo is used after the loop)
@@ -528,14 +499,12 @@ class PolygonLaplacian(nn.Module):
         validate: bool = True,
     ) -> None:
         super().__init__()
-        if learn_lam:
-            self.lam = nn.Parameter(torch.tensor(float(lam)))
-        else:
-            self.lam = float(lam)
+        _check_layout(layout)
+        value = float(check_lam(lam))
+        self.lam: float | nn.Parameter = nn.Parameter(torch.tensor(value)) if learn_lam else value
         self.layout = layout
         self.validate = validate
         self.topology: Topology | None = None
-        self._faces_key = None
 
     def _topology_for(self, faces: MeshFaces | None, num_verts: int) -> Topology:
         if faces is None:
@@ -550,7 +519,7 @@ class PolygonLaplacian(nn.Module):
     def forward(
         self, verts: torch.Tensor, faces: MeshFaces | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        _check_verts(verts)
+        check_verts(verts, finite=False)
         topo = self._topology_for(faces, verts.shape[0])
         lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam
         return laplacian(verts, topo, lam, layout=self.layout, validate=self.validate)

@@ -41,6 +41,7 @@ import torch
 from scipy.sparse.csgraph import connected_components, depth_first_order
 
 from .faces import FacesLike, PolygonFaces, as_faces
+from .sparse import SparsityPattern
 
 __all__ = [
     "Topology",
@@ -277,6 +278,7 @@ class Topology:
         self.half_edge_edge = torch.from_numpy(he_edge)
         self.isolated = isolated
         self.report = report
+        self._patterns: dict[torch.device, SparsityPattern] = {}
         self._device_cache: dict[torch.device, tuple] = {}
         self._row: torch.Tensor | None = None
         self._components: tuple[int, torch.Tensor] | None = None
@@ -448,6 +450,16 @@ class Topology:
                 self.col.to(device),
             )
         return self._device_cache[device]
+
+    def pattern(self, device: torch.device) -> SparsityPattern:
+        """The Laplacian's :class:`~torch_polylap.sparse.SparsityPattern` on ``device``: one
+        object per device for the topology's lifetime, so the operators of every step share its
+        cached transposes and unions (``M0 + t * L`` computes the union of patterns once)."""
+        device = torch.device(device)
+        if device not in self._patterns:
+            _, crow, col = self.on(device)
+            self._patterns[device] = SparsityPattern(crow, col, (self.num_verts, self.num_verts))
+        return self._patterns[device]
 
     def __repr__(self) -> str:
         degs = ", ".join(f"{g.k}:{g.face_ids.numel()}" for g in self._groups_cpu)

@@ -52,10 +52,11 @@ def operator_from_parts(
 ) -> SparseOperator:
     """A :class:`SparseOperator` from CSR arrays with sorted, unique columns in every row.
 
-    Operators built on the same ``crow`` tensor share one cached :class:`SparsityPattern`.
     ``values`` ``(nnz,)`` may require grad; ``symmetric`` declares ``A = A^T`` (not checked).
+    For repeated use on one pattern, build the operator once and take ``A.with_values(v)``,
+    which shares the pattern and its cached transposes and unions.
     """
-    pattern = SparsityPattern.cached(crow, col, shape)
+    pattern = SparsityPattern(crow, col, shape)
     return SparseOperator(pattern, values, symmetric=symmetric, layout=layout)
 
 

@@ -4,8 +4,9 @@ A :class:`SparsityPattern` is the CSR index structure ``(crow, col)`` of an ``(n
 sorted columns in every row and no duplicates.  Everything the operator algebra needs that depends
 on the indices only -- row indices, the transposed pattern and its permutation, the union with
 another pattern, the positions of the diagonal -- is computed on first use and kept on the pattern.
-The operators of one mesh share one pattern object across training steps (see :meth:`cached`), so
-``M0 + t * L`` pays for the union of the two patterns once, not every step.
+The operators of one mesh share one pattern object across training steps (the topology keeps it:
+:meth:`torch_polylap.topology.Topology.pattern`), so ``M0 + t * L`` pays for the union of the two
+patterns once, not every step.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import weakref
 
 import numpy as np
 import torch
-from torch.utils.weak import WeakIdKeyDictionary
 
 __all__ = ["SparsityPattern"]
 
@@ -36,9 +36,8 @@ class SparsityPattern:
     """CSR indices ``crow (n + 1,)``, ``col (nnz,)`` of an ``(n, m)`` matrix, and derived indices.
 
     Columns are sorted within each row and unique.  Instances are immutable; the caches only
-    grow on first use.  Build one with :meth:`cached` (shared per ``crow`` tensor),
-    :meth:`from_rows`
-    (from sorted, duplicate-free COO indices) or :meth:`diagonal_of` (an ``n x n`` diagonal).
+    grow on first use.  Build one from CSR arrays, with :meth:`from_rows` (from sorted,
+    duplicate-free COO indices) or with :meth:`diagonal_of` (an ``n x n`` diagonal).
     """
 
     __slots__ = (
@@ -53,9 +52,6 @@ class SparsityPattern:
         "__weakref__",
     )
 
-    # one pattern per crow tensor (by identity): the operators assembled on one topology share it
-    _shared: WeakIdKeyDictionary = WeakIdKeyDictionary()
-
     def __init__(self, crow: torch.Tensor, col: torch.Tensor, shape: tuple[int, int]) -> None:
         self.crow = crow
         self.col = col
@@ -65,17 +61,6 @@ class SparsityPattern:
         self._diag_pos: torch.Tensor | None = None
         self._unions: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self._devices: dict[torch.device, SparsityPattern] = {}
-
-    @classmethod
-    def cached(
-        cls, crow: torch.Tensor, col: torch.Tensor, shape: tuple[int, int]
-    ) -> SparsityPattern:
-        """The pattern of ``(crow, col)``, the same object for as long as ``crow`` lives."""
-        pattern = cls._shared.get(crow)
-        if pattern is None or pattern.col is not col or pattern.shape != tuple(shape):
-            pattern = cls(crow, col, shape)
-            cls._shared[crow] = pattern
-        return pattern
 
     @classmethod
     def from_rows(
@@ -158,9 +143,12 @@ class SparsityPattern:
             raise ValueError(f"cannot add matrices of shapes {self.shape} and {other.shape}.")
         cached = self._unions.get(other)
         if cached is None:
-            cached = self._compute_union(other)
+            pattern, at_self, at_other = self._compute_union(other)
+            # the weak-keyed cache must not hold `other` strongly: None stands for it
+            cached = (None if pattern is other else pattern, at_self, at_other)
             self._unions[other] = cached
-        return cached
+        pattern, at_self, at_other = cached
+        return (other if pattern is None else pattern), at_self, at_other
 
     def _compute_union(
         self, other: SparsityPattern
