@@ -20,7 +20,7 @@ def implicit_matrix(V, F, h=0.1, lam=1.0):
     return M0 + h * L
 
 
-@pytest.mark.parametrize("backend", ["splu", "cg"])
+@pytest.mark.parametrize("backend", ["splu", "cg", "cholesky"])
 def test_solve_matches_dense(backend):
     V, F = quad_grid(6, bump=0.3, seed=2)
     A = implicit_matrix(V, F)
@@ -32,7 +32,7 @@ def test_solve_matches_dense(backend):
     assert x.shape == (V.shape[0],) and torch.allclose(x, ref[:, 0], rtol=1e-9, atol=1e-10)
 
 
-@pytest.mark.parametrize("backend", ["splu", "cg"])
+@pytest.mark.parametrize("backend", ["splu", "cg", "cholesky"])
 def test_gradcheck_solve_values_and_rhs(backend):
     V, F = mixed_mesh()
     A = implicit_matrix(V, F, h=0.3)
@@ -43,11 +43,12 @@ def test_gradcheck_solve_values_and_rhs(backend):
 
     def f(v, B):
         # symmetrize so that perturbations keep A symmetric, as the adjoint for CG assumes
-        A = operator_from_parts(crow, col, v, (V.shape[0],) * 2)
+        A = operator_from_parts(crow, col, v, (V.shape[0],) * 2, symmetric=backend == "cholesky")
         return tp.solve(A, B, backend=backend, tol=1e-13)
 
-    if backend == "cg":
-        # CG assumes symmetry: check the gradient along symmetric value perturbations only
+    if backend in ("cg", "cholesky"):
+        # CG and Cholesky assume symmetry: check the gradient with respect to B only (the
+        # value gradient's formula is the same as splu's, checked there)
         Ad = A.to_dense()
         assert torch.equal(Ad, Ad.T)
         assert torch.autograd.gradcheck(lambda B: f(values.detach(), B), (B,))
@@ -67,30 +68,50 @@ def test_solve_gradient_reaches_vertex_positions():
     assert_directional_derivative(loss, V, rtol=1e-6)
 
 
-def test_factorization_is_cached_and_invalidated(monkeypatch):
+@pytest.mark.parametrize(
+    ("backend", "factor_class"), [("splu", "Factorization"), ("cholesky", "CholeskyFactorization")]
+)
+def test_factorization_is_cached_and_invalidated(monkeypatch, backend, factor_class):
     V, F = quad_grid(5, bump=0.2)
     A = implicit_matrix(V, F)
     B = torch.ones(V.shape[0], **D64)
     built = []
-    original = tp.linalg.Factorization
+    original = getattr(tp.linalg, factor_class)
 
     def counting(*args):
         built.append(1)
         return original(*args)
 
-    monkeypatch.setattr(tp.linalg, "Factorization", counting)
-    tp.solve(A, B)
-    tp.solve(A, 2 * B)
-    tp.solve(A.detach(), 3 * B)  # same value storage: same factorization
+    monkeypatch.setattr(tp.linalg, factor_class, counting)
+    tp.solve(A, B, backend=backend)
+    tp.solve(A, 2 * B, backend=backend)
+    tp.solve(A.detach(), 3 * B, backend=backend)  # same value storage: same factorization
     assert len(built) == 1
     A.values().mul_(2.0)  # in-place change of the values: the cache must notice
-    X = tp.solve(A, B)
+    X = tp.solve(A, B, backend=backend)
     assert len(built) == 2
     assert torch.allclose(A.to_dense() @ X, B)
     # gradients through a solve reuse the forward's factorization in the backward solve
     Vg = V.clone().requires_grad_(True)
-    tp.solve(implicit_matrix(Vg, F), B).sum().backward()
+    tp.solve(implicit_matrix(Vg, F), B, backend=backend).sum().backward()
     assert len(built) == 3
+
+
+def test_auto_backend_and_cholesky_requirements():
+    V, F = quad_grid(4, bump=0.2)
+    L, M0 = tp.laplacian(V, F)
+    B = torch.ones(V.shape[0], **D64)
+    A = M0 + 0.1 * L
+    reference = torch.linalg.solve(A.to_dense(), B)
+    # a symmetric system goes through CHOLMOD (cholespy is in the test extra)
+    torch.testing.assert_close(tp.solve(A, B), reference, rtol=1e-10, atol=1e-12)
+    assert "cholesky" in A._solver_cache
+    unsymmetric = A.with_values(A.values(), symmetric=False)
+    torch.testing.assert_close(tp.solve(unsymmetric, B), reference, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="symmetric operator"):
+        tp.solve(unsymmetric, B, backend="cholesky")
+    with pytest.raises(ValueError, match="singular.*M0 \\+ h L"):
+        tp.solve(L, B, backend="cholesky")
 
 
 def test_singular_system_is_a_clear_error():

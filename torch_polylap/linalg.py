@@ -48,7 +48,7 @@ def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:
 
 
 class Factorization:
-    """A sparse LU factorization (SuperLU, symmetric mode) of a CSR matrix, in float64.
+    """A sparse LU factorization (SuperLU, symmetric mode) of a CSR matrix, in float64, on the CPU.
 
     Built from ``A``'s values at one point in time and cached on ``A`` by
     :func:`torch_polylap.sparse.solver_cache`, which checks the values' storage and version
@@ -61,30 +61,97 @@ class Factorization:
             self.lu = spd_splu(S)
         except RuntimeError as err:
             raise ValueError(_singular_message(A, str(err))) from None
-        # A singular PSD matrix (a Laplacian without a mass term) factors without complaint,
-        # its last pivot being round-off. One solve with a fixed random right-hand side shows
-        # it: the growth |x| |A| / |b| then reaches 1 / eps (reading the pivots would need the
-        # whole factor U to be copied out of SuperLU).
-        n = S.shape[0]
-        b = np.random.default_rng(0).standard_normal(n)
-        growth = np.abs(self.lu.solve(b)).max() * abs(S).max() / np.abs(b).max() if n else 0.0
-        if not np.isfinite(growth) or growth * n * np.finfo(float).eps >= 1.0:
-            raise ValueError(_singular_message(A, f"solution growth {growth:.1e}"))
-        self.shape = tuple(A.shape)
+        _check_not_singular(A, S, lambda b: self.lu.solve(b))
 
-    def solve(self, B: np.ndarray, transpose: bool = False) -> np.ndarray:
+    def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
         X = self.lu.solve(
-            np.ascontiguousarray(B, dtype=np.float64), trans="T" if transpose else "N"
+            np.ascontiguousarray(B.detach().cpu().numpy(), dtype=np.float64),
+            trans="T" if transpose else "N",
         )
-        if not np.isfinite(X).all():
-            raise ValueError(
-                "the solve produced non-finite values: the system matrix is singular or "
-                "numerically singular (a Laplacian without a mass term or Dirichlet values?)."
+        return _finite(torch.from_numpy(X)).to(B)
+
+
+class CholeskyFactorization:
+    """CHOLMOD's supernodal Cholesky of a symmetric positive definite matrix, in float64, on the
+    matrix's device (CPU, or CUDA through cholespy's GPU solver), via the optional ``cholespy``.
+
+    Faster than SuperLU for the SPD systems of this package (``M0 + h L``, Dirichlet blocks of
+    ``L``) and the only direct solver here that runs on a GPU.
+    """
+
+    # cholespy's CUDA solve takes at most this many right-hand sides at once
+    _CUDA_COLUMNS = 128
+
+    def __init__(self, A: torch.Tensor | sp.spmatrix, device: torch.device | None = None) -> None:
+        from cholespy import CholeskySolverD, MatrixType
+
+        device = A.device if isinstance(A, torch.Tensor) else torch.device(device or "cpu")
+        S = sp.coo_matrix((to_scipy(A) if isinstance(A, torch.Tensor) else A).astype(np.float64))
+        try:
+            self.factor = CholeskySolverD(
+                S.shape[0],
+                torch.from_numpy(S.row.astype(np.int32)).to(device),
+                torch.from_numpy(S.col.astype(np.int32)).to(device),
+                torch.from_numpy(S.data).to(device),
+                MatrixType.COO,
             )
+        except (RuntimeError, ValueError) as err:
+            raise ValueError(_singular_message(A, str(err))) from None
+        self.device = device
+
+        def solve_numpy(b: np.ndarray) -> np.ndarray:
+            rhs = torch.from_numpy(b).to(self.device)[:, None]
+            return self._solve64(rhs)[:, 0].cpu().numpy()
+
+        _check_not_singular(A, S.tocsc(), solve_numpy)
+
+    def _solve64(self, B: torch.Tensor) -> torch.Tensor:
+        X = torch.empty_like(B)
+        step = self._CUDA_COLUMNS if B.device.type == "cuda" else max(B.shape[1], 1)
+        for start in range(0, B.shape[1], step):
+            rhs = B[:, start : start + step].contiguous()
+            out = torch.empty_like(rhs)
+            self.factor.solve(rhs, out)
+            X[:, start : start + step] = out
         return X
 
+    def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
+        B64 = B.detach().to(device=self.device, dtype=torch.float64).contiguous()
+        return _finite(self._solve64(B64)).to(B)
 
-def _singular_message(A: torch.Tensor, detail: str) -> str:
+
+def _check_not_singular(
+    A: torch.Tensor | sp.spmatrix, S: sp.spmatrix, solve: Callable[[np.ndarray], np.ndarray]
+) -> None:
+    """Refuse a numerically singular ``A``.  A singular PSD matrix (a Laplacian without a mass
+    term) factors without complaint, its last pivot being round-off; one solve with a fixed
+    random right-hand side shows it, the growth ``|x| |A| / |b|`` then reaching ``1 / eps``
+    (reading the pivots would need the whole factor to be copied out of the solver)."""
+    n = S.shape[0]
+    b = np.random.default_rng(0).standard_normal(n)
+    growth = np.abs(solve(b)).max() * abs(S).max() / np.abs(b).max() if n else 0.0
+    if not np.isfinite(growth) or growth * n * np.finfo(float).eps >= 1.0:
+        raise ValueError(_singular_message(A, f"solution growth {growth:.1e}"))
+
+
+def _finite(X: torch.Tensor) -> torch.Tensor:
+    if not bool(torch.isfinite(X).all()):
+        raise ValueError(
+            "the solve produced non-finite values: the system matrix is singular or "
+            "numerically singular (a Laplacian without a mass term or Dirichlet values?)."
+        )
+    return X
+
+
+def _cholespy_available() -> bool:
+    try:
+        import cholespy  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _singular_message(A: torch.Tensor | sp.spmatrix, detail: str) -> str:
     return (
         f"the {A.shape[0]} x {A.shape[1]} system matrix is singular ({detail}). A Laplacian "
         "alone has the constants in its kernel: solve with M0 + h L, or fix values at some "
@@ -92,8 +159,9 @@ def _singular_message(A: torch.Tensor, detail: str) -> str:
     )
 
 
-def _factorization(A: SparseOperator) -> Factorization:
-    return solver_cache(A, "splu", lambda: Factorization(A))
+def _factorization(A: SparseOperator, backend: str) -> Factorization | CholeskyFactorization:
+    kind = CholeskyFactorization if backend == "cholesky" else Factorization
+    return solver_cache(A, backend, lambda: kind(A))
 
 
 def _cg(A: torch.Tensor, B: torch.Tensor, tol: float, max_iter: int) -> torch.Tensor:
@@ -134,10 +202,9 @@ def _solve_values(
     A: SparseOperator, B: torch.Tensor, backend: str, tol: float, max_iter: int
 ) -> torch.Tensor:
     """``A^{-1} B`` for ``(n, c)`` ``B``, no autograd."""
-    if backend == "splu":
-        X = _factorization(A).solve(B.detach().cpu().numpy())
-        return torch.from_numpy(X).to(B)
-    return _cg(A, B.detach(), tol, max_iter)
+    if backend == "cg":
+        return _cg(A, B.detach(), tol, max_iter)
+    return _factorization(A, backend).solve(B)
 
 
 def _solve(
@@ -183,10 +250,9 @@ class _Solve(torch.autograd.Function):
     def backward(ctx, G):
         values, X = ctx.saved_tensors
         backend = ctx.options[0]
-        if not torch.is_grad_enabled() and backend == "splu":
+        if not torch.is_grad_enabled() and backend != "cg":
             # first-order backward: reuse the factorization for A^T directly
-            factor = _factorization(ctx.A)
-            gB = torch.from_numpy(factor.solve(G.cpu().numpy(), transpose=True)).to(G)
+            gB = _factorization(ctx.A, backend).solve(G, transpose=True)
         else:
             # A^T = A for the SPD matrices solve() takes (CG needs it anyway)
             A = ctx.A.with_values(values, share_cache=True)
@@ -208,17 +274,20 @@ def solve(
     """``X = A^{-1} B`` for a sparse symmetric positive definite ``A``, differentiable in both.
 
     Args:
-        A: ``(n, n)`` sparse CSR (or coalesced COO) tensor, e.g. ``M0 + h L``; its values may
-            require grad.
+        A: ``(n, n)`` sparse operator, e.g. ``M0 + h L`` (or a torch sparse tensor without grad,
+            or a scipy matrix); its values may require grad.
         B: ``(n,)`` or ``(n, c)`` dense right-hand side(s) of ``A``'s dtype.
-        backend: ``"splu"`` (a sparse direct factorization on the CPU, cached on ``A``),
-            ``"cg"`` (Jacobi-preconditioned conjugate gradients, on ``A``'s device), or
-            ``"auto"``: ``"splu"`` for CPU tensors, ``"cg"`` for CUDA tensors.
+        backend: ``"cholesky"`` (CHOLMOD through the optional ``cholespy``, on ``A``'s device:
+            CPU or CUDA; ``A`` must be symmetric, as ``M0 + h L`` and Dirichlet blocks of ``L``
+            are), ``"splu"`` (SuperLU on the CPU), ``"cg"`` (Jacobi-preconditioned conjugate
+            gradients on ``A``'s device), or ``"auto"``: ``"cholesky"`` for a symmetric ``A``
+            when cholespy is installed, else ``"splu"`` on the CPU and ``"cg"`` on CUDA.
+            Factorizations are cached on ``A`` and reused by the backward solve.
         tol, max_iter: relative residual and iteration limit of ``"cg"``.
 
     Returns:
-        ``X`` with ``B``'s shape, dtype and device. The direct solver works in float64 and
-        casts back.
+        ``X`` with ``B``'s shape, dtype and device. The direct solvers work in float64 and
+        cast back.
 
     Raises:
         ValueError: ``A`` singular (e.g. ``L`` without a mass term or Dirichlet values), shapes
@@ -234,9 +303,23 @@ def solve(
     if B.dtype != A.dtype:
         raise ValueError(f"solve: A has dtype {A.dtype} but B has {B.dtype}; convert one of them.")
     if backend == "auto":
-        backend = "splu" if A.device.type == "cpu" else "cg"
-    if backend not in ("splu", "cg"):
-        raise ValueError(f"backend must be 'auto', 'splu' or 'cg', got {backend!r}.")
+        if A.symmetric and _cholespy_available():
+            backend = "cholesky"
+        else:
+            backend = "splu" if A.device.type == "cpu" else "cg"
+    if backend not in ("cholesky", "splu", "cg"):
+        raise ValueError(f"backend must be 'auto', 'cholesky', 'splu' or 'cg', got {backend!r}.")
+    if backend == "cholesky":
+        if not A.symmetric:
+            raise ValueError(
+                "solve: backend='cholesky' needs a symmetric operator (M0 + h L, a Dirichlet "
+                "block of L, or one built with symmetric=True); use backend='splu' otherwise."
+            )
+        if not _cholespy_available():
+            raise ValueError(
+                "solve: backend='cholesky' needs the optional package cholespy "
+                "(pip install 'torch_polylap[cholmod]'); use backend='splu' or 'cg' without it."
+            )
     vec = B.dim() == 1
     X = _solve(A, B[:, None] if vec else B, backend, tol, max_iter)
     return X[:, 0] if vec else X
@@ -394,47 +477,37 @@ def _lanczos_dim(n: int, k: int) -> int:
     return min(n, max(6 * k, k + 200))
 
 
-def spd_block_solver(S: sp.spmatrix) -> Callable[[np.ndarray], np.ndarray]:
+def spd_block_solver(
+    S: sp.spmatrix, device: torch.device | str = "cpu"
+) -> Callable[[np.ndarray], np.ndarray]:
     """Factor a sparse SPD matrix once and return ``B (n, b) -> S^{-1} B`` in float64.
 
     CHOLMOD's supernodal Cholesky (through the optional ``cholespy`` package) when it is
-    installed: its multi-column solves cost 0.7-1 ms per column on the 22k-vertex sword mesh,
-    against 4-6 ms per column for SuperLU, whose own multi-column solve is slower still than
-    one column at a time (so the fallback loops over columns).
+    installed, on ``device`` (its CUDA solver on a GPU): multi-column solves are several times
+    faster per column than SuperLU's (``benchmarks/README.md``), whose own multi-column solve
+    is slower still than one column at a time (so the fallback loops over columns).
     """
-    n = S.shape[0]
-    try:
-        from cholespy import CholeskySolverD, MatrixType
-    except ImportError:
+    if not _cholespy_available():
         lu = spd_splu(sp.csc_matrix(S))
         return lambda B: np.stack([lu.solve(np.ascontiguousarray(b)) for b in B.T], axis=1)
-    coo = sp.coo_matrix(S)
-    factor = CholeskySolverD(
-        n,
-        torch.from_numpy(coo.row.astype(np.int32)),
-        torch.from_numpy(coo.col.astype(np.int32)),
-        torch.from_numpy(coo.data.astype(np.float64)),
-        MatrixType.COO,
-    )
-
-    def apply(B: np.ndarray) -> np.ndarray:
-        rhs = torch.from_numpy(np.ascontiguousarray(B, dtype=np.float64))
-        X = torch.empty_like(rhs)
-        factor.solve(rhs, X)
-        return X.numpy()
-
-    return apply
+    factor = CholeskyFactorization(S, torch.device(device))
+    return lambda B: factor.solve(torch.from_numpy(np.ascontiguousarray(B))).cpu().numpy()
 
 
 def _eigs_block_lanczos(
-    Ls: sp.csr_matrix, mass: np.ndarray, k: int, shift: float, tol: float
+    Ls: sp.csr_matrix,
+    mass: np.ndarray,
+    k: int,
+    shift: float,
+    tol: float,
+    device: torch.device,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Shift-invert block Lanczos for a diagonal ``M``: the standard symmetric problem
     ``C = M^{1/2} (L - shift M)^{-1} M^{1/2}``, whose top eigenvalues ``1 / (mu - shift)`` give
     the smallest ``mu``, with eigenvectors ``phi = M^{-1/2} y``. ``None`` if it did not
     converge (the caller then uses ARPACK)."""
     root = np.sqrt(mass)[:, None]
-    solve_shifted = spd_block_solver(Ls - shift * sp.diags(mass))
+    solve_shifted = spd_block_solver(Ls - shift * sp.diags(mass), device)
     theta, Y, converged = block_lanczos(
         lambda X: solve_shifted(X * root) * root,
         Ls.shape[0],
@@ -488,7 +561,8 @@ def eigs(
     - small problems (``n <= max(400, 6 k)``): a dense symmetric solver (LAPACK);
     - a diagonal ``M`` (the mass matrix ``M0``) and ``sigma < 0``: block Lanczos with blocks of
       8 (:mod:`torch_polylap.lanczos`) on ``M^{1/2} (L - sigma M)^{-1} M^{1/2}``, factored once
-      by CHOLMOD when ``cholespy`` is installed (SuperLU otherwise); its basis of up to
+      by CHOLMOD when ``cholespy`` is installed (on the operators' device: its CUDA solver for
+      CUDA tensors; SuperLU otherwise); its basis of up to
       ``6 k`` vectors must fit in 4 GiB;
     - otherwise, or if block Lanczos does not converge: ARPACK (scipy's ``eigsh``), retried
       with more Lanczos vectors and a larger shift.
@@ -539,7 +613,7 @@ def eigs(
     if n <= max(_DENSE_EIGS_SIZE, 6 * k):
         result = scipy.linalg.eigh(Ls.toarray(), Ms.toarray(), subset_by_index=(0, k - 1))
     elif shift < 0 and _is_diagonal(Ms) and n * _lanczos_dim(n, k) * 8 <= _LANCZOS_MEMORY:
-        result = _eigs_block_lanczos(Ls, Ms.diagonal(), k, shift, tol or 1e-10)
+        result = _eigs_block_lanczos(Ls, Ms.diagonal(), k, shift, tol or 1e-10, L.device)
     if result is None:
         result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol)
     evals, evecs = result
