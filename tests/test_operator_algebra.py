@@ -363,3 +363,24 @@ def test_one_sparse_seam():
             if forbidden.search(line):
                 offenders.append(f"{path.relative_to(PACKAGE)}:{no}: {line.strip()}")
     assert not offenders, "\n".join(offenders)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA is not available on this machine")
+def test_cuda_operator_algebra_solves_and_eigs_match_cpu():
+    V, F = quad_grid(12, bump=0.3, seed=4)
+    topo = tp.build_topology(F, V.shape[0])
+    results = {}
+    for device in ("cpu", "cuda"):
+        X = V.to(device).clone().requires_grad_(True)
+        L, M0 = tp.laplacian(X, topo)
+        assert L.device.type == device and L.pattern.device.type == device
+        A = M0 + 0.1 * L
+        backends = ["cg", "splu"] + (["cholesky"] if tp.linalg._cholespy_available() else [])
+        solves = [tp.solve(A, X, backend=b) for b in backends]
+        loss = ((L - 0.25 * M0).T @ X).square().sum() + sum(s.square().sum() for s in solves)
+        (grad,) = torch.autograd.grad(loss, X)
+        evals, _ = tp.eigs(L.detach(), M0.detach(), 6)
+        results[device] = (grad.cpu(), evals.cpu(), evals.device.type)
+    torch.testing.assert_close(results["cuda"][0], results["cpu"][0], rtol=1e-7, atol=1e-9)
+    torch.testing.assert_close(results["cuda"][1], results["cpu"][1], rtol=1e-9, atol=1e-12)
+    assert results["cuda"][2] == "cuda"
