@@ -91,3 +91,15 @@ def test_bad_lam_is_refused(lam):
 def test_lam_zero_and_tensors_are_accepted():
     t = torch.tensor(2.0, requires_grad=True)
     assert check_lam(0.0) == 0.0 and check_lam(t) is t and check_lam(3) == 3
+
+
+@pytest.mark.parametrize("scale", [1e-150, 1e150])
+def test_face_measures_are_exact_at_extreme_scales(scale):
+    """Areas scale by s^2, normals not at all, at scales where a plain norm of the vector area
+    under- or overflows."""
+    V, F = mixed_mesh()
+    torch.testing.assert_close(tp.mass(V * scale, F) / scale**2, tp.mass(V, F), rtol=1e-13, atol=0)
+    torch.testing.assert_close(
+        tp.face_areas(V * scale, F) / scale**2, tp.face_areas(V, F), rtol=1e-13, atol=0
+    )
+    torch.testing.assert_close(tp.face_normals(V * scale, F), tp.face_normals(V, F))

@@ -26,7 +26,17 @@ __all__ = [
     "quad_entries",
     "polygon_entries",
     "gather_coordinates",
+    "stable_norm",
 ]
+
+
+def stable_norm(a: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:
+    """Euclidean norm along ``dim`` without under- or overflow: ``s |a / s|`` with ``s`` the
+    largest magnitude.  The vector area of a face at scale ``1e-150`` has components near
+    ``1e-300``, whose squares underflow to zero in a plain norm (``1e150``: overflow)."""
+    scale = a.abs().amax(dim, keepdim=True).clamp_min(torch.finfo(a.dtype).tiny)
+    norm = scale * torch.linalg.vector_norm(a / scale, dim=dim, keepdim=True)
+    return norm if keepdim else norm.squeeze(dim)
 
 
 def gather_corners(verts_t: torch.Tensor, corners_t: torch.Tensor) -> torch.Tensor:

@@ -29,6 +29,7 @@ from .geometry import (
     plane_basis,
     polygon_entries,
     quad_entries,
+    stable_norm,
 )
 from .sparse import SparseOperator, diag, operator_from_parts
 from .topology import DegreeGroup, Topology, build_topology, get_topology, half_edge_vertices
@@ -224,7 +225,7 @@ def mass(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     m = verts.new_zeros(topo.num_verts)
     for grp in groups:
         _, _, a = corner_terms(gather_corners(verts_t, grp.corners_t))
-        share = (torch.linalg.vector_norm(a, dim=0) / grp.k).expand(grp.k, -1).reshape(-1)
+        share = (stable_norm(a, 0) / grp.k).expand(grp.k, -1).reshape(-1)
         m = m.index_add(0, grp.corners_t.reshape(-1), share)
     return m
 
@@ -276,13 +277,13 @@ def vector_area(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
 
 def face_areas(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     """``(F,)`` face areas ``|f| = |a_f|`` (area of the maximal projection)."""
-    return torch.linalg.vector_norm(vector_area(verts, faces), dim=1)
+    return stable_norm(vector_area(verts, faces), 1)
 
 
 def face_normals(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     """``(F, 3)`` unit normals of the faces' maximal projections, ``a_f / |a_f|``."""
     a = vector_area(verts, faces)
-    return a / torch.linalg.vector_norm(a, dim=1, keepdim=True)
+    return a / stable_norm(a, 1, keepdim=True)
 
 
 def face_nonplanarity(
@@ -311,7 +312,7 @@ def face_nonplanarity(
         centered = x - x.mean(1, keepdim=True)  # (3, k, F)
         if plane == "projection":
             _, _, a = corner_terms(x)
-            n = a / torch.linalg.vector_norm(a, dim=0)
+            n = a / stable_norm(a, 0)
         else:
             covariance = torch.einsum("ikf,jkf->fij", centered, centered)
             n = torch.linalg.eigh(covariance)[1][:, :, 0].T
@@ -339,7 +340,7 @@ def face_planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0)
         if grp.k == 3:
             continue
         e, _, a = corner_terms(x)
-        n = a / torch.linalg.vector_norm(a, dim=0).clamp_min(torch.finfo(verts.dtype).tiny)
+        n = a / stable_norm(a, 0).clamp_min(torch.finfo(verts.dtype).tiny)
         q1, q2 = plane_basis(e, n)
         # Pi E = E - q1 (q1^T E) - q2 (q2^T E), formed explicitly: subtracting squared norms
         # instead would cancel catastrophically exactly where a planarizing flow converges.
@@ -415,7 +416,7 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
     topo = None
     for topo, grp, x in _face_loop(verts, faces):  # noqa: B007 (topo is used after the loop)
         e, _, a = corner_terms(x)
-        area = torch.linalg.vector_norm(a, dim=0)
+        area = stable_norm(a, 0)
         b = 0.5 * (x + torch.roll(x, -1, dims=1))
         b = b - x.mean(1, keepdim=True)
         geo = torch.einsum("cif,cjf->fij", b, b) / area[:, None, None]
