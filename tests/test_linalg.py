@@ -213,3 +213,28 @@ def test_sphere_spectrum_converges_at_second_order(family):
     for i in (1, 2):
         order = np.log(errors[i - 1] / errors[i]) / np.log(np.sqrt(sizes[i] / sizes[i - 1]))
         assert order > 1.7, (family, errors)
+
+
+def test_eigs_names_a_vertex_without_mass():
+    V, F = quad_grid(5, bump=0.2)
+    isolated = torch.cat([V, torch.zeros(1, 3, **D64)])  # one vertex no face references
+    with pytest.warns(UserWarning):
+        L, M0 = tp.laplacian(isolated, F)
+    with pytest.raises(ValueError, match=f"vertex {V.shape[0]} has mass 0.*remove_unreferenced"):
+        tp.eigs(L, M0, 5)
+    with pytest.raises(TypeError, match="k must be an integer"):
+        tp.eigs(*tp.laplacian(V, F), 2.0)
+
+
+def test_dirichlet_solve_refuses_bad_fixed_rows():
+    V, F = quad_grid(3)
+    L, _ = tp.laplacian(V, F)
+    b = torch.zeros(V.shape[0], **D64)
+    with pytest.raises(ValueError, match=r"fixed\[1\] = 99 is not a row"):
+        tp.dirichlet_solve(L, b, torch.tensor([0, 99]), torch.zeros(2, **D64))
+    with pytest.raises(ValueError, match="more than once"):
+        tp.dirichlet_solve(L, b, torch.tensor([0, 0]), torch.zeros(2, **D64))
+    with pytest.raises(ValueError, match="vertex indices or a boolean mask"):
+        tp.dirichlet_solve(L, b, torch.tensor([0.5]), torch.zeros(1, **D64))
+    with pytest.raises(ValueError, match="do not fit"):
+        tp.dirichlet_solve(L, b, torch.tensor([0, 1]), torch.zeros(3, **D64))

@@ -466,6 +466,20 @@ _DENSE_EIGS_SIZE = 400
 _LANCZOS_MEMORY = 4 * 2**30
 
 
+def _check_positive_mass(Ms: sp.csr_matrix) -> None:
+    """``M`` must be positive definite: a zero diagonal entry (a vertex that no face references,
+    so its lumped mass is zero) would make the generalized problem singular."""
+    diagonal = Ms.diagonal()
+    bad = np.flatnonzero(~(diagonal > 0))
+    if bad.size:
+        raise ValueError(
+            f"eigs: M is not positive definite: vertex {int(bad[0])} has mass "
+            f"{diagonal[bad[0]]:g} ({bad.size} such vertices), e.g. a vertex that no face "
+            "references. Remove such vertices first with "
+            "torch_polylap.repair.remove_unreferenced_vertices(verts, faces)."
+        )
+
+
 def _is_diagonal(S: sp.csr_matrix) -> bool:
     coo = S.tocoo()
     return bool((coo.row == coo.col).all()) and bool((S.diagonal() > 0).all())
@@ -604,6 +618,7 @@ def eigs(
         raise ValueError(f"eigs: tol must be >= 0, got {tol}.")
     Ls = to_scipy(L).astype(np.float64)
     Ms = to_scipy(M).astype(np.float64)
+    _check_positive_mass(Ms)
     scale = float(abs(Ls).max()) / max(float(Ms.diagonal().max()), np.finfo(float).tiny)
     # -1e-6 of the spectral radius estimate: closer to zero makes L - shift M so ill-conditioned
     # that the block solves lose digits (eigenvalues off by 1e-9 relative at -1e-8 on a
