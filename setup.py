@@ -15,7 +15,7 @@ setup(
     license="MIT",
     python_requires=">=3.10",
     packages=find_packages(include=["torch_polylap", "torch_polylap.*"]),
-    package_data={"torch_polylap": ["data/*.obj", "data/*.md"]},
+    package_data={"torch_polylap": ["data/*.obj", "data/*.md", "py.typed"]},
     # tqdm: progress bars on the iterative applications (flow, planarization); pure Python, tiny
     install_requires=["torch>=2.1", "numpy>=1.22", "scipy>=1.9", "trimesh>=3.20", "tqdm>=4.60"],
     extras_require={
