@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -161,12 +162,73 @@ def test_errors_name_the_mesh_and_vertex():
         PolygonMeshes([verts[0][:, :2]], [faces[0]])
     with pytest.raises(ValueError, match="mesh 0: face 0 has 2 vertices"):
         PolygonMeshes([verts[0]], [[[0, 1], [1, 2, 3]]])
-    flipped = list(faces)
-    flipped[2] = [list(reversed(f)) if i == 4 else f for i, f in enumerate(faces[2])]
-    with pytest.raises(ValueError, match="mesh 2: faces .* not consistently oriented"):
-        PolygonMeshes(verts, flipped).topology()
+    with pytest.raises(ValueError, match=r"mesh 1: face 0 .* visits vertex 5 twice"):
+        PolygonMeshes(verts, [faces[0], [[0, 1, 5, 4, 5]], faces[2]]).topology()
     with pytest.raises(TypeError, match="list of"):
         PolygonMeshes(verts[0], faces[0])
+
+
+def test_irregular_meshes_warn_with_the_mesh_and_local_indices():
+    """A flipped face (mesh 2) and a fin (mesh 1) are not errors: one warning names each mesh
+    with its own indices, the operators are the per-mesh ones, and what needs an orientation
+    or a manifold refuses naming the mesh."""
+    verts, faces = three_meshes()
+    flipped = [list(reversed(f)) if i == 4 else f for i, f in enumerate(faces[2])]
+    p, q = int(faces[1][0, 2]), int(faces[1][0, 3])  # an interior edge of the grid
+    nv = verts[1].shape[0]
+    fin_verts = torch.cat([verts[1], verts[1][[p, q]] + torch.tensor([0.0, 0.1, 1.0]).double()])
+    fin = faces[1].tolist() + [[p, q, nv + 1, nv]]
+    local = [
+        tp.build_topology(f, v.shape[0], warn=False).report
+        for v, f in [(fin_verts, fin), (verts[2], flipped)]
+    ]
+    assert local[0].non_manifold_edges.tolist() == [[min(p, q), max(p, q)]]
+    misoriented = local[1].misoriented_edges.tolist()
+    assert misoriented  # edges of the flipped face 4, in mesh 2's own numbering
+
+    m = PolygonMeshes([verts[0], fin_verts, verts[2]], [faces[0], fin, flipped])
+    with pytest.warns(UserWarning) as record:
+        topo = m.topology()
+    (warning,) = [str(w.message) for w in record]
+    assert "2 of the 3 meshes" in warning and "mesh 0" not in warning
+    assert f"mesh 1 ({nv + 2} vertices, {len(fin)} faces): 1 non-manifold edge(s)" in warning
+    assert f"(first: {[[min(p, q), max(p, q)]]})" in warning
+    assert f"mesh 2 ({verts[2].shape[0]} vertices, {len(flipped)} faces)" in warning
+    assert f"inconsistent orientation (first: {misoriented[:5]})" in warning
+    # the packed report keeps packed indices; topology_reports() has the local ones
+    shift = verts[0].shape[0] + nv + 2
+    assert topo.report.misoriented_edges.tolist() == (local[1].misoriented_edges + shift).tolist()
+    reports = m.topology_reports()
+    assert sorted(reports) == [1, 2]
+    assert reports[2].misoriented_edges.tolist() == misoriented
+    assert reports[1].non_manifold_edges.tolist() == local[0].non_manifold_edges.tolist()
+
+    L, M0 = m.laplacian()
+    first = m.mesh_to_verts_packed_first_idx().tolist()
+    for i, (v, f) in enumerate([(verts[0], faces[0]), (fin_verts, fin), (verts[2], flipped)]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            Li, Mi = tp.laplacian(v, f)
+        a, b = first[i], first[i] + v.shape[0]
+        torch.testing.assert_close(dense(L)[a:b, a:b], dense(Li), rtol=0, atol=1e-12)
+        torch.testing.assert_close(dense(M0)[a:b, a:b], dense(Mi), rtol=0, atol=1e-12)
+
+    with pytest.raises(
+        ValueError,
+        match=r"mesh 2: normal_consistency needs consistently oriented faces.*"
+        r"orient_faces",
+    ):
+        tp.normal_consistency(m)
+    with pytest.raises(ValueError, match=r"mesh 1: demo needs a manifold mesh.*non-manifold edge"):
+        m.require_manifold("demo")
+    # a batch of clean meshes: no warning, no report, nothing to refuse
+    clean = PolygonMeshes(verts, faces)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        clean.topology()
+    assert clean.topology_reports() == {}
+    clean.require_oriented("demo")
+    clean.require_manifold("demo")
 
 
 def test_from_list_and_trimesh():

@@ -19,11 +19,18 @@ import operator
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 import torch
 
 from .faces import FacesLike, PolygonFaces, as_faces
 from .operators import Lam, get_topology, laplacian
-from .topology import Topology, build_topology, half_edge_vertices
+from .topology import (
+    Topology,
+    TopologyReport,
+    _warn_outside_package,
+    build_topology,
+    half_edge_vertices,
+)
 
 __all__ = ["PolygonMeshes", "per_mesh_sum", "per_mesh_mean"]
 
@@ -69,6 +76,8 @@ class _Connectivity:
         # on the user's object, so rebuilding a batch from the same faces does not re-validate.
         self.source = source
         self.topology: Topology | None = None
+        # mesh -> its own Topology (local indices), for the meshes whose report is not clean
+        self.local: dict[int, Topology] | None = None
         self.packed_cpu: PolygonFaces | None = None
         self.per_device: dict[tuple[str, torch.device], Any] = {}
 
@@ -351,27 +360,131 @@ class PolygonMeshes:
         )
 
     def topology(self) -> Topology:
-        """The validated :class:`~torch_polylap.Topology` of the packed faces, built once."""
+        """The :class:`~torch_polylap.Topology` of the packed faces, built once.
+
+        Errors that no polygon mesh may have (an index out of range, a face visiting a vertex
+        twice) are re-raised as ``"mesh i: ..."`` with the mesh's own face and vertex indices.
+        What keeps a mesh from being a consistently oriented manifold (non-manifold edges or
+        vertices, flipped faces, a Moebius band, duplicated faces, isolated vertices) is not an
+        error: one ``UserWarning`` names each such mesh and its findings in *local* indices
+        (see :meth:`topology_reports`). The packed topology's own ``report`` uses *packed*
+        indices (vertex ``j`` of mesh ``i`` is ``mesh_to_verts_packed_first_idx()[i] + j``).
+        """
         conn = self._conn
         if conn.topology is None:
             total = sum(conn.num_verts)
+            single = len(conn.faces) == 1
             faces = conn.source if conn.source is not None else conn.packed()
             try:
-                conn.topology = get_topology(faces, total)
+                if single:  # packed == local indices: build_topology's own warning is exact
+                    topo = get_topology(faces, total)
+                else:  # warn below, per mesh and in local indices
+                    topo = build_topology(faces, total, warn=False)
             except ValueError:
                 # the packed message names packed faces and vertices: find the mesh at fault
                 # and report its own, local, message (only paid on failure)
                 for i, (f, nv) in enumerate(zip(conn.faces, conn.num_verts, strict=True)):
                     try:
-                        build_topology(f, nv)
+                        build_topology(f, nv, warn=False)
                     except ValueError as err:
                         raise ValueError(f"mesh {i}: {err}") from None
                 raise
+            conn.topology = topo
+            if not single and not topo.report.is_clean:
+                self._warn_per_mesh()
         return conn.topology
+
+    def _local_topologies(self) -> dict[int, Topology]:
+        """Mesh index -> its own :class:`Topology`, for every mesh whose report is not clean.
+
+        The packed report says which packed vertices and faces are involved; only those meshes
+        are rebuilt (once per connectivity, shared by derived batches).
+        """
+        conn = self._conn
+        if conn.local is None:
+            topo = self.topology()
+            r = topo.report
+            if r.is_clean:
+                conn.local = {}
+            elif len(conn.faces) == 1:
+                conn.local = {0: topo}
+            else:
+                verts = np.concatenate(
+                    [
+                        r.non_manifold_edges.reshape(-1),
+                        r.non_manifold_vertices,
+                        r.misoriented_edges.reshape(-1),
+                        r.isolated_vertices,
+                    ]
+                )
+                v_first = np.cumsum([0, *conn.num_verts[:-1]])
+                f_first = np.cumsum([0, *conn.num_faces[:-1]])
+                meshes = np.union1d(
+                    np.searchsorted(v_first, verts, side="right") - 1,
+                    np.searchsorted(f_first, r.duplicate_faces, side="right") - 1,
+                )
+                local = {}
+                for i in meshes.tolist():
+                    t = build_topology(conn.faces[i], conn.num_verts[i], warn=False)
+                    if not t.report.is_clean:
+                        local[i] = t
+                conn.local = local
+        return conn.local
+
+    def topology_reports(self) -> dict[int, TopologyReport]:
+        """``{i: report}`` for every mesh ``i`` that is not a clean, consistently oriented
+        2-manifold, each :class:`~torch_polylap.TopologyReport` in the mesh's own (local)
+        vertex and face indices. Empty when every mesh is clean."""
+        return {i: t.report for i, t in self._local_topologies().items()}
+
+    def require_manifold(self, what: str, *, vertices: bool = True) -> None:
+        """:meth:`Topology.require_manifold` for every mesh: a ValueError ``"mesh i: ..."``
+        naming the first non-manifold mesh and its local edges and vertices."""
+        if self.topology().is_manifold:
+            return
+        for i, t in sorted(self._local_topologies().items()):
+            try:
+                t.require_manifold(what, vertices=vertices)
+            except ValueError as err:
+                raise ValueError(f"mesh {i}: {err}") from None
+
+    def require_oriented(self, what: str) -> None:
+        """:meth:`Topology.require_oriented` for every mesh: a ValueError ``"mesh i: ..."``
+        naming the first misoriented (or non-orientable) mesh and its local edges."""
+        if self.topology().is_oriented:
+            return
+        for i, t in sorted(self._local_topologies().items()):
+            try:
+                t.require_oriented(what)
+            except ValueError as err:
+                raise ValueError(f"mesh {i}: {err}") from None
+
+    def _warn_per_mesh(self) -> None:
+        conn = self._conn
+        local = self._local_topologies()
+        if not local:
+            return
+        found = "; ".join(
+            f"mesh {i} ({conn.num_verts[i]} vertices, {conn.num_faces[i]} faces): "
+            f"{t.report.summary(conn.num_verts[i])}"
+            for i, t in sorted(local.items())
+        )
+        _warn_outside_package(
+            f"{len(local)} of the {len(conn.faces)} meshes of the batch are not consistently "
+            f"oriented 2-manifolds (indices local to each mesh): {found}. L and M0 are well "
+            "defined on them; what needs a manifold or an orientation checks for itself. "
+            "Inspect PolygonMeshes.topology_reports(); repairs (orient_faces, "
+            "remove_duplicate_faces, ...) are in torch_polylap.repair."
+        )
 
     def interior_edge_faces(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(f0, f1)``, each ``(E_I,)``: the two packed faces on each side of every interior
-        edge (an edge used by two faces), on :attr:`device`."""
+        edge (an edge used by exactly two faces), on :attr:`device`.
+
+        Listed on any mesh: on a misoriented one the two faces of a flipped edge traverse it in
+        the same direction (see :meth:`require_oriented`); edges used by 3+ faces
+        (non-manifold) are left out, since no pair of faces there is "the two sides".
+        """
 
         def make() -> tuple[torch.Tensor, torch.Tensor]:
             topo = self.topology()
