@@ -86,7 +86,9 @@ def test_progress_bar_and_errors(capsys):
     assert "planarize" in capsys.readouterr().err
     with pytest.raises(ValueError, match="shape"):
         planarize(V[:, :2], F)
-    with pytest.raises(ValueError, match="outside"):
+    with pytest.raises(ValueError, match=r"fixed\[0\] = 100 is out of range for 16 elements"):
         planarize(V, F, fixed=[100])
+    with pytest.raises(ValueError, match=r"boolean mask of shape \(3,\).*\(16,\)"):
+        planarize(V, F, fixed=torch.ones(3, dtype=torch.bool))
     with pytest.raises(ValueError, match="tol"):
         planarize(V, F, tol=0.0)

@@ -23,6 +23,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 import torch_polylap as tp
+from torch_polylap.apps import conformal_parameterization
 
 try:  # tests/ on sys.path (pytest's default import mode)
     from meshes import DATA_DIR, load, require_shared, shared_meshes_dir
@@ -237,10 +238,20 @@ def test_fitted_plane_nonplanarity_matches_sources(name):
         assert abs(float(ours) - printed) <= 0.51 * digit, (name, float(ours), printed)
 
 
-def test_moebius_is_rejected():
+def test_moebius_builds_operators_and_refuses_what_needs_an_orientation():
     verts, faces = load(_path("moebius.obj"))
-    with pytest.raises(ValueError, match="orient"):
-        tp.laplacian(verts, faces, LAM)
+    with pytest.warns(UserWarning, match=r"1 non-orientable component"):
+        topo = tp.build_topology(faces, verts.shape[0])
+    assert topo.is_manifold and not topo.is_oriented
+    assert topo.report.non_orientable_components == 1
+    L, M0 = tp.laplacian(verts, topo, LAM)
+    Ls, Ms = tp.to_scipy(L), tp.to_scipy(M0)
+    assert abs(Ls - Ls.T).max() == 0 and np.abs(Ls.sum(1)).max() < 1e-10 * abs(Ls).max()
+    assert Ms.diagonal().min() > 0
+    with pytest.raises(ValueError, match=r"conformal_parameterization needs an oriented mesh"):
+        conformal_parameterization(verts, topo)
+    with pytest.raises(ValueError, match=r"1 of its components cannot be oriented"):
+        tp.normal_consistency((verts, faces))
 
 
 @pytest.mark.parametrize("name", ORIENTABLE_REAL)

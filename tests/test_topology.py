@@ -83,8 +83,13 @@ def test_bad_geometry_is_named():
         tp.laplacian(collinear, F)
     with pytest.raises(ValueError, match=r"shape \(V, 3\)"):
         tp.laplacian(V[:, :2], F)
-    with pytest.raises(ValueError, match="floating point"):
+    # the wrong kind of object is a TypeError (torch_polylap.checks.check_verts)
+    with pytest.raises(TypeError, match=r"floating point \(float32 or float64\).*int64"):
         tp.laplacian(V.long(), F)
+    with pytest.raises(TypeError, match=r"float16.*verts.float\(\)"):
+        tp.laplacian(V.half(), F)
+    with pytest.raises(TypeError, match=r"torch.Tensor of shape \(V, 3\), got ndarray"):
+        tp.laplacian(V.numpy(), F)
 
 
 def test_zero_area_without_validation_stays_finite():

@@ -232,11 +232,18 @@ def mesh_quality(verts: torch.Tensor, faces: MeshFaces) -> dict[str, float]:
     - ``edge_cv``: standard deviation / mean of the edge lengths.
     - ``nonconvex_faces``: fraction of faces with a corner turning against the face's vector
       area (reflex, folded or self-overlapping faces; never the case for triangles).
-    - ``folded_edges``: fraction of interior edges whose two faces' normals (AW11 vector-area
-      directions) make an angle above 90 degrees: creases and fold-overs.
+    - ``folded_edges``: fraction of interior edges (edges of exactly two faces) whose two
+      faces' normals (AW11 vector-area directions) make an angle above 90 degrees: creases
+      and fold-overs. Edges used by 3+ faces (non-manifold) are left out of it.
+
+    Raises:
+        ValueError: the faces are not consistently oriented (or the mesh is non-orientable):
+            ``folded_edges`` would count every flipped face's edges as folds. The message names
+            the first misoriented edges and the repair, ``torch_polylap.repair.orient_faces``.
     """
     with torch.no_grad():
         topo = get_topology(faces, verts.shape[0])
+        topo.require_oriented("mesh_quality (its folded_edges measure)")
         groups, _, _ = topo.on(verts.device)
         verts_t = verts.t().contiguous()
         angle_err, min_angle, aspects, nonconvex = [], [], [], 0

@@ -233,9 +233,21 @@ def normal_consistency(meshes: MeshesLike, reduction: Reduction = "mean") -> tor
     The polygon analogue of pytorch3d's ``mesh_normal_consistency``: ``n_f = a_f / |a_f|`` is
     the unit normal of the maximal projection (vector area, AW11 Lemma 1, eq. 8), well defined
     for non-planar faces. A mesh without interior edges contributes 0.
+
+    The normals' signs come from the faces' orientation, so every mesh must be consistently
+    oriented: a flipped neighbour would read as a full fold (``n_f . n_g = -1``). A misoriented
+    or non-orientable mesh raises a ValueError naming the mesh and its first misoriented edges
+    (repair: ``torch_polylap.repair.orient_faces``). Edges used by 3+ faces (non-manifold,
+    e.g. a fin) have no two sides: they contribute nothing and are not counted in the mean,
+    like boundary edges (pytorch3d instead averages over every pair of faces there); they are
+    listed in ``meshes.topology_reports()``, and the topology warns about them once.
+
+    Raises:
+        ValueError: a mesh whose faces are not consistently oriented, or a bad ``reduction``.
     """
     _check_reduction(reduction)
     m = _as_meshes(meshes)
+    m.require_oriented("normal_consistency")
     X = m.verts_packed()
     a = vector_area(X, m.topology())
     n = a / torch.linalg.vector_norm(a, dim=1, keepdim=True).clamp_min(torch.finfo(X.dtype).tiny)

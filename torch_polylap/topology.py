@@ -330,7 +330,7 @@ class Topology:
             f"{what} needs consistently oriented faces, but {len(r.misoriented_edges)} edge(s) "
             f"are traversed in the same direction by both their faces (first: "
             f"{_first(r.misoriented_edges)}). Run "
-            "`faces, rep = torch_polylap.repair.orient_faces(verts, faces)` first."
+            "`verts, faces, rep = torch_polylap.repair.orient_faces(verts, faces)` first."
         )
 
     @property

@@ -31,8 +31,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse as sp
-import scipy.sparse.csgraph
 import scipy.sparse.linalg as spla
 import torch
 
@@ -50,8 +48,21 @@ __all__ = [
 ]
 
 
+def _require_oriented_edges(topo: Topology, what: str, *, vertices: bool = False) -> None:
+    """The area form ``A(Y) = sum_f area(Y_f)`` reduces to the boundary half-edges only when
+    every interior edge is used by two faces traversing it in opposite directions (their
+    half-edges cancel): refuse non-manifold edges and misoriented or non-orientable meshes,
+    naming the repair (:mod:`torch_polylap.repair`). ``vertices=True`` (the parameterization)
+    also refuses non-manifold vertices: two sheets sharing only a vertex can turn about it
+    freely, so ``L_C`` is singular there."""
+    topo.require_manifold(what, vertices=vertices)
+    topo.require_oriented(what)
+
+
 def _boundary_half_edges(topo: Topology) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(src, dst)`` of the half-edges on the boundary, oriented as their faces."""
+    """``(src, dst)`` of the half-edges on the boundary, oriented as their faces (call
+    :func:`_require_oriented_edges` first: on a manifold, oriented mesh these are exactly the
+    half-edges of :meth:`Topology.boundary_loops`, without the graph walk that orders them)."""
     src, dst = half_edge_vertices(topo.faces)
     on_boundary = topo.edge_faces[topo.half_edge_edge] == 1
     return src[on_boundary], dst[on_boundary]
@@ -59,6 +70,7 @@ def _boundary_half_edges(topo: Topology) -> tuple[torch.Tensor, torch.Tensor]:
 
 def _check_mesh(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
     """Raise for meshes the parameterization cannot handle; return the boundary vertices."""
+    _require_oriented_edges(topo, "conformal_parameterization", vertices=True)
     if bool(topo.isolated.any()):
         v = int(torch.nonzero(topo.isolated)[0, 0])
         raise ValueError(
@@ -70,11 +82,7 @@ def _check_mesh(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
             "the mesh has no boundary: a conformal map to the plane needs a disk-like mesh. "
             "Cut the surface open (e.g. remove a face or cut along a seam) first."
         )
-    n_verts = topo.num_verts
-    pattern = sp.csr_matrix(
-        (np.ones(topo.nnz), topo.col.numpy(), topo.crow.numpy()), shape=(n_verts, n_verts)
-    )
-    n_comp, _ = scipy.sparse.csgraph.connected_components(pattern, directed=False)
+    n_comp, _ = topo.connected_components()  # no isolated vertex: components of the faces
     if n_comp > 1:
         raise ValueError(
             f"the mesh has {n_comp} connected components; parameterize each component separately."
@@ -93,8 +101,15 @@ def conformal_matrix(verts: torch.Tensor, faces: MeshFaces, lam: float = 1.0) ->
     Returns:
         A symmetric sparse operator acting on ``z = [u; v]`` (AW11 eq. 11-12); its values are
         differentiable in ``verts`` with O(nnz) gradients (``L_C @ z``).
+
+    Raises:
+        ValueError: an edge used by 3+ faces, or faces not consistently oriented (the area
+            term is a sum over boundary half-edges only when interior half-edges cancel); the
+            message names the edges and the repair, e.g.
+            :func:`torch_polylap.repair.orient_faces`.
     """
     topo = get_topology(faces, verts.shape[0])
+    _require_oriented_edges(topo, "conformal_matrix")
     L, _ = laplacian(verts, topo, lam)
     n = topo.num_verts
     s, t = _boundary_half_edges(topo)
@@ -126,7 +141,8 @@ def conformal_energy(
     Args:
         uv: ``(V, 2)`` flat image of the vertices.
         verts: ``(V, 3)`` source positions (``L`` is built from them).
-        faces: polygon faces, consistently oriented.
+        faces: polygon faces, consistently oriented, every edge used by at most two faces
+            (else a ValueError says which repair to run, as in :func:`conformal_matrix`).
         lam: stabilizer weight of the Laplacian.
 
     Returns:
@@ -138,6 +154,7 @@ def conformal_energy(
     if uv.dim() != 2 or uv.shape[1] != 2 or uv.shape[0] != verts.shape[0]:
         raise ValueError(f"uv must have shape ({verts.shape[0]}, 2), got {tuple(uv.shape)}.")
     topo = get_topology(faces, verts.shape[0])
+    _require_oriented_edges(topo, "conformal_energy")
     L, _ = laplacian(verts, topo, lam)
     dirichlet = 0.5 * (uv * (L @ uv.to(L.dtype))).sum()
     return dirichlet - _signed_area(uv, topo)
@@ -284,8 +301,11 @@ def conformal_parameterization(
         result is detached (dense eigensolver on the CPU).
 
     Raises:
-        ValueError: no boundary, several connected components, unreferenced vertices, pins
-            that are not two distinct boundary vertices, ``pins`` with ``free_boundary``.
+        ValueError: a non-manifold edge or vertex, faces not consistently oriented or a
+            non-orientable mesh (the message names the first offending edges and the repair,
+            e.g. ``verts, faces, rep = torch_polylap.repair.orient_faces(verts, faces)``), no
+            boundary, several connected components, unreferenced vertices, pins that are not
+            two distinct boundary vertices, ``pins`` with ``free_boundary``.
     """
     if verts.dim() != 2 or verts.shape[1] != 3:
         raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")

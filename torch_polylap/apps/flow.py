@@ -14,17 +14,54 @@ with respect to the initial vertex positions through :func:`torch_polylap.solve`
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
+from ..checks import check_index_or_mask
 from ..geometry import corner_terms, gather_corners
 from ..linalg import solve
 from ..operators import MeshFaces, face_areas, get_topology, laplacian
 from ..sparse import eliminate
-from ..topology import Topology
+from ..topology import Topology, half_edge_vertices
 
 __all__ = ["mean_curvature_flow", "enclosed_volume", "schwarz_lantern"]
 
 _NORMALIZE = (None, "area", "volume")
+
+
+def _require_closed_oriented(topo: Topology, what: str, hint: str = "") -> None:
+    """Raise a ValueError unless ``topo`` is a closed, consistently oriented surface.
+
+    The divergence theorem gives a volume (independent of the origin) exactly when the faces
+    form a closed oriented 2-cycle: every edge is traversed as often in one direction as in
+    the other. Checked in that spirit: consistent orientation across every edge of two faces
+    (:meth:`Topology.require_oriented`, which also refuses a Moebius band or a Klein bottle),
+    no boundary edge, and on an edge of 3+ faces (non-manifold) as many traversals each way;
+    an unbalanced one is refused with :meth:`Topology.require_manifold`'s message. (A balanced
+    non-manifold edge, say two closed cubes sharing an edge, encloses a well defined volume.)
+    """
+    suffix = f" {hint}" if hint else ""
+    try:
+        topo.require_oriented(what)
+    except ValueError as err:
+        raise ValueError(f"{err}{suffix}") from None
+    n_boundary = int((topo.edge_faces == 1).sum())
+    if n_boundary:
+        first = topo.boundary_edges[:5].tolist()
+        raise ValueError(
+            f"{what} needs a closed mesh, but this one has {n_boundary} boundary edges "
+            f"(first: {first}); the enclosed volume of an open surface depends on the origin."
+            f"{suffix}"
+        )
+    if topo.report.non_manifold_edges.size:
+        src, dst = half_edge_vertices(topo.faces)
+        sign = np.where(src.numpy() < dst.numpy(), 1.0, -1.0)
+        balance = np.bincount(topo.half_edge_edge.numpy(), weights=sign, minlength=topo.num_edges)
+        if np.any(balance != 0):
+            try:
+                topo.require_manifold(what, vertices=False)
+            except ValueError as err:
+                raise ValueError(f"{err}{suffix}") from None
 
 
 def enclosed_volume(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
@@ -32,13 +69,24 @@ def enclosed_volume(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
 
     Each face is fanned from the mean of its corners ``c_f``; by the divergence theorem the
     volume is ``1/3 sum_f c_f . a_f`` with ``a_f`` the vector area (AW11 eq. 8).  Positive for
-    outward-oriented faces.  Only meaningful (translation invariant) for a closed mesh.
+    outward-oriented faces.
 
     Args:
         verts: ``(V, 3)``.
         faces: any face form accepted by :func:`torch_polylap.laplacian`.
+
+    Raises:
+        ValueError: the mesh is not closed and consistently oriented (a boundary, a flipped
+            face, a non-orientable component, an edge of 3+ faces not traversed equally often
+            in both directions); the volume would depend on the origin. The message says
+            which, and which repair to run (e.g. :func:`torch_polylap.repair.orient_faces`).
     """
     topo = get_topology(faces, verts.shape[0])
+    _require_closed_oriented(topo, "enclosed_volume")
+    return _volume(verts, topo)
+
+
+def _volume(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
     groups, _, _ = topo.on(verts.device)
     verts_t = verts.t().contiguous()
     total = verts.new_zeros(())
@@ -125,15 +173,8 @@ def _fixed_mask(fixed: torch.Tensor | None, num_verts: int, device: torch.device
     mask = torch.zeros(num_verts, dtype=torch.bool, device=device)
     if fixed is None:
         return mask
-    fixed = torch.as_tensor(fixed, device=device)
-    if fixed.dtype == torch.bool:
-        if fixed.shape != (num_verts,):
-            raise ValueError(f"a bool `fixed` mask needs shape ({num_verts},), got {fixed.shape}.")
-        return fixed
-    fixed = fixed.reshape(-1).long()
-    if fixed.numel() and (int(fixed.min()) < 0 or int(fixed.max()) >= num_verts):
-        raise ValueError(f"`fixed` holds vertex indices outside 0..{num_verts - 1}.")
-    return mask.index_fill(0, fixed, True)
+    index = check_index_or_mask(fixed, num_verts, "fixed")
+    return mask.index_fill(0, index.to(device), True)
 
 
 class _StepSystem:
@@ -172,7 +213,7 @@ def _centroid(X: torch.Tensor, topo: Topology) -> torch.Tensor:
 
 
 def _measure(X: torch.Tensor, topo: Topology, normalize: str) -> torch.Tensor:
-    return face_areas(X, topo).sum() if normalize == "area" else enclosed_volume(X, topo)
+    return face_areas(X, topo).sum() if normalize == "area" else _volume(X, topo)
 
 
 def mean_curvature_flow(
@@ -206,11 +247,14 @@ def mean_curvature_flow(
             flow for small ``dt * steps``. Default: rebuilt from the current positions each step.
         normalize: ``None``; ``"area"`` or ``"volume"``: after each step, scale the mesh about
             its area-weighted centroid so that the total area (sum of ``|f|``) or the enclosed
-            volume (:func:`enclosed_volume`, closed meshes only) keeps its initial value.
+            volume (:func:`enclosed_volume`, closed consistently oriented meshes only) keeps its
+            initial value.
         return_trajectory: also return every intermediate state.
         progress: show a tqdm progress bar over the steps.
-        fixed: optional vertex indices (or a ``(V,)`` bool mask) held in place, e.g. a boundary
-            to fair a patch towards a minimal surface. Cannot be combined with ``normalize``.
+        fixed: optional vertex indices (each once) or a ``(V,)`` bool mask, held in place, e.g.
+            a boundary to fair a patch towards a minimal surface (checked by
+            :func:`torch_polylap.checks.check_index_or_mask`). Cannot be combined with
+            ``normalize``.
 
     Returns:
         ``(V, 3)`` final positions, or ``(steps + 1, V, 3)`` with ``return_trajectory`` (index 0
@@ -218,15 +262,15 @@ def mean_curvature_flow(
 
     Raises:
         ValueError: ``dt <= 0``, ``steps < 0``, an unknown ``normalize``, ``"volume"`` on a mesh
-            with boundary, ``fixed`` together with ``normalize``, or bad mesh input.
+            that is not closed and consistently oriented (see :func:`enclosed_volume`; the flow
+            itself runs on any mesh, non-manifold or non-orientable ones included), ``fixed``
+            together with ``normalize``, or bad mesh input (``fixed`` out of range, repeated,
+            or a mask of the wrong length).
     """
     _check_args(verts, dt, steps, normalize)
     topo = get_topology(faces, verts.shape[0])
-    if normalize == "volume" and topo.boundary_edges.numel():
-        raise ValueError(
-            f"normalize='volume' needs a closed mesh, but this one has "
-            f"{topo.boundary_edges.shape[0]} boundary edges; use normalize='area' or None."
-        )
+    if normalize == "volume":
+        _require_closed_oriented(topo, "normalize='volume'", "Use normalize='area' or None.")
     fixed_mask = _fixed_mask(fixed, verts.shape[0], verts.device)
     if normalize is not None and bool(fixed_mask.any()):
         raise ValueError("`fixed` vertices cannot be kept in place while normalize rescales.")

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ..checks import check_index_or_mask
 from ..operators import MeshFaces, face_nonplanarity, get_topology, planarity_energy
 
 __all__ = ["planarize", "PlanarizeResult"]
@@ -75,7 +76,8 @@ def planarize(
         lam: stabilizer weight ``lambda`` of the planarity operator (paper: 2).
         tol: stop once the largest face non-planarity (distance over diameter) is below it.
         max_iter: L-BFGS iteration limit.
-        fixed: optional vertex indices (or ``(V,)`` bool mask) that do not move.
+        fixed: optional vertex indices (each once) or a ``(V,)`` bool mask of vertices that do
+            not move.
         progress: show a tqdm progress bar with the current largest non-planarity.
         history_size: L-BFGS memory.
         check_every: L-BFGS iterations between two checks of the stopping criterion.
@@ -103,16 +105,7 @@ def planarize(
 
     free_mask = torch.ones(n, dtype=torch.bool, device=verts.device)
     if fixed is not None:
-        fixed = torch.as_tensor(fixed, device=verts.device)
-        if fixed.dtype == torch.bool:
-            if fixed.shape != (n,):
-                raise ValueError(f"a boolean `fixed` mask must have shape ({n},).")
-            free_mask = ~fixed
-        else:
-            fixed = fixed.reshape(-1).long()
-            if fixed.numel() and (int(fixed.min()) < 0 or int(fixed.max()) >= n):
-                raise ValueError(f"`fixed` holds indices outside [0, {n}).")
-            free_mask[fixed] = False
+        free_mask[check_index_or_mask(fixed, n, "fixed").to(verts.device)] = False
     free = torch.nonzero(free_mask).reshape(-1)
     param = y0[free].clone().requires_grad_(True)
 

@@ -25,6 +25,7 @@ import math
 import numpy as np
 import torch
 
+from ..checks import check_index_or_mask
 from ..linalg import solve
 from ..operators import MeshFaces, get_topology, laplacian, mass
 from ..sparse import eliminate
@@ -34,19 +35,8 @@ __all__ = ["plate_bending", "navier_deflection", "plate_error"]
 
 def _boundary_mask(boundary, num_verts: int, default: torch.Tensor, device) -> torch.Tensor:
     mask = torch.zeros(num_verts, dtype=torch.bool, device=device)
-    if boundary is None:
-        return mask.index_fill(0, default.to(device), True)
-    boundary = torch.as_tensor(boundary, device=device)
-    if boundary.dtype == torch.bool:
-        if boundary.shape != (num_verts,):
-            raise ValueError(
-                f"a bool `boundary` mask needs shape ({num_verts},), got {tuple(boundary.shape)}."
-            )
-        return boundary
-    boundary = boundary.reshape(-1).long()
-    if boundary.numel() and (int(boundary.min()) < 0 or int(boundary.max()) >= num_verts):
-        raise ValueError(f"`boundary` holds vertex indices outside 0..{num_verts - 1}.")
-    return mask.index_fill(0, boundary, True)
+    index = default if boundary is None else check_index_or_mask(boundary, num_verts, "boundary")
+    return mask.index_fill(0, index.to(device), True)
 
 
 def plate_bending(
@@ -69,8 +59,9 @@ def plate_bending(
         lam: the Laplacian's ``lambda`` (AW11 eq. 9). ``lambda = 0`` has spurious zero-energy
             modes on meshes with faces of degree > 3 (AW11 sec. 5.4); the solve then fails
             with a ValueError or gives a meaningless deflection.
-        boundary: supported vertices (indices or a ``(V,)`` bool mask); default: the mesh
-            boundary. Every connected component needs at least one.
+        boundary: supported vertices (indices, each once, or a ``(V,)`` bool mask); default:
+            the mesh boundary (defined on any mesh, non-manifold or non-orientable ones
+            included). Every connected component needs at least one.
 
     Returns:
         ``(V,)`` deflection ``u`` (positive along the load), zero on the support; dtype and
