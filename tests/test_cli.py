@@ -115,11 +115,34 @@ def test_info_on_a_file_with_options(capsys, one_thread):
     assert field(out, "vertices / faces / edges").startswith("52 / 16 /")
 
 
+def test_info_reports_topology_defects(capsys, one_thread):
+    """A Moebius band is not an error: L and M0 are defined; info lists what it found."""
+    assert main(["info", str(DATA / "moebius.obj"), "--eigs", "2"]) == 0
+    captured = capsys.readouterr()
+    out = captured.out
+    assert field(out, "manifold / oriented / orientable") == "yes / no / no"
+    defects = [line for line in out.splitlines() if "topology defect" in line]
+    assert len(defects) == 2
+    assert "inconsistent orientation (first: [[77, 102]" in defects[0]
+    assert "1 non-orientable component(s)" in defects[1]
+    assert "genus" not in out and "orient_faces" in out
+    assert "zero eigenvalues / components" in out
+    assert "not a consistently oriented" not in captured.err  # listed, not warned
+    assert main(["info", str(DATA / "dodecahedron_poly.obj"), "--eigs", "2"]) == 0
+    out = capsys.readouterr().out
+    assert field(out, "manifold / oriented / orientable") == "yes / yes / yes"
+    assert "topology defect" not in out and field(out, "genus (closed, orientable)") == "0"
+
+
+def test_smooth_runs_on_a_moebius_band_without_a_volume_row(tmp_path, capsys, one_thread):
+    argv = ["smooth", str(DATA / "moebius.obj"), "--steps", "2", "--no-plot", "--no-progress"]
+    assert main([*argv, "-o", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "total area before / after" in out and "enclosed volume" not in out
+    assert (tmp_path / "moebius_smooth.obj").is_file()
+
+
 def test_bad_files_give_one_line_errors(tmp_path, capsys, one_thread):
-    assert main(["info", str(DATA / "moebius.obj")]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("polylap: error: faces ") and "not consistently oriented" in err
-    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert main(["info", str(tmp_path / "nope.obj")]) == 2
     assert "No such file" in capsys.readouterr().err
     broken = tmp_path / "broken.off"
@@ -309,7 +332,11 @@ def test_argument_and_input_errors_are_one_line(tmp_path, capsys, one_thread):
     errors = [
         (["param", str(DEFAULT_MESH)], "no boundary"),  # a closed mesh cannot be flattened
         (["spectrum", "-k", "500"], "too large"),
-        (["smooth", str(DATA / "moebius.obj")], "not consistently oriented"),
+        (
+            ["smooth", str(DATA / "moebius.obj"), "--normalize", "volume", "--no-plot"],
+            "normalize='volume' needs an oriented mesh, but 1 of its components cannot be oriented",
+        ),
+        (["param", str(DATA / "moebius.obj"), "--no-plot"], "cannot be oriented"),
         (["param", "--pins", "0", "1", "--free-boundary"], "exclude each other"),
         (["--threads", "0", "info"], "--threads"),
     ]

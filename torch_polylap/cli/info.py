@@ -1,4 +1,5 @@
-"""``polylap info [MESH]``: mesh statistics, properties of ``L`` and ``M0``, assembly timings."""
+"""``polylap info [MESH]``: mesh statistics, topology defects, properties of ``L`` and ``M0``,
+assembly timings."""
 
 from __future__ import annotations
 
@@ -55,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
     path = Path(args.mesh) if args.mesh else DEFAULT_MESH
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     verts, faces = read_mesh_quietly(path, not args.mesh, dtype=dtype, device=args.device)
-    t_topo, topo = timed(lambda: build_topology(faces, verts.shape[0]), repeat=1)
+    # no warning: the table lists what the topology found (Topology.report)
+    t_topo, topo = timed(lambda: build_topology(faces, verts.shape[0], warn=False), repeat=1)
     t_first = t_topo + timed(lambda: laplacian(verts, topo, args.lam), repeat=1)[0]
     t_values, (L, M0) = timed(lambda: laplacian(verts, topo, args.lam))
 
@@ -73,9 +75,9 @@ def run(args: argparse.Namespace) -> int:
     n_comp, _ = scipy.sparse.csgraph.connected_components(Ls, directed=False)
     n_comp -= int(topo.isolated.sum())  # isolated vertices count as components of their own
     chi = topo.euler_characteristic()
-    nonplanar = face_nonplanarity(verts, faces)
+    nonplanar = face_nonplanarity(verts, topo)
     polys = nonplanar[faces.sizes.to(nonplanar.device) > 3]
-    areas = face_areas(verts, faces)
+    areas = face_areas(verts, topo)
     scale = abs(Ls).max()
     asym = abs(Ls - Ls.T).max() / scale
     rowsum = np.abs(np.asarray(Ls.sum(1))).max() / scale
@@ -92,8 +94,27 @@ def run(args: argparse.Namespace) -> int:
         row("connected components", str(n_comp)),
         row("Euler characteristic", str(chi)),
     ]
-    if n_boundary == 0 and n_comp == 1:
+    report = topo.report
+    orientable = report.non_orientable_components == 0
+    lines.append(
+        row(
+            "manifold / oriented / orientable",
+            " / ".join(
+                "yes" if ok else "no" for ok in (report.is_manifold, report.is_oriented, orientable)
+            ),
+        )
+    )
+    if n_boundary == 0 and n_comp == 1 and report.is_manifold and orientable:
         lines.append(row("genus (closed, orientable)", str((2 - chi) // 2)))
+    defects = report.lines(verts.shape[0])
+    lines += [row("topology defect", line) for line in defects]
+    if defects:
+        lines.append(
+            row(
+                "repairs (L and M0 need none)",
+                "torch_polylap.repair: orient_faces, remove_duplicate_faces, ...",
+            )
+        )
     if polys.numel():
         lines.append(
             row(

@@ -51,7 +51,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--normalize",
         choices=("none", "area", "volume"),
         default="none",
-        help="rescale after each step to keep the total area or enclosed volume (default none)",
+        help="rescale after each step to keep the total area or enclosed volume (default none; "
+        "volume needs a closed, consistently oriented mesh)",
     )
     add_output_arguments(p)
     p.set_defaults(func=run, compute=compute)
@@ -66,7 +67,7 @@ def scaled_mean_curvature(verts: torch.Tensor, faces, lam: float) -> torch.Tenso
 
 
 def compute(args: argparse.Namespace) -> Result:
-    from ..apps.flow import enclosed_volume, mean_curvature_flow
+    from ..apps.flow import _require_closed_oriented, enclosed_volume, mean_curvature_flow
 
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
@@ -88,7 +89,11 @@ def compute(args: argparse.Namespace) -> Result:
     mesh_out = result_path(out, path, "smooth")
     write_mesh(mesh_out, smoothed, faces)
 
-    closed = topo.boundary_edges.numel() == 0
+    try:  # the volume row only where a volume is defined: closed and consistently oriented
+        _require_closed_oriented(topo, "enclosed volume")
+        has_volume = True
+    except ValueError:
+        has_volume = False
     h_before = scaled_mean_curvature(verts, topo, args.lam)
     h_after = scaled_mean_curvature(smoothed, topo, args.lam)
     interior = torch.ones(verts.shape[0], dtype=torch.bool)
@@ -108,7 +113,7 @@ def compute(args: argparse.Namespace) -> Result:
             f"{float(face_areas(smoothed, topo).sum()):.5g}",
         ),
     ]
-    if closed:
+    if has_volume:
         rows.append(
             (
                 "enclosed volume before / after",
