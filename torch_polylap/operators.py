@@ -31,6 +31,7 @@ from .geometry import (
     quad_entries,
     stable_norm,
 )
+from .methods import assemble_method, check_method
 from .sparse import SparseOperator, diag, operator_from_parts
 from .topology import DegreeGroup, Topology, build_topology, get_topology, half_edge_vertices
 
@@ -177,6 +178,7 @@ def laplacian(
     *,
     layout: torch.layout = torch.sparse_csr,
     validate: bool = True,
+    method: str = "aw11",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The weak Laplacian ``L`` and lumped mass ``M0`` of a polygon mesh (AW11 eq. 3, 9, 10).
 
@@ -195,6 +197,10 @@ def laplacian(
             ``col_indices()`` and the COO ``indices()``.
         validate: check for non-finite coordinates and zero-area faces (one device sync). With
             ``False`` a zero-area face gives huge but finite entries instead of an error.
+        method: ``"aw11"`` (default, this docstring), ``"plms"`` (Bunge et al. 2020, "Polygon
+            Laplacian Made Simple": a virtual vertex per face, ``lam`` ignored) or ``"degoes"``
+            (de Goes et al. 2020, with ``lam`` their ``beta``); see :mod:`torch_polylap.methods`.
+            All three share the topology, pattern, sign and dtype/device rules.
 
     Returns:
         ``L``: ``(V, V)`` :class:`~torch_polylap.sparse.SparseOperator`, symmetric positive
@@ -211,8 +217,12 @@ def laplacian(
     check_verts(verts, finite=False)
     _check_layout(layout)
     lam = _checked_lam(lam, validate)
+    check_method(method)
     topo = get_topology(faces, verts.shape[0])
-    values, masses = _assemble(verts, topo, lam, True, True, validate)
+    if method == "aw11":
+        values, masses = _assemble(verts, topo, lam, True, True, validate)
+    else:
+        values, masses = assemble_method(verts, topo, lam, method, validate)
     return _operator(topo, values, layout), diag(masses, layout=layout)
 
 
@@ -484,6 +494,7 @@ class PolygonLaplacian(nn.Module):
         learn_lam: make ``lam`` a learnable ``nn.Parameter``.
         layout: ``torch.sparse_csr`` (default) or ``torch.sparse_coo``.
         validate: see :func:`laplacian`.
+        method: ``"aw11"`` (default), ``"plms"`` or ``"degoes"`` (see :func:`laplacian`).
 
     ``forward(verts, faces=None)``: ``verts`` ``(V, 3)``; ``faces`` in any accepted form, or
     ``None`` to reuse the faces of the previous call.  The topology is rebuilt only when the
@@ -498,9 +509,11 @@ class PolygonLaplacian(nn.Module):
         learn_lam: bool = False,
         layout: torch.layout = torch.sparse_csr,
         validate: bool = True,
+        method: str = "aw11",
     ) -> None:
         super().__init__()
         _check_layout(layout)
+        self.method = check_method(method)
         value = float(check_lam(lam))
         self.lam: float | nn.Parameter = nn.Parameter(torch.tensor(value)) if learn_lam else value
         self.layout = layout
@@ -523,8 +536,13 @@ class PolygonLaplacian(nn.Module):
         check_verts(verts, finite=False)
         topo = self._topology_for(faces, verts.shape[0])
         lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam
-        return laplacian(verts, topo, lam, layout=self.layout, validate=self.validate)
+        return laplacian(
+            verts, topo, lam, layout=self.layout, validate=self.validate, method=self.method
+        )
 
     def extra_repr(self) -> str:
         lam = float(self.lam) if isinstance(self.lam, torch.Tensor) else self.lam
-        return f"lam={lam}, layout={self.layout}, cached={self.topology is not None}"
+        return (
+            f"lam={lam}, method={self.method!r}, layout={self.layout}, "
+            f"cached={self.topology is not None}"
+        )

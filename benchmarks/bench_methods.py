@@ -1,0 +1,143 @@
+"""Benchmark the three polygon Laplacians of ``tp.laplacian(method=...)`` against libigl.
+
+For a non-planar ``n x n`` quad grid (``--grid n``, default 1000: 1M quads) and every real mesh in
+``--real-dir``, on one thread:
+
+- first assembly of ``(L, M0)`` (topology built from fresh faces) for ``aw11``, ``plms`` and
+  ``degoes``;
+- cached re-assembly (the same faces, so the topology and pattern are reused);
+- libigl's polygon ``cotmatrix(V, I, C)`` (PLMS, Bunge et al. 2020), which has no cache.
+
+Ratios are libigl's time over ours for PLMS, and each method's re-assembly over AW11's. Times are
+the median of ``--repeat`` samples after a warm-up (first assembly: one sample per repeat, each
+on a new faces tensor). Prints a Markdown table; writes JSON (``--json``, default
+``benchmarks/results/methods.json``).
+
+    python benchmarks/bench_methods.py                  # 1M-quad grid + real meshes
+    python benchmarks/bench_methods.py --grid 300 --repeat 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import cpu_model
+
+import torch_polylap as tp
+
+METHODS = ("aw11", "plms", "degoes")
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def quad_grid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(n+1)^2`` vertices on the unit square lifted by a smooth bump: ``n^2`` non-planar quads."""
+    s = np.linspace(0.0, 1.0, n + 1)
+    xs, ys = np.meshgrid(s, s, indexing="ij")
+    zs = 0.2 * np.sin(3 * xs + 0.5) * np.cos(2 * ys - 0.3)
+    verts = torch.from_numpy(np.stack([xs.ravel(), ys.ravel(), zs.ravel()], 1))
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    faces = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    return verts, torch.from_numpy(faces)
+
+
+def _median(fn, repeat: int) -> float:
+    fn()  # warm-up
+    samples = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        samples.append(time.perf_counter() - t0)
+    return statistics.median(samples)
+
+
+def _fresh(faces: tp.PolygonFaces) -> tp.PolygonFaces:
+    """A new faces object (the topology cache is keyed on it): a first assembly."""
+    return tp.PolygonFaces(faces.indices.clone(), offsets=faces.offsets.clone())
+
+
+def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
+    packed = (
+        faces
+        if isinstance(faces, tp.PolygonFaces)
+        else tp.PolygonFaces(faces.reshape(-1), sizes=torch.full((faces.shape[0],), faces.shape[1]))
+    )
+    row = {"mesh": name, "verts": int(verts.shape[0]), "faces": int(packed.sizes.numel())}
+    for method in METHODS:
+        row[f"{method}_first"] = _median(
+            lambda m=method: tp.laplacian(verts, _fresh(packed), method=m), repeat
+        )
+        topo = tp.get_topology(packed, verts.shape[0])
+        row[f"{method}_cached"] = _median(
+            lambda m=method, t=topo: tp.laplacian(verts, t, method=m), repeat
+        )
+    try:
+        import igl
+
+        idx = packed.indices.numpy().astype(np.int64)
+        off = packed.offsets.numpy().astype(np.int64)
+        vn = verts.numpy()
+        row["igl_plms"] = _median(lambda: igl.cotmatrix(vn, idx, off), repeat)
+    except ImportError:
+        row["igl_plms"] = None
+    return row
+
+
+def table(rows: list[dict]) -> str:
+    head = (
+        "| mesh | faces | AW11 first / cached | PLMS first / cached | dGBD20 first / cached "
+        "| libigl PLMS | libigl / our PLMS first | PLMS / AW11 cached | dGBD20 / AW11 cached |"
+    )
+    out = [head, "|" + "---|" * 9]
+    for r in rows:
+        igl_t = r["igl_plms"]
+        cells = [
+            r["mesh"],
+            f"{r['faces']:,}",
+            *(f"{r[f'{m}_first']:.4g} / {r[f'{m}_cached']:.4g} s" for m in METHODS),
+            f"{igl_t:.4g} s" if igl_t else "-",
+            f"{igl_t / r['plms_first']:.1f}x" if igl_t else "-",
+            f"{r['plms_cached'] / r['aw11_cached']:.2f}",
+            f"{r['degoes_cached'] / r['aw11_cached']:.2f}",
+        ]
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--grid", type=int, default=1000, help="n of the n x n quad grid")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--real-dir", type=Path, default=ROOT.parent / "shared/data/meshes/real")
+    parser.add_argument("--json", type=Path, default=ROOT / "benchmarks/results/methods.json")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    rows = []
+    verts, faces = quad_grid(args.grid)
+    print(f"grid {args.grid}x{args.grid}", file=sys.stderr)
+    rows.append(bench_mesh(f"quad grid {args.grid}^2", verts, faces, args.repeat))
+    if args.real_dir.exists():
+        for path in sorted(args.real_dir.iterdir()):
+            if path.suffix not in (".obj", ".off", ".ply"):
+                continue
+            print(path.name, file=sys.stderr)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # skipped OBJ records, Moebius orientation
+                v, f = tp.read_mesh(path)
+                rows.append(bench_mesh(path.name, v, f, args.repeat))
+    print(f"CPU: {cpu_model()}, torch {torch.__version__}, 1 thread, median of {args.repeat}\n")
+    print(table(rows))
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"cpu": cpu_model(), "torch": torch.__version__, "threads": 1, "repeat": args.repeat}
+    args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
