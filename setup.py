@@ -23,6 +23,7 @@ setup(
         # matplotlib: the figures the command line and the examples write
         # cholespy: CHOLMOD's supernodal Cholesky, the fast factorization behind eigs
         # hypothesis: the property-based tests of the mesh readers and writers
+        # adobe-lagrange: de Goes et al. 2020's operators (polyddg), the dGBD20 reference (wheel)
         "test": [
             "pytest>=7",
             "ruff>=0.4",
@@ -30,6 +31,7 @@ setup(
             "matplotlib>=3.5",
             "cholespy>=2.0",
             "hypothesis>=6",
+            "adobe-lagrange>=6.49",
         ],
         "cholmod": ["cholespy>=2.0"],
         "plot": ["matplotlib>=3.5"],
