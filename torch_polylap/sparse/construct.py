@@ -206,7 +206,7 @@ def _diagonal_pattern(n: int, device: torch.device) -> SparsityPattern:
     key = (n, torch.device(device))
     pattern = _DIAGONALS.get(key)
     if pattern is None:
-        if len(_DIAGONALS) > 64:
+        if len(_DIAGONALS) >= 16:
             _DIAGONALS.clear()
         pattern = SparsityPattern.diagonal_of(n, device)
         _DIAGONALS[key] = pattern
