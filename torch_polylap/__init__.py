@@ -16,6 +16,13 @@ from .apps import (
     plate_bending,
 )
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
+from .calculus import (
+    HeatGeodesicSolver,
+    divergence,
+    face_gradient,
+    gradient_operator,
+    heat_geodesic_distance,
+)
 from .datasets import PolygonMeshDataset, collate_meshes
 from .faces import PolygonFaces, as_faces
 from .fitting import chamfer_distance, mesh_quality, nearest_neighbors, sample_points
@@ -138,4 +145,9 @@ __all__ = [
     "datasets",
     "PolygonMeshDataset",
     "collate_meshes",
+    "face_gradient",
+    "gradient_operator",
+    "divergence",
+    "HeatGeodesicSolver",
+    "heat_geodesic_distance",
 ]
