@@ -230,11 +230,11 @@ def test_dirichlet_solve_refuses_bad_fixed_rows():
     V, F = quad_grid(3)
     L, _ = tp.laplacian(V, F)
     b = torch.zeros(V.shape[0], **D64)
-    with pytest.raises(ValueError, match=r"fixed\[1\] = 99 is not a row"):
+    with pytest.raises(ValueError, match=r"fixed\[1\] = 99 is out of range"):
         tp.dirichlet_solve(L, b, torch.tensor([0, 99]), torch.zeros(2, **D64))
-    with pytest.raises(ValueError, match="more than once"):
+    with pytest.raises(ValueError, match="repeats an earlier index"):
         tp.dirichlet_solve(L, b, torch.tensor([0, 0]), torch.zeros(2, **D64))
-    with pytest.raises(ValueError, match="vertex indices or a boolean mask"):
+    with pytest.raises(TypeError, match="integer indices or be a boolean mask"):
         tp.dirichlet_solve(L, b, torch.tensor([0.5]), torch.zeros(1, **D64))
     with pytest.raises(ValueError, match="do not fit"):
         tp.dirichlet_solve(L, b, torch.tensor([0, 1]), torch.zeros(3, **D64))

@@ -21,6 +21,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from .checks import check_index_or_mask
 from .lanczos import block_lanczos
 from .sparse import (
     SparseOperator,
@@ -389,31 +390,10 @@ def _fixed_rows(
     fixed: torch.Tensor, n: int, device: torch.device
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(indices (m,), mask (n,))`` of the prescribed rows, from indices or a boolean mask."""
-    fixed = torch.as_tensor(fixed, device=device)
-    if fixed.dtype == torch.bool:
-        if fixed.shape != (n,):
-            raise ValueError(
-                f"dirichlet_solve: a boolean `fixed` mask needs shape ({n},), got "
-                f"{tuple(fixed.shape)}."
-            )
-        return torch.nonzero(fixed).reshape(-1), fixed
-    if fixed.is_floating_point() or fixed.is_complex() or fixed.dim() > 1:
-        raise ValueError(
-            "dirichlet_solve: `fixed` must be a 1-D tensor of vertex indices or a boolean mask, "
-            f"got dtype {fixed.dtype} and shape {tuple(fixed.shape)}."
-        )
-    fixed = fixed.reshape(-1).to(torch.int64)
-    bad = (fixed < 0) | (fixed >= n)
-    if bool(bad.any()):
-        i = int(torch.nonzero(bad)[0, 0])
-        raise ValueError(
-            f"dirichlet_solve: fixed[{i}] = {int(fixed[i])} is not a row of the {n} x {n} matrix."
-        )
+    indices = check_index_or_mask(fixed, n, "fixed").to(device)
     is_fixed = torch.zeros(n, dtype=torch.bool, device=device)
-    is_fixed[fixed] = True
-    if int(is_fixed.sum()) != fixed.numel():
-        raise ValueError("dirichlet_solve: `fixed` lists a vertex more than once.")
-    return fixed, is_fixed
+    is_fixed[indices] = True
+    return indices, is_fixed
 
 
 class _Eigenvalues(torch.autograd.Function):

@@ -28,26 +28,6 @@ from .construct import (
 from .operator import SparseOperator, UnsupportedOperation, is_operator
 from .pattern import SparsityPattern
 
-__all__ = [
-    "SparseOperator",
-    "SparsityPattern",
-    "UnsupportedOperation",
-    "as_operator",
-    "block_diag",
-    "diag",
-    "eliminate",
-    "from_coo",
-    "from_scipy",
-    "identity",
-    "is_operator",
-    "mark_symmetric",
-    "operator_from_parts",
-    "pattern_of",
-    "sampled_gradient",
-    "solver_cache",
-    "sparse_values",
-    "spmm",
-    "submatrix",
-    "to_scipy",
-    "to_torch_sparse",
-]
+from . import construct, operator, pattern
+
+__all__ = [*construct.__all__, *operator.__all__, *pattern.__all__]
