@@ -6,6 +6,7 @@ plumbing -- patterns, unions, transposes, sampled products, block diagonals, sub
 per-operator solver cache, scipy conversion -- lives in this package and nowhere else.
 """
 
+from . import construct, operator, pattern
 from .construct import (
     as_operator,
     block_diag,
@@ -27,7 +28,5 @@ from .construct import (
 )
 from .operator import SparseOperator, UnsupportedOperation, is_operator
 from .pattern import SparsityPattern
-
-from . import construct, operator, pattern
 
 __all__ = [*construct.__all__, *operator.__all__, *pattern.__all__]
