@@ -7,26 +7,8 @@ per-operator solver cache, scipy conversion -- lives in this package and nowhere
 """
 
 from . import construct, operator, pattern
-from .construct import (
-    as_operator,
-    block_diag,
-    diag,
-    eliminate,
-    from_coo,
-    from_scipy,
-    identity,
-    mark_symmetric,
-    operator_from_parts,
-    pattern_of,
-    sampled_gradient,
-    solver_cache,
-    sparse_values,
-    spmm,
-    submatrix,
-    to_scipy,
-    to_torch_sparse,
-)
-from .operator import SparseOperator, UnsupportedOperation, is_operator
-from .pattern import SparsityPattern
+from .construct import *  # noqa: F403  (the names are listed once, in each module's __all__)
+from .operator import *  # noqa: F403
+from .pattern import *  # noqa: F403
 
 __all__ = [*construct.__all__, *operator.__all__, *pattern.__all__]
