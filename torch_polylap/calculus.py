@@ -7,13 +7,15 @@ so
 
     grad_f u = (1 / |f|) n_f x (B_f^T d u) = sum_i u_i (g_i x a_f) / |a_f|^2        (1)
 
-with ``a_f`` the vector area (AW11 Lemma 1, eq. 8) and ``n_f = a_f / |a_f|``.  For a linear
-``u(x) = w . x + c`` the sum ``sum_i (w . x_i) g_i`` equals ``a_f x w`` (the antisymmetric
-``1/2 sum_i x_{i+1} x_i^T - x_i x_{i+1}^T`` is ``[a_f]_x``; Lemma 4's identity behind the
-geometric part of ``M_f``), so (1) returns ``(n_f x w) x n_f``: exactly the part of ``w`` tangent
-to the maximal projection plane, for every polygon, planar or not.  On a triangle the
-coefficient ``(g_i x a_f) / |a_f|^2 = n_f x (x_{i-1} - x_{i+1}) / (2 A)`` is the gradient of the
-linear hat function, and on a planar face ``|f| |grad_f u|^2 = u^T G G^T u / |f|``, the
+with ``a_f`` the vector area and ``n_f = a_f / |a_f|``.  For a linear ``u(x) = w . x + c``,
+``d u = E_f w`` and AW11 Lemma 1 (``A_f = E_f^T B_f`` is skew-symmetric with Darboux vector
+``a_f``, eq. 8) give ``B_f^T d u = A_f^T w = w x a_f``, so (1) returns
+``n_f x (w x n_f) = w - (w . n_f) n_f``: exactly the part of ``w`` tangent to the maximal
+projection plane, for every polygon, planar or not.  The rotated midpoints ``n_f x b_i`` are
+the dual edges of the proof of AW11 Lemma 4 (linear precision of ``B_f B_f^T / |f|``).  On a
+triangle the coefficient ``(g_i x a_f) / |a_f|^2 = n_f x (x_{i-1} - x_{i+1}) / (2 A)`` is the
+gradient of the linear hat function, and on a planar face
+``|f| |grad_f u|^2 = u^T G G^T u / |f|``, the
 geometric part of ``L_f`` (AW11 eq. 9).
 
 The heat method (Crane, Weischedel and Wardetzky 2013, "Geodesics in Heat", Algorithm 1) uses
@@ -31,7 +33,7 @@ from .checks import check_index_or_mask, check_verts
 from .faces import FacesLike
 from .geometry import corner_terms, gather_corners, stable_norm
 from .linalg import solve
-from .operators import Lam, laplacian
+from .operators import Lam, laplacian, vector_area
 from .sparse import SparseOperator, diag, from_coo
 from .topology import DegreeGroup, Topology, get_topology
 
@@ -46,15 +48,17 @@ __all__ = [
 MeshFaces = FacesLike | Topology
 
 # Default heat time t = T_FACTOR * h^2 (h the mean edge length; Crane et al. use factor 1) and
-# default stabilizer weight of the Poisson step.  Measured (mean relative error from one source,
-# heat lam = 1) on the sphere hex/quad/Voronoi/concave families at levels 3 and 4 and the planar
-# grids at levels 4 and 5: with factor 1 the concave grids fail (0.35 at level 4, 0.47 at level 5,
-# the boundary's Neumann condition bends the heat's level sets) and the quad and Voronoi spheres
-# stay near 4-8% at level 3; factor 4 brings every family below 2% with the Poisson weight 0.1
-# (factor 8 gains at most a third more and smooths more).  The Poisson weight matters more: the
-# stabilizer ``lambda d^T Pi d`` penalizes the non-linear part of phi on each face, which the
-# least-squares fit of grad phi to X never asks for; 1.0 doubles to quadruples the error of 0.1
-# (hex sphere level 4: 0.020 vs 0.0037), while 0.05 gains little and weakens the conditioning.
+# default stabilizer weight of the Poisson step, from the mean relative error from one source
+# (heat lam = 1) on the sphere hex/quad/Voronoi/concave families at levels 3 and 4 and on the
+# planar quad/Voronoi/concave grids at levels 4 and 5:
+# - factor 1 fails on the concave grids (0.35 at level 4, 0.47 at level 5, whatever the Poisson
+#   weight; potpourri3d's polygon heat solver at t = h^2 fails there too);
+# - factor 4 with Poisson weight 0.1 brings all these cases below 2%; factor 8 gains at most a
+#   third more and smooths more;
+# - the Poisson weight matters most: the stabilizer lambda d^T Pi d penalizes the non-linear
+#   part of phi on each face, which the least-squares fit of grad phi to X never asks for.
+#   Weight 1 doubles to quadruples the error of 0.1 (hex sphere level 4: 0.020 vs 0.0037);
+#   0.05 gains little and weakens the conditioning.
 T_FACTOR = 4.0
 POISSON_LAM = 0.1
 
@@ -130,8 +134,9 @@ def gradient_operator(verts: torch.Tensor, faces: MeshFaces) -> SparseOperator:
 def divergence(verts: torch.Tensor, faces: MeshFaces, field: torch.Tensor) -> torch.Tensor:
     """Integrated divergence ``div X = -G^T A_F X`` of a face vector field (``A_F`` the face
     areas repeated per component): the negative adjoint of :func:`face_gradient`,
-    ``sum_f |f| <X_f, grad_f u> = -<div X, u>`` for every ``u`` (Crane et al. 2013, eq. in
-    Algorithm 1, step III, on triangles).
+    ``sum_f |f| <X_f, grad_f u> = -<div X, u>`` for every ``u``.  On triangles it is the
+    cotangent divergence of Crane et al. 2013, with their sign (``L_C phi = div X`` there is
+    ``L phi = -div X`` here, ``L = -L_C``).
 
     Args:
         field: ``(F, 3)`` or ``(F, 3, C)``.
@@ -221,11 +226,17 @@ class HeatGeodesicSolver:
         elif not bool(torch.as_tensor(t) > 0):
             raise ValueError(f"HeatGeodesicSolver: t must be a positive heat time, got {t}.")
         self.t = t
-        self.mass = M0.diagonal()
+        self.mass = M0.diagonal().double()
         self.heat_operator = (M0 + t * L).double()
         self.poisson_operator = L_poisson + self._pin(L_poisson)
-        _, self.labels = self.topology.connected_components()
-        self.labels = self.labels.to(verts.device)
+        # G (3F x V) and G^T A_F (V x 3F) built once: a query is then two cached solves and
+        # two sparse products, with no per-face geometry recomputed.
+        G = gradient_operator(verts, self.topology)
+        area = stable_norm(vector_area(verts, self.topology), 1).repeat_interleave(3)
+        self.gradient = G.double()
+        self.flux = G.T * area[None, :]  # -div
+        self.num_components, labels = self.topology.connected_components()
+        self.labels = labels.to(verts.device)
 
     def _pin(self, L: SparseOperator) -> SparseOperator:
         """``c sum_p e_p e_p^T`` over the first vertex of every connected component."""
@@ -255,12 +266,12 @@ class HeatGeodesicSolver:
 
     def heat(self, indicator: torch.Tensor) -> torch.Tensor:
         """``(V, Q)`` float64 heat ``u = (M0 + t L)^{-1} M0 delta`` (step 1)."""
-        rhs = self.mass.double()[:, None] * indicator.double()
+        rhs = self.mass[:, None] * indicator.double()
         return solve(self.heat_operator, rhs)
 
     def normalized_field(self, u: torch.Tensor) -> torch.Tensor:
         """``(F, 3, Q)`` unit field ``X = -grad u / |grad u|`` (step 2), in ``verts``' dtype."""
-        grad = face_gradient(self.verts.double(), self.topology, u)
+        grad = (self.gradient @ u).view(-1, 3, u.shape[1])
         norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
         # Faces where the heat is exactly constant (none on a connected mesh in float64) get 0.
         unit = -grad / norm.clamp_min(torch.finfo(grad.dtype).tiny)
@@ -268,13 +279,13 @@ class HeatGeodesicSolver:
 
     def potential(self, field: torch.Tensor) -> torch.Tensor:
         """``(V, Q)`` solution of ``L phi = -div X`` with one pinned vertex per component."""
-        rhs = -divergence(self.verts, self.topology, field)
+        rhs = self.flux @ field.reshape(-1, field.shape[2])
         return solve(self.poisson_operator, rhs)
 
     def shift_to_sources(self, phi: torch.Tensor, indicator: torch.Tensor) -> torch.Tensor:
         """Subtract from ``phi`` its mean at the sources, per component (step 4); ``inf`` on
         components without a source."""
-        count = int(self.labels.max()) + 1 if self.labels.numel() else 0
+        count = self.num_components
         sums = phi.new_zeros(count, phi.shape[1]).index_add(0, self.labels, phi * indicator)
         hits = phi.new_zeros(count, phi.shape[1]).index_add(0, self.labels, indicator)
         reached = hits[self.labels] > 0
