@@ -1,8 +1,9 @@
-"""Assembly of the alternative polygon Laplacians selected by ``tp.laplacian(method=...)``.
+"""The per-face block kernels of the polygon Laplacians selected by ``tp.laplacian(method=...)``.
 
-``"aw11"`` (Alexa and Wardetzky 2011) is assembled in :mod:`torch_polylap.operators`. The others
-are evaluated here, per degree group, by their per-face kernels and scattered onto the same
-cached CSR pattern with the same scatter maps (``chunk.pos_upper/pos_lower/pos_diag``):
+All methods share one assembly (:func:`torch_polylap.operators.laplacian`): a kernel evaluates
+the blocks of a chunk of faces of one degree, and the assembly scatters them onto the topology's
+cached CSR pattern with its scatter maps.  ``"aw11"`` (Alexa and Wardetzky 2011) has its kernel
+in :mod:`torch_polylap.operators`; the others are here:
 
 - ``"plms"``: Bunge, Herholz, Kazhdan and Botsch 2020, "Polygon Laplacian Made Simple"
   (:mod:`torch_polylap.kernels_plms`); ``lam`` is ignored (the method has no stabilizer).
@@ -15,14 +16,20 @@ diagonal is minus their row sums, as for AW11.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from .geometry import gather_corners
 from .kernels_degoes import degoes_entries
 from .kernels_plms import plms_entries
-from .topology import Topology
+from .topology import DegreeGroup
 
-__all__ = ["METHODS", "check_method", "assemble_method"]
+__all__ = ["METHODS", "BlockEntries", "BlockKernel", "check_method", "method_kernel"]
+
+# (off-diagonal entries (P, F), corner masses (k, F), areas (F,), squared sizes (F,))
+BlockEntries = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+BlockKernel = Callable[[torch.Tensor, DegreeGroup, torch.Tensor], BlockEntries]
 
 METHODS = ("aw11", "plms", "degoes")
 
@@ -34,50 +41,18 @@ def check_method(method: object) -> str:
     return method
 
 
-def assemble_method(
-    verts: torch.Tensor,
-    topo: Topology,
-    lam: float | torch.Tensor,
-    method: str,
-    validate: bool,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """CSR values ``(nnz,)`` of ``L`` and ``(V,)`` lumped masses for ``method`` ``"plms"`` or
-    ``"degoes"``, on ``topo``'s cached pattern.
+def method_kernel(method: str, lam: float | torch.Tensor) -> BlockKernel:
+    """The per-chunk block kernel of ``method`` (``"plms"`` or ``"degoes"``) for the shared
+    assembly in :mod:`torch_polylap.operators`: ``(verts_t (3, V), group, corners_t (k, F))`` to
+    off-diagonal entries ``(P, F)``, corner masses ``(k, F)``, areas ``(F,)`` and squared sizes
+    ``(F,)`` (against which a zero area is judged)."""
 
-    Raises:
-        ValueError: non-finite coordinates or a zero-area face (with ``validate``), with the
-            same message as AW11 assembly.
-    """
-    groups, _, _ = topo.on(verts.device)
-    verts_t = verts.t().contiguous()
-    values = verts.new_zeros(topo.nnz)
-    masses = verts.new_zeros(topo.num_verts)
-    eps = torch.finfo(verts.dtype).eps
-    degenerate = []
-    for grp in groups:
-        for chunk in grp.chunks:
-            x = gather_corners(verts_t, chunk.corners_t)
-            if method == "plms":
-                off, mass, area, size2 = plms_entries(x, grp.pair_i, grp.pair_j)
-            else:
-                off, area, size2 = degoes_entries(x, grp.pair_i, grp.pair_j, lam)
-                mass = (area / grp.k).expand(grp.k, -1)
-            flat = off.reshape(-1)
-            values.index_add_(0, chunk.pos_upper, flat)
-            values.index_add_(0, chunk.pos_lower, flat)
-            sums = off.new_zeros(grp.k, off.shape[1])
-            sums.index_add_(0, grp.pair_i, off).index_add_(0, grp.pair_j, off)
-            values.index_add_(0, chunk.pos_diag, sums.reshape(-1), alpha=-1)
-            masses.index_add_(0, chunk.corners_t.reshape(-1), mass.reshape(-1))
-            if validate:
-                degenerate.append((area <= eps * size2).any())
-    if validate:
-        ok = torch.isfinite(verts).all()
-        if degenerate:
-            ok = ok & ~torch.stack(degenerate).any()
-        if not bool(ok):
-            # imported here: operators imports this module at load time
-            from .operators import _raise_bad_input
+    def kernel(verts_t: torch.Tensor, grp: DegreeGroup, corners_t: torch.Tensor) -> BlockEntries:
+        x = gather_corners(verts_t, corners_t)
+        if method == "plms":
+            off, corner_mass, area, size2 = plms_entries(x, grp.pair_i, grp.pair_j)
+            return off, corner_mass, area, size2
+        off, area, size2 = degoes_entries(x, grp.pair_i, grp.pair_j, lam)
+        return off, (area / grp.k).expand(grp.k, -1), area, size2
 
-            _raise_bad_input(verts, topo)
-    return values, masses
+    return kernel

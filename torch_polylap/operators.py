@@ -31,7 +31,7 @@ from .geometry import (
     quad_entries,
     stable_norm,
 )
-from .methods import assemble_method, check_method
+from .methods import BlockEntries, BlockKernel, check_method, method_kernel
 from .sparse import SparseOperator, diag, operator_from_parts
 from .topology import DegreeGroup, Topology, build_topology, get_topology, half_edge_vertices
 
@@ -114,15 +114,29 @@ def _raise_bad_input(verts: torch.Tensor, topo: Topology) -> None:
             )
 
 
+def _aw11_kernel(lam: Lam, geometric: bool) -> BlockKernel:
+    """AW11's per-face blocks (quads in closed form) and lumped masses ``|f| / k`` (eq. 10)."""
+
+    def kernel(verts_t: torch.Tensor, grp: DegreeGroup, corners_t: torch.Tensor) -> BlockEntries:
+        if grp.k == 4:
+            off, area, size2 = quad_entries(gather_coordinates(verts_t, corners_t), lam, geometric)
+        else:
+            x = gather_corners(verts_t, corners_t)
+            off, area, size2 = _block_entries(x, grp, lam, geometric)
+        return off, (area / grp.k).expand(grp.k, -1), area, size2
+
+    return kernel
+
+
 def _assemble(
     verts: torch.Tensor,
     topo: Topology,
-    lam: Lam,
-    geometric: bool,
+    kernel: BlockKernel,
     want_mass: bool,
     validate: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """CSR values of ``L`` (or of the planarity operator) and, optionally, the lumped masses."""
+    """CSR values of ``sum_f P_f^T L_f P_f`` and, optionally, the lumped masses, from the per-face
+    blocks that ``kernel`` evaluates for each chunk of faces of one degree."""
     groups, _, _ = topo.on(verts.device)
     verts_t = verts.t().contiguous()
     values = verts.new_zeros(topo.nnz)
@@ -131,19 +145,13 @@ def _assemble(
     degenerate = []
     for grp in groups:
         for chunk in grp.chunks:
-            if grp.k == 4:
-                xyz = gather_coordinates(verts_t, chunk.corners_t)
-                off, area, size2 = quad_entries(xyz, lam, geometric)
-            else:
-                x = gather_corners(verts_t, chunk.corners_t)
-                off, area, size2 = _block_entries(x, grp, lam, geometric)
+            off, corner_mass, area, size2 = kernel(verts_t, grp, chunk.corners_t)
             flat = off.reshape(-1)
             values.index_add_(0, chunk.pos_upper, flat)
             values.index_add_(0, chunk.pos_lower, flat)
             values.index_add_(0, chunk.pos_diag, _row_sums(off, grp).reshape(-1), alpha=-1)
-            if want_mass:
-                share = (area / grp.k).expand(grp.k, -1).reshape(-1)
-                masses.index_add_(0, chunk.corners_t.reshape(-1), share)
+            if masses is not None:
+                masses.index_add_(0, chunk.corners_t.reshape(-1), corner_mass.reshape(-1))
             if validate:
                 degenerate.append((area <= eps * size2).any())
     if validate:
@@ -219,10 +227,9 @@ def laplacian(
     lam = _checked_lam(lam, validate)
     check_method(method)
     topo = get_topology(faces, verts.shape[0])
-    if method == "aw11":
-        values, masses = _assemble(verts, topo, lam, True, True, validate)
-    else:
-        values, masses = assemble_method(verts, topo, lam, method, validate)
+    kernel = _aw11_kernel(lam, True) if method == "aw11" else method_kernel(method, lam)
+    values, masses = _assemble(verts, topo, kernel, True, validate)
+    assert masses is not None
     return _operator(topo, values, layout), diag(masses, layout=layout)
 
 
@@ -257,7 +264,7 @@ def planarity_laplacian(
     check_verts(verts, finite=False)
     lam = _checked_lam(lam, validate)
     topo = get_topology(faces, verts.shape[0])
-    values, _ = _assemble(verts, topo, lam, False, False, validate)
+    values, _ = _assemble(verts, topo, _aw11_kernel(lam, False), False, validate)
     return _operator(topo, values, layout)
 
 
