@@ -78,18 +78,20 @@ def test_learnable_times_and_diffusion_gradients():
     assert torch.autograd.gradcheck(lambda u, t: tp.implicit_heat_diffusion(L, M0, u, t), (u0, t))
 
 
-def test_eigenvector_gradients_refuse_loudly():
+def test_eigenvector_gradients_reach_the_vertices():
+    """Through evecs as well as evals (formerly refused; tests/test_eigenvector_gradients.py)."""
     V, F = mixed_mesh()
+    times = torch.tensor([0.1], **D64)
+
+    def hks(X, detach):
+        evals, evecs = tp.eigs(*tp.laplacian(X, F), 4)
+        return tp.heat_kernel_signature(evals, evecs.detach() if detach else evecs, times).sum()
+
     X = V.clone().requires_grad_(True)
-    L, M0 = tp.laplacian(X, F)
-    evals, evecs = tp.eigs(L, M0, 4)
-    hks = tp.heat_kernel_signature(evals, evecs, torch.tensor([0.1], **D64))
-    with pytest.raises(RuntimeError, match="eigenvectors are not implemented.*detach"):
-        hks.sum().backward()
-    X.grad = None
-    evals, evecs = tp.eigs(*tp.laplacian(X, F), 4)
-    tp.heat_kernel_signature(evals, evecs.detach(), torch.tensor([0.1], **D64)).sum().backward()
-    assert torch.isfinite(X.grad).all()  # gradient through the eigenvalues only, by request
+    assert torch.autograd.gradcheck(lambda X: hks(X, False), (X,), eps=1e-6, atol=1e-6)
+    full = torch.autograd.grad(hks(X, False), X)[0]
+    evals_only = torch.autograd.grad(hks(X, True), X)[0]  # gradient through the eigenvalues only
+    assert torch.isfinite(evals_only).all() and not torch.allclose(full, evals_only)
 
 
 def test_cached_eigs_round_trip(tmp_path):

@@ -7,8 +7,9 @@ adjoint method: with ``G = dLoss/dX``, ``dLoss/dB = A^{-T} G`` and
 factorization is cached on ``A`` and reused by the backward solve and by later solves with the
 same values.
 
-``eigs(L, M, k)`` returns the ``k`` smallest eigenpairs of ``L phi = mu M phi``; the eigenvalues
-are differentiable (``d mu = phi^T (dL - mu dM) phi`` for simple eigenvalues).
+``eigs(L, M, k)`` returns the ``k`` smallest eigenpairs of ``L phi = mu M phi``; eigenvalues
+(``d mu = phi^T (dL - mu dM) phi``) and eigenvectors (one sparse solve with ``L - mu M`` per
+eigenpair) are differentiable for simple eigenvalues.
 """
 
 from __future__ import annotations
@@ -396,6 +397,14 @@ def _fixed_rows(
     return indices, is_fixed
 
 
+_SECOND_ORDER_MESSAGE = (
+    "torch_polylap.eigs: second derivatives of eigenvalues and eigenvectors (create_graph=True "
+    "through eigs, Hessian-vector products) are not implemented: their backward factorizes with "
+    "scipy outside autograd. Take first-order gradients only, or detach the eigenpairs in the "
+    "second-order term."
+)
+
+
 class _Eigenvalues(torch.autograd.Function):
     """Eigenvalues ``mu`` of ``L phi = mu M phi`` with the first-order perturbation gradient."""
 
@@ -408,11 +417,7 @@ class _Eigenvalues(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):
         if torch.is_grad_enabled():
-            raise RuntimeError(
-                "torch_polylap.eigs: second derivatives of eigenvalues (create_graph=True through "
-                "eigs) need eigenvector derivatives, which are not implemented. Take the gradient "
-                "of the eigenvalues without create_graph, or detach them in the second-order term."
-            )
+            raise RuntimeError(_SECOND_ORDER_MESSAGE)
         evals, evecs = ctx.saved_tensors
         grads = []
         for A, weights, needed in (
@@ -424,20 +429,164 @@ class _Eigenvalues(torch.autograd.Function):
         return grads[0], grads[1], None, None, None, None
 
 
-class _EigenvectorsWithoutGradient(torch.autograd.Function):
-    """Eigenvectors stay in the graph only to refuse a backward pass through them."""
+# A requested eigenvector has no derivative when another eigenvalue lies within this distance of
+# its own, relative to the spectral scale max_i |mu_i| of the computed eigenvalues.
+EIGENVECTOR_GAP_RTOL = 1e-8
+# Inverse-iteration steps that estimate the gap to the first eigenvalue that was not computed.
+_GAP_ITERATIONS = 4
+
+
+def _cluster_message(
+    index: int, members: list[int], evals: np.ndarray, scale: float, extra: str = ""
+) -> str:
+    values = ", ".join(f"mu_{j} = {evals[j]:.12g}" for j in members)
+    which = f"eigenvalues {members[0]}..{members[-1]}" if len(members) > 1 else "eigenvalue"
+    return (
+        f"torch_polylap.eigs: no gradient through evecs[:, {index}]: its eigenvalue is repeated "
+        f"({which} {values}{extra}; relative gap below "
+        f"{EIGENVECTOR_GAP_RTOL:g} of the spectral scale {scale:.6g}), so the eigenvector is any "
+        "M-orthonormal basis vector of the eigenspace and not a differentiable function of L and "
+        "M (a symmetric mesh, e.g. a regular grid, has exact multiplicities). Use a loss that "
+        "depends on the cluster only as a subspace: symmetric functions of its eigenvalues "
+        "(e.g. their sum; evals are differentiable) or projections with evecs.detach(); or keep "
+        "the gradient of this cluster's eigenvectors zero (use other columns only)."
+    )
+
+
+def _check_gaps(evals: np.ndarray, active: np.ndarray, scale: float) -> None:
+    """Refuse an active eigenvector whose eigenvalue has a computed neighbour within the gap."""
+    close = np.abs(np.diff(evals)) <= EIGENVECTOR_GAP_RTOL * scale  # close[j]: mu_j ~ mu_{j+1}
+    for i in active:
+        if (i > 0 and close[i - 1]) or (i + 1 < evals.size and close[i]):
+            lo, hi = i, i
+            while lo > 0 and close[lo - 1]:
+                lo -= 1
+            while hi + 1 < evals.size and close[hi]:
+                hi += 1
+            raise RuntimeError(_cluster_message(int(i), list(range(lo, hi + 1)), evals, scale))
+
+
+def _eigenvector_adjoint(
+    Ls: sp.csr_matrix,
+    Ms: sp.csr_matrix,
+    mu: float,
+    phi: np.ndarray,
+    g: np.ndarray,
+    check_next: tuple[int, np.ndarray, float] | None,
+) -> np.ndarray:
+    """The adjoint ``w`` of one eigenvector: ``(L - mu M) w = (I - M phi phi^T) g`` with
+    ``phi^T M w = 0``, by Nelson's method.
+
+    ``K = L - mu M`` is singular with kernel ``phi`` (a simple eigenvalue); deleting the row and
+    column ``p`` of ``phi``'s largest entry leaves a nonsingular matrix (a vector ``x`` with
+    ``x_p = 0`` and ``K x = c e_p`` has ``0 = phi^T K x = c phi_p``, so ``x`` is in the kernel
+    and 0). Its solution with ``x_p = 0`` satisfies row ``p`` as well, because the right-hand
+    side is orthogonal to ``phi``; projecting out ``phi`` gives ``w``. One sparse LU (SuperLU,
+    partial pivoting: ``K`` is indefinite) of the ``(n-1) x (n-1)`` matrix, then freed.
+
+    ``check_next``: ``(index, computed evals, scale)`` for the last computed eigenpair, whose
+    upper neighbour is unknown: a few steps of inverse iteration with the same factorization on
+    ``T = (I - phi phi^T M) K^+ M`` (eigenvalues ``1 / (mu_j - mu)``, ``j`` other than this one)
+    bound the distance to the nearest other eigenvalue from above, ``|mu_j - mu| <= 1 / |T x|_M``.
+    """
+    n = phi.size
+    p = int(np.abs(phi).argmax())
+    keep = np.delete(np.arange(n), p)
+    K = (Ls - mu * Ms).tocsr()
+    lu = spla.splu(sp.csc_matrix(K[keep][:, keep]))
+    Mphi = Ms @ phi
+
+    def project_solve(r: np.ndarray) -> np.ndarray:
+        x = np.zeros(n)
+        x[keep] = lu.solve(np.ascontiguousarray(r[keep]))
+        # one step of iterative refinement (the shifted matrix is nearly singular)
+        residual = r - K @ x
+        x[keep] += lu.solve(np.ascontiguousarray(residual[keep]))
+        return x - phi * (Mphi @ x)
+
+    if check_next is not None:
+        index, evals, scale = check_next
+        x = np.random.default_rng(0).standard_normal(n)
+        x -= phi * (Mphi @ x)
+        t = 0.0
+        for _ in range(_GAP_ITERATIONS):
+            x /= np.sqrt(x @ (Ms @ x))
+            y = project_solve(Ms @ x)
+            t = float(x @ (Ms @ y))  # Rayleigh quotient of T: about 1 / (mu_j - mu)
+            norm = float(np.sqrt(y @ (Ms @ y)))
+            x = y
+        if 1.0 <= EIGENVECTOR_GAP_RTOL * scale * norm:
+            estimate = mu + 1.0 / t if t != 0 else mu
+            raise RuntimeError(
+                _cluster_message(
+                    index,
+                    [index],
+                    evals,
+                    scale,
+                    f", and the next eigenvalue, which was not computed, near {estimate:.12g}",
+                )
+            )
+    return project_solve(g - Mphi * (phi @ g))
+
+
+class _Eigenvectors(torch.autograd.Function):
+    """Eigenvectors of ``L phi = mu M phi`` (``M``-orthonormal, sign fixed) with the adjoint
+    gradient of simple eigenpairs (see :func:`eigs`)."""
 
     @staticmethod
-    def forward(ctx, l_values, m_values, evecs):
+    def forward(ctx, l_values, m_values, evals, evecs, held_l, held_m):
+        ctx.save_for_backward(evals, evecs)
+        ctx.operators = (held_l.A, held_m.A)
         return evecs.clone()
 
     @staticmethod
-    def backward(ctx, g):
-        raise RuntimeError(
-            "torch_polylap.eigs: gradients through eigenvectors are not implemented (they need "
-            "the full spectrum or a solve per eigenpair). Use evecs.detach() to treat them as "
-            "constants, or build the loss from the eigenvalues, which are differentiable."
-        )
+    def backward(ctx, G):
+        if torch.is_grad_enabled():
+            raise RuntimeError(_SECOND_ORDER_MESSAGE)
+        need_l, need_m = ctx.needs_input_grad[:2]
+        if not (need_l or need_m):
+            return None, None, None, None, None, None
+        evals_t, evecs_t = ctx.saved_tensors
+        L, M = ctx.operators
+        evals = evals_t.detach().cpu().double().numpy()
+        Phi = evecs_t.detach().cpu().double().numpy()
+        Gn = G.detach().cpu().double().numpy()
+        k = evals.size
+        active = np.flatnonzero(np.any(Gn != 0, axis=0))
+        scale = max(float(np.abs(evals).max()), np.finfo(float).tiny)
+        _check_gaps(evals, active, scale)
+        Ls = to_scipy(L).astype(np.float64)
+        Ms = to_scipy(M).astype(np.float64)
+        W = np.zeros_like(Phi)
+        for i in active:
+            check_next = (int(i), evals, scale) if i == k - 1 else None
+            try:
+                W[:, i] = _eigenvector_adjoint(Ls, Ms, evals[i], Phi[:, i], Gn[:, i], check_next)
+            except RuntimeError as error:
+                if "torch_polylap" in str(error):
+                    raise
+                raise RuntimeError(
+                    _cluster_message(int(i), [int(i)], evals, scale, f" (SuperLU: {error})")
+                ) from error
+        # phi_i^T g_i: the normalization phi^T M phi = 1 moves phi along itself
+        along = np.einsum("ik,ik->k", Phi, Gn)
+        Wt = torch.from_numpy(W).to(evecs_t)
+        mu = evals_t.detach()
+        Phi_t = evecs_t.detach()
+        grad_l = grad_m = None
+        # symmetrized (the gradient within symmetric matrices): (w phi^T + phi w^T) / 2
+        if need_l:
+            grad_l = -0.5 * sampled_gradient(
+                L, torch.cat([Wt, Phi_t], 1), torch.cat([Phi_t, Wt], 1)
+            )
+        if need_m:
+            a = torch.from_numpy(along).to(evecs_t)
+            grad_m = 0.5 * sampled_gradient(
+                M,
+                torch.cat([Wt * mu, Phi_t * mu, -Phi_t * a], 1),
+                torch.cat([Phi_t, Wt, Phi_t], 1),
+            )
+        return grad_l, grad_m, None, None, None, None
 
 
 # Below this size (or 6 k) a dense solver is as fast as a sparse one and never fails.
@@ -575,12 +724,40 @@ def eigs(
         magnitude is positive. ``evals`` is differentiable with respect to the values of ``L``
         and ``M`` (``d mu = phi^T (dL - mu dM) phi``), which is exact for simple eigenvalues;
         for a repeated eigenvalue only symmetric functions of the cluster (e.g. its sum) have
-        a well-defined gradient. Eigenvector derivatives are not implemented: a backward pass
-        through ``evecs`` raises an error (instead of silently dropping that part of the
-        gradient); ``evecs.detach()`` treats them as constants.
+        a well-defined gradient. ``evecs`` is differentiable too, for simple eigenvalues (first
+        order; ``create_graph=True`` raises), see below.
+
+    Eigenvector gradients (adjoint method). Differentiating ``(L - mu M) phi = 0`` and
+    ``phi^T M phi = 1`` gives ``dphi = v - (phi^T dM phi / 2) phi`` with ``phi^T M v = 0`` and
+    ``(L - mu M) v = -(dL - mu dM) phi + dmu M phi``. For an upstream gradient ``g`` of one
+    column, the adjoint ``w`` solves ``(L - mu M) w = (I - M phi phi^T) g`` with
+    ``phi^T M w = 0`` (then ``g^T v = -w^T (dL - mu dM) phi``, the ``dmu`` term vanishing), so
+
+        dLoss/dL = -sym(w phi^T),   dLoss/dM = mu sym(w phi^T) - (phi^T g / 2) phi phi^T,
+
+    sampled on each operator's pattern (``sym(A) = (A + A^T) / 2``: the gradient among symmetric
+    matrices, which is what the symmetric eigensolver sees). The singular, indefinite system is
+    solved by Nelson's method: delete the row and column of ``phi``'s largest entry, factor the
+    rest with SuperLU (partial pivoting; no Cholesky, ``L - mu M`` is indefinite), one step of
+    iterative refinement, project out ``phi``. Cost, per column of ``evecs`` whose gradient is
+    not zero (columns that the loss does not use are skipped): one sparse LU of an
+    ``(n-1) x (n-1)`` matrix with ``L``'s pattern, on the CPU in float64, freed before the next;
+    memory is that factor's fill plus O(nnz + n k) for the gradients. The sign convention is
+    locally constant, so it does not enter the derivative (a column whose largest entries tie in
+    magnitude flips sign under perturbation and has no derivative there).
+
+    Repeated eigenvalues: a column whose eigenvalue has another within ``1e-8 * max |mu|``
+    (``EIGENVECTOR_GAP_RTOL`` relative to the largest computed eigenvalue) is not a function of
+    ``L`` and ``M``; if its gradient is not zero the backward raises a ``RuntimeError`` that names
+    the cluster (indices and values) and suggests a loss that sees only the cluster's subspace
+    (symmetric functions of its eigenvalues, or ``evecs.detach()``). Neighbours among the
+    computed eigenvalues are compared directly; for the last column, whose upper neighbour was
+    not computed, four inverse-iteration steps with the same factorization bound the gap.
 
     Raises:
         ValueError: ``k`` out of range, or no convergence after the retries.
+        RuntimeError: in the backward pass, for a gradient through an eigenvector of a repeated
+            eigenvalue, or a second derivative.
     """
     L, M = as_operator(L), as_operator(M)
     n = L.shape[0]
@@ -623,5 +800,5 @@ def eigs(
     evecs_t = torch.from_numpy(evecs).to(l_values)
     mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
     if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
-        evecs_t = _EigenvectorsWithoutGradient.apply(l_values, m_values, evecs_t)
+        evecs_t = _Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
     return mu, evecs_t
