@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import warnings
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -33,7 +36,7 @@ def test_planar_faces_have_zero_energy_and_are_a_fixed_point():
 
 def test_random_perturbation_of_planar_grid_is_planarized():
     V, F = _perturbed_grid()
-    res = planarize(V, F, tol=1e-6, max_iter=1000)
+    res = planarize(V, F, tol=1e-6, max_iter=1000, method="lbfgs")
     assert res.nonplanarity_before[0] > 0.05
     assert res.converged
     after = tp.face_nonplanarity(res.verts, F)
@@ -52,7 +55,7 @@ def test_random_perturbation_of_planar_grid_is_planarized():
 
 def test_energy_decreases_monotonically():
     V, F = quad_grid(6, bump=0.3, seed=1)
-    res = planarize(V, F, tol=1e-7, max_iter=200, check_every=1)
+    res = planarize(V, F, tol=1e-7, max_iter=200, check_every=1, method="lbfgs")
     e = np.asarray(res.energies)
     assert len(e) == res.iterations + 1 and len(e) > 5
     assert np.all(np.diff(e) <= 0)
@@ -92,3 +95,85 @@ def test_progress_bar_and_errors(capsys):
         planarize(V, F, fixed=torch.ones(3, dtype=torch.bool))
     with pytest.raises(ValueError, match="tol"):
         planarize(V, F, tol=0.0)
+
+
+@pytest.mark.parametrize("method", ["gauss-newton", "lbfgs"])
+def test_both_methods_planarize_a_perturbed_grid(method):
+    V, F = _perturbed_grid()
+    res = planarize(V, F, tol=1e-6, method=method, max_iter=1000)
+    assert res.method == method and res.converged and res.message == "converged"
+    assert float(tp.face_nonplanarity(res.verts, F).max()) < 1e-6
+    assert res.displacement[1] < 0.02
+
+
+# measured Gauss-Newton iterations with defaults (tol 1e-4): quad grid 3-4, spot_control_mesh 4,
+# bunny_poly 3, mixedFaring 6, moebius 9; the bounds leave about 3x margin
+@pytest.mark.parametrize(
+    "name, bound",
+    [
+        ("spot_control_mesh.obj", 12),
+        ("bunny_poly.ply", 12),
+        ("mixedFaring.off", 20),
+        ("moebius.obj", 25),
+    ],
+)
+def test_defaults_converge_on_the_test_meshes(name, bound):
+    V, F = tp.read_mesh(DATA / name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)  # no "did not converge" warning
+        warnings.filterwarnings("ignore", message=".*(read vertex|consistently oriented).*")
+        res = planarize(V.double(), F)
+    assert res.converged and res.iterations <= bound
+    assert float(tp.face_nonplanarity(res.verts, F).max()) < 1e-4
+    assert res.displacement[0] < 0.15
+
+
+def test_defaults_converge_on_bumped_grid_and_embedded_mesh():
+    V, F = quad_grid(12, bump=0.4, seed=4)
+    res = planarize(V, F)
+    assert res.converged and res.iterations <= 12
+    V, F = tp.read_mesh(Path(tp.__file__).parent / "data" / "spot_control_mesh.obj")
+    res = planarize(V, F)
+    assert res.converged and res.iterations <= 12
+
+
+def test_warns_when_it_cannot_converge():
+    V, F = _perturbed_grid()
+    for method in ("gauss-newton", "lbfgs"):
+        with pytest.warns(UserWarning, match=r"max non-planarity .* >= tol 1e-09 after 1 "):
+            res = planarize(V, F, tol=1e-9, max_iter=1, method=method)
+        assert not res.converged and "raise max_iter" in res.message
+    with pytest.warns(UserWarning, match="raise time_limit"):
+        res = planarize(V, F, tol=1e-12, time_limit=0.0)
+    assert not res.converged
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        planarize(V, F, tol=1e-9, max_iter=1, warn=False)
+
+
+@pytest.mark.parametrize("method", ["gauss-newton", "lbfgs"])
+def test_fixed_boundary_stays_put_exactly(method):
+    V, F = quad_grid(8, bump=0.3, seed=5)
+    boundary = tp.get_topology(F, V.shape[0]).boundary_vertices
+    res = planarize(V, F, fixed=boundary, method=method, max_iter=2000)
+    assert res.converged
+    assert torch.equal(res.verts[boundary], V[boundary])
+
+
+def test_closeness_reduces_displacement():
+    V, F = _perturbed_grid(8, noise=0.03, seed=6)
+    free = planarize(V, F, tol=1e-3)
+    close = planarize(V, F, tol=1e-3, closeness=1e-3, warn=False)
+    assert free.converged
+    assert close.displacement[1] < free.displacement[1]
+    with pytest.raises(ValueError, match="closeness"):
+        planarize(V, F, closeness=-1.0)
+    with pytest.raises(ValueError, match="method"):
+        planarize(V, F, method="newton")
+
+
+def test_gauss_newton_objective_never_increases():
+    V, F = _perturbed_grid(8, noise=0.05, seed=7)
+    res = planarize(V, F, tol=1e-10, closeness=1e-6, warn=False)
+    o = np.asarray(res.objectives)
+    assert len(o) >= 3 and np.all(np.diff(o) <= 0)
