@@ -35,7 +35,14 @@ setup(
         ],
         "cholmod": ["cholespy>=2.0"],
         "plot": ["matplotlib>=3.5"],
-        "bench": ["libigl>=2.5", "matplotlib>=3.5", "cholespy>=2.0", "robust-laplacian"],
+        # potpourri3d: the polygon heat-method peer of benchmarks/bench_geodesics.py
+        "bench": [
+            "libigl>=2.5",
+            "matplotlib>=3.5",
+            "cholespy>=2.0",
+            "robust-laplacian",
+            "potpourri3d",
+        ],
     },
     entry_points={"console_scripts": ["polylap=torch_polylap.cli:main"]},
     classifiers=[

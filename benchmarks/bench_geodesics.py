@@ -1,0 +1,208 @@
+"""Benchmark heat-method geodesic distances against exact distances and potpourri3d, in one run.
+
+    python benchmarks/bench_geodesics.py [--levels 3 4 5] [--repeat 3] [--json PATH]
+
+On the shared refinement families (``../shared/data/meshes``): the unit spheres ``hex``,
+``quad``, ``voronoi`` and ``concave`` (vertices normalized onto the sphere; source vertex 0;
+exact distance: the great-circle distance) and the planar grids ``quad``, ``voronoi`` and
+``concave`` (source: the vertex nearest the centre of the square; exact: Euclidean distance).
+For each mesh it reports the mean relative error over the vertices other than the source of
+
+* ``torch_polylap.heat_geodesic_distance`` (defaults: ``t = 4 h^2``, heat ``lam = 1``, Poisson
+  ``lam = 0.1``), and the same at Crane et al.'s ``t = h^2`` with ``lam = 1`` in both steps;
+* potpourri3d's ``PolygonMeshHeatSolver`` (Bunge et al.'s polygon Laplacian, ``t_coef = 1``),
+  when installed (``pip install potpourri3d``);
+
+and the best seconds (over ``--repeat`` rounds that alternate the methods: other processes on
+a shared machine only add time) of building the solver plus one query ("total") and of one
+more query on the built solver ("query"), with the ratios ours / potpourri3d. Prints a
+Markdown table; ``--json`` writes the numbers (default ``benchmarks/results/geodesics.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+import warnings
+from collections.abc import Callable
+from importlib.metadata import version
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import cpu_model
+
+import torch_polylap as tp
+
+# A method: build its solver and answer one query -> (solver, distances); one more query.
+Method = tuple[Callable[[], tuple[object, object]], Callable[[object], object]]
+
+MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+SPHERES = ("hex", "quad", "voronoi", "concave")
+GRIDS = ("quad", "voronoi", "concave")
+
+try:
+    import potpourri3d as pp3d
+except ImportError:  # the comparison is optional
+    pp3d = None
+
+
+def interleaved_best(methods: dict[str, Method], repeat: int) -> dict[str, dict]:
+    """Per method: the distances and the best seconds over ``repeat`` rounds of "build the
+    solver and answer one query" and "one more query".  The rounds alternate the methods, and
+    the minimum is kept, because other processes on a shared machine only ever add time."""
+    best = {name: {"total_s": float("inf"), "query_s": float("inf")} for name in methods}
+    for _ in range(repeat):
+        for name, (build_and_query, query) in methods.items():
+            start = time.perf_counter()
+            solver, dist = build_and_query()
+            middle = time.perf_counter()
+            query(solver)
+            end = time.perf_counter()
+            entry = best[name]
+            entry["dist"] = np.asarray(dist)
+            entry["total_s"] = min(entry["total_s"], middle - start)
+            entry["query_s"] = min(entry["query_s"], end - middle)
+    return best
+
+
+def mean_relative_error(dist: np.ndarray, exact: np.ndarray, source: int) -> float:
+    keep = np.arange(exact.size) != source
+    return float(np.mean(np.abs(dist[keep] - exact[keep]) / exact[keep]))
+
+
+def load_case(kind: str, family: str, level: int):
+    """``(verts, faces, source, exact distances)`` or ``None`` when the file is missing."""
+    path = MESHES / kind / f"{family}_{level}.obj"
+    if not path.is_file():
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # OBJ materials and object names the reader skips
+        verts, faces = tp.read_mesh(path, dtype=torch.float64)
+    if kind == "sphere":
+        verts = verts / verts.norm(dim=1, keepdim=True)
+        source = 0
+        exact = torch.arccos((verts @ verts[source]).clamp(-1.0, 1.0))
+    else:
+        centre = 0.5 * (verts.amin(0) + verts.amax(0))
+        source = int((verts - centre).norm(dim=1).argmin())
+        exact = (verts - verts[source]).norm(dim=1)
+    return verts, faces, source, exact.numpy()
+
+
+def ours(verts, faces, source, **options) -> Method:
+    topo = tp.get_topology(faces, verts.shape[0])  # built once per mesh, as a user would keep it
+
+    def build_and_query():
+        solver = tp.HeatGeodesicSolver(verts, topo, **options)
+        return solver, solver.distance([source]).numpy()
+
+    return build_and_query, lambda solver: solver.distance([source])
+
+
+def potpourri(verts, faces, source) -> Method:
+    V = verts.numpy()
+    polys = faces.tolist()
+
+    def build_and_query():
+        solver = pp3d.PolygonMeshHeatSolver(V, polys)
+        return solver, solver.compute_distance([source])
+
+    return build_and_query, lambda solver: solver.compute_distance([source])
+
+
+def run_case(kind, family, level, repeat) -> dict | None:
+    case = load_case(kind, family, level)
+    if case is None:
+        return None
+    verts, faces, source, exact = case
+    h = float(tp.calculus.mean_edge_length(verts, tp.get_topology(faces, verts.shape[0])))
+    methods = {
+        "ours": ours(verts, faces, source),
+        "ours_t=h^2,lam=1": ours(verts, faces, source, t=h * h, poisson_lam=1.0),
+    }
+    if pp3d is not None:
+        methods["potpourri3d"] = potpourri(verts, faces, source)
+    results = interleaved_best(methods, repeat)
+    row = {"kind": kind, "family": family, "level": level, "verts": verts.shape[0]}
+    row["source"] = source
+    for name, m in results.items():
+        row[name] = {
+            "mean_rel_error": mean_relative_error(m["dist"], exact, source),
+            "total_s": m["total_s"],
+            "query_s": m["query_s"],
+        }
+    return row
+
+
+def markdown(rows: list[dict]) -> str:
+    has_pp = any("potpourri3d" in r for r in rows)
+    head = "| mesh | V | error (ours) | error (t=h^2, lam=1) |"
+    rule = "|---|---:|---:|---:|"
+    if has_pp:
+        head += " error (potpourri3d) | total ours / pp3d | query ours / pp3d |"
+        rule += "---:|---:|---:|"
+    head += " total ours (s) | query ours (s) |"
+    rule += "---:|---:|"
+    lines = [head, rule]
+    for r in rows:
+        o, c = r["ours"], r["ours_t=h^2,lam=1"]
+        cells = [f"{r['kind']}/{r['family']}_{r['level']}", str(r["verts"])]
+        cells += [f"{o['mean_rel_error']:.2e}", f"{c['mean_rel_error']:.2e}"]
+        if has_pp:
+            p = r.get("potpourri3d")
+            cells += (
+                [
+                    f"{p['mean_rel_error']:.2e}",
+                    f"{o['total_s'] / p['total_s']:.2f}",
+                    f"{o['query_s'] / p['query_s']:.2f}",
+                ]
+                if p
+                else ["-"] * 3
+            )
+        cells += [f"{o['total_s']:.4f}", f"{o['query_s']:.4f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--levels", type=int, nargs="+", default=[3, 4, 5])
+    parser.add_argument("--repeat", type=int, default=5)
+    # potpourri3d solves on one thread; torch's two-thread kernels also stall whenever another
+    # process holds a core of a shared machine, which made timings swing tenfold.
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    default_json = Path(__file__).resolve().parent / "results" / "geodesics.json"
+    parser.add_argument("--json", type=Path, default=default_json)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    if not MESHES.is_dir():
+        raise SystemExit(f"{MESHES} not found: the refinement families live outside the repo.")
+    if pp3d is None:
+        print("potpourri3d is not installed: comparing against the exact distances only.")
+    rows = []
+    for kind, families in (("sphere", SPHERES), ("grid", GRIDS)):
+        for family in families:
+            for level in args.levels:
+                row = run_case(kind, family, level, args.repeat)
+                if row is not None:
+                    rows.append(row)
+                    print(f"done {kind}/{family}_{level}", flush=True)
+    table = markdown(rows)
+    print(table)
+    meta = {
+        "cpu": cpu_model(),
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "potpourri3d": version("potpourri3d") if pp3d is not None else None,
+        "repeat": args.repeat,
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps({"meta": meta, "rows": rows, "table": table}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
