@@ -130,6 +130,29 @@ def test_repeated_eigenvalue_beyond_the_computed_ones(one_thread):
         evecs[:, 1].square().mul(X[:, 0]).sum().backward()
 
 
+def test_subspace_invariant_loss_on_a_repeated_eigenvalue(one_thread):
+    """A loss that sees the cluster mu_1 = mu_2 of a regular grid only through its projector
+    Phi_C Phi_C^T M0 has a gradient, also at the symmetric mesh itself."""
+    V, F = quad_grid(4, bump=0.0)
+    V = V.to(torch.float64)
+    u = torch.cos(3 * V[:, 0]) + V[:, 1] ** 2
+    w = _weights(V.shape[0], 1, seed=6)[:, 0]
+
+    def f(X):
+        L, M0 = tp.laplacian(X, F)
+        evals, evecs = tp.eigs(L, M0, 4)
+        C = evecs[:, 1:3]
+        projected = C @ (C.T @ (M0 @ u))  # depends on span(phi_1, phi_2) only
+        # phi_3 is simple, but its largest entries tie in magnitude: a sign-invariant term
+        return (projected * w).sum() + (C.T @ (M0 @ u)).square().sum() + (evecs[:, 3] ** 2 @ w)
+
+    L, M0 = tp.laplacian(V, F)
+    evals, _ = tp.eigs(L, M0, 4)
+    assert abs(evals[1] - evals[2]) < 1e-12 * evals[3]
+    X = V.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(f, (X,), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
 def test_second_derivatives_refuse(one_thread):
     V, F = mixed_mesh()
     X = V.clone().requires_grad_(True)

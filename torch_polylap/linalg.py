@@ -437,64 +437,73 @@ _GAP_ITERATIONS = 4
 
 
 def _cluster_message(
-    index: int, members: list[int], evals: np.ndarray, scale: float, extra: str = ""
+    index: int, members: list[int], evals: np.ndarray, scale: float, reason: str
 ) -> str:
     values = ", ".join(f"mu_{j} = {evals[j]:.12g}" for j in members)
     which = f"eigenvalues {members[0]}..{members[-1]}" if len(members) > 1 else "eigenvalue"
     return (
         f"torch_polylap.eigs: no gradient through evecs[:, {index}]: its eigenvalue is repeated "
-        f"({which} {values}{extra}; relative gap below "
-        f"{EIGENVECTOR_GAP_RTOL:g} of the spectral scale {scale:.6g}), so the eigenvector is any "
-        "M-orthonormal basis vector of the eigenspace and not a differentiable function of L and "
-        "M (a symmetric mesh, e.g. a regular grid, has exact multiplicities). Use a loss that "
-        "depends on the cluster only as a subspace: symmetric functions of its eigenvalues "
-        "(e.g. their sum; evals are differentiable) or projections with evecs.detach(); or keep "
-        "the gradient of this cluster's eigenvectors zero (use other columns only)."
+        f"({which} {values}{reason}; relative gap below {EIGENVECTOR_GAP_RTOL:g} of the spectral "
+        f"scale {scale:.6g}), so each eigenvector of the cluster is any M-orthonormal basis "
+        "vector of the eigenspace and not a differentiable function of L and M (a symmetric "
+        "mesh, e.g. a regular grid, has exact multiplicities). Use a loss that depends on the "
+        "cluster's eigenvectors only through their span, with every eigenpair of the cluster "
+        "computed: the projector Phi_C Phi_C^T M (e.g. sum_i (phi_i^T M u)^2 over the cluster) "
+        "or symmetric functions of its eigenvalues (evals are differentiable); or use "
+        "evecs.detach(), or only columns outside the cluster."
     )
 
 
-def _check_gaps(evals: np.ndarray, active: np.ndarray, scale: float) -> None:
-    """Refuse an active eigenvector whose eigenvalue has a computed neighbour within the gap."""
-    close = np.abs(np.diff(evals)) <= EIGENVECTOR_GAP_RTOL * scale  # close[j]: mu_j ~ mu_{j+1}
-    for i in active:
-        if (i > 0 and close[i - 1]) or (i + 1 < evals.size and close[i]):
-            lo, hi = i, i
-            while lo > 0 and close[lo - 1]:
-                lo -= 1
-            while hi + 1 < evals.size and close[hi]:
-                hi += 1
-            raise RuntimeError(_cluster_message(int(i), list(range(lo, hi + 1)), evals, scale))
+def _clusters(evals: np.ndarray, scale: float) -> list[list[int]]:
+    """Runs of consecutive eigenvalues whose neighbours lie within the gap."""
+    close = np.abs(np.diff(evals)) <= EIGENVECTOR_GAP_RTOL * scale  # mu_j ~ mu_{j+1}
+    runs = [[0]]
+    for j in range(1, evals.size):
+        if close[j - 1]:
+            runs[-1].append(j)
+        else:
+            runs.append([j])
+    return runs
 
 
 def _eigenvector_adjoint(
     Ls: sp.csr_matrix,
     Ms: sp.csr_matrix,
     mu: float,
-    phi: np.ndarray,
+    Phi: np.ndarray,
     g: np.ndarray,
-    check_next: tuple[int, np.ndarray, float] | None,
-) -> np.ndarray:
-    """The adjoint ``w`` of one eigenvector: ``(L - mu M) w = (I - M phi phi^T) g`` with
-    ``phi^T M w = 0``, by Nelson's method.
+    check_next: float | None,
+) -> tuple[np.ndarray, float]:
+    """The adjoint ``w`` of one eigenvector whose eigenvalue ``mu`` has the cluster ``Phi``
+    ``(n, m)`` (itself and the eigenvectors of eigenvalues within the gap; ``m = 1`` for a
+    simple one): ``(L - mu M) w = (I - M Phi Phi^T) g`` with ``Phi^T M w = 0``, by Nelson's
+    method.
 
-    ``K = L - mu M`` is singular with kernel ``phi`` (a simple eigenvalue); deleting the row and
-    column ``p`` of ``phi``'s largest entry leaves a nonsingular matrix (a vector ``x`` with
-    ``x_p = 0`` and ``K x = c e_p`` has ``0 = phi^T K x = c phi_p``, so ``x`` is in the kernel
-    and 0). Its solution with ``x_p = 0`` satisfies row ``p`` as well, because the right-hand
-    side is orthogonal to ``phi``; projecting out ``phi`` gives ``w``. One sparse LU (SuperLU,
-    partial pivoting: ``K`` is indefinite) of the ``(n-1) x (n-1)`` matrix, then freed.
+    ``K = L - mu M`` is singular on ``span(Phi)``. Deleting the rows and columns ``P`` of ``m``
+    well-conditioned rows of ``Phi`` (pivoted QR; for ``m = 1`` the largest entry) leaves a
+    nonsingular matrix (an ``x`` with ``x_P = 0`` and ``K x = e_P c`` has
+    ``0 = Phi^T K x = Phi_P^T c``, so ``x`` is in the kernel and ``0``). Its solution with
+    ``x_P = 0`` satisfies rows ``P`` as well, because the right-hand side is orthogonal to
+    ``Phi``; projecting out ``Phi`` gives ``w``. One sparse LU (SuperLU, partial pivoting: ``K``
+    is indefinite) of the ``(n-m) x (n-m)`` matrix, then freed.
 
-    ``check_next``: ``(index, computed evals, scale)`` for the last computed eigenpair, whose
-    upper neighbour is unknown: a few steps of inverse iteration with the same factorization on
-    ``T = (I - phi phi^T M) K^+ M`` (eigenvalues ``1 / (mu_j - mu)``, ``j`` other than this one)
-    bound the distance to the nearest other eigenvalue from above, ``|mu_j - mu| <= 1 / |T x|_M``.
+    ``check_next``: the spectral scale, when the cluster holds the last computed eigenpair,
+    whose upper neighbour is unknown: inverse iteration with the same factorization on
+    ``T = (I - Phi Phi^T M) K^+ M``
+    (eigenvalues ``1 / (mu_j - mu)`` for the eigenvalues outside the cluster) bounds the
+    distance to the nearest one from above, ``|mu_j - mu| <= 1 / |T x|_M``. Returns ``w`` and
+    the estimated nearest outside eigenvalue (``nan`` without ``check_next``, or when it is
+    farther than the gap).
     """
-    n = phi.size
-    p = int(np.abs(phi).argmax())
-    keep = np.delete(np.arange(n), p)
+    n, m = Phi.shape
+    if m == 1:
+        P = np.array([int(np.abs(Phi[:, 0]).argmax())])
+    else:
+        P = scipy.linalg.qr(Phi.T, mode="r", pivoting=True)[1][:m]
+    keep = np.setdiff1d(np.arange(n), P)
     K = (Ls - mu * Ms).tocsr()
     lu = spla.splu(sp.csc_matrix(K[keep][:, keep]))
-    Mphi = Ms @ phi
+    MPhi = Ms @ Phi
 
     def project_solve(r: np.ndarray) -> np.ndarray:
         x = np.zeros(n)
@@ -502,36 +511,27 @@ def _eigenvector_adjoint(
         # one step of iterative refinement (the shifted matrix is nearly singular)
         residual = r - K @ x
         x[keep] += lu.solve(np.ascontiguousarray(residual[keep]))
-        return x - phi * (Mphi @ x)
+        return x - Phi @ (MPhi.T @ x)
 
+    nearest = float("nan")
     if check_next is not None:
-        index, evals, scale = check_next
         x = np.random.default_rng(0).standard_normal(n)
-        x -= phi * (Mphi @ x)
-        t = 0.0
+        x -= Phi @ (MPhi.T @ x)
+        t = norm = 0.0
         for _ in range(_GAP_ITERATIONS):
             x /= np.sqrt(x @ (Ms @ x))
             y = project_solve(Ms @ x)
             t = float(x @ (Ms @ y))  # Rayleigh quotient of T: about 1 / (mu_j - mu)
             norm = float(np.sqrt(y @ (Ms @ y)))
             x = y
-        if 1.0 <= EIGENVECTOR_GAP_RTOL * scale * norm:
-            estimate = mu + 1.0 / t if t != 0 else mu
-            raise RuntimeError(
-                _cluster_message(
-                    index,
-                    [index],
-                    evals,
-                    scale,
-                    f", and the next eigenvalue, which was not computed, near {estimate:.12g}",
-                )
-            )
-    return project_solve(g - Mphi * (phi @ g))
+        if 1.0 <= EIGENVECTOR_GAP_RTOL * check_next * norm:
+            nearest = mu + 1.0 / t if t != 0 else mu
+    return project_solve(g - MPhi @ (Phi.T @ g)), nearest
 
 
 class _Eigenvectors(torch.autograd.Function):
     """Eigenvectors of ``L phi = mu M phi`` (``M``-orthonormal, sign fixed) with the adjoint
-    gradient of simple eigenpairs (see :func:`eigs`)."""
+    gradient (see :func:`eigs`)."""
 
     @staticmethod
     def forward(ctx, l_values, m_values, evals, evecs, held_l, held_m):
@@ -552,38 +552,76 @@ class _Eigenvectors(torch.autograd.Function):
         Phi = evecs_t.detach().cpu().double().numpy()
         Gn = G.detach().cpu().double().numpy()
         k = evals.size
-        active = np.flatnonzero(np.any(Gn != 0, axis=0))
+        active = np.any(Gn != 0, axis=0)
         scale = max(float(np.abs(evals).max()), np.finfo(float).tiny)
-        _check_gaps(evals, active, scale)
+        # A_ij = phi_i^T g_j on each cluster's diagonal block: the in-cluster coupling
+        A = np.zeros((k, k))
+        runs = [c for c in _clusters(evals, scale) if active[c].any()]
+        for c in runs:
+            block = Phi[:, c].T @ Gn[:, c]
+            if len(c) > 1:
+                # the loss must not change under rotations within the cluster: A symmetric
+                tol = np.sqrt(np.finfo(evecs_t.detach().cpu().numpy().dtype).eps)
+                size = np.linalg.norm(Phi[:, c]) * np.linalg.norm(Gn[:, c])
+                if np.abs(block - block.T).max() > tol * size:
+                    index = c[int(np.flatnonzero(active[c])[0])]
+                    raise RuntimeError(
+                        _cluster_message(
+                            index,
+                            c,
+                            evals,
+                            scale,
+                            "; the loss is not invariant to rotations "
+                            "of the cluster's eigenvectors",
+                        )
+                    )
+                block = 0.5 * (block + block.T)
+            A[np.ix_(c, c)] = block
         Ls = to_scipy(L).astype(np.float64)
         Ms = to_scipy(M).astype(np.float64)
         W = np.zeros_like(Phi)
-        for i in active:
-            check_next = (int(i), evals, scale) if i == k - 1 else None
-            try:
-                W[:, i] = _eigenvector_adjoint(Ls, Ms, evals[i], Phi[:, i], Gn[:, i], check_next)
-            except RuntimeError as error:
-                if "torch_polylap" in str(error):
-                    raise
-                raise RuntimeError(
-                    _cluster_message(int(i), [int(i)], evals, scale, f" (SuperLU: {error})")
-                ) from error
-        # phi_i^T g_i: the normalization phi^T M phi = 1 moves phi along itself
-        along = np.einsum("ik,ik->k", Phi, Gn)
+        for c in runs:
+            for i in (j for j in c if active[j]):
+                try:
+                    W[:, i], nearest = _eigenvector_adjoint(
+                        Ls,
+                        Ms,
+                        evals[i],
+                        Phi[:, c],
+                        Gn[:, i],
+                        check_next=scale if c[-1] == k - 1 else None,
+                    )
+                except RuntimeError as error:  # SuperLU: exactly singular
+                    raise RuntimeError(
+                        _cluster_message(i, c, evals, scale, f" (SuperLU: {error})")
+                    ) from error
+                if not np.isnan(nearest):
+                    raise RuntimeError(
+                        _cluster_message(
+                            i,
+                            c,
+                            evals,
+                            scale,
+                            f", and the next eigenvalue, which was not "
+                            f"computed, near {nearest:.12g}; compute more eigenpairs",
+                        )
+                    )
         Wt = torch.from_numpy(W).to(evecs_t)
         mu = evals_t.detach()
         Phi_t = evecs_t.detach()
         grad_l = grad_m = None
-        # symmetrized (the gradient within symmetric matrices): (w phi^T + phi w^T) / 2
+        # symmetrized (the gradient among symmetric matrices): (w phi^T + phi w^T) / 2
         if need_l:
             grad_l = -0.5 * sampled_gradient(
                 L, torch.cat([Wt, Phi_t], 1), torch.cat([Phi_t, Wt], 1)
             )
         if need_m:
-            a = torch.from_numpy(along).to(evecs_t)
+            # the M-orthonormality of each cluster: -(1/2) sum_ij A_ij phi_i phi_j^T (for a
+            # simple eigenvalue, the normalization term -(phi^T g / 2) phi phi^T)
+            At = torch.from_numpy(A).to(evecs_t)
             grad_m = 0.5 * sampled_gradient(
                 M,
-                torch.cat([Wt * mu, Phi_t * mu, -Phi_t * a], 1),
+                torch.cat([Wt * mu, Phi_t * mu, -(Phi_t @ At)], 1),
                 torch.cat([Phi_t, Wt, Phi_t], 1),
             )
         return grad_l, grad_m, None, None, None, None
@@ -710,23 +748,6 @@ def eigs(
     - otherwise, or if block Lanczos does not converge: ARPACK (scipy's ``eigsh``), retried
       with more Lanczos vectors and a larger shift.
 
-    Args:
-        L: ``(n, n)`` sparse symmetric matrix; values may require grad.
-        M: ``(n, n)`` sparse symmetric positive definite matrix; values may require grad.
-        k: number of eigenpairs, ``1 <= k < n``.
-        sigma: shift for shift-invert.
-        tol: relative residual at which a Ritz pair of the shift-inverted operator counts as
-            converged (0: ``1e-10`` for block Lanczos, machine precision for ARPACK).
-
-    Returns:
-        ``evals`` ``(k,)`` ascending and ``evecs`` ``(n, k)``, ``M``-orthonormal
-        (``evecs^T M evecs = I``), each column's sign fixed so that its entry of largest
-        magnitude is positive. ``evals`` is differentiable with respect to the values of ``L``
-        and ``M`` (``d mu = phi^T (dL - mu dM) phi``), which is exact for simple eigenvalues;
-        for a repeated eigenvalue only symmetric functions of the cluster (e.g. its sum) have
-        a well-defined gradient. ``evecs`` is differentiable too, for simple eigenvalues (first
-        order; ``create_graph=True`` raises), see below.
-
     Eigenvector gradients (adjoint method). Differentiating ``(L - mu M) phi = 0`` and
     ``phi^T M phi = 1`` gives ``dphi = v - (phi^T dM phi / 2) phi`` with ``phi^T M v = 0`` and
     ``(L - mu M) v = -(dL - mu dM) phi + dmu M phi``. For an upstream gradient ``g`` of one
@@ -746,18 +767,44 @@ def eigs(
     locally constant, so it does not enter the derivative (a column whose largest entries tie in
     magnitude flips sign under perturbation and has no derivative there).
 
-    Repeated eigenvalues: a column whose eigenvalue has another within ``1e-8 * max |mu|``
-    (``EIGENVECTOR_GAP_RTOL`` relative to the largest computed eigenvalue) is not a function of
-    ``L`` and ``M``; if its gradient is not zero the backward raises a ``RuntimeError`` that names
-    the cluster (indices and values) and suggests a loss that sees only the cluster's subspace
-    (symmetric functions of its eigenvalues, or ``evecs.detach()``). Neighbours among the
-    computed eigenvalues are compared directly; for the last column, whose upper neighbour was
-    not computed, four inverse-iteration steps with the same factorization bound the gap.
+    Repeated eigenvalues: eigenvalues within ``1e-8 * max |mu|`` of their neighbour
+    (``EIGENVECTOR_GAP_RTOL``, relative to the largest computed eigenvalue) form a cluster ``C``
+    whose eigenvectors are any ``M``-orthonormal basis of the eigenspace, not functions of ``L``
+    and ``M``. A loss that sees them only through their span (the projector
+    ``Phi_C Phi_C^T M``, e.g. ``sum_{i in C} (phi_i^T M u)^2``) still has a gradient: its
+    ``A_ij = phi_i^T g_j`` is symmetric on ``C`` (checked to ``sqrt(eps)``), the rotation terms
+    ``A_ij phi_j^T (dL - mu_i dM) phi_i / (mu_i - mu_j)`` of ``i, j`` and ``j, i`` sum to
+    ``-A_ij phi_i^T dM phi_j`` (finite), and each ``w_i`` solves the system above with the
+    whole cluster projected out (Nelson's method deleting ``|C|`` rows chosen by pivoted QR of
+    ``Phi_C^T``); the ``M`` term becomes ``-(1/2) sum_{ij in C} A_ij phi_i phi_j^T``. Any
+    other loss through a cluster's columns raises a ``RuntimeError`` in the backward that names
+    the cluster (indices and values) and what to use instead; so does a cluster that may go on
+    past the last computed eigenvalue (four inverse-iteration steps with the same factorization
+    bound the distance to the next, uncomputed one: compute more eigenpairs).
+
+    Args:
+        L: ``(n, n)`` sparse symmetric matrix; values may require grad.
+        M: ``(n, n)`` sparse symmetric positive definite matrix; values may require grad.
+        k: number of eigenpairs, ``1 <= k < n``.
+        sigma: shift for shift-invert.
+        tol: relative residual at which a Ritz pair of the shift-inverted operator counts as
+            converged (0: ``1e-10`` for block Lanczos, machine precision for ARPACK).
+
+    Returns:
+        ``evals`` ``(k,)`` ascending and ``evecs`` ``(n, k)``, ``M``-orthonormal
+        (``evecs^T M evecs = I``), each column's sign fixed so that its entry of largest
+        magnitude is positive. ``evals`` is differentiable with respect to the values of ``L``
+        and ``M`` (``d mu = phi^T (dL - mu dM) phi``), which is exact for simple eigenvalues;
+        for a repeated eigenvalue only symmetric functions of the cluster (e.g. its sum) have
+        a well-defined gradient. ``evecs`` is differentiable too (first order; ``create_graph=True``
+        raises): for simple eigenvalues, and for losses that see a repeated one's eigenvectors
+        only through their span (see above).
 
     Raises:
         ValueError: ``k`` out of range, or no convergence after the retries.
-        RuntimeError: in the backward pass, for a gradient through an eigenvector of a repeated
-            eigenvalue, or a second derivative.
+        RuntimeError: in the backward pass, for a gradient through the eigenvectors of a
+            repeated eigenvalue by a loss that depends on more than their span, or for a second
+            derivative.
     """
     L, M = as_operator(L), as_operator(M)
     n = L.shape[0]
