@@ -231,6 +231,16 @@ def test_component_without_source_is_infinite():
     torch.testing.assert_close(dist[:n], tp.heat_geodesic_distance(verts, faces, [0]))
 
 
+def test_isolated_vertex_is_a_component_of_its_own():
+    verts, faces = quad_grid(2)
+    lonely = torch.cat([verts, torch.tensor([[5.0, 5.0, 0.0]], dtype=torch.float64)])
+    n = verts.shape[0]
+    with pytest.warns(UserWarning, match="belong to no face"):
+        dist = tp.heat_geodesic_distance(lonely, faces, [[0], [0, n]])
+    torch.testing.assert_close(dist[:n, 0], tp.heat_geodesic_distance(verts, faces, [0]))
+    assert torch.isinf(dist[n, 0]) and dist[n, 1] == 0
+
+
 @pytest.mark.parametrize(
     ("sources", "error", "match"),
     [

@@ -190,7 +190,8 @@ class HeatGeodesicSolver:
     them by :func:`~torch_polylap.solve`, serve every query.  (A Dirichlet solve with the
     sources fixed at 0 would change the matrix with every query.)
 
-    Vertices of components without a source get ``inf``.  Differentiable with respect to
+    Vertices of components without a source get ``inf`` (isolated vertices included).
+    Differentiable with respect to
     ``verts`` through both solves (O(nnz) backward).  The heat step runs in float64 whatever
     ``verts``' dtype: ``u`` decays like ``exp(-d / sqrt(t))``, which leaves float32's range about
     90 mean edge lengths from the sources; the result has ``verts``' dtype.
@@ -227,7 +228,7 @@ class HeatGeodesicSolver:
             raise ValueError(f"HeatGeodesicSolver: t must be a positive heat time, got {t}.")
         self.t = t
         self.mass = M0.diagonal().double()
-        self.heat_operator = (M0 + t * L).double()
+        self.heat_operator = self._heat_system(M0 + t * L).double()
         self.poisson_operator = L_poisson + self._pin(L_poisson)
         # G (3F x V) and G^T A_F (V x 3F) built once: a query is then two cached solves and
         # two sparse products, with no per-face geometry recomputed.
@@ -237,6 +238,12 @@ class HeatGeodesicSolver:
         self.flux = G.T * area[None, :]  # -div
         self.num_components, labels = self.topology.connected_components()
         self.labels = labels.to(verts.device)
+
+    def _heat_system(self, A: SparseOperator) -> SparseOperator:
+        """``M0 + t L`` with a unit diagonal at isolated vertices (no face: zero mass, an empty
+        row), which would make it singular; their heat is then 0, their distance 0 or inf."""
+        isolated = (A.diagonal() == 0).detach()
+        return A + diag(isolated.to(A.dtype)) if bool(isolated.any()) else A
 
     def _pin(self, L: SparseOperator) -> SparseOperator:
         """``c sum_p e_p e_p^T`` over the first vertex of every connected component."""
