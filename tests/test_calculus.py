@@ -6,7 +6,7 @@ import igl
 import numpy as np
 import pytest
 import torch
-from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import DATA, assert_directional_derivative, hex_pent_mesh, mixed_mesh, quad_grid
 from meshes import load, shared_path
 
 import torch_polylap as tp
@@ -133,6 +133,32 @@ def test_heat_distance_gradcheck():
     v = verts.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(
         lambda v: tp.heat_geodesic_distance(v, faces, [0]), (v,), atol=1e-6, rtol=1e-4
+    )
+
+
+def test_heat_distance_derivative_on_polygon_sphere():
+    # Voronoi cells of degree 4 to 8; default t (which depends on the vertices) included.
+    verts, faces = _sphere(DATA / "sphere" / "voronoi_3.obj")
+    weights = torch.linspace(0.0, 1.0, verts.shape[0], dtype=torch.float64)
+    solver_faces = tp.get_topology(faces, verts.shape[0])
+    assert_directional_derivative(
+        lambda v: (weights * tp.heat_geodesic_distance(v, solver_faces, [0, 100])).sum(),
+        verts,
+        rtol=1e-5,
+    )
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_calculus_on_cuda_matches_cpu():
+    verts, faces = _sphere(DATA / "sphere" / "hex_2.obj")
+    u = verts[:, 0] ** 2
+    cuda = verts.cuda()
+    torch.testing.assert_close(
+        tp.face_gradient(cuda, faces, u.cuda()).cpu(), tp.face_gradient(verts, faces, u)
+    )
+    torch.testing.assert_close(
+        tp.heat_geodesic_distance(cuda, faces, [[0], [3, 7]]).cpu(),
+        tp.heat_geodesic_distance(verts, faces, [[0], [3, 7]]),
     )
 
 
