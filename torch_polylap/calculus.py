@@ -172,8 +172,8 @@ class HeatGeodesicSolver:
     """Geodesic distances by the heat method (Crane, Weischedel and Wardetzky 2013, Alg. 1),
     with the AW11 polygon Laplacian, for repeated queries on one mesh.
 
-    1. Heat flow ``(M0 + t L) u = M0 delta``, ``delta`` the indicator of the sources (one
-       backward-Euler step, eq. (5) of Crane et al. with a lumped mass).
+    1. Heat flow ``(M0 + t L) u = M0 delta``, ``delta`` the indicator of the sources (Crane et
+       al.'s single backward-Euler step, with the lumped mass ``M0``).
     2. ``X_f = -grad_f u / |grad_f u|`` per face (eq. (1) of this module).
     3. Poisson problem ``L phi = -div X = G^T A_F X``: the least-squares fit of ``grad phi`` to
        ``X`` (on planar faces ``G^T A_F G`` is the geometric part of ``L``; ``L`` adds the
@@ -191,10 +191,10 @@ class HeatGeodesicSolver:
     sources fixed at 0 would change the matrix with every query.)
 
     Vertices of components without a source get ``inf`` (isolated vertices included).
-    Differentiable with respect to
-    ``verts`` through both solves (O(nnz) backward).  The heat step runs in float64 whatever
-    ``verts``' dtype: ``u`` decays like ``exp(-d / sqrt(t))``, which leaves float32's range about
-    90 mean edge lengths from the sources; the result has ``verts``' dtype.
+    Differentiable with respect to ``verts`` through both solves (O(nnz) backward).  The heat
+    step runs in float64 whatever ``verts``' dtype: ``u`` decays like ``exp(-d / sqrt(t))``,
+    which leaves float32's range (``exp(-87)``) about 175 mean edge lengths from the sources at
+    ``t = 4 h^2``; the result has ``verts``' dtype.
 
     Args:
         verts: ``(V, 3)`` vertex positions.
