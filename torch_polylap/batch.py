@@ -515,15 +515,19 @@ class PolygonMeshes:
     # ----------------------------------------------------------------- operators
 
     def laplacian(
-        self, lam: Lam = 1.0, *, validate: bool = True
+        self, lam: Lam = 1.0, *, validate: bool = True, method: str = "aw11"
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Block-diagonal ``(L, M0)``, each a ``(sum V_i, sum V_i)`` sparse operator (AW11 eq. 3,
         9, 10).
 
-        One assembly over the packed faces; block ``i`` equals ``laplacian(verts_i, faces_i)``.
+        One assembly over the packed faces; block ``i`` equals
+        ``laplacian(verts_i, faces_i, lam, method=method)``. ``method``: ``"aw11"`` (default),
+        ``"plms"`` (``lam`` unused) or ``"degoes"``, as in :func:`~torch_polylap.laplacian`.
         Differentiable in the vertices with O(nnz) gradients (``L @ X``, ``L.diagonal()``).
         """
-        return laplacian(self.verts_packed(), self.topology(), lam, validate=validate)
+        return laplacian(
+            self.verts_packed(), self.topology(), lam, validate=validate, method=method
+        )
 
     def update_packed(self, new_verts_packed: torch.Tensor) -> PolygonMeshes:
         """A batch with the same faces (shared topology and caches) and new packed vertices."""

@@ -28,6 +28,7 @@ from torch.utils.data import Dataset
 from .batch import PolygonMeshes
 from .faces import FacesLike, PolygonFaces, as_faces
 from .io import read_mesh
+from .methods import check_method
 from .nn.spectrum import Spectrum
 from .operators import laplacian, mass
 from .sparse import SparseOperator, block_diag, diag
@@ -60,7 +61,10 @@ class PolygonMeshDataset(Dataset):
         cache_dir: directory of the eigenpair cache (created when missing; a path naming an
             existing file is a ``ValueError`` at construction).  Unusable cache files are
             recomputed and replaced, see :func:`torch_polylap.cached_eigs`.
-        lam: stabilization weight of the Laplacian (AW11 eq. 9).
+        lam: stabilization weight of the Laplacian (AW11 eq. 9; unused by ``"plms"``).
+        method: the Laplacian, ``"aw11"`` (default), ``"plms"`` or ``"degoes"`` (see
+            :func:`torch_polylap.laplacian`); part of the eigenpair cache key. The
+            normalization uses the AW11 lumped mass whatever the method.
         normalize: center and scale each mesh to unit area (:func:`normalize_mesh`).
         dtype: dtype of the returned tensors (eigenpairs are computed in float64).
 
@@ -79,11 +83,13 @@ class PolygonMeshDataset(Dataset):
         lam: float = 1.0,
         normalize: bool = True,
         dtype: torch.dtype = torch.float32,
+        method: str = "aw11",
     ) -> None:
         if labels is not None and len(labels) != len(items):
             raise ValueError(f"got {len(items)} meshes but {len(labels)} labels.")
         self.items, self.labels = list(items), None if labels is None else list(labels)
         self.k, self.cache_dir, self.lam = k, Path(cache_dir), lam
+        self.method = check_method(method)
         check_cache_dir(self.cache_dir)  # before any mesh is read or eigenpair computed
         self.normalize, self.dtype = normalize, dtype
 
@@ -106,8 +112,10 @@ class PolygonMeshDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         verts, faces = self.mesh(i)
-        evals, evecs = cached_eigs(verts, faces, self.k, self.cache_dir, lam=self.lam)
-        L, M0 = laplacian(verts, faces, self.lam)
+        evals, evecs = cached_eigs(
+            verts, faces, self.k, self.cache_dir, lam=self.lam, method=self.method
+        )
+        L, M0 = laplacian(verts, faces, self.lam, method=self.method)
         return {
             "verts": verts.to(self.dtype),
             "faces": faces,
@@ -120,7 +128,7 @@ class PolygonMeshDataset(Dataset):
 
     def _fill_cache(self, i: int) -> None:
         verts, faces = self.mesh(i)
-        cached_eigs(verts, faces, self.k, self.cache_dir, lam=self.lam)
+        cached_eigs(verts, faces, self.k, self.cache_dir, lam=self.lam, method=self.method)
 
     def precompute(self, num_workers: int = 0) -> None:
         """Fill the eigenpair cache for every item, in ``num_workers`` processes (0: here).

@@ -1,4 +1,4 @@
-"""Geometry losses and energies on batches of polygon meshes, built on the AW11 Laplacian.
+"""Geometry losses and energies on batches of polygon meshes, built on the polygon Laplacians.
 
 Every loss takes a :class:`~torch_polylap.batch.PolygonMeshes` or a single ``(verts, faces)``
 pair, computes one value per mesh and reduces over the batch:
@@ -11,6 +11,11 @@ Per-vertex quantities are averaged within a mesh (weight ``1 / V_i``), per-edge 
 mesh's interior edges, energies are summed within a mesh.  All operators are assembled once on
 the packed batch (block diagonal) and multiplied as ``L @ X`` (a sparse operator), so gradients
 cost O(nnz).  Each function has a thin ``nn.Module`` wrapper holding its options.
+
+Every loss that builds ``L`` takes ``method=``: ``"aw11"`` (default, Alexa and Wardetzky 2011),
+``"plms"`` (Bunge et al. 2020; ``lam`` unused) or ``"degoes"`` (de Goes et al. 2020), as in
+:func:`torch_polylap.laplacian`; :func:`laplacian_smoothing`, whose ``method`` is pytorch3d's
+``"uniform"`` / ``"cot"`` switch, accepts the three names there as well.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from torch import nn
 
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
 from .faces import FacesLike
+from .methods import METHODS, check_method
 from .operators import Lam, face_planarity_energy, strong_laplacian, vector_area
 
 __all__ = [
@@ -85,9 +91,12 @@ def _vertex_norm(v: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(v, dim=1)
 
 
+SmoothingMethod = Literal["uniform", "polygon", "cot", "aw11", "plms", "degoes"]
+
+
 def laplacian_smoothing(
     meshes: MeshesLike,
-    method: Literal["uniform", "polygon", "cot"] = "uniform",
+    method: SmoothingMethod = "uniform",
     lam: Lam = 1.0,
     frozen_weights: bool = False,
     reduction: Reduction = "mean",
@@ -104,11 +113,13 @@ def laplacian_smoothing(
       -L_pq``, so this is ``|sum_q w_pq X_q / sum_q w_pq - X_p|`` with ``w_pq = -L_pq``: the
       weighted neighbour mean of pytorch3d's ``"cot"`` with AW11 weights in the place of
       cotangents (on triangles ``L`` is the cotan Laplacian, AW11 Theorem 2, and the two agree
-      wherever the cotan row sums are positive). ``L_pp > 0`` for every vertex of a face.
+      wherever the cotan row sums are positive). ``L_pp > 0`` for every vertex of a face;
+    * ``"aw11"`` (same as ``"polygon"``), ``"plms"``, ``"degoes"``: ``|(L X)_p| / L_pp`` with
+      ``L = laplacian(..., method=method)`` (``lam`` unused by ``"plms"``).
 
     Args:
         meshes: a :class:`PolygonMeshes` or ``(verts, faces)``.
-        lam: stabilizer weight of ``L`` (``"polygon"`` only).
+        lam: stabilizer weight of ``L`` (``"polygon"``, ``"aw11"``, ``"degoes"``).
         frozen_weights: compute ``L`` under ``no_grad`` (pytorch3d's behaviour: the gradient
             moves vertices towards the weighted mean with fixed weights) instead of
             differentiating the weights too ("live" weights, the exact gradient of the loss).
@@ -126,29 +137,34 @@ def laplacian_smoothing(
         nbr = X.new_zeros(X.shape).index_add(0, p, X[q]).index_add(0, q, X[p])
         inv = _safe_inverse(deg)[:, None]
         per_vertex = _vertex_norm(nbr * inv - X * (inv > 0))
-    elif method in ("polygon", "cot"):
+    elif method in ("polygon", "cot") or method in METHODS:
+        operator = "aw11" if method in ("polygon", "cot") else method
         with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen_weights):
-            L, _ = m.laplacian(lam)
+            L, _ = m.laplacian(lam, method=operator)
         per_vertex = _vertex_norm(L @ X) * _safe_inverse(L.diagonal())
     else:
-        raise ValueError(f"method must be 'uniform' or 'polygon' ('cot'), got {method!r}.")
+        raise ValueError(
+            "method must be 'uniform', 'polygon' ('cot') or a Laplacian of "
+            f"{', '.join(map(repr, METHODS))}, got {method!r}."
+        )
     per_mesh = per_mesh_mean(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
 
 
 def mean_curvature_smoothing(
-    meshes: MeshesLike, lam: Lam = 1.0, reduction: Reduction = "mean"
+    meshes: MeshesLike, lam: Lam = 1.0, reduction: Reduction = "mean", *, method: str = "aw11"
 ) -> torch.Tensor:
     """Mean of ``|H_p|``, ``H = M0^{-1} L X`` the mean curvature normal (AW11 sec. 3.2), per mesh.
 
     ``|H_p| -> 2 |H_mean|`` under refinement (2 on the unit sphere), so unlike
     :func:`laplacian_smoothing` the value has units of curvature and is not scale invariant.
-    Isolated vertices contribute 0.
+    Isolated vertices contribute 0. ``method``: the Laplacian (``"aw11"``, ``"plms"``,
+    ``"degoes"``).
     """
     _check_reduction(reduction)
     m = _as_meshes(meshes)
     X = m.verts_packed()
-    L, M0 = m.laplacian(lam)
+    L, M0 = m.laplacian(lam, method=check_method(method))
     H = strong_laplacian(L, M0, X)
     per_mesh = per_mesh_mean(_vertex_norm(H), m.verts_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
@@ -167,19 +183,25 @@ def _packed_signal(m: PolygonMeshes, signal: torch.Tensor, name: str) -> torch.T
 
 
 def dirichlet_energy(
-    meshes: MeshesLike, signal: torch.Tensor, lam: Lam = 1.0, reduction: Reduction = "mean"
+    meshes: MeshesLike,
+    signal: torch.Tensor,
+    lam: Lam = 1.0,
+    reduction: Reduction = "mean",
+    *,
+    method: str = "aw11",
 ) -> torch.Tensor:
     """Dirichlet energy ``1/2 f^T L f`` of a vertex signal, per mesh (AW11 eq. 3: ``L = d^T M1 d``).
 
     Args:
         signal: ``(sum V_i,)`` or ``(sum V_i, C)`` packed per-vertex values; channels are summed.
+        method: the Laplacian (``"aw11"``, ``"plms"``, ``"degoes"``).
 
     Differentiable in the signal and the vertex positions.
     """
     _check_reduction(reduction)
     m = _as_meshes(meshes)
     f = _packed_signal(m, signal, "signal")
-    L, _ = m.laplacian(lam)
+    L, _ = m.laplacian(lam, method=check_method(method))
     f = f.to(L.dtype)
     per_vertex = 0.5 * (f * (L @ f)).sum(1)
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
@@ -191,6 +213,8 @@ def bending_energy(
     u: torch.Tensor | None = None,
     lam: Lam = 1.0,
     reduction: Reduction = "mean",
+    *,
+    method: str = "aw11",
 ) -> torch.Tensor:
     """Bending energy ``1/2 u^T L^T M0^{-1} L u = 1/2 sum_p |(L u)_p|^2 / m_p`` per mesh.
 
@@ -200,11 +224,12 @@ def bending_energy(
     Args:
         u: ``(sum V_i,)`` or ``(sum V_i, C)`` packed per-vertex values; defaults to
             ``verts_packed()``.
+        method: the Laplacian (``"aw11"``, ``"plms"``, ``"degoes"``).
     """
     _check_reduction(reduction)
     m = _as_meshes(meshes)
     f = m.verts_packed() if u is None else _packed_signal(m, u, "u")
-    L, M0 = m.laplacian(lam)
+    L, M0 = m.laplacian(lam, method=check_method(method))
     Lu = L @ f.to(L.dtype)
     per_vertex = 0.5 * (Lu * Lu).sum(1) * _safe_inverse(M0.diagonal())
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
@@ -262,7 +287,7 @@ class LaplacianSmoothingLoss(nn.Module):
 
     def __init__(
         self,
-        method: Literal["uniform", "polygon", "cot"] = "uniform",
+        method: SmoothingMethod = "uniform",
         lam: float = 1.0,
         frozen_weights: bool = False,
         reduction: Reduction = "mean",
@@ -289,41 +314,49 @@ class LaplacianSmoothingLoss(nn.Module):
 
 
 class _LamLoss(nn.Module):
-    def __init__(self, lam: float = 1.0, reduction: Reduction = "mean") -> None:
+    def __init__(
+        self, lam: float = 1.0, reduction: Reduction = "mean", *, method: str = "aw11"
+    ) -> None:
         super().__init__()
         _check_reduction(reduction)
-        self.lam, self.reduction = lam, reduction
+        self.lam, self.reduction, self.method = lam, reduction, check_method(method)
 
     def extra_repr(self) -> str:
-        return f"lam={self.lam}, reduction={self.reduction!r}"
+        return f"lam={self.lam}, reduction={self.reduction!r}, method={self.method!r}"
 
 
 class MeanCurvatureSmoothingLoss(_LamLoss):
     """``nn.Module`` for :func:`mean_curvature_smoothing`; ``forward(meshes)``."""
 
     def forward(self, meshes: MeshesLike) -> torch.Tensor:
-        return mean_curvature_smoothing(meshes, self.lam, self.reduction)
+        return mean_curvature_smoothing(meshes, self.lam, self.reduction, method=self.method)
 
 
 class DirichletEnergy(_LamLoss):
     """``nn.Module`` for :func:`dirichlet_energy`; ``forward(meshes, signal)``."""
 
     def forward(self, meshes: MeshesLike, signal: torch.Tensor) -> torch.Tensor:
-        return dirichlet_energy(meshes, signal, self.lam, self.reduction)
+        return dirichlet_energy(meshes, signal, self.lam, self.reduction, method=self.method)
 
 
 class BendingEnergy(_LamLoss):
     """``nn.Module`` for :func:`bending_energy`; ``forward(meshes, u=None)``."""
 
     def forward(self, meshes: MeshesLike, u: torch.Tensor | None = None) -> torch.Tensor:
-        return bending_energy(meshes, u, self.lam, self.reduction)
+        return bending_energy(meshes, u, self.lam, self.reduction, method=self.method)
 
 
 class PlanarityLoss(_LamLoss):
-    """``nn.Module`` for :func:`planarity_loss` (default ``lam = 2``); ``forward(meshes)``."""
+    """``nn.Module`` for :func:`planarity_loss` (default ``lam = 2``); ``forward(meshes)``.
+
+    The planarity energy is AW11's stabilizer (sec. 5.3) and has no other method.
+    """
 
     def __init__(self, lam: float = 2.0, reduction: Reduction = "mean") -> None:
         super().__init__(lam, reduction)
+
+    def extra_repr(self) -> str:
+        return f"lam={self.lam}, reduction={self.reduction!r}"
 
     def forward(self, meshes: MeshesLike) -> torch.Tensor:
         return planarity_loss(meshes, self.lam, self.reduction)

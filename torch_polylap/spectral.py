@@ -27,6 +27,7 @@ import torch
 
 from .io.common import atomic_write
 from .linalg import eigs, solve
+from .methods import check_method
 from .operators import MeshFaces, get_topology, laplacian
 
 __all__ = [
@@ -112,13 +113,23 @@ def implicit_heat_diffusion(
     return solve(M0 + time * L, M0 @ u0)
 
 
-def _mesh_key(verts: torch.Tensor, faces: MeshFaces, k: int, lam: float) -> str:
+def _mesh_key(
+    verts: torch.Tensor, faces: MeshFaces, k: int, lam: float, method: str = "aw11"
+) -> str:
+    """Hash of everything the eigenpairs depend on: positions, faces, ``k``, ``method`` and
+    ``lam`` (except for ``"plms"``, which does not use it, so every ``lam`` shares one entry).
+
+    AW11 keys are those of earlier versions (no method field), so existing caches stay valid.
+    """
     topo = get_topology(faces, verts.shape[0])
     digest = hashlib.sha256()
     digest.update(verts.detach().cpu().to(torch.float64).numpy().tobytes())
     digest.update(topo.faces.indices.numpy().tobytes())
     digest.update(topo.faces.sizes.numpy().tobytes())
-    digest.update(f"k={k};lam={lam!r}".encode())
+    if method == "aw11":
+        digest.update(f"k={k};lam={lam!r}".encode())
+    else:
+        digest.update(f"k={k};lam={None if method == 'plms' else lam!r};method={method}".encode())
     return digest.hexdigest()[:32]
 
 
@@ -129,10 +140,13 @@ def cached_eigs(
     cache_dir: str | Path,
     *,
     lam: float = 1.0,
+    method: str = "aw11",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`eigs` of the mesh's ``(L, M0)``, stored in ``cache_dir`` and reused across runs.
 
-    The key hashes the vertex positions, the faces, ``k`` and ``lam``: any change recomputes.
+    ``(L, M0) = laplacian(verts, faces, lam, method=method)`` (``"aw11"``, ``"plms"`` or
+    ``"degoes"``). The key hashes the vertex positions, the faces, ``k``, ``method`` and ``lam``
+    (not for ``"plms"``, which ignores it): any change recomputes.
     Returned tensors have ``verts``' dtype and device and carry no gradient (precomputation for
     datasets; use :func:`eigs` directly for differentiable eigenvalues).
 
@@ -145,13 +159,14 @@ def cached_eigs(
     Raises:
         ValueError: ``cache_dir`` exists but is not a directory (checked before any work).
     """
+    check_method(method)
     cache = Path(cache_dir)
     check_cache_dir(cache)
-    path = cache / f"eigs-{_mesh_key(verts, faces, k, lam)}.npz"
+    path = cache / f"eigs-{_mesh_key(verts, faces, k, lam, method)}.npz"
     cached = _load_eigs(path, k, verts.shape[0]) if path.exists() else None
     if cached is None:
         with torch.no_grad():
-            L, M0 = laplacian(verts.detach(), faces, lam)
+            L, M0 = laplacian(verts.detach(), faces, lam, method=method)
             evals, evecs = eigs(L, M0, k)
         cache.mkdir(parents=True, exist_ok=True)
         arrays = {"evals": evals.cpu().numpy(), "evecs": evecs.cpu().numpy()}

@@ -35,6 +35,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 from ..linalg import dirichlet_solve
+from ..methods import check_method
 from ..operators import MeshFaces, face_normals, get_topology, laplacian, vector_area
 from ..sparse import block_diag, from_coo, to_scipy
 from ..topology import Topology, half_edge_vertices
@@ -90,13 +91,17 @@ def _check_mesh(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
     return boundary
 
 
-def conformal_matrix(verts: torch.Tensor, faces: MeshFaces, lam: float = 1.0) -> torch.Tensor:
+def conformal_matrix(
+    verts: torch.Tensor, faces: MeshFaces, lam: float = 1.0, *, method: str = "aw11"
+) -> torch.Tensor:
     """The ``(2V, 2V)`` matrix ``L_C`` of the conformal energy ``E_C = 1/2 z^T L_C z``.
 
     Args:
         verts: ``(V, 3)`` positions of the source mesh.
         faces: polygon faces (any form accepted by :func:`torch_polylap.as_faces`).
         lam: stabilizer weight of :func:`torch_polylap.laplacian`.
+        method: the Laplacian, ``"aw11"`` (default), ``"plms"`` (``lam`` unused) or
+            ``"degoes"`` (see :func:`torch_polylap.laplacian`).
 
     Returns:
         A symmetric sparse operator acting on ``z = [u; v]`` (AW11 eq. 11-12); its values are
@@ -110,7 +115,7 @@ def conformal_matrix(verts: torch.Tensor, faces: MeshFaces, lam: float = 1.0) ->
     """
     topo = get_topology(faces, verts.shape[0])
     _require_oriented_edges(topo, "conformal_matrix")
-    L, _ = laplacian(verts, topo, lam)
+    L, _ = laplacian(verts, topo, lam, method=check_method(method))
     n = topo.num_verts
     s, t = _boundary_half_edges(topo)
     s, t = s.to(L.device), t.to(L.device)
@@ -134,7 +139,12 @@ def _signed_area(uv: torch.Tensor, topo: Topology) -> torch.Tensor:
 
 
 def conformal_energy(
-    uv: torch.Tensor, verts: torch.Tensor, faces: MeshFaces, lam: float = 1.0
+    uv: torch.Tensor,
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    lam: float = 1.0,
+    *,
+    method: str = "aw11",
 ) -> torch.Tensor:
     """``E_C(Y) = E_D(Y) - A(Y)`` (AW11 eq. 11), a differentiable scalar.
 
@@ -144,6 +154,8 @@ def conformal_energy(
         faces: polygon faces, consistently oriented, every edge used by at most two faces
             (else a ValueError says which repair to run, as in :func:`conformal_matrix`).
         lam: stabilizer weight of the Laplacian.
+        method: the Laplacian, ``"aw11"`` (default), ``"plms"`` (``lam`` unused) or
+            ``"degoes"`` (see :func:`torch_polylap.laplacian`).
 
     Returns:
         ``1/2 sum_c uv_c^T L uv_c`` minus the signed area of the image. Non-negative whenever
@@ -155,7 +167,7 @@ def conformal_energy(
         raise ValueError(f"uv must have shape ({verts.shape[0]}, 2), got {tuple(uv.shape)}.")
     topo = get_topology(faces, verts.shape[0])
     _require_oriented_edges(topo, "conformal_energy")
-    L, _ = laplacian(verts, topo, lam)
+    L, _ = laplacian(verts, topo, lam, method=check_method(method))
     dirichlet = 0.5 * (uv * (L @ uv.to(L.dtype))).sum()
     return dirichlet - _signed_area(uv, topo)
 
@@ -198,9 +210,9 @@ def _check_pins(pins, pin_uv, verts: torch.Tensor, boundary: torch.Tensor):
     return pins, pin_uv
 
 
-def _pinned(verts, topo, lam, pins, pin_uv) -> torch.Tensor:
+def _pinned(verts, topo, lam, pins, pin_uv, method: str = "aw11") -> torch.Tensor:
     n = topo.num_verts
-    LC = conformal_matrix(verts, topo, lam)
+    LC = conformal_matrix(verts, topo, lam, method=method)
     fixed = torch.cat((pins, pins + n)).to(verts.device)
     fixed_values = torch.cat((pin_uv[:, 0], pin_uv[:, 1]))
     z = dirichlet_solve(LC, verts.new_zeros(2 * n), fixed, fixed_values)
@@ -216,9 +228,10 @@ def _orthonormal_complement_of_ones(m: int) -> np.ndarray:
     return H[:, 1:]
 
 
-def _free_boundary(verts, topo, lam, boundary) -> torch.Tensor:
+def _free_boundary(verts, topo, lam, boundary, method: str = "aw11") -> torch.Tensor:
     n = topo.num_verts
-    L = to_scipy(laplacian(verts.detach(), topo, lam)[0]).astype(np.float64).tocsc()
+    L = laplacian(verts.detach(), topo, lam, method=method)[0]
+    L = to_scipy(L).astype(np.float64).tocsc()
     b = boundary.numpy()
     interior = np.setdiff1d(np.arange(n), b)
     L_BB = L[b][:, b].toarray()
@@ -278,6 +291,8 @@ def conformal_parameterization(
     pin_uv: torch.Tensor | None = None,
     free_boundary: bool = False,
     lam: float = 1.0,
+    *,
+    method: str = "aw11",
 ) -> torch.Tensor:
     """Flat conformal map of a disk-like polygon mesh minimizing ``E_C`` (AW11 sec. 5.2).
 
@@ -294,6 +309,8 @@ def conformal_parameterization(
             the source's total face area, centered at the origin and rotated so that the
             default pins (see ``pins``) lie along the ``u`` axis.
         lam: stabilizer weight of the Laplacian.
+        method: the Laplacian, ``"aw11"`` (default), ``"plms"`` (``lam`` unused) or
+            ``"degoes"`` (see :func:`torch_polylap.laplacian`).
 
     Returns:
         ``uv``: ``(V, 2)``, dtype and device of ``verts``. The pinned result is differentiable
@@ -309,18 +326,19 @@ def conformal_parameterization(
     """
     if verts.dim() != 2 or verts.shape[1] != 3:
         raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
+    check_method(method)
     topo = get_topology(faces, verts.shape[0])
     boundary = _check_mesh(verts, topo)
     if free_boundary:
         if pins is not None or pin_uv is not None:
             raise ValueError("free_boundary=True places the whole boundary; do not pass pins.")
-        return _free_boundary(verts, topo, lam, boundary)
+        return _free_boundary(verts, topo, lam, boundary, method)
     if pins is None:
         if pin_uv is not None:
             raise ValueError("pin_uv was given without pins; pass the two pinned vertices too.")
         pins = _default_pins(verts, boundary)
     pins, pin_uv = _check_pins(pins, pin_uv, verts, boundary)
-    return _pinned(verts, topo, lam, pins, pin_uv)
+    return _pinned(verts, topo, lam, pins, pin_uv, method)
 
 
 @dataclass

@@ -20,6 +20,7 @@ import torch
 from ..checks import check_index_or_mask
 from ..geometry import corner_terms, gather_corners
 from ..linalg import solve
+from ..methods import check_method
 from ..operators import MeshFaces, face_areas, get_topology, laplacian
 from ..sparse import eliminate
 from ..topology import Topology, half_edge_vertices
@@ -228,6 +229,7 @@ def mean_curvature_flow(
     progress: bool = False,
     *,
     fixed: torch.Tensor | None = None,
+    method: str = "aw11",
 ) -> torch.Tensor:
     """Implicit mean-curvature flow ``(M0 + dt L) X' = M0 X`` (AW11 sec. 5.1; Desbrun et al. 1999).
 
@@ -255,6 +257,8 @@ def mean_curvature_flow(
             a boundary to fair a patch towards a minimal surface (checked by
             :func:`torch_polylap.checks.check_index_or_mask`). Cannot be combined with
             ``normalize``.
+        method: the Laplacian, ``"aw11"`` (default), ``"plms"`` (``lam`` unused) or
+            ``"degoes"`` (see :func:`torch_polylap.laplacian`).
 
     Returns:
         ``(V, 3)`` final positions, or ``(steps + 1, V, 3)`` with ``return_trajectory`` (index 0
@@ -268,6 +272,7 @@ def mean_curvature_flow(
             or a mask of the wrong length).
     """
     _check_args(verts, dt, steps, normalize)
+    check_method(method)
     topo = get_topology(faces, verts.shape[0])
     if normalize == "volume":
         _require_closed_oriented(topo, "normalize='volume'", "Use normalize='area' or None.")
@@ -280,14 +285,20 @@ def mean_curvature_flow(
 
     X = verts
     trajectory = [X]
-    system = _StepSystem(*laplacian(X, topo, lam), float(dt), fixed_mask) if frozen else None
+    system = (
+        _StepSystem(*laplacian(X, topo, lam, method=method), float(dt), fixed_mask)
+        if frozen
+        else None
+    )
     iterator = range(steps)
     if progress:
         from tqdm.auto import tqdm
 
         iterator = tqdm(iterator, desc="mean curvature flow", unit="step")
     for _ in iterator:
-        step_system = system or _StepSystem(*laplacian(X, topo, lam), float(dt), fixed_mask)
+        step_system = system or _StepSystem(
+            *laplacian(X, topo, lam, method=method), float(dt), fixed_mask
+        )
         X = step_system.step(X)
         if target is not None:
             ratio = target / _measure(X, topo, normalize)

@@ -27,6 +27,7 @@ import torch
 
 from ..checks import check_index_or_mask
 from ..linalg import solve
+from ..methods import check_method
 from ..operators import MeshFaces, get_topology, laplacian, mass
 from ..sparse import eliminate
 
@@ -45,6 +46,8 @@ def plate_bending(
     load: float | torch.Tensor = 1.0,
     lam: float | torch.Tensor = 1.0,
     boundary: torch.Tensor | None = None,
+    *,
+    method: str = "aw11",
 ) -> torch.Tensor:
     """Deflection of a simply supported thin plate under a load (AW11 sec. 5.4).
 
@@ -62,6 +65,9 @@ def plate_bending(
         boundary: supported vertices (indices, each once, or a ``(V,)`` bool mask); default:
             the mesh boundary (defined on any mesh, non-manifold or non-orientable ones
             included). Every connected component needs at least one.
+        method: the Laplacian, ``"aw11"`` (default), ``"plms"`` (``lam`` unused, no spurious
+            modes to stabilize) or ``"degoes"`` (see :func:`torch_polylap.laplacian`); ``M0``
+            is that method's mass.
 
     Returns:
         ``(V,)`` deflection ``u`` (positive along the load), zero on the support; dtype and
@@ -70,6 +76,7 @@ def plate_bending(
     Raises:
         ValueError: no supported vertex, a singular system, or bad mesh input.
     """
+    check_method(method)
     topo = get_topology(faces, verts.shape[0])
     support = _boundary_mask(boundary, verts.shape[0], topo.boundary_vertices, verts.device)
     if not bool(support.any()):
@@ -77,7 +84,7 @@ def plate_bending(
             "plate_bending needs supported vertices (u = 0): the mesh has no boundary; pass "
             "`boundary` with the vertex indices to hold."
         )
-    L, M0 = laplacian(verts, topo, lam)
+    L, M0 = laplacian(verts, topo, lam, method=method)
     m = M0.diagonal()
     # Dirichlet zeros: the support's rows and columns become the identity's; the matrix stays
     # symmetric positive definite and one factorization (cached by solve) serves both solves.

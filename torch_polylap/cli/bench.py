@@ -26,8 +26,10 @@ from ..sparse import to_scipy
 from ..topology import build_topology
 from .common import (
     add_mesh_argument,
+    add_method_argument,
     fmt_time,
     load_mesh,
+    method_label,
     output_dir,
     positive_float,
     positive_int,
@@ -47,6 +49,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     add_mesh_argument(p)
     p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
+    add_method_argument(p)
     p.add_argument("--repeat", type=positive_int, default=5, help="samples per timing (default 5)")
     p.add_argument("-k", type=positive_int, default=16, help="eigenpairs for eigs (default 16)")
     p.add_argument(
@@ -81,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
     n = verts.shape[0]
     k = min(args.k, n - 1)
     topo = build_topology(faces, n)
-    L, M0 = laplacian(verts, topo, args.lam)
+    method = args.method
+    L, M0 = laplacian(verts, topo, args.lam, method=method)
     Ls, Ms = to_scipy(L), to_scipy(M0)
     X = torch.randn(n, 3, dtype=verts.dtype, generator=torch.Generator().manual_seed(0))
     Xs = X.numpy()
@@ -90,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
 
     def forward_backward() -> None:
         V = verts.clone().requires_grad_(True)
-        Lv, _ = laplacian(V, topo, args.lam)
+        Lv, _ = laplacian(V, topo, args.lam, method=method)
         ((Lv @ X) ** 2).sum().backward()
 
     def scipy_splu() -> np.ndarray:
@@ -108,13 +112,13 @@ def run(args: argparse.Namespace) -> int:
         ("topology (build_topology)", lambda: build_topology(faces, n), "-", None),
         (
             "first assembly (topology + L, M0)",
-            lambda: laplacian(verts, build_topology(faces, n), args.lam),
+            lambda: laplacian(verts, build_topology(faces, n), args.lam, method=method),
             "igl.cotmatrix + massmatrix (fan)",
             igl_cot,
         ),
         (
             "re-assembly (cached topology)",
-            lambda: laplacian(verts, topo, args.lam),
+            lambda: laplacian(verts, topo, args.lam, method=method),
             "igl.cotmatrix + massmatrix (fan)",
             igl_cot,
         ),
@@ -142,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
             }
         )
     print(
-        f"polylap bench: {label}, {n} vertices, {faces.num_faces} faces, lambda = {args.lam}, "
+        f"polylap bench: {label}, {n} vertices, {faces.num_faces} faces, "
+        f"{method_label(args)}, "
         f"float64, median of {args.repeat}"
     )
     print(
@@ -163,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         out = result_path(output_dir(args), path, "bench", ".json")
         meta = {"mesh": str(path), "verts": n, "faces": faces.num_faces, "lam": args.lam}
+        meta |= {"method": method}
         meta |= {"repeat": args.repeat, "k": k, "h": args.h, "torch": torch.__version__}
         out.write_text(json.dumps({**meta, "results": results}, indent=2))
         print(f"wrote {out}")

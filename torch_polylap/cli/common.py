@@ -77,6 +77,25 @@ def add_output_arguments(parser: argparse.ArgumentParser, progress: bool = True)
         parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
+def add_method_argument(parser: argparse.ArgumentParser) -> None:
+    """``--method {aw11,plms,degoes}``: which polygon Laplacian the command builds."""
+    from ..methods import METHODS
+
+    parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default="aw11",
+        help="polygon Laplacian: aw11 (Alexa & Wardetzky 2011, default), plms (Bunge et al. "
+        "2020, ignores --lam) or degoes (de Goes et al. 2020)",
+    )
+
+
+def method_label(args: argparse.Namespace) -> str:
+    """The Laplacian of ``args.method`` with its ``lambda`` (none for PLMS), for result tables."""
+    method = getattr(args, "method", "aw11")
+    return f"{method} (lambda unused)" if method == "plms" else f"{method}, lambda = {args.lam}"
+
+
 def positive_float(text: str) -> float:
     value = float(text)
     if not value > 0 or not np.isfinite(value):

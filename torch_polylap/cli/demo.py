@@ -20,7 +20,15 @@ import torch
 from .. import __version__
 from ..io import write_mesh
 from ..operators import get_topology
-from .common import DATA_DIR, DEFAULT_OUTPUT, Result, output_dir, read_mesh_quietly, table
+from .common import (
+    DATA_DIR,
+    DEFAULT_OUTPUT,
+    Result,
+    add_method_argument,
+    output_dir,
+    read_mesh_quietly,
+    table,
+)
 
 PLATE_MESH = DATA_DIR / "grid_voronoi_1.obj"
 
@@ -34,6 +42,8 @@ STEPS = (
 
 # the commands with a progress bar of their own
 PROGRESS = ("smooth", "planarize")
+# the commands that build L and take --method
+WITH_METHOD = ("smooth", "param")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -53,6 +63,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-plot", action="store_true", help="numbers only, no figures")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_method_argument(p)
     p.set_defaults(func=run)
 
 
@@ -68,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
     for title, section, argv in STEPS:
         # the demo's own bar counts the applications; theirs would interleave with it
         quiet = ["--no-progress"] if argv[0] in PROGRESS else []
+        if argv[0] in WITH_METHOD and args.method != "aw11":
+            argv = [*argv, "--method", args.method]
         sub_args = parser.parse_args([*argv, *common, *quiet])
         tasks.append((title, section, "polylap " + " ".join(argv), _bound(sub_args)))
     tasks.append(
@@ -75,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
             "Thin-plate bending",
             "5.4",
             "(Python API: torch_polylap.apps.plate_bending)",
-            lambda: plate(out, not args.no_plot),
+            lambda: plate(out, not args.no_plot, args.method),
         )
     )
     sections = []
@@ -98,9 +111,10 @@ def _bound(sub_args: argparse.Namespace) -> Callable[[], Result]:
     return lambda: sub_args.compute(sub_args)
 
 
-def plate(out: Path, with_plot: bool) -> Result:
+def plate(out: Path, with_plot: bool, method: str = "aw11") -> Result:
     """Simply supported unit-square plate under unit load on a Voronoi polygon mesh, against
-    Navier's solution (AW11 sec. 5.4, Fig. 6-7), for three values of lambda."""
+    Navier's solution (AW11 sec. 5.4, Fig. 6-7), for three values of lambda, with the Laplacian
+    of ``method`` (``"plms"`` ignores lambda: the three errors are equal)."""
     from ..apps.plate import navier_deflection, plate_bending, plate_error
 
     verts, faces = read_mesh_quietly(PLATE_MESH, True)
@@ -111,7 +125,7 @@ def plate(out: Path, with_plot: bool) -> Result:
     errors, u, seconds = {}, None, 0.0
     for lam in (0.5, 1.0, 2.0):
         t0 = time.perf_counter()
-        u_lam = plate_bending(verts, topo, load=1.0, lam=lam)
+        u_lam = plate_bending(verts, topo, load=1.0, lam=lam, method=method)
         if lam == 1.0:
             u, seconds = u_lam, time.perf_counter() - t0
         errors[lam] = float(plate_error(verts, topo, u_lam, reference))
@@ -122,6 +136,7 @@ def plate(out: Path, with_plot: bool) -> Result:
     rows = [
         ("mesh", f"{PLATE_MESH.name}: {verts.shape[0]} vertices, {faces.num_faces} polygons"),
         ("load / support", "1 per unit area / simply supported boundary"),
+        ("Laplacian", method),
         ("max deflection: ours / Navier", f"{float(u.max()):.6f} / {float(reference.max()):.6f}"),
         (
             "relative L2 error, lambda = 0.5 / 1 / 2",

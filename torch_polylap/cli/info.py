@@ -17,7 +17,7 @@ from .. import __version__
 from ..operators import face_areas, face_nonplanarity, laplacian
 from ..sparse import to_scipy
 from ..topology import build_topology
-from .common import DEFAULT_MESH, read_mesh_quietly, row, timed
+from .common import DEFAULT_MESH, add_method_argument, read_mesh_quietly, row, timed
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -30,6 +30,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "mesh", nargs="?", help="OBJ, OFF or PLY polygon mesh (default: the embedded Spot cage)"
     )
     info.add_argument("--lam", type=float, default=1.0, help="stabilizer weight lambda (default 1)")
+    add_method_argument(info)
     info.add_argument("--dtype", choices=("float32", "float64"), default="float64")
     info.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     info.add_argument("--eigs", type=int, default=6, help="how many smallest eigenvalues to show")
@@ -58,12 +59,13 @@ def run(args: argparse.Namespace) -> int:
     verts, faces = read_mesh_quietly(path, not args.mesh, dtype=dtype, device=args.device)
     # no warning: the table lists what the topology found (Topology.report)
     t_topo, topo = timed(lambda: build_topology(faces, verts.shape[0], warn=False), repeat=1)
-    t_first = t_topo + timed(lambda: laplacian(verts, topo, args.lam), repeat=1)[0]
-    t_values, (L, M0) = timed(lambda: laplacian(verts, topo, args.lam))
+    method = args.method
+    t_first = t_topo + timed(lambda: laplacian(verts, topo, args.lam, method=method), repeat=1)[0]
+    t_values, (L, M0) = timed(lambda: laplacian(verts, topo, args.lam, method=method))
 
     def forward_backward() -> None:
         X = verts.detach().clone().requires_grad_(True)
-        Lx, _ = laplacian(X, topo, args.lam)
+        Lx, _ = laplacian(X, topo, args.lam, method=method)
         ((Lx @ X) ** 2).sum().backward()
 
     t_grad, _ = timed(forward_backward)
@@ -124,7 +126,9 @@ def run(args: argparse.Namespace) -> int:
         )
     lines += [
         row("total area", f"{float(areas.sum()):.6g}"),
-        f"operators (lambda = {args.lam}, {args.dtype}, {verts.device})",
+        f"operators ({'' if method == 'aw11' else method + ', '}"
+        f"{'lambda unused' if method == 'plms' else f'lambda = {args.lam}'}, "
+        f"{args.dtype}, {verts.device})",
         row("L: size / nonzeros", f"{L.shape[0]} x {L.shape[1]} / {Ls.nnz}"),
         row("L symmetry |L - L^T| / max|L|", f"{asym:.1e}"),
         row("L row sums / max|L|", f"{rowsum:.1e}"),

@@ -15,8 +15,10 @@ from .common import (
     DISK_MESH,
     Result,
     add_mesh_argument,
+    add_method_argument,
     add_output_arguments,
     load_mesh,
+    method_label,
     output_dir,
     positive_float,
     result_path,
@@ -35,6 +37,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     add_mesh_argument(p, default=DISK_MESH)
     p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
+    add_method_argument(p)
     p.add_argument(
         "--free-boundary",
         action="store_true",
@@ -66,11 +69,16 @@ def compute(args: argparse.Namespace) -> Result:
         raise ValueError("--pins and --free-boundary exclude each other; pass one of them.")
     start = time.perf_counter()
     uv = conformal_parameterization(
-        verts, topo, pins=args.pins, free_boundary=args.free_boundary, lam=args.lam
+        verts,
+        topo,
+        pins=args.pins,
+        free_boundary=args.free_boundary,
+        lam=args.lam,
+        method=args.method,
     )
     seconds = time.perf_counter() - start
     uv = uv.detach()
-    energy = float(conformal_energy(uv, verts, topo, args.lam))
+    energy = float(conformal_energy(uv, verts, topo, args.lam, method=args.method))
     dist = angle_distortion(uv, verts, topo)
     # per-face mean |angle error| in degrees (the corners are packed face by face)
     face_err = torch.zeros(faces.num_faces, dtype=uv.dtype).index_add_(
@@ -89,6 +97,7 @@ def compute(args: argparse.Namespace) -> Result:
         ),
         ("mode", "free boundary (eq. 13-15)" if args.free_boundary else "two pins (eq. 12)"),
         ("lambda / time", f"{args.lam} / {seconds * 1e3:.1f} ms"),
+        ("Laplacian", method_label(args)),
         ("conformal energy E_C", f"{energy:.4g}"),
         ("image area / 3D area", f"{float(signed_area.sum()) / float(_area(verts, topo)):.4f}"),
         (

@@ -9,13 +9,15 @@ import time
 import torch
 
 from ..io import write_mesh
-from ..operators import face_areas, get_topology, mean_curvature_normal
+from ..operators import face_areas, get_topology, laplacian, strong_laplacian
 from .common import (
     Result,
     add_mesh_argument,
+    add_method_argument,
     add_output_arguments,
     load_mesh,
     mean_edge_length,
+    method_label,
     output_dir,
     positive_float,
     positive_int,
@@ -42,6 +44,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--steps", type=positive_int, default=10, help="implicit steps (default 10)")
     p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
+    add_method_argument(p)
     p.add_argument(
         "--frozen",
         action="store_true",
@@ -58,11 +61,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run, compute=compute)
 
 
-def scaled_mean_curvature(verts: torch.Tensor, faces, lam: float) -> torch.Tensor:
+def scaled_mean_curvature(
+    verts: torch.Tensor, faces, lam: float, method: str = "aw11"
+) -> torch.Tensor:
     """``(V,)`` ``|H| sqrt(A / 4 pi)``: the mean curvature ``|M0^{-1} L X| / 2`` (AW11 sec. 3.2)
     times the radius of the sphere with the mesh's area, so that flows that shrink the mesh
-    compare by shape, not size."""
-    H = torch.linalg.vector_norm(mean_curvature_normal(verts, faces, lam), dim=1) / 2
+    compare by shape, not size. ``L, M0`` of ``method`` (``"aw11"``, ``"plms"``, ``"degoes"``)."""
+    L, M0 = laplacian(verts, faces, lam, method=method)
+    H = torch.linalg.vector_norm(strong_laplacian(L, M0, verts), dim=1) / 2
     return H * math.sqrt(float(face_areas(verts, faces).sum()) / (4 * math.pi))
 
 
@@ -84,6 +90,7 @@ def compute(args: argparse.Namespace) -> Result:
         frozen=args.frozen,
         normalize=normalize,
         progress=not args.no_progress,
+        method=args.method,
     )
     seconds = time.perf_counter() - start
     mesh_out = result_path(out, path, "smooth")
@@ -94,8 +101,8 @@ def compute(args: argparse.Namespace) -> Result:
         has_volume = True
     except ValueError:
         has_volume = False
-    h_before = scaled_mean_curvature(verts, topo, args.lam)
-    h_after = scaled_mean_curvature(smoothed, topo, args.lam)
+    h_before = scaled_mean_curvature(verts, topo, args.lam, args.method)
+    h_after = scaled_mean_curvature(smoothed, topo, args.lam, args.method)
     interior = torch.ones(verts.shape[0], dtype=torch.bool)
     interior[topo.boundary_vertices] = False
     if not bool(interior.any()):  # a strip of faces: report the boundary values after all
@@ -105,6 +112,7 @@ def compute(args: argparse.Namespace) -> Result:
     rows = [
         ("vertices / faces", f"{verts.shape[0]} / {faces.num_faces}"),
         ("dt / steps / lambda", f"{dt:.4g} / {args.steps} / {args.lam}"),
+        ("Laplacian", method_label(args)),
         ("frozen / normalize", f"{args.frozen} / {args.normalize}"),
         ("time", f"{seconds:.2f} s"),
         (

@@ -130,25 +130,28 @@ class Spectrum:
         *,
         lam: float = 1.0,
         cache_dir: str | Path | None = None,
+        method: str = "aw11",
     ) -> Spectrum:
         """``k`` eigenpairs of each mesh of a :class:`~torch_polylap.batch.PolygonMeshes`.
 
         With ``cache_dir`` they come from :func:`torch_polylap.cached_eigs` (on-disk cache keyed
-        by the mesh, so a dataset computes them once); the masses come from one block-diagonal
-        assembly of the batch. No gradient flows into the result.
+        by the mesh and the method, so a dataset computes them once); the masses come from one
+        block-diagonal assembly of the batch. ``method``: the Laplacian (``"aw11"``,
+        ``"plms"``, ``"degoes"``, see :func:`torch_polylap.laplacian`). No gradient flows into
+        the result.
         """
         from ..linalg import eigs
         from ..operators import laplacian
         from ..spectral import cached_eigs
 
         with torch.no_grad():
-            mass = diagonal(meshes.laplacian(lam)[1])
+            mass = diagonal(meshes.laplacian(lam, method=method)[1])
             pairs = []
             for verts, faces in (meshes[i] for i in range(len(meshes))):
                 if cache_dir is not None:
-                    pairs.append(cached_eigs(verts, faces, k, cache_dir, lam=lam))
+                    pairs.append(cached_eigs(verts, faces, k, cache_dir, lam=lam, method=method))
                 else:
-                    pairs.append(eigs(*laplacian(verts, faces, lam), k))
+                    pairs.append(eigs(*laplacian(verts, faces, lam, method=method), k))
         return cls(
             torch.stack([e for e, _ in pairs]),
             torch.cat([v for _, v in pairs]),
