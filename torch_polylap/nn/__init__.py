@@ -1,4 +1,5 @@
-"""Learning layers on polygon meshes: spectral features, learned diffusion, Chebyshev filters.
+"""Learning layers on polygon meshes: spectral features, learned diffusion, Chebyshev filters,
+spatial gradient features.
 
 Kornia-style: each layer is a thin :class:`torch.nn.Module` over a plain function
 (:func:`spectral_diffusion`, :func:`implicit_diffusion`, :func:`chebyshev_operator`,
@@ -11,6 +12,12 @@ Kornia-style: each layer is a thin :class:`torch.nn.Module` over a plain functio
 
 from .chebyshev import ChebyshevFilter, chebyshev_filter, chebyshev_operator
 from .diffusion import LearnedDiffusion, implicit_diffusion, spectral_diffusion
+from .gradient_features import (
+    SpatialGradientFeatures,
+    spatial_gradient_features,
+    vertex_gradient_operators,
+    vertex_tangent_frames,
+)
 from .models import DiffusionBlock, DiffusionNetLike
 from .spectral_features import SpectralFeatures, hks_time_range, wks_energy_range
 from .spectrum import Spectrum, block_diagonal, diagonal, per_mesh_weighted_mean
@@ -29,6 +36,10 @@ __all__ = [
     "ChebyshevFilter",
     "chebyshev_operator",
     "chebyshev_filter",
+    "vertex_tangent_frames",
+    "vertex_gradient_operators",
+    "spatial_gradient_features",
+    "SpatialGradientFeatures",
     "DiffusionBlock",
     "DiffusionNetLike",
 ]

@@ -1,0 +1,216 @@
+"""Per-vertex tangent gradients and DiffusionNet's spatial-gradient features on polygon meshes.
+
+DiffusionNet (Sharp, Attaiki, Crane and Ovsjanikov 2022, section 3.3) complements isotropic
+diffusion with *spatial gradient features*: the gradient of every feature channel is taken at
+each vertex as a tangent vector, expressed in an arbitrary tangent frame, and the network sees
+only quantities invariant to the choice of that frame -- inner products between the gradients
+and a learned linear combination of them.  This module provides the three pieces on polygon
+meshes:
+
+- :func:`vertex_tangent_frames`: a unit normal per vertex (the normalized sum of the vector
+  areas ``a_f`` of the faces around it, i.e. area-weighted face normals) and two tangent axes.
+- :func:`vertex_gradient_operators`: ``(V, V)`` sparse operators ``grad_x, grad_y`` giving the
+  components, in the vertex's tangent frame, of the area-weighted mean of the face gradients
+  around the vertex (:func:`torch_polylap.calculus.gradient_operator`, exact for linear
+  functions on every face):
+
+      grad_v u = sum_{f ~ v} |f| grad_f u / sum_{f ~ v} |f|,
+      (grad_x u)_v = e_x(v) . grad_v u,    (grad_y u)_v = e_y(v) . grad_v u.
+
+  DiffusionNet stores the pair as one complex operator ``grad_x + i grad_y``; here it is two
+  real :class:`~torch_polylap.sparse.SparseOperator` tensors (O(nnz) gradients, batches by
+  :func:`torch_polylap.sparse.block_diag`).
+- :class:`SpatialGradientFeatures` (functional :func:`spatial_gradient_features`): with
+  ``g_c = (grad_x x_c) + i (grad_y x_c)`` the tangent gradient of channel ``c`` read as a
+  complex number, a learned ``C x C`` matrix ``A`` mixes the channels, ``h = A g``, and the
+  output is ``tanh(Re(conj(g_c) h_c))``, the dot product of each gradient with its transformed
+  version.  ``A`` is complex (``A_re + i A_im``: a real ``2 x 2`` block ``[[a, -b], [b, a]]``
+  per channel pair, a scaled rotation of the tangent vectors) with ``with_rotations=True``, real
+  otherwise.  Both commute with rotating a vertex's tangent frame (multiplying its ``g`` by a
+  unit complex number), so the features do not depend on the frames chosen.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from ..calculus import gradient_operator
+from ..checks import check_verts
+from ..faces import FacesLike, PolygonFaces, as_faces
+from ..geometry import stable_norm
+from ..operators import vector_area
+from ..sparse import SparseOperator, from_coo, pattern_of, sparse_values
+from ..topology import Topology, get_topology
+
+__all__ = [
+    "vertex_tangent_frames",
+    "vertex_gradient_operators",
+    "spatial_gradient_features",
+    "SpatialGradientFeatures",
+]
+
+MeshFaces = FacesLike | Topology
+
+
+def _faces_and_topology(verts: torch.Tensor, faces: MeshFaces) -> tuple[PolygonFaces, Topology]:
+    check_verts(verts)
+    topo = get_topology(faces, verts.shape[0])
+    return (faces.faces if isinstance(faces, Topology) else as_faces(faces)), topo
+
+
+def _corner_sums(face_values: torch.Tensor, faces: PolygonFaces, num_verts: int) -> torch.Tensor:
+    """``(V, ...)`` sum over the faces around each vertex of ``face_values (F, ...)``."""
+    idx = faces.indices.to(face_values.device)
+    per_corner = face_values.repeat_interleave(faces.sizes.to(face_values.device), 0)
+    out = face_values.new_zeros((num_verts,) + tuple(face_values.shape[1:]))
+    return out.index_add(0, idx, per_corner)
+
+
+def vertex_tangent_frames(
+    verts: torch.Tensor, faces: MeshFaces
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-vertex orthonormal frames ``(normal, e_x, e_y)``, each ``(V, 3)``.
+
+    ``normal`` is the normalized sum of the vector areas of the faces around the vertex (the
+    area-weighted face normals).  ``e_x`` is the projection onto the tangent plane of the
+    coordinate axis least aligned with the normal (the first of the smallest ``|n_i|``),
+    normalized; ``e_y = normal x e_x``.  The choice is deterministic; the features of
+    :class:`SpatialGradientFeatures` do not depend on it.  Isolated vertices (and vertices whose
+    faces' vector areas cancel) get the normal ``(0, 0, 1)``.  Differentiable in ``verts``
+    (except where the choice of axis switches).
+    """
+    faces_, topo = _faces_and_topology(verts, faces)
+    summed = _corner_sums(vector_area(verts, topo), faces_, topo.num_verts)
+    norm = stable_norm(summed, 1, keepdim=True)
+    degenerate = (norm <= torch.finfo(verts.dtype).tiny).expand_as(summed)
+    fallback = torch.zeros_like(summed)
+    fallback[:, 2] = 1.0
+    normal = torch.where(degenerate, fallback, summed / torch.where(degenerate, 1.0, norm))
+    axis = normal.detach().abs().argmin(1)
+    ref = torch.nn.functional.one_hot(axis, 3).to(verts.dtype)
+    e_x = ref - (ref * normal).sum(1, keepdim=True) * normal
+    e_x = e_x / stable_norm(e_x, 1, keepdim=True)  # |n . ref| <= 1/sqrt(3): no cancellation
+    e_y = torch.linalg.cross(normal, e_x, dim=1)
+    return normal, e_x, e_y
+
+
+def vertex_gradient_operators(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    frames: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[SparseOperator, SparseOperator]:
+    """``(V, V)`` sparse operators ``grad_x, grad_y``: the tangent components of the
+    area-weighted mean of the face gradients around each vertex (see the module docstring).
+
+    For a linear function ``u(x) = w . x + c`` on a planar mesh every face gradient is ``w``
+    (projected on the plane), so ``grad_x u = e_x . w`` exactly at every vertex.  On a curved
+    mesh the face gradients lie in the faces' planes and are projected on the vertex's tangent
+    plane.
+
+    Args:
+        verts: ``(V, 3)`` vertex positions.
+        faces: faces in any accepted form, or a :class:`~torch_polylap.topology.Topology`.
+        frames: ``(e_x, e_y)``, each ``(V, 3)``, the tangent axes to use; default the ones of
+            :func:`vertex_tangent_frames`.
+
+    Returns:
+        ``(grad_x, grad_y)``, :class:`~torch_polylap.sparse.SparseOperator` tensors with the
+        pattern of the vertex-face-vertex adjacency (``sum_f k_f^2`` entries before merging),
+        values differentiable in ``verts`` (and in ``frames``) with O(nnz) gradients.
+        Isolated vertices get empty rows.
+    """
+    faces_, topo = _faces_and_topology(verts, faces)
+    n = topo.num_verts
+    if frames is None:
+        _, e_x, e_y = vertex_tangent_frames(verts, topo)
+    else:
+        e_x, e_y = frames
+        if e_x.shape != (n, 3) or e_y.shape != (n, 3):
+            raise ValueError(
+                f"vertex_gradient_operators: frames must be two ({n}, 3) tensors, got "
+                f"{tuple(e_x.shape)} and {tuple(e_y.shape)}."
+            )
+    device = verts.device
+    G = gradient_operator(verts, topo)  # (3F, V), row 3 f + c
+    pattern = pattern_of(G)
+    g_row, g_col, g_val = pattern.row, pattern.col, sparse_values(G)
+    face, comp = torch.div(g_row, 3, rounding_mode="floor"), g_row % 3
+
+    area = stable_norm(vector_area(verts, topo), 1)  # (F,)
+    vert_area = _corner_sums(area, faces_, n)
+    vert_area = torch.where(vert_area > 0, vert_area, torch.ones_like(vert_area))
+
+    # Pair every entry (3 f + c, u) of G with every corner v of face f: the entry
+    # |f| / A_v * e(v)_c * G[3 f + c, u] of row v, column u.
+    sizes, offsets = faces_.sizes.to(device), faces_.offsets.to(device)
+    indices = faces_.indices.to(device)
+    repeats = sizes[face]
+    entry = torch.repeat_interleave(torch.arange(g_row.numel(), device=device), repeats)
+    first = torch.cumsum(repeats, 0) - repeats
+    local = torch.arange(entry.numel(), device=device) - first[entry]
+    f_e = face[entry]
+    v = indices[offsets[f_e] + local]
+    weight = g_val[entry] * area[f_e] / vert_area[v]
+    c_e = comp[entry]
+    rows, cols = v, g_col[entry]
+    grad_x = from_coo(rows, cols, weight * e_x[v, c_e], (n, n))
+    grad_y = from_coo(rows, cols, weight * e_y[v, c_e], (n, n))
+    return grad_x, grad_y
+
+
+def spatial_gradient_features(
+    gx: torch.Tensor,
+    gy: torch.Tensor,
+    weight_re: torch.Tensor,
+    weight_im: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``tanh(<g_c, (A g)_c>)`` per vertex and channel (DiffusionNet section 3.3).
+
+    Args:
+        gx, gy: ``(V, C)`` tangent components of the gradients of ``C`` channels (``grad_x @ x``,
+            ``grad_y @ x``).
+        weight_re: ``(C, C)`` real part of ``A`` (``(A g)_c = sum_d A[c, d] g_d``).
+        weight_im: ``(C, C)`` imaginary part of ``A`` (the rotation component), or ``None``
+            for a real ``A`` acting alike on both tangent components.
+
+    Returns:
+        ``(V, C)`` features in ``(-1, 1)``, invariant to rotating any vertex's tangent frame.
+    """
+    hx, hy = gx @ weight_re.T, gy @ weight_re.T
+    if weight_im is not None:
+        hx = hx - gy @ weight_im.T
+        hy = hy + gx @ weight_im.T
+    return torch.tanh(gx * hx + gy * hy)
+
+
+class SpatialGradientFeatures(nn.Module):
+    """DiffusionNet's spatial gradient features of ``C`` channels.
+
+    ``forward(x (V, C), grad_x (V, V), grad_y (V, V)) -> (V, C)``: the gradients
+    ``g = (grad_x @ x, grad_y @ x)`` and :func:`spatial_gradient_features` with the learned
+    ``A``.  For a batch pass the block-diagonal operators (``MeshBatch.grad_x``, ``.grad_y``).
+
+    Args:
+        channels: ``C``.
+        with_rotations: learn a complex ``A`` (its imaginary part rotates the tangent vectors);
+            ``False``: a real ``A``.
+    """
+
+    def __init__(self, channels: int, with_rotations: bool = True) -> None:
+        super().__init__()
+        bound = 1.0 / math.sqrt(channels)
+        self.weight_re = nn.Parameter(torch.empty(channels, channels).uniform_(-bound, bound))
+        self.weight_im = (
+            nn.Parameter(torch.empty(channels, channels).uniform_(-bound, bound))
+            if with_rotations
+            else None
+        )
+
+    def forward(self, x: torch.Tensor, grad_x: torch.Tensor, grad_y: torch.Tensor) -> torch.Tensor:
+        gx = grad_x @ x.to(grad_x.dtype)
+        gy = grad_y @ x.to(grad_y.dtype)
+        gx, gy = gx.to(self.weight_re.dtype), gy.to(self.weight_re.dtype)
+        return spatial_gradient_features(gx, gy, self.weight_re, self.weight_im)
