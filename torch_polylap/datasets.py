@@ -29,6 +29,7 @@ from .batch import PolygonMeshes
 from .faces import FacesLike, PolygonFaces, as_faces
 from .io import read_mesh
 from .methods import check_method
+from .nn.gradient_features import vertex_gradient_operators
 from .nn.spectrum import Spectrum
 from .operators import laplacian, mass
 from .sparse import SparseOperator, block_diag, diag
@@ -67,10 +68,16 @@ class PolygonMeshDataset(Dataset):
             normalization uses the AW11 lumped mass whatever the method.
         normalize: center and scale each mesh to unit area (:func:`normalize_mesh`).
         dtype: dtype of the returned tensors (eigenpairs are computed in float64).
+        gradient_operators: also give every item the per-vertex tangent gradient operators
+            ``grad_x, grad_y`` (:func:`torch_polylap.nn.vertex_gradient_operators`, computed in
+            float64 on the normalized mesh) that
+            ``DiffusionNetLike(gradient_features=True)`` needs.
 
     ``dataset[i]`` is a dict with ``verts (V, 3)``, ``faces`` (:class:`PolygonFaces`),
     ``label`` (int or None), ``evals (k,)``, ``evecs (V, k)``, ``mass (V,)`` and ``L`` as CSR
     arrays ``(crow, col, values)`` (plain tensors, so items cross DataLoader worker processes).
+    With ``gradient_operators=True`` also ``grad_x`` and ``grad_y`` ``(V, V)``, sparse operators
+    (they pickle as their index and value arrays, like ``L``).
     """
 
     def __init__(
@@ -84,6 +91,7 @@ class PolygonMeshDataset(Dataset):
         normalize: bool = True,
         dtype: torch.dtype = torch.float32,
         method: str = "aw11",
+        gradient_operators: bool = False,
     ) -> None:
         if labels is not None and len(labels) != len(items):
             raise ValueError(f"got {len(items)} meshes but {len(labels)} labels.")
@@ -92,6 +100,7 @@ class PolygonMeshDataset(Dataset):
         self.method = check_method(method)
         check_cache_dir(self.cache_dir)  # before any mesh is read or eigenpair computed
         self.normalize, self.dtype = normalize, dtype
+        self.gradient_operators = gradient_operators
 
     def __len__(self) -> int:
         return len(self.items)
@@ -116,7 +125,7 @@ class PolygonMeshDataset(Dataset):
             verts, faces, self.k, self.cache_dir, lam=self.lam, method=self.method
         )
         L, M0 = laplacian(verts, faces, self.lam, method=self.method)
-        return {
+        item = {
             "verts": verts.to(self.dtype),
             "faces": faces,
             "label": None if self.labels is None else int(self.labels[i]),
@@ -125,6 +134,10 @@ class PolygonMeshDataset(Dataset):
             "mass": M0.diagonal().to(self.dtype),
             "L": L.to(self.dtype),
         }
+        if self.gradient_operators:
+            grad_x, grad_y = vertex_gradient_operators(verts, faces)
+            item["grad_x"], item["grad_y"] = grad_x.to(self.dtype), grad_y.to(self.dtype)
+        return item
 
     def _fill_cache(self, i: int) -> None:
         verts, faces = self.mesh(i)
@@ -159,6 +172,8 @@ class MeshBatch:
             :class:`~torch_polylap.sparse.SparseOperator` (it pickles as its index and value
             arrays, so a batch collated in a DataLoader worker crosses processes).
         labels: ``(B,)`` int64, or ``None`` when the items have none.
+        grad_x, grad_y: ``(sumV, sumV)`` block-diagonal tangent gradient operators, when the
+            items carry them (``PolygonMeshDataset(gradient_operators=True)``), else ``None``.
     Property ``M0``: the ``(sumV, sumV)`` diagonal mass operator.
     """
 
@@ -166,6 +181,8 @@ class MeshBatch:
     spectrum: Spectrum
     L: SparseOperator
     labels: torch.Tensor | None
+    grad_x: SparseOperator | None = None
+    grad_y: SparseOperator | None = None
 
     @property
     def M0(self) -> SparseOperator:
@@ -178,6 +195,10 @@ class MeshBatch:
             self.spectrum.to(device, dtype),
             self.L.to(device=device, dtype=dtype),
             None if self.labels is None else self.labels.to(device),
+            *(
+                None if g is None else g.to(device=device, dtype=dtype)
+                for g in (self.grad_x, self.grad_y)
+            ),
         )
 
 
@@ -195,10 +216,14 @@ def collate_meshes(items: Sequence[dict[str, Any]]) -> MeshBatch:
         meshes.num_verts_per_mesh(),
     )
     L = block_diag([it["L"] for it in items])
+    grads = [None, None]
+    if all("grad_x" in it and "grad_y" in it for it in items):
+        grads = [block_diag([it[key] for it in items]) for key in ("grad_x", "grad_y")]
     labels = [it["label"] for it in items]
     return MeshBatch(
         meshes,
         spectrum,
         L,
         None if any(lb is None for lb in labels) else torch.tensor(labels, dtype=torch.int64),
+        *grads,
     )
