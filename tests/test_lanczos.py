@@ -59,8 +59,9 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
     else:
         monkeypatch.setitem(sys.modules, "cholespy", None)  # import fails: SuperLU route
     L, M0 = _mesh_operators("mixedFaring.off")
-    n, k = L.shape[0], 40
-    assert n > max(linalg._DENSE_EIGS_SIZE, 6 * k)
+    k = 40
+    # the route rule sends this size to ARPACK: force block Lanczos, which must not fall back
+    monkeypatch.setattr(linalg, "eigs_route", lambda *a: "lanczos")
     calls = []
     monkeypatch.setattr(linalg, "_eigs_arpack", lambda *a: calls.append(a))  # must not be used
     evals, evecs = tp.eigs(L, M0, k)
@@ -78,8 +79,10 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
     assert singular.min() > 1 - 1e-8
 
 
-def test_sparse_eigs_count_components():
-    """Three copies of a 2310-vertex mesh: three zero eigenvalues, found by block Lanczos."""
+@pytest.mark.parametrize("route", ["arpack", "lanczos"])
+def test_sparse_eigs_count_components(route, monkeypatch):
+    """Three copies of a 2310-vertex mesh: three zero eigenvalues, found by each sparse route."""
+    monkeypatch.setattr(linalg, "eigs_route", lambda *a: route)
     V, F = tp.read_mesh(DATA / "mixedFaring.off", dtype=torch.float64)
     n = V.shape[0]
     blocks = [tp.laplacian(V + 10.0 * i, F) for i in range(3)]
@@ -101,3 +104,64 @@ def test_sparse_eigs_are_accurate_to_round_off_on_a_sphere():
     evals, _ = tp.eigs(L, M0, 64)
     ref = scipy.linalg.eigh(L.to_dense().numpy(), M0.to_dense().numpy(), eigvals_only=True)[:64]
     np.testing.assert_allclose(evals.numpy(), ref, rtol=0, atol=1e-11 * ref.max())
+
+
+@pytest.mark.parametrize(
+    ("n", "k", "cholmod", "route"),
+    [
+        (150, 16, True, "dense"),
+        (200, 16, True, "dense"),
+        (640, 128, True, "dense"),
+        (320, 64, True, "dense"),
+        (321, 64, True, "arpack"),
+        (641, 128, True, "arpack"),
+        (1_000, 16, True, "arpack"),
+        (10_000, 16, True, "arpack"),
+        (1_000, 64, True, "arpack"),
+        (1_000, 128, True, "arpack"),
+        (100_000, 16, True, "arpack"),  # block Lanczos never won for k = 16
+        (200_000, 31, True, "arpack"),
+        (linalg._LANCZOS_SIZE[32] + 1, 32, True, "lanczos"),
+        (linalg._LANCZOS_SIZE[64], 64, True, "arpack"),
+        (linalg._LANCZOS_SIZE[64] + 1, 64, True, "lanczos"),
+        (linalg._LANCZOS_SIZE[128] + 1, 128, True, "lanczos"),
+        (linalg._LANCZOS_SIZE[128] + 1, 512, True, "lanczos"),
+        (30_000, 96, True, "lanczos"),
+        (100_000, 64, True, "lanczos"),
+        (1_000_000, 64, True, "lanczos"),
+        (1_000_000, 128, True, "arpack"),  # the Lanczos basis of 6 k vectors: over 4 GiB
+        (linalg._LANCZOS_SIZE[128] + 1, 128, False, "arpack"),  # SuperLU: twice the size
+        (2 * linalg._LANCZOS_SIZE[128] + 1, 128, False, "lanczos"),
+    ],
+)
+def test_eigs_route_picks_each_route_in_its_range(n, k, cholmod, route):
+    assert linalg.eigs_route(n, k, True, cholmod) == route
+
+
+def test_eigs_route_needs_a_diagonal_mass_for_lanczos():
+    assert linalg.eigs_route(100_000, 64, False) == "arpack"
+    assert linalg.eigs_route(300, 64, False) == "dense"
+
+
+@pytest.mark.parametrize("route", ["dense", "arpack", "lanczos", "arpack-generalized"])
+@pytest.mark.parametrize("cholmod", [True, False], ids=["cholmod", "superlu"])
+def test_every_route_matches_lapack(route, cholmod, monkeypatch):
+    """Each route, forced, on the 1538-vertex cube sphere (near-multiple l(l+1) clusters):
+    eigenvalues within 1e-10 relative of dense LAPACK, M0-orthonormal vectors with small
+    residuals."""
+    if cholmod:
+        pytest.importorskip("cholespy", reason='pip install -e ".[cholmod]"')
+    else:
+        monkeypatch.setitem(sys.modules, "cholespy", None)
+    L, M0 = _mesh_operators("sphere/quad_3.obj")
+    k = 64
+    if route == "arpack-generalized":  # a non-diagonal M goes through ARPACK's generalized mode
+        monkeypatch.setattr(linalg, "_is_diagonal", lambda S: False)
+    monkeypatch.setattr(linalg, "eigs_route", lambda *a: route.split("-")[0])
+    evals, evecs = tp.eigs(L, M0, k)
+    Ld, Md = L.to_dense().numpy(), M0.to_dense().numpy()
+    ref = scipy.linalg.eigh(Ld, Md, eigvals_only=True, subset_by_index=(0, k - 1))
+    np.testing.assert_allclose(evals.numpy(), ref, rtol=1e-10, atol=1e-10 * ref.max())
+    phi = evecs.numpy()
+    np.testing.assert_allclose(phi.T @ Md @ phi, np.eye(k), atol=1e-9)
+    assert np.abs(Ld @ phi - (Md @ phi) * evals.numpy()).max() < 1e-7 * ref.max()

@@ -627,8 +627,11 @@ class _Eigenvectors(torch.autograd.Function):
         return grad_l, grad_m, None, None, None, None
 
 
-# Below this size (or 6 k) a dense solver is as fast as a sparse one and never fails.
-_DENSE_EIGS_SIZE = 400
+# Route thresholds of eigs, measured by benchmarks/bench_eigs_routes.py (see eigs_route).
+_DENSE_EIGS_SIZE = 200
+_DENSE_EIGS_PER_K = 5
+# Block Lanczos above this many unknowns (log-log interpolation in k; ARPACK below k = 32)
+_LANCZOS_SIZE = {32: 100_000, 64: 7_000, 128: 3_000}
 # Memory the unrestarted block Lanczos basis may take before ARPACK (restarted) is used.
 _LANCZOS_MEMORY = 4 * 2**30
 
@@ -650,6 +653,47 @@ def _check_positive_mass(Ms: sp.csr_matrix) -> None:
 def _is_diagonal(S: sp.csr_matrix) -> bool:
     coo = S.tocoo()
     return bool((coo.row == coo.col).all()) and bool((S.diagonal() > 0).all())
+
+
+def eigs_route(n: int, k: int, diagonal_mass: bool, cholmod: bool = True) -> str:
+    """The route :func:`eigs` takes for ``k`` eigenpairs of an ``n x n`` problem: ``"dense"``,
+    ``"arpack"`` or ``"lanczos"`` (``diagonal_mass``: ``M`` is diagonal and the shift negative,
+    so ``L - shift M`` has a Cholesky factorization; ``cholmod``: ``cholespy`` is installed).
+
+    Chosen by measurement (``benchmarks/bench_eigs_routes.py routes``: non-planar quad grids,
+    one thread, interleaved medians, on a shared 2-core VM; ``benchmarks/README.md`` has the
+    table):
+
+    - ``"dense"`` (LAPACK ``eigh`` with ``subset_by_index``) for ``n <= max(200, 5 k)``: it
+      beat ARPACK at 289 vertices for ``k = 64, 128``, at 484 and 676 for ``k = 128``, and lost
+      at 289 for ``k = 16``, at 484 for ``k = 64`` and at 1,024 for every ``k`` (its cost
+      grows as ``n^3``: 0.2 s at 1k, 9 s at 3k vertices);
+    - ``"arpack"`` (ARPACK on the standard symmetric problem ``M^{1/2} (L - shift M)^{-1}
+      M^{1/2}``, one CHOLMOD or SuperLU solve per step; 0.6-0.9x the time of scipy's
+      generalized ``eigsh(L, M=M, sigma=shift)`` with SuperLU at 1k-30k vertices) up to a
+      block Lanczos threshold that falls with ``k``: block Lanczos over ARPACK took 1.3-2.2x
+      the time for ``k = 16`` at every size from 1k to 100k; for ``k = 32`` 1.17x at 10k and
+      0.98x at 100k; for ``k = 64`` 1.7x at 1k, 1.4x at 3k, 1.06x at 5.5k, 0.88x at 10k,
+      0.81x at 100k; for ``k = 128`` 1.5x at 1k, 0.95-1.5x at 3k (noise), 0.78x at 5.5k,
+      0.63x at 10k. Hence ``_LANCZOS_SIZE``: 100,000 vertices at ``k = 32``, 7,000 at 64,
+      3,000 at 128 and above, log-log interpolation between, never below ``k = 32``;
+    - ``"lanczos"`` (block Lanczos with blocks of 8, :mod:`torch_polylap.lanczos`) above it, for
+      a diagonal ``M`` only, and only while its basis of ``6 k`` vectors fits in 4 GiB
+      (``"arpack"`` otherwise). Without ``cholespy`` its block solves are SuperLU's one column
+      at a time, and the threshold is doubled (not measured).
+    """
+    if n <= max(_DENSE_EIGS_SIZE, _DENSE_EIGS_PER_K * k):
+        return "dense"
+    if not diagonal_mass or n * _lanczos_dim(n, k) * 8 > _LANCZOS_MEMORY:
+        return "arpack"
+    ks = sorted(_LANCZOS_SIZE)
+    if k < ks[0]:
+        return "arpack"
+    sizes = [np.log(_LANCZOS_SIZE[key]) for key in ks]
+    threshold = round(float(np.exp(np.interp(np.log(k), np.log(ks), sizes))))
+    if not cholmod:
+        threshold *= 2
+    return "lanczos" if n > threshold else "arpack"
 
 
 def _lanczos_dim(n: int, k: int) -> int:
@@ -701,23 +745,59 @@ def _eigs_block_lanczos(
     return shift + 1.0 / theta, Y / root
 
 
+def _shifted_vector_solver(
+    S: sp.spmatrix, device: torch.device
+) -> Callable[[np.ndarray], np.ndarray]:
+    """``x (n,) -> S^{-1} x`` for a sparse SPD ``S``, one column per call (ARPACK's step):
+    CHOLMOD when ``cholespy`` is installed, SuperLU otherwise."""
+    if not _cholespy_available():
+        lu = spd_splu(sp.csc_matrix(S))
+        return lu.solve
+    factor = CholeskyFactorization(S, torch.device(device)).factor
+
+    def solve(x: np.ndarray) -> np.ndarray:
+        rhs = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64)[:, None]).to(device)
+        out = torch.empty_like(rhs)
+        factor.solve(rhs, out)
+        return out[:, 0].cpu().numpy()
+
+    return solve
+
+
 def _eigs_arpack(
-    Ls: sp.csr_matrix, Ms: sp.csr_matrix, k: int, sigma: float | None, scale: float, tol: float
+    Ls: sp.csr_matrix,
+    Ms: sp.csr_matrix,
+    k: int,
+    sigma: float | None,
+    scale: float,
+    tol: float,
+    diagonal_mass: bool = False,
+    device: torch.device | str = "cpu",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """ARPACK shift-invert Lanczos, retried with more vectors and larger shifts."""
+    """ARPACK shift-invert Lanczos, retried with more vectors and larger shifts.
+
+    For a diagonal ``M`` and a negative shift, on the standard symmetric problem
+    ``C = M^{1/2} (L - shift M)^{-1} M^{1/2}`` (as block Lanczos), with one Cholesky solve per
+    step: about 0.6-0.8x the time of ARPACK's generalized mode, which also multiplies by ``M``
+    and ``M``-orthogonalizes each step. Otherwise scipy's generalized shift-invert mode, with
+    SuperLU."""
     n = Ls.shape[0]
-    shifts = [sigma] if sigma is not None else [-1e-8 * scale, -1e-5 * scale, -1e-3 * scale]
+    shifts = [sigma] if sigma is not None else [-1e-6 * scale, -1e-5 * scale, -1e-3 * scale]
     for attempt, shift in enumerate(shifts):
+        ncv = min(n, max(2 * k + 1, 20) * (attempt + 1))
         try:
-            return spla.eigsh(
-                Ls,
-                k=k,
-                M=Ms,
-                sigma=shift,
-                which="LM",
-                tol=tol,
-                ncv=min(n, max(2 * k + 1, 20) * (attempt + 1)),
+            if not (diagonal_mass and shift < 0):
+                return spla.eigsh(Ls, k=k, M=Ms, sigma=shift, which="LM", tol=tol, ncv=ncv)
+            mass = Ms.diagonal()
+            root = np.sqrt(mass)
+            solve = _shifted_vector_solver(Ls - shift * sp.diags(mass), device)
+            op = spla.LinearOperator(
+                Ls.shape,
+                matvec=lambda x, solve=solve, root=root: solve(x.reshape(-1) * root) * root,
+                dtype=np.float64,
             )
+            theta, Y = spla.eigsh(op, k=k, which="LA", tol=tol, ncv=ncv)
+            return shift + 1.0 / theta, Y / root[:, None]
         except (spla.ArpackNoConvergence, RuntimeError):
             continue
     raise ValueError(
@@ -737,16 +817,20 @@ def eigs(
     """The ``k`` smallest eigenpairs of ``L phi = mu M phi`` (``L`` PSD, ``M`` SPD, e.g. ``L, M0``).
 
     Shift-invert around ``sigma`` (default: slightly below zero, so that ``L - sigma M`` is
-    positive definite even though ``L`` is singular), by one of three routes:
+    positive definite even though ``L`` is singular), by one of three routes, picked by
+    :func:`eigs_route` from ``n`` and ``k`` (thresholds measured, see there):
 
-    - small problems (``n <= max(400, 6 k)``): a dense symmetric solver (LAPACK);
-    - a diagonal ``M`` (the mass matrix ``M0``) and ``sigma < 0``: block Lanczos with blocks of
-      8 (:mod:`torch_polylap.lanczos`) on ``M^{1/2} (L - sigma M)^{-1} M^{1/2}``, factored once
-      by CHOLMOD when ``cholespy`` is installed (on the operators' device: its CUDA solver for
-      CUDA tensors; SuperLU otherwise); its basis of up to
-      ``6 k`` vectors must fit in 4 GiB;
-    - otherwise, or if block Lanczos does not converge: ARPACK (scipy's ``eigsh``), retried
-      with more Lanczos vectors and a larger shift.
+    - small problems (``n <= max(200, 5 k)``): a dense symmetric solver (LAPACK);
+    - ARPACK (scipy's ``eigsh``), retried with more Lanczos vectors and a larger shift: for a
+      diagonal ``M`` and ``sigma < 0`` on ``M^{1/2} (L - sigma M)^{-1} M^{1/2}`` with one
+      Cholesky factorization (CHOLMOD when ``cholespy`` is installed, SuperLU otherwise), else
+      in scipy's generalized shift-invert mode with SuperLU; for ``k < 32`` at every size and
+      for larger ``k`` up to a threshold (7,000 unknowns at ``k = 64``, 3,000 at ``k >= 128``);
+    - above it, for a diagonal ``M`` (the mass matrix ``M0``) and ``sigma < 0``: block Lanczos
+      with blocks of 8 (:mod:`torch_polylap.lanczos`) on the same operator, factored once by
+      CHOLMOD (on the operators' device: its CUDA solver for CUDA tensors; SuperLU without
+      ``cholespy``), while its basis of up to ``6 k`` vectors fits in 4 GiB; ARPACK if it
+      does not converge.
 
     Eigenvector gradients (adjoint method). Differentiating ``(L - mu M) phi = 0`` and
     ``phi^T M phi = 1`` gives ``dphi = v - (phi^T dM phi / 2) phi`` with ``phi^T M v = 0`` and
@@ -829,12 +913,14 @@ def eigs(
     # 1.5k-vertex sphere, 1e-13 at -1e-6 to -1e-2), while convergence is the same
     shift = sigma if sigma is not None else -1e-6 * scale
     result = None
-    if n <= max(_DENSE_EIGS_SIZE, 6 * k):
+    diagonal = shift < 0 and _is_diagonal(Ms)
+    route = eigs_route(n, k, diagonal, _cholespy_available())
+    if route == "dense":
         result = scipy.linalg.eigh(Ls.toarray(), Ms.toarray(), subset_by_index=(0, k - 1))
-    elif shift < 0 and _is_diagonal(Ms) and n * _lanczos_dim(n, k) * 8 <= _LANCZOS_MEMORY:
+    elif route == "lanczos":
         result = _eigs_block_lanczos(Ls, Ms.diagonal(), k, shift, tol or 1e-10, L.device)
     if result is None:
-        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol)
+        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol, diagonal, L.device)
     evals, evecs = result
     order = np.argsort(evals)
     evals, evecs = evals[order], evecs[:, order]
