@@ -4,14 +4,16 @@ Five shape classes (sphere, ellipsoid, rounded cube, cylinder, torus) under rand
 non-rigid deformations, tessellated with quads, quads mixed with triangles, or "brick"
 hexagons mixed with quads, at several resolutions.  The network sees only intrinsic inputs
 (normalized heat kernel signatures of the Alexa-Wardetzky Laplacian) and diffuses them with
-learned times in each mesh's eigenbasis; logits are mass-weighted means over each mesh.
+learned times in each mesh's eigenbasis; logits are mass-weighted means over each mesh.  With
+``--gradient-features`` every block also computes DiffusionNet's spatial gradient features of
+the diffused channels (per-vertex tangent gradient operators precomputed by the dataset).
 
 Held-out test set: unseen deformations at unseen resolutions for the training tessellations,
 and an unseen tessellation (brick hexagons) altogether.  Runs on a CPU in under a minute
 (eigenpairs are cached on disk, so a second run is faster).
 
     python examples/classify_polygon_meshes.py [--epochs 100] [--k 48] [--width 32]
-        [--lr 5e-3] [--workers 2] [--cache-dir DIR]
+        [--lr 5e-3] [--workers 2] [--cache-dir DIR] [--seed 0] [--gradient-features]
 
 Writes examples/output/classify.md.
 """
@@ -175,10 +177,14 @@ def make_split(tessellations, resolutions, per_combo: int, seed0: int):
 # --------------------------------------------------------------------------- training
 
 
+def logits(model, batch):
+    return model(spectrum=batch.spectrum, grad_x=batch.grad_x, grad_y=batch.grad_y)
+
+
 def accuracy(model, batches) -> tuple[torch.Tensor, torch.Tensor]:
     model.eval()
     with torch.no_grad():
-        preds = torch.cat([model(spectrum=b.spectrum).argmax(1) for b in batches])
+        preds = torch.cat([logits(model, b).argmax(1) for b in batches])
     labels = torch.cat([b.labels for b in batches])
     return preds, labels
 
@@ -190,21 +196,30 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=32)
     parser.add_argument("--lr", type=float, default=5e-3)
     parser.add_argument("--workers", type=int, default=2, help="processes for eigenpairs")
+    parser.add_argument("--seed", type=int, default=0, help="initialization and batch order")
+    parser.add_argument(
+        "--gradient-features",
+        action="store_true",
+        help="DiffusionNet's spatial gradient features in every block",
+    )
     parser.add_argument("--output", default=str(OUTPUT), help="where to write the report")
     parser.add_argument(
         "--cache-dir",
         default=str(Path(tempfile.gettempdir()) / "torch_polylap_classify_cache"),
     )
     args = parser.parse_args()
-    torch.manual_seed(0)
+    torch.manual_seed(args.seed)
 
     t0 = time.perf_counter()
     train_items, train_labels, _ = make_split(["quad", "tri-quad"], [4, 6], 10, seed0=0)
     test_items, test_labels, test_tags = make_split(
         ["quad", "tri-quad", "hex"], [5, 7], 6, seed0=100_000
     )
-    train = PolygonMeshDataset(train_items, train_labels, k=args.k, cache_dir=args.cache_dir)
-    test = PolygonMeshDataset(test_items, test_labels, k=args.k, cache_dir=args.cache_dir)
+    grads = {"gradient_operators": args.gradient_features}
+    train = PolygonMeshDataset(
+        train_items, train_labels, k=args.k, cache_dir=args.cache_dir, **grads
+    )
+    test = PolygonMeshDataset(test_items, test_labels, k=args.k, cache_dir=args.cache_dir, **grads)
     train.precompute(num_workers=args.workers)
     test.precompute(num_workers=args.workers)
     train_data = [train[i] for i in range(len(train))]
@@ -214,7 +229,14 @@ def main() -> None:
     ]
     t_data = time.perf_counter() - t0
 
-    model = DiffusionNetLike(0, len(CLASSES), width=args.width, num_blocks=3, hks_features=16)
+    model = DiffusionNetLike(
+        0,
+        len(CLASSES),
+        width=args.width,
+        num_blocks=3,
+        hks_features=16,
+        gradient_features=args.gradient_features,
+    )
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, args.epochs)
     t1 = time.perf_counter()
@@ -223,7 +245,7 @@ def main() -> None:
         order = torch.randperm(len(train_data)).tolist()
         for s in range(0, len(order), 8):
             batch = collate_meshes([train_data[i] for i in order[s : s + 8]])
-            loss = torch.nn.functional.cross_entropy(model(spectrum=batch.spectrum), batch.labels)
+            loss = torch.nn.functional.cross_entropy(logits(model, batch), batch.labels)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
@@ -264,8 +286,10 @@ def main() -> None:
     setup = (
         f"{len(train)} training and {len(test)} test meshes ({min(num_verts)}-{max(num_verts)} "
         f"vertices), k = {args.k} eigenpairs, DiffusionNetLike(width {args.width}, 3 blocks, "
-        f"16 HKS inputs, spectral diffusion), {args.epochs} epochs of Adam (lr {args.lr:g}, "
-        "cosine schedule), batches of 8 meshes. "
+        f"16 HKS inputs, spectral diffusion"
+        f"{', spatial gradient features' if args.gradient_features else ''}), "
+        f"{args.epochs} epochs of Adam (lr {args.lr:g}, cosine schedule), batches of 8 meshes, "
+        f"seed {args.seed}. "
         f"Data and eigenpairs {t_data:.1f} s, training {t_train:.1f} s (CPU, "
         f"{torch.get_num_threads()} thread(s))."
     )
