@@ -1,8 +1,12 @@
-"""Convergence of the Alexa-Wardetzky Laplacian under refinement, for several lambdas.
+"""Convergence of the polygon Laplacians under refinement: AW11, dGBD20 and PLMS side by side.
 
-    python examples/convergence_study.py [--levels 1 2 3 4 5] [--lams 0.5 1 2] [--out FILE]
+    python examples/convergence_study.py [--levels 1 2 3 4 5] [--methods aw11 degoes plms]
+        [--lam 1] [--lams 0.5 1 2] [--out FILE]
 
-On the sphere and grid refinement families of ``../shared/data/meshes`` (levels 1..5):
+On the sphere and grid refinement families of ``../shared/data/meshes`` (levels 1..5), for the
+Laplacians of ``tp.laplacian(..., method=...)``: ``"aw11"`` (Alexa and Wardetzky 2011),
+``"degoes"`` (dGBD20, de Goes, Butts and Desbrun 2020), both at ``lambda = --lam``, and
+``"plms"`` (Bunge et al. 2020, no lambda), each with its own lumped mass ``M0``:
 
 (a) spherical harmonic: ``M0^-1 L Y`` against ``l (l + 1) Y = 12 Y`` for ``Y = Y_3^2`` on the
     normalized spheres, error ``sqrt(e^T M0 e / |V|)``;
@@ -13,10 +17,17 @@ On the sphere and grid refinement families of ``../shared/data/meshes`` (levels 
     against ``l (l + 1)`` with multiplicities 1, 3, 5, 7; error = largest relative error of
     eigenvalues 1..15 (``torch_polylap.eigs``).
 
-The definitions follow the reference values of the polyLaplace implementation
-(``../shared/docs/REFERENCE-VALUES.md``). Observed orders are ``log(e_prev / e) /
-log(h_prev / h)`` with ``h = |V|^-1/2``. Writes a Markdown report (default
+Each experiment gets one table with the methods as columns, then one with AW11 for every
+lambda of ``--lams`` (the lambda study of AW11 sec. 5), and the report ends with the observed
+orders between the last two levels. The definitions follow the reference values of the
+polyLaplace implementation (``../shared/docs/REFERENCE-VALUES.md``). Observed orders are
+``log(e_prev / e) / log(h_prev / h)`` with ``h = |V|^-1/2``. Writes a Markdown report (default
 ``examples/output/convergence.md``).
+
+PLMS's ``M0`` here is this package's (fan corner areas, mixed Voronoi, prolonged and summed);
+polyLaplace lumps the fan's Galerkin mass instead (barycentric corner areas), which changes the
+PLMS errors on curved or concave meshes (``tests/test_reference_values.py`` reproduces its
+numbers with that mass).
 """
 
 from __future__ import annotations
@@ -24,6 +35,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -35,6 +47,8 @@ import torch_polylap as tp
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_SHARED = ROOT.parent / "shared" / "data" / "meshes"
 SPHERES = ("hex", "quad", "voronoi", "concave", "hex_cos", "hex_noise", "triangle")
+METHODS = ("aw11", "degoes", "plms")
+TITLES = {"aw11": "AW11", "degoes": "dGBD20", "plms": "PLMS"}
 GRIDS = ("quad", "voronoi", "concave", "str_hex", "comp_hex", "irr_poly", "dia_quad", "triangle")
 
 
@@ -91,25 +105,26 @@ def franke_and_laplacian(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor
     return f, lap
 
 
-def sh_error(path: Path, lam: float) -> float:
+def sh_error(path: Path, lam: float, method: str = "aw11") -> float:
     verts, faces = unit_sphere(path)
-    L, M0 = tp.laplacian(verts, faces, lam)
+    L, M0 = tp.laplacian(verts, faces, lam, method=method)
     y = y32(verts)
     e = y - tp.strong_laplacian(L, M0, y) / 12.0
     m = M0.diagonal()
     return float((e * m * e).sum() / y.numel()) ** 0.5
 
 
-def mean_curvature_error(path: Path, lam: float) -> float:
+def mean_curvature_error(path: Path, lam: float, method: str = "aw11") -> float:
     verts, faces = unit_sphere(path)
-    c = tp.mean_curvature_normal(verts, faces, lam).norm(dim=1) / 2
+    L, M0 = tp.laplacian(verts, faces, lam, method=method)
+    c = tp.strong_laplacian(L, M0, verts).norm(dim=1) / 2
     return float(((c - 1) ** 2).mean()) ** 0.5
 
 
-def franke_error(path: Path, lam: float) -> float:
+def franke_error(path: Path, lam: float, method: str = "aw11") -> float:
     verts, faces = tp.read_mesh(path)
     topo = tp.build_topology(faces, verts.shape[0])
-    L, M0 = tp.laplacian(verts, topo, lam)
+    L, M0 = tp.laplacian(verts, topo, lam, method=method)
     f, lap = franke_and_laplacian(verts[:, 0], verts[:, 1])
     boundary = topo.boundary_vertices
     u = tp.dirichlet_solve(L, -(M0 @ lap), boundary, f[boundary])
@@ -119,15 +134,15 @@ def franke_error(path: Path, lam: float) -> float:
 EXACT_SPECTRUM = torch.tensor([ell * (ell + 1) for ell in range(4) for _ in range(2 * ell + 1)])
 
 
-def spectrum_error(path: Path, lam: float) -> float:
+def spectrum_error(path: Path, lam: float, method: str = "aw11") -> float:
     verts, faces = unit_sphere(path)
-    L, M0 = tp.laplacian(verts, faces, lam)
+    L, M0 = tp.laplacian(verts, faces, lam, method=method)
     evals, _ = tp.eigs(L, M0, 16)
     exact = EXACT_SPECTRUM.to(evals)
     return float(((evals[1:] - exact[1:]).abs() / exact[1:]).max())
 
 
-EXPERIMENTS: dict[str, tuple[str, tuple[str, ...], Callable[[Path, float], float]]] = {
+EXPERIMENTS: dict[str, tuple[str, tuple[str, ...], Callable[[Path, float, str], float]]] = {
     "(a) spherical harmonic Y_3^2": ("sphere", SPHERES, sh_error),
     "(b) mean curvature |H|/2 - 1": ("sphere", SPHERES, mean_curvature_error),
     "(c) Franke Poisson problem": ("grid", GRIDS, franke_error),
@@ -143,33 +158,96 @@ def orders(errors: list[float], sizes: list[int]) -> list[float | None]:
     return out
 
 
-def run(shared: Path, levels: list[int], lams: list[float]) -> str:
+Column = tuple[str, str, float]  # (header, method, lambda)
+
+
+def method_columns(methods: list[str], lam: float) -> list[Column]:
+    """One column per method, AW11 and dGBD20 at ``lam``; PLMS has no lambda."""
+    return [(TITLES[m] if m == "plms" else f"{TITLES[m]} lam = {lam:g}", m, lam) for m in methods]
+
+
+def lambda_columns(lams: list[float]) -> list[Column]:
+    return [(f"lam = {lam:g}", "aw11", lam) for lam in lams]
+
+
+def _table(
+    folder: str,
+    families: tuple[str, ...],
+    shared: Path,
+    levels: list[int],
+    columns: list[Column],
+    measure: Callable[[Path, Column], float],
+    last_orders: dict[tuple[str, str], float | None] | None = None,
+) -> list[str]:
+    """Markdown rows ``| mesh | level | V | error (order) ... |``; with ``last_orders``, also
+    record each column's order between the last two levels under ``(family, header)``."""
+    lines = ["| mesh | level | V | " + " | ".join(c[0] for c in columns) + " |"]
+    lines.append("|" + " --- |" * (3 + len(columns)))
+    for family in families:
+        paths = [shared / folder / f"{family}_{level}.obj" for level in levels]
+        if not all(p.is_file() for p in paths):
+            continue
+        sizes = [tp.read_mesh(p)[0].shape[0] for p in paths]
+        table = []
+        for column in columns:
+            errors = [measure(p, column) for p in paths]
+            table.append(list(zip(errors, orders(errors, sizes), strict=True)))
+            if last_orders is not None:
+                last_orders[(family, column[0])] = table[-1][-1][1]
+        for row, (level, size) in enumerate(zip(levels, sizes, strict=True)):
+            cells = [
+                f"{e:.3e}" + (f" ({o:.2f})" if o is not None else "")
+                for e, o in (column[row] for column in table)
+            ]
+            lines.append(f"| {folder}/{family} | {level} | {size} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def run(
+    shared: Path,
+    levels: list[int],
+    lams: list[float],
+    methods: list[str] | None = None,
+    lam: float = 1.0,
+) -> str:
+    methods = list(METHODS if methods is None else methods)
+    results: dict[tuple[str, Path, str, float], float] = {}
+    by_method = method_columns(methods, lam)
     lines = [
         "# Convergence study",
         "",
-        f"Levels {levels}, lambdas {lams}; error (observed order against h = |V|^-1/2).",
+        f"Levels {levels}. Error (observed order against h = |V|^-1/2). Per experiment: the "
+        f"Laplacians side by side ({', '.join(c[0] for c in by_method)}; each with its own "
+        f"lumped mass), then AW11 for lambda in {lams}.",
     ]
-    for title, (folder, families, measure) in EXPERIMENTS.items():
-        lines += ["", f"## {title}", ""]
-        header = "| mesh | level | V | " + " | ".join(f"lam = {lam:g}" for lam in lams) + " |"
-        lines += [header, "|" + " --- |" * (3 + len(lams))]
-        for family in families:
-            paths = [shared / folder / f"{family}_{level}.obj" for level in levels]
-            if not all(p.is_file() for p in paths):
-                continue
-            sizes = [tp.read_mesh(p)[0].shape[0] for p in paths]
-            columns = []
-            for lam in lams:
-                errors = [measure(p, lam) for p in paths]
-                columns.append(list(zip(errors, orders(errors, sizes), strict=True)))
-            for row, (level, size) in enumerate(zip(levels, sizes, strict=True)):
-                cells = [
-                    f"{e:.3e}" + (f" ({o:.2f})" if o is not None else "")
-                    for e, o in (column[row] for column in columns)
-                ]
-                lines.append(
-                    f"| {folder}/{family} | {level} | {size} | " + " | ".join(cells) + " |"
+    summary: list[str] = []
+    for title, (folder, families, fn) in EXPERIMENTS.items():
+
+        def measure(path: Path, column: Column, fn=fn, title=title) -> float:
+            key = (title, path, column[1], 0.0 if column[1] == "plms" else column[2])
+            if key not in results:
+                results[key] = fn(path, column[2], column[1])
+            return results[key]
+
+        last: dict[tuple[str, str], float | None] = {}
+        lines += ["", f"## {title}", "", f"### Laplacians side by side (lambda = {lam:g})", ""]
+        lines += _table(folder, families, shared, levels, by_method, measure, last)
+        if lams:
+            lines += ["", f"### AW11, lambda in {lams}", ""]
+            lines += _table(folder, families, shared, levels, lambda_columns(lams), measure)
+        if len(levels) > 1:
+            summary += ["", f"{title}:", ""]
+            summary.append("| mesh | " + " | ".join(c[0] for c in by_method) + " |")
+            summary.append("|" + " --- |" * (1 + len(by_method)))
+            for family in dict.fromkeys(f for f, _ in last):
+                cells = [last[(family, c[0])] for c in by_method]
+                summary.append(
+                    f"| {family} {folder} | "
+                    + " | ".join("-" if o is None else f"{o:.2f}" for o in cells)
+                    + " |"
                 )
+    if summary:
+        lines += ["", f"## Observed orders, levels {levels[-2]} to {levels[-1]}"] + summary
     return "\n".join(lines) + "\n"
 
 
@@ -177,13 +255,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shared", type=Path, default=DEFAULT_SHARED, help="mesh families folder")
     parser.add_argument("--levels", type=int, nargs="+", default=[1, 2, 3, 4, 5])
-    parser.add_argument("--lams", type=float, nargs="+", default=[0.5, 1.0, 2.0])
+    parser.add_argument(
+        "--methods", nargs="+", choices=METHODS, default=list(METHODS), help="Laplacians compared"
+    )
+    parser.add_argument(
+        "--lam", type=float, default=1.0, help="lambda of AW11 and dGBD20 in the comparison"
+    )
+    parser.add_argument(
+        "--lams", type=float, nargs="*", default=[0.5, 1.0, 2.0], help="AW11's lambda study"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "examples" / "output" / "convergence.md")
     args = parser.parse_args()
     if not args.shared.is_dir():
         raise SystemExit(f"mesh families not found at {args.shared}; pass --shared DIR")
+    # the shared meshes carry objects and materials the study has no use for
+    warnings.simplefilter("ignore", tp.io.SkippedContentWarning)
     start = time.perf_counter()
-    report = run(args.shared, args.levels, args.lams)
+    report = run(args.shared, args.levels, args.lams, args.methods, args.lam)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(report)
     print(report)
