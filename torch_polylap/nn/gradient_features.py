@@ -42,7 +42,7 @@ from ..checks import check_verts
 from ..faces import FacesLike, PolygonFaces, as_faces
 from ..geometry import stable_norm
 from ..operators import vector_area
-from ..sparse import SparseOperator, from_coo, pattern_of, sparse_values
+from ..sparse import SparseOperator, operator_from_parts, pattern_of, sparse_values
 from ..topology import Topology, get_topology
 
 __all__ = [
@@ -135,30 +135,56 @@ def vertex_gradient_operators(
             )
     device = verts.device
     G = gradient_operator(verts, topo)  # (3F, V), row 3 f + c
-    pattern = pattern_of(G)
-    g_row, g_col, g_val = pattern.row, pattern.col, sparse_values(G)
-    face, comp = torch.div(g_row, 3, rounding_mode="floor"), g_row % 3
+    sizes, offsets = faces_.sizes.to(device), faces_.offsets.to(device)
+    indices = faces_.indices.to(device)
+    face, col, w = _face_gradient_entries(G, sizes, offsets)  # w (N, 3): grad_f of hat u
 
     area = stable_norm(vector_area(verts, topo), 1)  # (F,)
     vert_area = _corner_sums(area, faces_, n)
     vert_area = torch.where(vert_area > 0, vert_area, torch.ones_like(vert_area))
 
-    # Pair every entry (3 f + c, u) of G with every corner v of face f: the entry
-    # |f| / A_v * e(v)_c * G[3 f + c, u] of row v, column u.
-    sizes, offsets = faces_.sizes.to(device), faces_.offsets.to(device)
-    indices = faces_.indices.to(device)
+    # Pair every face-gradient vector w (face f, column u) with every corner v of face f: the
+    # entry |f| / A_v * e(v) . w of row v, column u.
     repeats = sizes[face]
-    entry = torch.repeat_interleave(torch.arange(g_row.numel(), device=device), repeats)
+    entry = torch.repeat_interleave(torch.arange(face.numel(), device=device), repeats)
     first = torch.cumsum(repeats, 0) - repeats
     local = torch.arange(entry.numel(), device=device) - first[entry]
     f_e = face[entry]
     v = indices[offsets[f_e] + local]
-    weight = g_val[entry] * area[f_e] / vert_area[v]
-    c_e = comp[entry]
-    rows, cols = v, g_col[entry]
-    grad_x = from_coo(rows, cols, weight * e_x[v, c_e], (n, n))
-    grad_y = from_coo(rows, cols, weight * e_y[v, c_e], (n, n))
-    return grad_x, grad_y
+    scaled = w[entry] * (area[f_e] / vert_area[v])[:, None]
+    # One sort of the (row, column) keys for both operators, which share the pattern.
+    unique, inverse = torch.unique(v * n + col[entry], sorted=True, return_inverse=True)
+    rows = torch.div(unique, n, rounding_mode="floor")
+    crow = torch.zeros(n + 1, dtype=torch.int64, device=device)
+    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=n), 0)
+    values = [
+        scaled.new_zeros(unique.numel()).index_add(0, inverse, (scaled * e[v]).sum(1))
+        for e in (e_x, e_y)
+    ]
+    grad_x = operator_from_parts(crow, unique - rows * n, values[0], (n, n))
+    return grad_x, grad_x.with_values(values[1])
+
+
+def _face_gradient_entries(
+    G: SparseOperator, sizes: torch.Tensor, offsets: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(face (N,), column (N,), w (N, 3))``: the face gradients ``w = grad_f`` of the hat
+    functions of the columns, from the ``(3F, V)`` operator ``G`` of
+    :func:`~torch_polylap.calculus.gradient_operator` (differentiable in its values)."""
+    pattern = pattern_of(G)
+    g_col, g_val = pattern.col, sparse_values(G)
+    # Faces are simple polygons (the topology refuses a repeated vertex), so every row 3 f + c
+    # holds the k_f distinct corners of face f, sorted: row 3 f + c starts at 3 offsets[f] + c k_f.
+    if g_val.numel() != 3 * int(sizes.sum()):
+        raise RuntimeError(
+            f"vertex_gradient_operators: the face gradient operator has {g_val.numel()} entries, "
+            f"expected 3 per corner ({3 * int(sizes.sum())})."
+        )
+    face = torch.repeat_interleave(torch.arange(sizes.numel(), device=sizes.device), sizes)
+    j = torch.arange(face.numel(), device=sizes.device) - offsets[face]
+    first = 3 * offsets[face] + j
+    pos = first[:, None] + sizes[face][:, None] * torch.arange(3, device=sizes.device)
+    return face, g_col[first], g_val[pos]
 
 
 def spatial_gradient_features(
