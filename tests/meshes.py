@@ -15,6 +15,7 @@ import functools
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -59,3 +60,35 @@ def shared_path(rel: str) -> Path:
 def load(path: str | Path) -> tuple[torch.Tensor, tp.PolygonFaces]:
     """``read_mesh`` in float64, cached per path (tests must not modify the returned tensors)."""
     return tp.read_mesh(path, dtype=torch.float64)
+
+
+def plms_galerkin_mass(verts: torch.Tensor, faces) -> np.ndarray:
+    """PLMS lumped mass as polyLaplace computes it (``localMassMatrix`` + ``lump_matrix``).
+
+    Per face: the virtual vertex ``z`` minimizing the sum of squared fan-triangle areas
+    (normal equations ``sum_i (|e_i|^2 I - e_i e_i^T) z = sum_i e_i x (y_i x y_{i+1})``), the
+    minimum-norm affine weights ``w`` with ``sum_i w_i y_i = z`` (what polyLaplace's complete
+    orthogonal decomposition returns; unique for non-planar quads), fan areas ``A_i`` of
+    ``(y_i, y_{i+1}, z)``. The fan's Galerkin mass has row sums ``A / 3`` at each triangle
+    corner, so corner ``i`` gets ``(A_{i-1} + A_i) / 3 + w_i sum_j A_j / 3``. Written with
+    numpy, independently of ``torch_polylap.kernels_plms``.
+    """
+    V = verts.numpy()
+    m = np.zeros(V.shape[0])
+    for group in tp.build_topology(faces, V.shape[0], warn=False).groups:
+        corners = group.corners_t.numpy().T  # (F, k)
+        Y = V[corners]
+        Y = Y - Y.mean(1, keepdims=True)  # centered corners, (F, k, 3)
+        nxt = np.roll(Y, -1, axis=1)
+        e = nxt - Y
+        b = np.cross(e, np.cross(Y, nxt)).sum(1)
+        A = np.einsum("fk,ab->fab", (e * e).sum(2), np.eye(3)) - np.einsum("fka,fkb->fab", e, e)
+        z = np.linalg.solve(A, b[..., None])[..., 0]
+        C = np.concatenate([np.ones((len(Y), 1, group.k)), Y.transpose(0, 2, 1)], 1)  # (F, 4, k)
+        rhs = np.concatenate([np.ones((len(Y), 1)), z], 1)
+        w = np.einsum("fkr,fr->fk", np.linalg.pinv(C, rcond=1e-10), rhs)
+        zp = Y - z[:, None]
+        fan = 0.5 * np.linalg.norm(np.cross(zp, np.roll(zp, -1, axis=1)), axis=2)  # (F, k)
+        corner = (fan + np.roll(fan, 1, axis=1)) / 3 + w * fan.sum(1, keepdims=True) / 3
+        np.add.at(m, corners, corner)
+    return m

@@ -16,10 +16,10 @@ The issue-12 table (level 5, the three methods: AW11 and dGBD20 at lambda = 1, P
 same definitions with ``tp.laplacian(..., method=...)`` and each method's lumped mass. For PLMS
 the polyLaplace code lumps the Galerkin mass of the triangle fan (``setup_sandwich_mass_matrix``
 then ``lump_matrix``: each fan triangle gives a third of its area to each of its corners, the
-virtual vertex's share is prolonged with the weights ``w``), whereas ``method="plms"`` lumps
-with mixed Voronoi corner areas (libigl's ``massmatrix`` default). :func:`plms_galerkin_mass`
-computes polyLaplace's mass independently (numpy, its own virtual vertex), and the PLMS numbers
-reproduce with it; with the package's ``M0`` four of the five do not (strict xfails below).
+virtual vertex's share is prolonged with the weights ``w``), and ``method="plms"`` lumps
+the same way (libigl's polygon ``cotmatrix`` uses mixed Voronoi corner areas instead).
+:func:`meshes.plms_galerkin_mass` computes polyLaplace's mass independently (numpy, its own
+virtual vertex), and the PLMS numbers reproduce with it and with the package's ``M0``.
 
 Run ``PYTHONPATH=. python tests/test_reference_values.py`` to print the full comparison table.
 """
@@ -38,7 +38,7 @@ from scipy.special import factorial, lpmv
 import torch_polylap as tp
 
 try:  # tests/ on sys.path (pytest's default rootdir-less import mode, or running the file)
-    from meshes import DATA_DIR, load, shared_path
+    from meshes import DATA_DIR, load, plms_galerkin_mass, shared_path
 except ImportError:  # tests/ imported as a package
     from tests.meshes import DATA_DIR, load, shared_path
 
@@ -172,38 +172,6 @@ def _mesh(path: Path, unit_sphere: bool):
     if unit_sphere:
         verts = verts / torch.linalg.vector_norm(verts, dim=1, keepdim=True)
     return verts, faces
-
-
-def plms_galerkin_mass(verts: torch.Tensor, faces) -> np.ndarray:
-    """PLMS lumped mass as polyLaplace computes it (``localMassMatrix`` + ``lump_matrix``).
-
-    Per face: the virtual vertex ``z`` minimizing the sum of squared fan-triangle areas
-    (normal equations ``sum_i (|e_i|^2 I - e_i e_i^T) z = sum_i e_i x (y_i x y_{i+1})``), the
-    minimum-norm affine weights ``w`` with ``sum_i w_i y_i = z`` (what polyLaplace's complete
-    orthogonal decomposition returns; unique for non-planar quads), fan areas ``A_i`` of
-    ``(y_i, y_{i+1}, z)``. The fan's Galerkin mass has row sums ``A / 3`` at each triangle
-    corner, so corner ``i`` gets ``(A_{i-1} + A_i) / 3 + w_i sum_j A_j / 3``. Written with
-    numpy, independently of ``torch_polylap.kernels_plms``.
-    """
-    V = verts.numpy()
-    m = np.zeros(V.shape[0])
-    for group in tp.build_topology(faces, V.shape[0], warn=False).groups:
-        corners = group.corners_t.numpy().T  # (F, k)
-        Y = V[corners]
-        Y = Y - Y.mean(1, keepdims=True)  # centered corners, (F, k, 3)
-        nxt = np.roll(Y, -1, axis=1)
-        e = nxt - Y
-        b = np.cross(e, np.cross(Y, nxt)).sum(1)
-        A = np.einsum("fk,ab->fab", (e * e).sum(2), np.eye(3)) - np.einsum("fka,fkb->fab", e, e)
-        z = np.linalg.solve(A, b[..., None])[..., 0]
-        C = np.concatenate([np.ones((len(Y), 1, group.k)), Y.transpose(0, 2, 1)], 1)  # (F, 4, k)
-        rhs = np.concatenate([np.ones((len(Y), 1)), z], 1)
-        w = np.einsum("fkr,fr->fk", np.linalg.pinv(C, rcond=1e-10), rhs)
-        zp = Y - z[:, None]
-        fan = 0.5 * np.linalg.norm(np.cross(zp, np.roll(zp, -1, axis=1)), axis=2)  # (F, k)
-        corner = (fan + np.roll(fan, 1, axis=1)) / 3 + w * fan.sum(1, keepdims=True) / 3
-        np.add.at(m, corners, corner)
-    return m
 
 
 def _operators(verts: torch.Tensor, faces, lam: float, method: str = "aw11", mass: str = "own"):
@@ -412,45 +380,22 @@ def test_method_reference_value_level5(experiment, mesh, method, printed):
 # quad sphere SH 4.02e-6, concave sphere SH 9.32e-4, hex sphere mean curvature 4.79e-5,
 # concave grid Franke 2.80e-5; on the regular quad grid the masses agree to 1e-14 (right
 # isosceles fan triangles: Voronoi and barycentric corner areas give the same prolonged sums).
-_PLMS_MASS_DIFFERS = {
-    ("sh", "sphere/quad_5"),
-    ("sh", "sphere/concave_5"),
-    ("mean_curvature", "sphere/hex_5"),
-    ("franke", "grid/concave_5"),
-}
-
-
 @pytest.mark.parametrize(
     "experiment, mesh, printed",
     [
-        pytest.param(
-            exp,
-            mesh,
-            row["plms"],
-            id=f"{exp}-{mesh}",
-            marks=[
-                pytest.mark.xfail(
-                    strict=True,
-                    reason="method='plms' lumps the fan mass with mixed Voronoi corner areas; "
-                    "polyLaplace lumps the Galerkin (barycentric) fan mass",
-                )
-            ]
-            if (exp, mesh) in _PLMS_MASS_DIFFERS
-            else [],
-        )
+        pytest.param(exp, mesh, row["plms"], id=f"{exp}-{mesh}")
         for (exp, mesh), row in METHOD_REFERENCE.items()
     ],
 )
 def test_plms_reference_with_the_package_mass(experiment, mesh, printed):
-    # Same L, the package's M0. A strict xfail: if method="plms" adopts polyLaplace's mass
-    # these pass, and the marks (and the README's note) must go.
+    # Same L, the package's own M0 (which lumps the fan's Galerkin mass, as polyLaplace does).
     value = EXPERIMENTS[experiment](shared_path(f"{mesh}.obj"), 1.0, "plms", "own")
     _assert_rounds_to(value, printed, f"{experiment} on {mesh}, plms with the package's M0")
 
 
-def test_plms_galerkin_mass_matches_the_package_where_fans_are_regular():
-    # The independent mass helper against the package on planar regular quads (both lumping
-    # rules agree there) and its total: the fan areas sum to the faces' areas when planar.
+def test_plms_galerkin_mass_matches_the_package():
+    # The independent numpy mass against the package, and its total: the fan areas sum to the
+    # faces' areas when planar.
     verts, faces = load(DATA_DIR / "grid" / "quad_3.obj")
     m = plms_galerkin_mass(verts, faces)
     _, M0 = tp.laplacian(verts, faces, method="plms")

@@ -9,9 +9,13 @@ taken. With the prolongation ``P = [I; w^T]`` (``(k + 1) x k``) the face's block
 
     L_f = P^T L_fan P,        m_f = diag(P^T M_fan P 1)
 
-where ``L_fan`` is the cotangent Laplacian of the fan and ``M_fan`` its lumped (mixed Voronoi,
-Meyer et al. 2003) mass. This is what libigl's polygon ``cotmatrix(V, I, C)`` returns (up to
-sign); the tests compare the two to round-off.
+where ``L_fan`` is the cotangent Laplacian of the fan and ``M_fan`` its Galerkin mass; lumped,
+``P^T M_fan P 1 = P^T M_fan 1`` gives each fan triangle's area in thirds to its corners, the
+virtual vertex's share prolonged with ``w`` (what the authors' polyLaplace code does, and the
+mass with which its published errors reproduce). ``L_f`` is what libigl's polygon
+``cotmatrix(V, I, C)`` returns (up to sign; the tests compare the two to round-off); libigl's
+mass uses mixed Voronoi corner areas instead (Meyer et al. 2003), which differ on curved or
+non-convex fans.
 
 Everything is evaluated in structure-of-arrays layout (``(3, k, F)`` per degree group), in the
 face's centered and scaled frame ``y = (x - c) / s`` (``c`` the corner centroid,
@@ -114,32 +118,6 @@ def virtual_vertex_weights(y: torch.Tensor, z: torch.Tensor, normal: torch.Tenso
     return (1.0 / k) + v + factor * h_out
 
 
-def _mixed_voronoi(
-    cot: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-    sq: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-    area: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Corner areas of triangles, mixed Voronoi (Meyer et al. 2003, as libigl's ``massmatrix``).
-
-    Args:
-        cot: cotangents of the angles at corners 0, 1, 2; sq: squared lengths of the edges
-            opposite corners 0, 1, 2; area: triangle areas. All of one shape.
-
-    Returns:
-        The three corner areas: Voronoi ``(|e_j|^2 cot_j + |e_k|^2 cot_k) / 8`` for
-        non-obtuse triangles, else half the area at the obtuse corner and a quarter elsewhere.
-    """
-    c0, c1, c2 = cot
-    s0, s1, s2 = sq
-    vor = (0.125 * (s1 * c1 + s2 * c2), 0.125 * (s0 * c0 + s2 * c2), 0.125 * (s0 * c0 + s1 * c1))
-    obtuse = (c0 < 0) | (c1 < 0) | (c2 < 0)
-    out = []
-    for c, v in zip(cot, vor, strict=True):
-        fallback = torch.where(c < 0, 0.5 * area, 0.25 * area)
-        out.append(torch.where(obtuse, fallback, v))
-    return tuple(out)
-
-
 def plms_entries(
     x: torch.Tensor, pair_i: torch.Tensor, pair_j: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -150,7 +128,8 @@ def plms_entries(
     ``(i, f)``: ``l_i = -(cot at y_{i+1} in triangle i + cot at y_{i-1} in triangle i-1) / 2``;
     ``(f, f)``: ``-sum_i l_i``. Then
     ``(L_f)_ij = (L_fan)_ij + l_i w_j + w_i l_j + (L_fan)_ff w_i w_j`` and the lumped mass of
-    corner ``i`` is ``m_i + m_f w_i`` (``P 1 = 1``; ``m`` the fan's corner areas).
+    corner ``i`` is ``m_i + m_f w_i`` (``P 1 = 1``; ``m`` the fan's lumped Galerkin masses, a
+    third of each fan triangle's area at each of its corners).
 
     Args:
         x: ``(3, k, F)`` corner positions.
@@ -189,10 +168,8 @@ def plms_entries(
     off = off + ell.index_select(0, pair_i) * wj + wi * ell.index_select(0, pair_j)
     off = off + l_ff * wi * wj
 
-    # opposite edges: corner p faces edge (q, z), q faces (p, z), z faces (p, q)
-    corner = _mixed_voronoi(
-        (cot_p, cot_q, cot_z), ((zq * zq).sum(0), (zp * zp).sum(0), (e * e).sum(0)), 0.5 * dbl
-    )
-    m_corner = corner[0] + torch.roll(corner[1], 1, dims=0)
-    mass = (m_corner + corner[2].sum(0) * w) * size2
+    # lumped Galerkin fan mass: a third of fan triangle i's area at y_i, y_{i+1} and z
+    third = dbl / 6.0
+    m_corner = third + torch.roll(third, 1, dims=0)
+    mass = (m_corner + third.sum(0) * w) * size2
     return off, mass, area_scaled * size2, size2
