@@ -631,7 +631,7 @@ class _Eigenvectors(torch.autograd.Function):
 _DENSE_EIGS_SIZE = 200
 _DENSE_EIGS_PER_K = 5
 # Block Lanczos above this many unknowns (log-log interpolation in k; ARPACK below k = 32)
-_LANCZOS_SIZE = {32: 100_000, 64: 7_000, 128: 3_000}
+_LANCZOS_SIZE = {32: 100_000, 64: 4_500, 128: 3_000}
 # Memory the unrestarted block Lanczos basis may take before ARPACK (restarted) is used.
 _LANCZOS_MEMORY = 4 * 2**30
 
@@ -675,8 +675,12 @@ def eigs_route(n: int, k: int, diagonal_mass: bool, cholmod: bool = True) -> str
       the time for ``k = 16`` at every size from 1k to 100k; for ``k = 32`` 1.17x at 10k and
       0.98x at 100k; for ``k = 64`` 1.7x at 1k, 1.4x at 3k, 1.06x at 5.5k, 0.88x at 10k,
       0.81x at 100k; for ``k = 128`` 1.5x at 1k, 0.95-1.5x at 3k (noise), 0.78x at 5.5k,
-      0.63x at 10k. Hence ``_LANCZOS_SIZE``: 100,000 vertices at ``k = 32``, 7,000 at 64,
-      3,000 at 128 and above, log-log interpolation between, never below ``k = 32``;
+      0.63x at 10k. Spheres (clustered spectra) favour block Lanczos earlier: for ``k = 64``
+      0.84x on the 5,120-vertex hexagonal and 0.75x on the 6,146-vertex quad sphere, 1.4x on
+      the 1,538-vertex one; for ``k = 32`` 0.91x (hex, 20k) and 1.11x (quad, 25k); for
+      ``k = 16`` 0.99-1.04x at 20k-25k. Hence ``_LANCZOS_SIZE``: 100,000 vertices at
+      ``k = 32``, 4,500 at 64 (the grid loses up to 6% between 4.5k and 7k, the spheres gain
+      16-25%), 3,000 at 128 and above, log-log interpolation between, never below ``k = 32``;
     - ``"lanczos"`` (block Lanczos with blocks of 8, :mod:`torch_polylap.lanczos`) above it, for
       a diagonal ``M`` only, and only while its basis of ``6 k`` vectors fits in 4 GiB
       (``"arpack"`` otherwise). Without ``cholespy`` its block solves are SuperLU's one column
@@ -825,7 +829,7 @@ def eigs(
       diagonal ``M`` and ``sigma < 0`` on ``M^{1/2} (L - sigma M)^{-1} M^{1/2}`` with one
       Cholesky factorization (CHOLMOD when ``cholespy`` is installed, SuperLU otherwise), else
       in scipy's generalized shift-invert mode with SuperLU; for ``k < 32`` at every size and
-      for larger ``k`` up to a threshold (7,000 unknowns at ``k = 64``, 3,000 at ``k >= 128``);
+      for larger ``k`` up to a threshold (4,500 unknowns at ``k = 64``, 3,000 at ``k >= 128``);
     - above it, for a diagonal ``M`` (the mass matrix ``M0``) and ``sigma < 0``: block Lanczos
       with blocks of 8 (:mod:`torch_polylap.lanczos`) on the same operator, factored once by
       CHOLMOD (on the operators' device: its CUDA solver for CUDA tensors; SuperLU without
