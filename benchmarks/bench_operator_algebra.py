@@ -179,7 +179,8 @@ def markdown(results: list[dict], header: str) -> str:
     lines = [header, ""]
     for grid in results:
         lines += [
-            f"### {grid['quads']:,} quads ({grid['vertices']:,} vertices, nnz(L) = {grid['nnz']:,})",
+            f"### {grid['quads']:,} quads ({grid['vertices']:,} vertices, "
+            f"nnz(L) = {grid['nnz']:,})",
             "",
             f"torch native (`torch.sparse_csr_tensor(...) @ X`, backward): {grid['native']}",
             "",
