@@ -14,6 +14,8 @@ eigenpair) are differentiable for simple eigenvalues.
 
 from __future__ import annotations
 
+import atexit
+import weakref
 from collections.abc import Callable
 
 import numpy as np
@@ -73,6 +75,18 @@ class Factorization:
         return _finite(torch.from_numpy(X)).to(B)
 
 
+# cholespy's solver objects are nanobind instances; one still alive at interpreter shutdown
+# (cached on an operator that a user's tensor keeps reachable through its autograd graph) makes
+# nanobind print a "leaked instances" report. Release them before the interpreter tears down.
+_LIVE_CHOLESKY: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register
+def _release_cholesky_factors() -> None:
+    for factorization in list(_LIVE_CHOLESKY):
+        factorization.factor = None
+
+
 class CholeskyFactorization:
     """CHOLMOD's supernodal Cholesky of a symmetric positive definite matrix, in float64, on the
     matrix's device (CPU, or CUDA through cholespy's GPU solver), via the optional ``cholespy``.
@@ -100,6 +114,7 @@ class CholeskyFactorization:
         except (RuntimeError, ValueError) as err:
             raise ValueError(_singular_message(A, str(err))) from None
         self.device = device
+        _LIVE_CHOLESKY.add(self)
 
         def solve_numpy(b: np.ndarray) -> np.ndarray:
             rhs = torch.from_numpy(b).to(self.device)[:, None]
