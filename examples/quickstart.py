@@ -22,7 +22,8 @@ def main(path: Path) -> None:
     print(f"{path.name}: {verts.shape[0]} vertices, {faces!r}")
 
     L, M0 = tp.laplacian(verts, faces, lam=1.0)  # sparse (V, V), L PSD, M0 diagonal
-    print(f"L: {tuple(L.shape)}, {L._nnz()} nonzeros; total mass {M0.diagonal().sum():.4f}")
+    nnz = tp.sparse.sparse_values(L).numel()  # the differentiable value array, O(nnz)
+    print(f"L: {tuple(L.shape)}, {nnz} nonzeros; total mass {M0.diagonal().sum():.4f}")
 
     # Without the stabilizer (lam = 0) L X is the area gradient (Lemma 3 of the paper), and the
     # area is homogeneous of degree 2, so 1/2 tr(X^T L X) is exactly the total area.
