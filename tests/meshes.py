@@ -71,7 +71,7 @@ def plms_galerkin_mass(verts: torch.Tensor, faces) -> np.ndarray:
     orthogonal decomposition returns; unique for non-planar quads), fan areas ``A_i`` of
     ``(y_i, y_{i+1}, z)``. The fan's Galerkin mass has row sums ``A / 3`` at each triangle
     corner, so corner ``i`` gets ``(A_{i-1} + A_i) / 3 + w_i sum_j A_j / 3``. Written with
-    numpy, independently of ``torch_polylap.kernels_plms``.
+    numpy, independently of ``torch_polylap.kernels.plms``.
     """
     V = verts.numpy()
     m = np.zeros(V.shape[0])

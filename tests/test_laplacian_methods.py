@@ -13,8 +13,8 @@ from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
 from meshes import plms_galerkin_mass
 
 import torch_polylap as tp
-from torch_polylap.geometry import corner_terms, gather_corners
-from torch_polylap.kernels_plms import _fan_minimizer
+from torch_polylap.kernels.frames import corner_terms, gather_corners
+from torch_polylap.kernels.plms import _fan_minimizer
 from torch_polylap.sparse import sparse_values, to_scipy
 
 igl = pytest.importorskip("igl")

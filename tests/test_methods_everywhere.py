@@ -22,7 +22,7 @@ from torch_polylap import losses
 from torch_polylap.apps.conformal import conformal_matrix
 from torch_polylap.cli import main
 from torch_polylap.datasets import PolygonMeshDataset
-from torch_polylap.methods import METHODS
+from torch_polylap.kernels import METHODS
 from torch_polylap.nn import Spectrum
 from torch_polylap.spectral import _mesh_key
 

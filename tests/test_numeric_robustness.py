@@ -13,7 +13,8 @@ from conftest import hex_pent_mesh, mixed_mesh, quad_grid
 
 import torch_polylap as tp
 from torch_polylap.checks import check_lam, check_verts
-from torch_polylap.geometry import gather_corners, polygon_entries
+from torch_polylap.kernels.aw11 import polygon_entries
+from torch_polylap.kernels.frames import gather_corners
 
 SCALES = [
     (torch.float64, 1e-150, 1e-10),

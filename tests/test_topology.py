@@ -154,7 +154,7 @@ def test_chunked_groups_match_unchunked(monkeypatch):
 
     V, F = quad_grid(30, bump=0.2, seed=3)
     ref = tp.laplacian(V, tp.build_topology(F, V.shape[0]))[0].to_dense()
-    monkeypatch.setattr(topology, "CHUNK_ELEMENTS", 1)
+    monkeypatch.setattr(topology.groups, "CHUNK_ELEMENTS", 1)
     topo = tp.build_topology(F, V.shape[0])
     assert len(topo.groups[0].chunks) > 1
     # identical up to the order of floating-point additions in the scatter
@@ -363,13 +363,13 @@ def test_fresh_faces_tensors_do_not_leak():
     tp.laplacian(V, F.clone())
     gc.collect()
     before = _rss_bytes()
-    cached_before = len(tp.topology._CACHE)  # other tests' live faces tensors may be cached
+    cached_before = len(tp.topology.cache._CACHE)  # other tests' live faces tensors may be cached
     for _ in range(100):
         tp.laplacian(V, F.clone())
     gc.collect()
     grown = _rss_bytes() - before
     assert grown < 60 * 2**20, f"RSS grew by {grown / 2**20:.0f} MB"
-    assert len(tp.topology._CACHE) <= cached_before
+    assert len(tp.topology.cache._CACHE) <= cached_before
 
 
 def test_cache_holds_no_faces_and_is_shared_with_the_module():
@@ -397,9 +397,9 @@ def test_cache_sees_edits_through_shared_numpy_memory():
 
 def test_cache_is_bounded(monkeypatch):
     V, F = quad_grid(2)
-    monkeypatch.setattr(tp.topology._CACHE, "max_entries", 3)
+    monkeypatch.setattr(tp.topology.cache._CACHE, "max_entries", 3)
     keep = [F.clone() for _ in range(6)]
     for f in keep:
         tp.get_topology(f, V.shape[0])
-    assert len(tp.topology._CACHE) == 3
+    assert len(tp.topology.cache._CACHE) == 3
     assert tp.get_topology(keep[-1], V.shape[0]) is tp.get_topology(keep[-1], V.shape[0])

@@ -24,6 +24,7 @@ from .calculus import (
     heat_geodesic_distance,
 )
 from .datasets import PolygonMeshDataset, collate_meshes
+from .dec import coboundary, local_laplacians, one_form_inner_product
 from .faces import PolygonFaces, as_faces
 from .fitting import chamfer_distance, mesh_quality, nearest_neighbors, sample_points
 from .io import from_trimesh, read_mesh, to_trimesh, write_mesh
@@ -42,23 +43,21 @@ from .losses import (
     normal_consistency,
     planarity_loss,
 )
-from .operators import (
-    PolygonLaplacian,
-    coboundary,
+from .measures import (
     face_areas,
     face_nonplanarity,
     face_normals,
     face_planarity_energy,
-    get_topology,
-    laplacian,
-    local_laplacians,
     mass,
-    mean_curvature_normal,
-    one_form_inner_product,
     planarity_energy,
+    vector_area,
+)
+from .operators import (
+    PolygonLaplacian,
+    laplacian,
+    mean_curvature_normal,
     planarity_laplacian,
     strong_laplacian,
-    vector_area,
 )
 from .sparse import from_scipy, spmm, to_scipy
 from .spectral import (
@@ -68,7 +67,7 @@ from .spectral import (
     spectral_heat_diffusion,
     wave_kernel_signature,
 )
-from .topology import Topology, build_topology
+from .topology import Topology, build_topology, get_topology
 
 __version__ = "0.1.0"
 

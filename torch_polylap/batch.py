@@ -22,13 +22,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from .checks import Lam, warn_outside_package
 from .faces import FacesLike, PolygonFaces, as_faces
-from .operators import Lam, get_topology, laplacian
+from .operators import laplacian
 from .topology import (
     Topology,
     TopologyReport,
-    _warn_outside_package,
     build_topology,
+    get_topology,
     half_edge_vertices,
 )
 
@@ -469,7 +470,7 @@ class PolygonMeshes:
             f"{t.report.summary(conn.num_verts[i])}"
             for i, t in sorted(local.items())
         )
-        _warn_outside_package(
+        warn_outside_package(
             f"{len(local)} of the {len(conn.faces)} meshes of the batch are not consistently "
             f"oriented 2-manifolds (indices local to each mesh): {found}. L and M0 are well "
             "defined on them; what needs a manifold or an orientation checks for itself. "

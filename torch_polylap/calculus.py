@@ -29,11 +29,12 @@ from collections.abc import Iterator, Sequence
 
 import torch
 
-from .checks import check_index_or_mask, check_verts
+from .checks import Lam, check_index_or_mask, check_verts
 from .faces import FacesLike
-from .geometry import corner_terms, gather_corners, stable_norm
+from .kernels.frames import corner_terms, gather_corners, stable_norm
 from .linalg import solve
-from .operators import Lam, laplacian, vector_area
+from .measures import vector_area
+from .operators import laplacian
 from .sparse import SparseOperator, diag, from_coo
 from .topology import DegreeGroup, Topology, get_topology
 
@@ -68,7 +69,7 @@ def _corner_gradients(
 ) -> Iterator[tuple[DegreeGroup, torch.Tensor, torch.Tensor]]:
     """Per degree group: ``(grp, w (3, k, F_k), area (F_k,))`` with ``w_i = (g_i x a_f) / |a_f|^2``
     the gradient on face ``f`` of the hat function of its corner ``i`` (eq. (1) above)."""
-    groups, _, _ = topo.on(verts.device)
+    groups = topo.on(verts.device).groups
     verts_t = verts.t().contiguous()
     for grp in groups:
         _, g, a = corner_terms(gather_corners(verts_t, grp.corners_t))

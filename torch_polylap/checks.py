@@ -16,6 +16,9 @@ deep inside an assembly loop.
 from __future__ import annotations
 
 import numbers
+import os
+import sys
+import warnings
 
 import numpy as np
 import torch
@@ -26,7 +29,12 @@ __all__ = [
     "check_index_or_mask",
     "check_positive_int",
     "check_finite",
+    "Lam",
+    "warn_outside_package",
 ]
+
+# The stabilizer weight's type: a float, or a 0-dim tensor that may carry a gradient.
+Lam = float | torch.Tensor
 
 # Half precision cannot hold the products the per-face formulas form (squared lengths of a
 # unit-size face times a 1e-3 relative spacing already underflow float16), and the sparse
@@ -86,7 +94,7 @@ def check_finite(x: torch.Tensor, name: str, what: str = "row") -> None:
     )
 
 
-def check_lam(lam: object, name: str = "lam") -> float | torch.Tensor:
+def check_lam(lam: object, name: str = "lam") -> Lam:
     """The stabilizer weight: a finite number ``>= 0`` (0 keeps only the geometric part).
 
     Accepts a Python/numpy real number or a 0-dim (or one-element) floating tensor, which is
@@ -193,3 +201,13 @@ def _as_tensor(x: object, name: str) -> torch.Tensor:
             f"{type(x).__name__}."
         )
     return torch.from_numpy(np.ascontiguousarray(arr))
+
+
+def warn_outside_package(message: str) -> None:
+    """``warnings.warn`` attributed to the first caller outside torch_polylap."""
+    package = os.path.dirname(os.path.abspath(__file__))
+    level, frame = 2, sys._getframe(1)  # level 2: the caller of this helper
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
+        level += 1
+        frame = frame.f_back
+    warnings.warn(message, UserWarning, stacklevel=level)

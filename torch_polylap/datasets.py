@@ -28,10 +28,11 @@ from torch.utils.data import Dataset
 from .batch import PolygonMeshes
 from .faces import FacesLike, PolygonFaces, as_faces
 from .io import read_mesh
-from .methods import check_method
+from .kernels import check_method
+from .measures import mass
 from .nn.gradient_features import vertex_gradient_operators
 from .nn.spectrum import Spectrum
-from .operators import laplacian, mass
+from .operators import laplacian
 from .sparse import SparseOperator, block_diag, diag
 from .spectral import cached_eigs, check_cache_dir
 

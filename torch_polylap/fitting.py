@@ -15,9 +15,9 @@ import math
 import torch
 
 from .faces import FacesLike
-from .geometry import corner_terms, gather_corners
-from .operators import face_nonplanarity, face_normals, get_topology
-from .topology import Topology
+from .kernels.frames import corner_terms, gather_corners
+from .measures import face_nonplanarity, face_normals
+from .topology import Topology, get_topology
 
 __all__ = ["nearest_neighbors", "chamfer_distance", "sample_points", "mesh_quality"]
 
@@ -121,7 +121,7 @@ def _fan_triangles(
     Triangles are their own fan (``T = 1``); a ``k``-gon with ``k > 3`` is split into the
     ``T = k`` triangles ``(c, x_i, x_{i+1})`` around its corner centroid ``c``.
     """
-    groups, _, _ = topo.on(verts.device)
+    groups = topo.on(verts.device).groups
     verts_t = verts.t().contiguous()
     out = []
     for grp in groups:
@@ -244,7 +244,7 @@ def mesh_quality(verts: torch.Tensor, faces: MeshFaces) -> dict[str, float]:
     with torch.no_grad():
         topo = get_topology(faces, verts.shape[0])
         topo.require_oriented("mesh_quality (its folded_edges measure)")
-        groups, _, _ = topo.on(verts.device)
+        groups = topo.on(verts.device).groups
         verts_t = verts.t().contiguous()
         angle_err, min_angle, aspects, nonconvex = [], [], [], 0
         for grp in groups:

@@ -26,9 +26,11 @@ import torch
 from torch import nn
 
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
+from .checks import Lam
 from .faces import FacesLike
-from .methods import METHODS, check_method
-from .operators import Lam, face_planarity_energy, strong_laplacian, vector_area
+from .kernels import METHODS, check_method
+from .measures import face_planarity_energy, vector_area
+from .operators import strong_laplacian
 
 __all__ = [
     "laplacian_smoothing",

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from .faces import FacesLike, as_faces
-from .operators import vector_area
+from .measures import vector_area
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes

@@ -35,7 +35,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .faces import FacesLike, PolygonFaces, as_faces
-from .geometry import corner_terms
+from .kernels.frames import corner_terms
 from .topology import duplicate_faces, orientation_flips
 
 __all__ = [

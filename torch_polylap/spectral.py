@@ -25,10 +25,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .assembly import MeshFaces
 from .io.common import atomic_write
+from .kernels import check_method
 from .linalg import eigs, solve
-from .methods import check_method
-from .operators import MeshFaces, get_topology, laplacian
+from .operators import laplacian
+from .topology import get_topology
 
 __all__ = [
     "heat_kernel_signature",

@@ -34,11 +34,13 @@ import scipy.linalg
 import scipy.sparse.linalg as spla
 import torch
 
+from ..assembly import MeshFaces
+from ..kernels import check_method
 from ..linalg import dirichlet_solve
-from ..methods import check_method
-from ..operators import MeshFaces, face_normals, get_topology, laplacian, vector_area
+from ..measures import face_normals, vector_area
+from ..operators import laplacian
 from ..sparse import block_diag, from_coo, to_scipy
-from ..topology import Topology, half_edge_vertices
+from ..topology import Topology, get_topology, half_edge_vertices
 
 __all__ = [
     "conformal_parameterization",

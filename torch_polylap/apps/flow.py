@@ -17,13 +17,15 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..assembly import MeshFaces
 from ..checks import check_index_or_mask
-from ..geometry import corner_terms, gather_corners
+from ..kernels import check_method
+from ..kernels.frames import corner_terms, gather_corners
 from ..linalg import solve
-from ..methods import check_method
-from ..operators import MeshFaces, face_areas, get_topology, laplacian
+from ..measures import face_areas
+from ..operators import laplacian
 from ..sparse import eliminate
-from ..topology import Topology, half_edge_vertices
+from ..topology import Topology, get_topology, half_edge_vertices
 
 __all__ = ["mean_curvature_flow", "enclosed_volume", "schwarz_lantern"]
 
@@ -88,7 +90,7 @@ def enclosed_volume(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
 
 
 def _volume(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
-    groups, _, _ = topo.on(verts.device)
+    groups = topo.on(verts.device).groups
     verts_t = verts.t().contiguous()
     total = verts.new_zeros(())
     for grp in groups:

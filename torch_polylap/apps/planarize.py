@@ -44,11 +44,13 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ..assembly import MeshFaces
 from ..checks import check_index_or_mask
 from ..linalg import solve
-from ..operators import MeshFaces, face_nonplanarity, get_topology, planarity_energy
+from ..measures import face_nonplanarity, planarity_energy
 from ..sparse.operator import SparseOperator
 from ..sparse.pattern import SparsityPattern
+from ..topology import get_topology
 
 __all__ = ["planarize", "PlanarizeResult"]
 
@@ -103,7 +105,7 @@ def _lm_setup(topo, free_mask: torch.Tensor, n: int):
     free_dofs = free_dofs.reshape(-1)
     m = free_dofs.numel()
     dof_map[free_dofs] = torch.arange(m, device=device)
-    groups, _, _ = topo.on(device)
+    groups = topo.on(device).groups
     parts, rows, cols = [], [], []
     for grp in groups:
         if grp.k <= 3:

@@ -25,11 +25,14 @@ import math
 import numpy as np
 import torch
 
+from ..assembly import MeshFaces
 from ..checks import check_index_or_mask
+from ..kernels import check_method
 from ..linalg import solve
-from ..methods import check_method
-from ..operators import MeshFaces, get_topology, laplacian, mass
+from ..measures import mass
+from ..operators import laplacian
 from ..sparse import eliminate
+from ..topology import get_topology
 
 __all__ = ["plate_bending", "navier_deflection", "plate_error"]
 

@@ -19,7 +19,7 @@ import torch
 
 from .. import __version__
 from ..io import write_mesh
-from ..operators import get_topology
+from ..topology import get_topology
 from .common import (
     DATA_DIR,
     DEFAULT_OUTPUT,

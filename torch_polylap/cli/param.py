@@ -10,7 +10,8 @@ import numpy as np
 import torch
 
 from ..io import write_mesh
-from ..operators import get_topology, vector_area
+from ..measures import vector_area
+from ..topology import get_topology
 from .common import (
     DISK_MESH,
     Result,

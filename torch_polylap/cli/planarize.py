@@ -8,7 +8,8 @@ import sys
 import numpy as np
 
 from ..io import write_mesh
-from ..operators import face_nonplanarity, get_topology
+from ..measures import face_nonplanarity
+from ..topology import get_topology
 from .common import (
     Result,
     add_mesh_argument,

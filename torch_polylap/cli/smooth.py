@@ -9,7 +9,9 @@ import time
 import torch
 
 from ..io import write_mesh
-from ..operators import face_areas, get_topology, laplacian, strong_laplacian
+from ..measures import face_areas
+from ..operators import laplacian, strong_laplacian
+from ..topology import get_topology
 from .common import (
     Result,
     add_mesh_argument,

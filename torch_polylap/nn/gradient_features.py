@@ -40,8 +40,8 @@ from torch import nn
 from ..calculus import gradient_operator
 from ..checks import check_verts
 from ..faces import FacesLike, PolygonFaces, as_faces
-from ..geometry import stable_norm
-from ..operators import vector_area
+from ..kernels.frames import stable_norm
+from ..measures import vector_area
 from ..sparse import SparseOperator, operator_from_parts, pattern_of, sparse_values
 from ..topology import Topology, get_topology
 

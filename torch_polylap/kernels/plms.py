@@ -19,7 +19,7 @@ non-convex fans.
 
 Everything is evaluated in structure-of-arrays layout (``(3, k, F)`` per degree group), in the
 face's centered and scaled frame ``y = (x - c) / s`` (``c`` the corner centroid,
-``s^2 = sum_i |g_i|^2`` as in :func:`~torch_polylap.geometry.polygon_entries`), so that no
+``s^2 = sum_i |g_i|^2`` as in :func:`~torch_polylap.kernels.aw11.polygon_entries`), so that no
 quantity of order ``s^4`` is formed and faces far from the origin lose no precision. The
 ``3 x 3`` and ``2 x 2`` systems are solved in closed form (adjugates): no SVD, no batched LAPACK
 call, and derivatives everywhere except where a face becomes exactly planar.
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import torch
 
-from .geometry import corner_terms, face_frame
+from .frames import corner_terms, face_frame
 
 __all__ = ["virtual_vertex_weights", "plms_entries"]
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import torch
 
-from .geometry import corner_terms
+from .frames import corner_terms
 
 __all__ = ["degoes_entries"]
 
@@ -41,7 +41,7 @@ def degoes_entries(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of dGBD20's ``D^T M_f D`` for one degree group.
 
-    Evaluated in the scaled frame of :func:`~torch_polylap.geometry.polygon_entries` (edges and
+    Evaluated in the scaled frame of :func:`~torch_polylap.kernels.aw11.polygon_entries` (edges and
     ``g_i`` divided by ``s``, the area by ``s^2``): ``L_f`` is scale invariant, so no quantity of
     order ``s^4`` is formed. Triangles carry no stabilizer (``P_f D_f = 0``: every 1-form on a
     triangle is the flat of its gradient), as in AW11 Theorem 2.

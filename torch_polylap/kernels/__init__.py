@@ -1,0 +1,73 @@
+"""The per-face block kernels of the polygon Laplacians that ``tp.laplacian(method=...)`` selects.
+
+All methods share one assembly (:mod:`torch_polylap.assembly`): a kernel evaluates the blocks of
+a chunk of faces of one degree, and the assembly scatters them onto the topology's cached CSR
+pattern with its scatter maps. Every block satisfies ``L_f 1 = 0``, so a kernel returns only
+the off-diagonal entries and the diagonal is minus their row sums.
+
+- ``"aw11"``: Alexa and Wardetzky 2011 (:mod:`.aw11`; quads in closed form);
+- ``"plms"``: Bunge, Herholz, Kazhdan and Botsch 2020, "Polygon Laplacian Made Simple"
+  (:mod:`.plms`); ``lam`` is ignored (the method has no stabilizer);
+- ``"degoes"``: de Goes, Butts and Desbrun 2020, "Discrete Differential Operators on Polygonal
+  Meshes" (:mod:`.degoes`); ``lam`` weights their projection term.
+
+:mod:`.frames` holds the per-face geometry they share (gathers, vector area, plane basis).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from ..topology import DegreeGroup
+from .aw11 import aw11_entries
+from .degoes import degoes_entries
+from .frames import gather_coordinates, gather_corners
+from .plms import plms_entries
+
+__all__ = ["METHODS", "BlockEntries", "BlockKernel", "check_method", "block_kernel"]
+
+# (off-diagonal entries (P, F), corner masses (k, F), areas (F,), squared sizes (F,))
+BlockEntries = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+BlockKernel = Callable[[torch.Tensor, DegreeGroup, torch.Tensor], BlockEntries]
+
+METHODS = ("aw11", "plms", "degoes")
+
+
+def check_method(method: object) -> str:
+    """``method`` must name one of :data:`METHODS`."""
+    if not isinstance(method, str) or method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(map(repr, METHODS))}, got {method!r}.")
+    return method
+
+
+def block_kernel(method: str, lam: float | torch.Tensor, geometric: bool = True) -> BlockKernel:
+    """The per-chunk block kernel of ``method`` for the shared assembly.
+
+    The kernel maps ``(verts_t (3, V), group, corners_t (k, F))`` to the off-diagonal entries
+    ``(P, F)``, the corner masses ``(k, F)``, the areas ``(F,)`` and the squared sizes ``(F,)``
+    against which a zero area is judged. ``geometric=False`` (AW11 only) keeps the stabilizer
+    ``lam d^T Pi d`` alone: the planarity operator's blocks (AW11 sec. 5.3).
+    """
+    check_method(method)
+    if not geometric and method != "aw11":
+        raise ValueError("only method='aw11' has a planarity (stabilizer-only) operator.")
+
+    def kernel(verts_t: torch.Tensor, grp: DegreeGroup, corners_t: torch.Tensor) -> BlockEntries:
+        if method == "aw11":
+            # quads read three coordinate rows (the closed form's faster gather)
+            x = (
+                gather_coordinates(verts_t, corners_t)
+                if grp.k == 4
+                else gather_corners(verts_t, corners_t)
+            )
+            off, area, size2 = aw11_entries(x, grp, lam, geometric)
+            return off, (area / grp.k).expand(grp.k, -1), area, size2
+        x = gather_corners(verts_t, corners_t)
+        if method == "plms":
+            return plms_entries(x, grp.pair_i, grp.pair_j)
+        off, area, size2 = degoes_entries(x, grp.pair_i, grp.pair_j, lam)
+        return off, (area / grp.k).expand(grp.k, -1), area, size2
+
+    return kernel

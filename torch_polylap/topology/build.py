@@ -1,0 +1,186 @@
+"""Building a :class:`~torch_polylap.topology.Topology` from faces: one sort of all corner pairs.
+
+The keys ``lo * V + hi`` of every corner pair of every face are sorted once; their unique values
+are the off-diagonal pattern of ``L``, their inverse permutation the scatter positions of every
+per-face entry, and the pairs that half-edges use are the mesh's undirected edges.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..checks import warn_outside_package
+from ..faces import FacesLike, PolygonFaces, as_faces
+from .analysis import _analyse
+from .groups import DegreeGroup, _chunks, _cycle_pair_rows, _degree_block, _write_pair_keys
+from .structure import Topology
+
+# A face of degree k contributes k (k - 1) / 2 corner pairs to the pattern, each costing about
+# _BYTES_PER_PAIR bytes while the topology is built (keys, sort permutation, inverse, scatter
+# positions) and a dense k x k block of L. Faces above MAX_FACE_PAIRS pairs (k > 8192) are
+# refused with the memory they would need instead of a MemoryError deep inside numpy; raise it
+# if you have the memory.
+MAX_FACE_PAIRS = 1 << 25
+_BYTES_PER_PAIR = 100
+
+
+def build_topology(
+    faces: FacesLike, num_verts: int | None = None, *, warn: bool = True
+) -> Topology:
+    """Check ``faces`` and precompute the Laplacian's sparsity pattern and scatter maps.
+
+    Works on any set of simple polygons (see the module docstring); what keeps the mesh from
+    being a consistently oriented manifold is recorded in :attr:`Topology.report` and, with
+    ``warn=True``, summarized in one ``UserWarning``.
+
+    Args:
+        faces: any form accepted by :func:`torch_polylap.as_faces`.
+        num_verts: number of vertices ``V``; defaults to ``max index + 1``.
+        warn: emit the warning for a non-clean mesh.
+
+    Raises:
+        ValueError: an index out of range, a vertex repeated within a face, or a face of so
+            high a degree that indexing its ``k (k - 1) / 2`` corner pairs exceeds
+            :data:`MAX_FACE_PAIRS`. The message names the face and the vertex.
+    """
+    pf = as_faces(faces)
+    cpu = pf if pf.device.type == "cpu" else pf.to("cpu")
+    # A private copy: the topology is cached and outlives the call, so it must neither see
+    # later in-place edits of the caller's tensor nor keep that tensor alive (a view would).
+    own = PolygonFaces(cpu.indices.clone(), offsets=cpu.offsets.clone())
+    idx, sizes, offsets = own.indices.numpy(), own.sizes.numpy(), own.offsets.numpy()
+    if num_verts is None:
+        num_verts = int(idx.max()) + 1 if idx.size else 0
+    num_verts = int(num_verts)
+    _check_index_range(idx, offsets, num_verts)
+    _check_face_size(sizes)
+    nv = np.int64(max(num_verts, 1))
+
+    # One block per degree; inside a block every per-pair array is laid out (P, F_k), the
+    # layout in which the kernels produce the per-face entries.
+    degrees = np.unique(sizes)
+    blocks = [_degree_block(k, idx, sizes, offsets, degrees.size == 1) for k in degrees.tolist()]
+    all_keys = np.empty(sum(pi.size * fid.size for _, fid, _, pi, _ in blocks), np.int64)
+    start = 0
+    for _, fid, corners_t, pi, pj in blocks:
+        stop = start + pi.size * fid.size
+        _write_pair_keys(corners_t, fid, pi, pj, nv, all_keys[start:stop])
+        start = stop
+
+    # Stable sort (timsort) exploits the long sorted runs that face-ordered keys contain; on
+    # structured meshes it is an order of magnitude faster than quicksort.
+    perm = np.argsort(all_keys, kind="stable")
+    sk = all_keys[perm]
+    new = np.ones(sk.size, bool)
+    np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    uid = np.cumsum(new, dtype=np.int64)
+    uid -= 1
+    inv = np.empty_like(perm)
+    inv[perm] = uid
+    del perm, uid
+    ukeys = sk[new]
+    ulo = ukeys // nv
+    uhi = ukeys - ulo * nv
+    n_unique = ukeys.size
+
+    # CSR pattern of the full symmetric matrix: row p holds its lower pairs (q < p), then the
+    # diagonal, then its upper pairs (q > p), so every row comes out sorted by column.
+    n_low = np.bincount(uhi, minlength=num_verts)
+    n_up = np.bincount(ulo, minlength=num_verts)
+    crow = np.zeros(num_verts + 1, np.int64)
+    np.cumsum(n_low + n_up + 1, out=crow[1:])
+    up_start = crow[:-1] + n_low + 1 - np.concatenate(([0], np.cumsum(n_up)[:-1]))
+    u = np.arange(n_unique, dtype=np.int64)
+    pos_up_u = up_start[ulo] + u
+    # ukeys is sorted by (lo, hi), so a stable sort by hi alone orders the mirrors by (hi, lo).
+    low_order = np.argsort(uhi, kind="stable")
+    low_start = crow[:-1] - np.concatenate(([0], np.cumsum(n_low)[:-1]))
+    pos_low_u = np.empty(n_unique, np.int64)
+    pos_low_u[low_order] = low_start[uhi[low_order]] + u
+    pos_diag_v = crow[:-1] + n_low
+    col = np.empty(crow[-1], np.int64)
+    col[pos_up_u] = uhi
+    col[pos_low_u] = ulo
+    col[pos_diag_v] = np.arange(num_verts)
+
+    groups = []
+    he_pair = np.empty(idx.size, np.int64)  # pair id of every half-edge, in packed order
+    start = 0
+    for k, fid, corners_t, pi, pj in blocks:
+        ginv = inv[start : start + pi.size * fid.size].reshape(pi.size, fid.size)
+        start += pi.size * fid.size
+        groups.append(
+            DegreeGroup(
+                k=k,
+                face_ids=torch.from_numpy(fid),
+                corners_t=torch.from_numpy(corners_t),
+                pair_i=torch.from_numpy(pi),
+                pair_j=torch.from_numpy(pj),
+                chunks=_chunks(k, corners_t, ginv, pos_up_u, pos_low_u, pos_diag_v),
+            )
+        )
+        if len(blocks) == 1:  # packed order is the transpose of the (k, F) layout
+            he_pair.reshape(-1, k)[...] = ginv[_cycle_pair_rows(k)].T
+        else:
+            he_pair[offsets[fid][None, :] + np.arange(k)[:, None]] = ginv[_cycle_pair_rows(k)]
+
+    # Undirected edges: the pairs some half-edge uses, renumbered densely.
+    uses_pair = np.bincount(he_pair, minlength=n_unique)
+    is_edge = uses_pair > 0
+    edge_of_pair = np.cumsum(is_edge) - 1
+    edges = np.stack([ulo[is_edge], uhi[is_edge]], 1)
+    he_edge = edge_of_pair[he_pair]
+    edge_uses = uses_pair[is_edge]
+
+    valence = np.bincount(idx, minlength=num_verts)
+    report = _analyse(idx, offsets, sizes, num_verts, edges, edge_uses, he_edge, valence)
+    if warn and not report.is_clean:
+        warn_outside_package(
+            f"the mesh ({num_verts} vertices, {sizes.size} faces) is not a consistently oriented "
+            f"2-manifold: {report.summary(num_verts)}. L and M0 are well defined on it; what "
+            "needs a manifold or an orientation checks for itself. Inspect Topology.report; "
+            "repairs (orient_faces, remove_duplicate_faces, remove_unreferenced_vertices, ...) "
+            "are in torch_polylap.repair."
+        )
+    pattern = (torch.from_numpy(crow), torch.from_numpy(col))
+    return Topology(
+        own,
+        num_verts,
+        groups,
+        pattern,
+        (edges, edge_uses, he_edge),
+        torch.from_numpy(valence == 0),
+        report,
+    )
+
+
+def _check_index_range(idx: np.ndarray, offsets: np.ndarray, num_verts: int) -> None:
+    if idx.size == 0:
+        return
+    bad = np.flatnonzero((idx < 0) | (idx >= num_verts))
+    if bad.size:
+        c = int(bad[0])
+        f = int(np.searchsorted(offsets, c, side="right") - 1)
+        raise ValueError(
+            f"face {f} refers to vertex {int(idx[c])}, but the mesh has {num_verts} vertices "
+            f"(valid indices are 0..{num_verts - 1}). Faces must use 0-based indices into verts; "
+            "negative indices are not accepted."
+        )
+
+
+def _check_face_size(sizes: np.ndarray) -> None:
+    """Refuse a face whose corner pairs would not fit in memory, before allocating them."""
+    if sizes.size == 0:
+        return
+    f = int(np.argmax(sizes))
+    k = int(sizes[f])
+    pairs = k * (k - 1) // 2
+    if pairs > MAX_FACE_PAIRS:
+        raise ValueError(
+            f"face {f} has degree {k}: indexing its k (k - 1) / 2 = {pairs:,} corner pairs "
+            f"would need about {pairs * _BYTES_PER_PAIR / 2**30:.1f} GiB, and L would hold a "
+            f"dense {k} x {k} block for it. Split the face into smaller polygons (a fan of "
+            "triangles or quads), or raise torch_polylap.topology.build.MAX_FACE_PAIRS "
+            f"(now {MAX_FACE_PAIRS:,}) if you have that memory."
+        )
