@@ -164,7 +164,7 @@ def fit(
     result = Fit(verts0, faces)
     start = time.perf_counter()
     for _ in range(steps):
-        loss = chamfer_distance(sample_points(X, faces, num_samples, generator=gen), target)
+        loss, _ = chamfer_distance(sample_points(X, faces, num_samples, generator=gen), target)
         if regularizer != "none":
             loss = loss + weight * bending_energy(X, faces, L_fixed)
         opt.zero_grad()

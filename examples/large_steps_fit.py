@@ -68,7 +68,7 @@ def fit(
             start = time.perf_counter()
         if step == steps:
             break
-        loss = chamfer_distance(sample_points(X, faces, num_samples, generator=gen), target)
+        loss, _ = chamfer_distance(sample_points(X, faces, num_samples, generator=gen), target)
         opt.zero_grad()
         loss.backward()
         opt.step()

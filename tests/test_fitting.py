@@ -27,9 +27,10 @@ def test_chamfer_matches_brute_force(backend):
     b = torch.rand(90, 3, generator=gen, dtype=torch.float64) * 1.3
     D = ((a[:, None] - b[None]) ** 2).sum(-1)  # full matrix, independent of the chunked search
     expected = D.min(1).values.mean() + D.min(0).values.mean()
-    got = chamfer_distance(a, b, backend=backend, chunk_size=50)
+    got, got_normals = chamfer_distance(a, b, backend=backend, chunk_size=50)
+    assert got_normals is None
     assert torch.allclose(got, expected, rtol=1e-12, atol=0)
-    got_sum = chamfer_distance(a, b, backend=backend, reduction="sum")
+    got_sum, _ = chamfer_distance(a, b, backend=backend, point_reduction="sum")
     assert torch.allclose(got_sum, D.min(1).values.sum() + D.min(0).values.sum(), rtol=1e-12)
     d, idx = nearest_neighbors(a, b, backend=backend, chunk_size=7)
     assert torch.equal(idx, D.argmin(1))
@@ -41,27 +42,31 @@ def test_chamfer_gradient_matches_finite_differences():
     a = torch.rand(15, 3, generator=gen, dtype=torch.float64).requires_grad_(True)
     b = torch.rand(20, 3, generator=gen, dtype=torch.float64).requires_grad_(True)
     # generic points have unique nearest neighbours, so the Chamfer distance is smooth there
-    assert torch.autograd.gradcheck(lambda x, y: chamfer_distance(x, y), (a, b), eps=1e-7)
+    assert torch.autograd.gradcheck(lambda x, y: chamfer_distance(x, y)[0], (a, b), eps=1e-7)
 
 
 def test_chamfer_of_identical_sets_is_zero_and_symmetric():
     gen = torch.Generator().manual_seed(2)
     a = torch.randn(64, 3, generator=gen)
     b = torch.randn(80, 3, generator=gen)
-    assert chamfer_distance(a, a).item() == 0.0
-    assert torch.allclose(chamfer_distance(a, b), chamfer_distance(b, a))
+    assert chamfer_distance(a, a)[0].item() == 0.0
+    assert torch.allclose(chamfer_distance(a, b)[0], chamfer_distance(b, a)[0])
 
 
 def test_bad_point_sets_raise():
     a = torch.rand(5, 3)
-    with pytest.raises(ValueError, match="non-empty"):
+    with pytest.raises(ValueError, match="none on the other"):
         chamfer_distance(a, torch.rand(0, 3))
-    with pytest.raises(ValueError, match="same dimension"):
+    with pytest.raises(ValueError, match="point dimension"):
         chamfer_distance(a, torch.rand(5, 2))
+    with pytest.raises(ValueError, match="non-empty"):
+        nearest_neighbors(a, torch.rand(0, 3))
     with pytest.raises(ValueError, match="backend"):
         nearest_neighbors(a, a, backend="faiss")
-    with pytest.raises(ValueError, match="reduction"):
-        chamfer_distance(a, a, reduction="max")
+    with pytest.raises(ValueError, match="point_reduction"):
+        chamfer_distance(a, a, point_reduction="median")
+    with pytest.raises(ValueError, match="batch_reduction"):
+        chamfer_distance(a, a, batch_reduction="max")
 
 
 def test_sample_points_density_is_proportional_to_area():

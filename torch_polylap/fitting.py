@@ -2,15 +2,17 @@
 
 :func:`sample_points` draws points uniformly by area on polygon faces (a fan around each
 face's centroid), as differentiable functions of the vertex positions.
-:func:`chamfer_distance` compares two point sets through nearest-neighbour searches (a KD-tree
-on the CPU, chunked ``torch.cdist`` elsewhere, so memory stays ``O(chunk * M)``) whose autograd
-graph is ``O(N + M)``. :func:`mesh_quality` summarizes what a regularizer is meant to protect:
+:func:`chamfer_distance` is pytorch3d's ``chamfer_distance`` (same signature, reductions and
+``(loss, loss_normals)`` result) on nearest-neighbour searches (a KD-tree on the CPU, chunked
+``torch.cdist`` elsewhere, so memory stays ``O(chunk * M)``) whose autograd graph is
+``O(N + M)``. :func:`mesh_quality` summarizes what a regularizer is meant to protect:
 planar, convex, well-shaped, unfolded faces.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 
@@ -29,6 +31,33 @@ def _check_points(points: torch.Tensor, name: str) -> None:
         raise ValueError(
             f"{name} must be a non-empty (N, D) tensor, got shape {tuple(points.shape)}."
         )
+
+
+def _nearest(
+    query: torch.Tensor, points: torch.Tensor, norm: int, chunk_size: int, backend: str
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distance (squared L2 for ``norm=2``, L1 for ``norm=1``) to the nearest of ``points``
+    and its index; the search runs without autograd, the distance is recomputed from the pair."""
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size must be positive, got {chunk_size}.")
+    if backend == "auto":
+        backend = "kdtree" if points.device.type == "cpu" else "cdist"
+    if backend not in ("kdtree", "cdist"):
+        raise ValueError(f"backend must be 'auto', 'kdtree' or 'cdist', got {backend!r}.")
+    with torch.no_grad():
+        qd, pd = query.detach(), points.detach()
+        if backend == "kdtree":
+            from scipy.spatial import cKDTree
+
+            _, found = cKDTree(pd.cpu().numpy()).query(qd.cpu().numpy(), p=norm)
+            index = torch.from_numpy(found).to(device=query.device, dtype=torch.int64)
+        else:
+            index = torch.cat(
+                [torch.cdist(q, pd, p=norm).argmin(dim=1) for q in torch.split(qd, chunk_size)]
+            )
+    diff = query - points.index_select(0, index)
+    dist = diff.square().sum(dim=1) if norm == 2 else diff.abs().sum(dim=1)
+    return dist, index
 
 
 def nearest_neighbors(
@@ -62,54 +91,224 @@ def nearest_neighbors(
             f"query {tuple(query.shape)} {query.dtype} and points {tuple(points.shape)} "
             f"{points.dtype} must have the same dimension and dtype."
         )
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be positive, got {chunk_size}.")
-    if backend == "auto":
-        backend = "kdtree" if points.device.type == "cpu" else "cdist"
-    if backend not in ("kdtree", "cdist"):
-        raise ValueError(f"backend must be 'auto', 'kdtree' or 'cdist', got {backend!r}.")
-    with torch.no_grad():
-        qd, pd = query.detach(), points.detach()
-        if backend == "kdtree":
-            from scipy.spatial import cKDTree
+    return _nearest(query, points, 2, chunk_size, backend)
 
-            _, found = cKDTree(pd.cpu().numpy()).query(qd.cpu().numpy())
-            index = torch.from_numpy(found).to(device=query.device, dtype=torch.int64)
-        else:
-            index = torch.cat(
-                [torch.cdist(q, pd).argmin(dim=1) for q in torch.split(qd, chunk_size)]
+
+def _clouds(
+    points: Any, lengths: torch.Tensor | None, normals: torch.Tensor | None, name: str
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """``(padded (N, P, D), lengths (N,), normals (N, P, D) or None)`` of one chamfer input."""
+    if hasattr(points, "points_padded") and hasattr(points, "num_points_per_cloud"):
+        # a pytorch3d Pointclouds (duck-typed: pytorch3d is not imported)
+        return points.points_padded(), points.num_points_per_cloud(), points.normals_padded()
+    if not isinstance(points, torch.Tensor):
+        raise ValueError(
+            f"{name} must be a tensor (N, P, D) or (P, D), or a pytorch3d Pointclouds, got "
+            f"{type(points).__name__}."
+        )
+    if points.dim() == 2:  # one cloud
+        points = points[None]
+        normals = None if normals is None else normals.reshape(1, *normals.shape[-2:])
+    if points.dim() != 3:
+        raise ValueError(f"{name} must have shape (N, P, D) or (P, D), got {tuple(points.shape)}.")
+    n, p = points.shape[:2]
+    if lengths is None:
+        lengths = torch.full((n,), p, dtype=torch.int64, device=points.device)
+    elif lengths.shape != (n,):
+        raise ValueError(
+            f"{name}_lengths must have shape ({n},), one count per cloud, got "
+            f"{tuple(lengths.shape)}."
+        )
+    elif bool(((lengths < 0) | (lengths > p)).any()):
+        raise ValueError(f"{name}_lengths must lie in [0, {p}], got {lengths.tolist()}.")
+    if normals is not None and normals.shape != points.shape:
+        raise ValueError(
+            f"{name}_normals must have the shape of {name}, {tuple(points.shape)}, got "
+            f"{tuple(normals.shape)}."
+        )
+    return points, lengths, normals
+
+
+def _one_direction(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    x_lengths: list[int],
+    y_lengths: list[int],
+    x_normals: torch.Tensor | None,
+    y_normals: torch.Tensor | None,
+    weights: torch.Tensor | None,
+    norm: int,
+    abs_cosine: bool,
+    chunk_size: int,
+    backend: str,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``(N, P1)`` distance of every point of ``x`` to its nearest point of ``y`` (0 past
+    ``x_lengths``), and ``1 - |cos|`` (or ``1 - cos``) of their normals, or ``None``; each
+    cloud's row times its weight."""
+    p1 = x.shape[1]
+    dist, cosine = [], []
+    for i, (nx, ny) in enumerate(zip(x_lengths, y_lengths, strict=True)):
+        if nx == 0:
+            dist.append(x.new_zeros(p1))
+            cosine.append(x.new_zeros(p1))
+            continue
+        if ny == 0:
+            raise ValueError(
+                f"chamfer_distance: cloud {i} has {nx} points on one side and none on the other; "
+                "a point has no nearest neighbour in an empty cloud."
             )
-    sq_dist = (query - points.index_select(0, index)).square().sum(dim=1)
-    return sq_dist, index
+        d, index = _nearest(x[i, :nx], y[i, :ny], norm, chunk_size, backend)
+        dist.append(torch.nn.functional.pad(d, (0, p1 - nx)))
+        if x_normals is not None and y_normals is not None:
+            c = torch.nn.functional.cosine_similarity(
+                x_normals[i, :nx], y_normals[i].index_select(0, index), dim=1, eps=1e-6
+            )
+            c = 1 - (c.abs() if abs_cosine else c)
+            cosine.append(torch.nn.functional.pad(c, (0, p1 - nx)))
+    out = [torch.stack(dist)]
+    if x_normals is not None and y_normals is not None:
+        out.append(torch.stack(cosine))
+    if weights is not None:
+        out = [t * weights[:, None] for t in out]
+    return out[0], (out[1] if len(out) == 2 else None)
+
+
+def _reduce(
+    terms: torch.Tensor,
+    lengths: torch.Tensor,
+    weights: torch.Tensor | None,
+    batch_reduction: str | None,
+    point_reduction: str,
+) -> torch.Tensor:
+    """Point, then batch reduction of ``(N, P)`` weighted per-point terms."""
+    if point_reduction == "max":
+        per_cloud = terms.amax(dim=1) if terms.shape[1] else terms.new_zeros(terms.shape[0])
+    else:
+        per_cloud = terms.sum(dim=1)
+        if point_reduction == "mean":
+            per_cloud = per_cloud / lengths.clamp_min(1).to(terms.dtype)
+    if batch_reduction is None:
+        return per_cloud
+    total = per_cloud.sum()
+    if batch_reduction == "mean":
+        total = total / (weights.sum() if weights is not None else max(terms.shape[0], 1))
+    return total
 
 
 def chamfer_distance(
-    points_a: torch.Tensor,
-    points_b: torch.Tensor,
+    x: torch.Tensor | Any,
+    y: torch.Tensor | Any,
+    x_lengths: torch.Tensor | None = None,
+    y_lengths: torch.Tensor | None = None,
+    x_normals: torch.Tensor | None = None,
+    y_normals: torch.Tensor | None = None,
+    weights: torch.Tensor | None = None,
+    batch_reduction: str | None = "mean",
+    point_reduction: str | None = "mean",
+    norm: int = 2,
+    single_directional: bool = False,
+    abs_cosine: bool = True,
     *,
     chunk_size: int = 2048,
     backend: str = "auto",
-    reduction: str = "mean",
-) -> torch.Tensor:
-    """Symmetric Chamfer distance ``mean_a min_b |a - b|^2 + mean_b min_a |a - b|^2``.
+) -> tuple[Any, Any]:
+    """Chamfer distance between two batches of point clouds, pytorch3d's signature and result.
+
+    Arguments, defaults, reductions and return values are those of
+    ``pytorch3d.loss.chamfer_distance``: for every point of ``x`` the distance to its nearest
+    point of ``y`` (the *squared* Euclidean distance for ``norm=2``, the L1 distance for
+    ``norm=1``), reduced over the points of each cloud (``point_reduction``) and then over the
+    batch (``batch_reduction``), plus the same from ``y`` to ``x`` unless
+    ``single_directional``. The nearest-neighbour search is a KD-tree on the CPU and chunked
+    ``torch.cdist`` elsewhere (see :func:`nearest_neighbors`); no ``P1 x P2`` matrix is held.
 
     Args:
-        points_a: ``(N, D)`` points, e.g. samples of a mesh (:func:`sample_points`).
-        points_b: ``(M, D)`` points, e.g. samples of the target.
-        chunk_size, backend: the nearest-neighbour search (see :func:`nearest_neighbors`); no
-            ``N x M`` matrix is ever held, and the autograd graph is ``O(N + M)``.
-        reduction: ``"mean"`` (above) or ``"sum"`` (sums instead of means).
+        x: ``(N, P1, D)`` padded clouds, or a pytorch3d ``Pointclouds`` (read through
+            ``points_padded``, ``num_points_per_cloud``, ``normals_padded``), or ``(P1, D)``:
+            one cloud, the same as ``x[None]`` (an extension; pytorch3d wants 3-D input).
+        y: ``(N, P2, D)``, a ``Pointclouds`` or ``(P2, D)``, like ``x``.
+        x_lengths, y_lengths: ``(N,)`` int64 points in each cloud (the rest is padding);
+            default: all ``P1`` / ``P2``.
+        x_normals, y_normals: ``(N, P1, D)`` / ``(N, P2, D)`` normals (both, or the normal term
+            is not computed).
+        weights: ``(N,)`` non-negative weights of the clouds, multiplying their terms; the
+            batch ``"mean"`` then divides by ``weights.sum()``.
+        batch_reduction: ``"mean"`` (default), ``"sum"`` or ``None`` (per cloud, ``(N,)``).
+        point_reduction: ``"mean"`` (default) over each cloud's points, ``"sum"``, ``"max"``
+            (the directed Hausdorff distance; no normals) or ``None``.
+        norm: ``2`` (squared L2) or ``1`` (L1).
+        single_directional: only the ``x -> y`` term.
+        abs_cosine: the normal term is ``1 - |cos|`` (orientation ignored; default) or
+            ``1 - cos``, of each point's normal and that of its nearest neighbour.
+        chunk_size, backend: the nearest-neighbour search, see :func:`nearest_neighbors`.
 
     Returns:
-        A scalar, differentiable in both point sets.
+        ``(loss, loss_normals)``: the reduced ``x -> y`` plus ``y -> x`` terms, and the same for
+        the normals (``None`` without normals). With ``point_reduction=None`` (and then no batch
+        reduction) each is the tuple of the per-point ``(N, P1)`` and ``(N, P2)`` terms (zero
+        past the lengths), or the ``(N, P1)`` tensor alone if ``single_directional``.
+        Differentiable in ``x``, ``y`` and the normals; the gradient is that of the distance
+        to the (fixed) nearest point, exact wherever the nearest point is unique.
+
+    Raises:
+        ValueError: an unknown reduction or norm, ``"max"`` with normals, mismatched shapes,
+            negative weights, or a non-empty cloud paired with an empty one.
     """
-    if reduction not in ("mean", "sum"):
-        raise ValueError(f"reduction must be 'mean' or 'sum', got {reduction!r}.")
-    d_ab, _ = nearest_neighbors(points_a, points_b, chunk_size=chunk_size, backend=backend)
-    d_ba, _ = nearest_neighbors(points_b, points_a, chunk_size=chunk_size, backend=backend)
-    if reduction == "mean":
-        return d_ab.mean() + d_ba.mean()
-    return d_ab.sum() + d_ba.sum()
+    if batch_reduction not in ("mean", "sum", None):
+        raise ValueError(f"batch_reduction must be 'mean', 'sum' or None, got {batch_reduction!r}.")
+    if point_reduction not in ("mean", "sum", "max", None):
+        raise ValueError(
+            f"point_reduction must be 'mean', 'sum', 'max' or None, got {point_reduction!r}."
+        )
+    if norm not in (1, 2):
+        raise ValueError(f"norm must be 1 (L1) or 2 (squared L2), got {norm!r}.")
+    x, x_lengths, x_normals = _clouds(x, x_lengths, x_normals, "x")
+    y, y_lengths, y_normals = _clouds(y, y_lengths, y_normals, "y")
+    if point_reduction == "max" and (x_normals is not None or y_normals is not None):
+        raise ValueError("point_reduction='max' takes no normals (as in pytorch3d).")
+    n, _, dim = x.shape
+    if y.shape[0] != n or y.shape[2] != dim or y.dtype != x.dtype:
+        raise ValueError(
+            f"x {tuple(x.shape)} {x.dtype} and y {tuple(y.shape)} {y.dtype} must have the same "
+            "number of clouds, point dimension and dtype."
+        )
+    if weights is not None:
+        if weights.shape != (n,):
+            raise ValueError(f"weights must have shape ({n},), got {tuple(weights.shape)}.")
+        if bool((weights < 0).any()):
+            raise ValueError("weights must be non-negative.")
+        if float(weights.sum()) == 0.0:  # every cloud weighs nothing: a zero that keeps the graph
+            zero = (x.sum((1, 2)) * weights) * 0.0
+            zero = zero.sum() if batch_reduction is not None else zero
+            with_normals = x_normals is not None and y_normals is not None
+            return zero, (zero if with_normals else None)
+    nx, ny = x_lengths.tolist(), y_lengths.tolist()
+    forward = _one_direction(
+        x, y, nx, ny, x_normals, y_normals, weights, norm, abs_cosine, chunk_size, backend
+    )
+    directions = [(forward, x_lengths)]
+    if not single_directional:
+        backward = _one_direction(
+            y, x, ny, nx, y_normals, x_normals, weights, norm, abs_cosine, chunk_size, backend
+        )
+        directions.append((backward, y_lengths))
+    if point_reduction is None:
+        if single_directional:
+            return forward
+        return (forward[0], backward[0]), (
+            None if forward[1] is None else (forward[1], backward[1])
+        )
+    loss = sum(
+        _reduce(d, lengths, weights, batch_reduction, point_reduction)
+        for (d, _), lengths in directions
+    )
+    if forward[1] is None:
+        return loss, None
+    loss_normals = sum(
+        _reduce(c, lengths, weights, batch_reduction, point_reduction)
+        for (_, c), lengths in directions
+    )
+    return loss, loss_normals
 
 
 def _fan_triangles(
