@@ -220,36 +220,28 @@ class PolygonMeshes:
     def from_pyg(cls, data_or_list: Any) -> PolygonMeshes:
         """From torch_geometric ``Data`` (one mesh), a list of them, or a ``Batch``.
 
-        Each ``Data`` needs ``pos`` ``(V, 3)`` and either ``face`` ``(3, F)`` (torch_geometric's
-        triangle convention) or ``polygons`` (any form accepted by
-        :func:`torch_polylap.as_faces`, e.g. a :class:`PolygonFaces`), which takes precedence.
-        A ``Batch`` is split with its ``to_data_list()``.
+        Each ``Data`` needs ``pos`` ``(V, 3)`` and faces: ``polygons`` (any form accepted by
+        :func:`torch_polylap.as_faces`), else ``polygon_index`` ``(N,)`` with ``polygon_sizes``
+        ``(F,)``, else ``face`` ``(k, F)`` (torch_geometric's column-wise convention: triangles
+        ``(3, F)``, quads ``(4, F)``). A ``Batch`` is split with its ``to_data_list()``. See
+        :func:`torch_polylap.interop.from_pyg`.
         """
-        if hasattr(data_or_list, "to_data_list"):
-            items = data_or_list.to_data_list()
-        elif hasattr(data_or_list, "pos"):
-            items = [data_or_list]
-        else:
-            items = list(data_or_list)
-        verts, faces = [], []
-        for i, d in enumerate(items):
-            pos = getattr(d, "pos", None)
-            polys = getattr(d, "polygons", None)
-            tri = getattr(d, "face", None)
-            if pos is None or (polys is None and tri is None):
-                raise ValueError(
-                    f"graph {i} needs `pos` (V, 3) and `face` (3, F) or `polygons` to be a mesh."
-                )
-            if polys is None:
-                if tri.dim() != 2 or tri.shape[0] != 3:
-                    raise ValueError(
-                        f"graph {i}: `face` must have shape (3, F) (torch_geometric stores "
-                        f"triangles column-wise), got {tuple(tri.shape)}."
-                    )
-                polys = tri.t()
-            verts.append(pos)
-            faces.append(polys)
-        return cls(verts, faces)
+        from .interop import _pyg_meshes
+
+        return _pyg_meshes(data_or_list)
+
+    def to_pytorch3d(self) -> Any:
+        """``pytorch3d.structures.Meshes`` of the batch, polygons triangulated
+        (:func:`torch_polylap.interop.to_pytorch3d`)."""
+        from .interop import to_pytorch3d
+
+        return to_pytorch3d(self)
+
+    def to_pyg(self, *, triangulate: bool = False) -> Any:
+        """torch_geometric ``Batch`` of the meshes (:func:`torch_polylap.interop.to_pyg`)."""
+        from .interop import to_pyg
+
+        return to_pyg(self, triangulate=triangulate)
 
     # ----------------------------------------------------------------- accessors
 
@@ -349,6 +341,51 @@ class PolygonMeshes:
                 torch.arange(len(self), device=self.device), self.num_verts_per_mesh()
             ),
         )
+
+    def verts_padded_to_packed_idx(self) -> torch.Tensor:
+        """``(sum V_i,)`` where every packed vertex lies in the flattened padded vertices
+        ``verts_padded().reshape(-1, 3)``: ``i * V_max + j`` for vertex ``j`` of mesh ``i``
+        (pytorch3d's ``verts_padded_to_packed_idx``)."""
+
+        def make() -> torch.Tensor:
+            v2m = self.verts_packed_to_mesh_idx()
+            local = torch.arange(v2m.numel(), device=self.device)
+            local = local - self.mesh_to_verts_packed_first_idx()[v2m]
+            return v2m * max(self._conn.num_verts) + local
+
+        return self._conn.cached("v_pad2pack", self.device, make)
+
+    def verts_padded(self) -> torch.Tensor:
+        """``(B, V_max, 3)`` the vertices of every mesh, zero rows past its ``V_i``
+        (pytorch3d's ``verts_padded``); differentiable in the vertices."""
+        verts = self.verts_packed()
+        v_max = max(self._conn.num_verts)
+        out = verts.new_zeros(len(self) * v_max, 3)
+        out = out.index_copy(0, self.verts_padded_to_packed_idx(), verts)
+        return out.view(len(self), v_max, 3)
+
+    def faces_padded(self) -> torch.Tensor:
+        """``(B, F_max, K_max)`` int64 face corners with indices *local* to each mesh, ``-1``
+        past each face's degree and past each mesh's ``F_i`` faces, on :attr:`device`.
+
+        pytorch3d's ``faces_padded`` is this with ``K_max = 3`` (triangles); here ``K_max`` is
+        the largest face degree of the batch, and face ``f`` of mesh ``i`` has degree
+        ``(faces_padded()[i, f] >= 0).sum()``.
+        """
+
+        def make() -> torch.Tensor:
+            conn = self._conn
+            f_max = max(conn.num_faces)
+            k_max = max((int(f.sizes.max()) for f in conn.faces if f.num_faces), default=3)
+            out = torch.full((len(self), f_max, k_max), -1, dtype=torch.int64)
+            for i, f in enumerate(conn.faces):
+                if f.num_faces:
+                    face = f.face_ids()
+                    corner = torch.arange(f.num_corners) - f.offsets[face]
+                    out[i, face, corner] = f.indices
+            return out.to(self.device)
+
+        return self._conn.cached("faces_padded", self.device, make)
 
     def faces_packed_to_mesh_idx(self) -> torch.Tensor:
         """``(sum F_i,)`` the mesh of every packed face."""

@@ -206,8 +206,10 @@ class MeshBatch:
 def collate_meshes(items: Sequence[dict[str, Any]]) -> MeshBatch:
     """Pack dataset items into a :class:`MeshBatch` (use as ``DataLoader(collate_fn=...)``).
 
-    ``L`` is concatenated block by block from the items' operators (no re-assembly); the
-    packed faces carry global vertex indices (shifted by each mesh's first packed vertex).
+    ``L`` is concatenated block by block from the items' operators (no re-assembly). Faces of
+    any degree are packed with torch_geometric's increment: ``batch.meshes.faces_packed()``
+    holds mesh ``i``'s corners offset by the number of vertices of the meshes before it
+    (``mesh_to_verts_packed_first_idx()[i]``); ``faces_padded()`` keeps local indices.
     """
     meshes = PolygonMeshes([it["verts"] for it in items], [it["faces"] for it in items])
     spectrum = Spectrum(

@@ -1,0 +1,497 @@
+"""Interop with pytorch3d, torch_geometric and trimesh conventions; pytorch3d's chamfer_distance.
+
+pytorch3d is compiled and not installable here, so its adapter is checked on the data it hands
+to ``Meshes`` (through a stand-in ``pytorch3d.structures`` module) and on its ImportError; a
+test against the real class runs where pytorch3d is installed. torch_geometric is pure Python
+and is tested against its real ``Data``/``Batch``.
+"""
+
+from __future__ import annotations
+
+import sys
+import types
+import warnings
+from types import SimpleNamespace
+
+import pytest
+import torch
+from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
+
+import torch_polylap as tp
+from torch_polylap.batch import PolygonMeshes
+from torch_polylap.fitting import chamfer_distance
+from torch_polylap.interop import (
+    from_pyg,
+    from_pytorch3d,
+    to_pyg,
+    to_pytorch3d,
+    triangle_faces,
+)
+from torch_polylap.io import read_mesh
+
+
+def three_meshes():
+    v1, f1 = mixed_mesh()
+    v2, f2 = quad_grid(3, bump=0.2, seed=1)
+    v3, f3 = hex_pent_mesh()
+    return [v1, v2, v3], [f1, f2, f3]
+
+
+def _read(name: str):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # OBJ objects/normals skipped
+        return read_mesh(DATA / name)
+
+
+def _triangle_areas(verts: torch.Tensor, tris: torch.Tensor) -> torch.Tensor:
+    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+    return 0.5 * torch.linalg.cross(b - a, c - a).norm(dim=1)
+
+
+# --------------------------------------------------------------------------- padded accessors
+
+
+def test_padded_accessors_match_the_lists():
+    verts, faces = three_meshes()
+    m = PolygonMeshes(verts, faces)
+    nv = [v.shape[0] for v in verts]
+    padded = m.verts_padded()
+    assert padded.shape == (3, max(nv), 3)
+    for i, v in enumerate(verts):
+        assert torch.equal(padded[i, : nv[i]], v)
+        assert bool((padded[i, nv[i] :] == 0).all())
+    flat = padded.reshape(-1, 3)
+    assert torch.equal(flat[m.verts_padded_to_packed_idx()], m.verts_packed())
+    assert m.num_verts_per_mesh().tolist() == nv
+    assert m.mesh_to_verts_packed_first_idx().tolist() == [0, nv[0], nv[0] + nv[1]]
+    assert torch.equal(
+        m.verts_packed_to_mesh_idx(), torch.repeat_interleave(torch.arange(3), torch.tensor(nv))
+    )
+    fp = m.faces_padded()
+    k_max = max(max(len(f) for f in fs) for fs in faces)
+    assert fp.shape == (3, max(len(f) for f in faces), k_max) and fp.dtype == torch.int64
+    for i, fs in enumerate(faces):
+        got = [[j for j in row if j >= 0] for row in fp[i].tolist()]
+        assert got[: len(fs)] == [list(map(int, f)) for f in fs]
+        assert all(not row for row in got[len(fs) :])  # padding faces are all -1
+
+
+def test_verts_padded_is_differentiable():
+    verts, faces = three_meshes()
+    leaves = [v.clone().requires_grad_(True) for v in verts]
+    m = PolygonMeshes(leaves, faces)
+    weights = torch.randn(m.verts_padded().shape, dtype=torch.float64)
+    (m.verts_padded() * weights).sum().backward()
+    for i, v in enumerate(leaves):
+        assert torch.equal(v.grad, weights[i, : v.shape[0]])
+
+
+# --------------------------------------------------------------------------- index offsets
+
+
+def _block_diag_dense(mats: list[torch.Tensor]) -> torch.Tensor:
+    return torch.block_diag(*[A.to_dense() for A in mats])
+
+
+def test_packed_faces_follow_the_pyg_increment_and_give_the_block_diagonal_laplacian():
+    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    verts, faces = three_meshes()
+    m = PolygonMeshes(verts, faces)
+    # torch_geometric's own batching of the same meshes (its increment rule, not ours)
+    batch = tg.data.Batch.from_data_list(
+        [
+            tg.data.Data(pos=v, polygon_index=f.indices, polygon_sizes=f.sizes)
+            for v, f in zip(verts, m.faces_list(), strict=True)
+        ]
+    )
+    assert torch.equal(batch.polygon_index, m.faces_packed().indices)
+    assert torch.equal(batch.batch, m.verts_packed_to_mesh_idx())
+    # per-mesh operators, assembled one by one, are the blocks of the batch's
+    L, M0 = m.laplacian()
+    blocks = [tp.laplacian(v, f) for v, f in zip(verts, faces, strict=True)]
+    torch.testing.assert_close(L.to_dense(), _block_diag_dense([b[0] for b in blocks]))
+    torch.testing.assert_close(M0.to_dense(), _block_diag_dense([b[1] for b in blocks]))
+
+
+def test_collate_offsets_polygon_faces_like_pyg(tmp_path):
+    from torch_polylap.datasets import PolygonMeshDataset, collate_meshes
+
+    verts, faces = three_meshes()
+    data = PolygonMeshDataset(list(zip(verts, faces, strict=True)), k=4, cache_dir=tmp_path)
+    batch = collate_meshes([data[2], data[0], data[1]])
+    order = [2, 0, 1]
+    first = 0
+    packed = batch.meshes.faces_packed().tolist()
+    expected = []
+    for i in order:
+        expected += [[first + int(j) for j in f] for f in faces[i]]
+        first += verts[i].shape[0]
+    assert packed == expected
+    blocks = [tp.laplacian(data.mesh(i)[0], faces[i])[0] for i in order]
+    torch.testing.assert_close(
+        batch.L.to_dense(), _block_diag_dense(blocks).to(batch.L.dtype), rtol=1e-5, atol=1e-6
+    )
+
+
+# --------------------------------------------------------------------------- torch_geometric
+
+
+def test_to_pyg_face_layouts():
+    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    v, f = quad_grid(2)
+    quads = to_pyg(v, f)
+    assert isinstance(quads, tg.data.Data) and quads.pos is v
+    assert torch.equal(quads.face, f.t()) and "polygon_index" not in quads
+    tri = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    assert torch.equal(to_pyg(v[:4], tri).face, tri.t())
+    vm, fm = mixed_mesh()
+    mixed = to_pyg(vm, fm)
+    assert "face" not in mixed
+    pf = tp.as_faces(fm)
+    assert torch.equal(mixed.polygon_index, pf.indices)
+    assert torch.equal(mixed.polygon_sizes, pf.sizes)
+    both = to_pyg(vm, fm, triangulate=True)
+    assert both.face.shape == (3, int((pf.sizes - 2).sum()))
+    assert torch.equal(both.face.t(), triangle_faces(vm, fm))
+    assert torch.equal(both.polygon_index, pf.indices)
+    assert "polygon_index" not in to_pyg(v[:4], tri, triangulate=True)
+
+
+@pytest.mark.parametrize("triangulate", [False, True])
+def test_pyg_round_trips(triangulate):
+    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    verts, faces = three_meshes()
+    for v, f in zip(verts, faces, strict=True):
+        back_v, back_f = from_pyg(to_pyg(v, f, triangulate=triangulate))
+        assert back_v is v and back_f.tolist() == tp.as_faces(f).tolist()
+    m = PolygonMeshes(verts, faces)
+    batch = to_pyg(m, triangulate=triangulate)
+    assert isinstance(batch, tg.data.Batch) and batch.num_graphs == 3
+    assert torch.equal(batch.pos, m.verts_packed())
+    back = from_pyg(batch)
+    assert isinstance(back, PolygonMeshes)
+    assert back.faces_packed().tolist() == m.faces_packed().tolist()
+    assert torch.equal(back.verts_packed(), m.verts_packed())
+    # method form, and the same-degree batch keeps `face` (k, F) with global indices
+    grids = PolygonMeshes([quad_grid(2)[0], quad_grid(3)[0]], [quad_grid(2)[1], quad_grid(3)[1]])
+    gb = grids.to_pyg()
+    assert torch.equal(gb.face.t(), grids.faces_packed().as_uniform())
+
+
+def test_from_pyg_accepts_quads_and_triangles_in_real_data():
+    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    v, f = quad_grid(2)
+    got_v, got_f = from_pyg(tg.data.Data(pos=v, face=f.t().contiguous()))
+    assert got_v is v and torch.equal(got_f.as_uniform(), f)
+    tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
+    _, got_t = from_pyg(tg.data.Data(pos=v, face=tris.t()))
+    assert torch.equal(got_t.as_uniform(), tris)
+    batch = tg.data.Batch.from_data_list(
+        [tg.data.Data(pos=v, face=f.t()), tg.data.Data(pos=v * 2, face=f.t())]
+    )
+    m = PolygonMeshes.from_pyg(batch)
+    assert len(m) == 2 and torch.equal(m[1][1].as_uniform(), f)
+    with pytest.raises(ValueError, match=r"\(k, F\) for faces of k >= 3"):
+        from_pyg(tg.data.Data(pos=v, face=f[:2]))
+    with pytest.raises(ValueError, match="polygon_sizes"):
+        from_pyg(SimpleNamespace(pos=v, polygon_index=f.reshape(-1)))
+    with pytest.raises(ValueError, match="no faces"):
+        from_pyg(SimpleNamespace(pos=v))
+
+
+def test_pyg_gradients_reach_the_vertices():
+    pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    verts, faces = three_meshes()
+    leaves = [v.clone().requires_grad_(True) for v in verts]
+    batch = to_pyg(PolygonMeshes(leaves, faces))
+    batch.pos.square().sum().backward()
+    for v in leaves:
+        torch.testing.assert_close(v.grad, 2 * v.detach())
+
+
+def test_to_pyg_without_torch_geometric(monkeypatch):
+    monkeypatch.setitem(sys.modules, "torch_geometric", None)
+    monkeypatch.setitem(sys.modules, "torch_geometric.data", None)
+    v, f = quad_grid(1)
+    with pytest.raises(ImportError, match="pip install torch_geometric"):
+        to_pyg(v, f)
+
+
+# --------------------------------------------------------------------------- pytorch3d
+
+
+class _FakeMeshes:
+    """Records what a ``pytorch3d.structures.Meshes`` would be built from."""
+
+    def __init__(self, verts, faces):
+        self.verts, self.faces = verts, faces
+
+    def verts_list(self):
+        return self.verts
+
+    def faces_list(self):
+        return self.faces
+
+
+@pytest.fixture
+def fake_pytorch3d(monkeypatch):
+    root = types.ModuleType("pytorch3d")
+    structures = types.ModuleType("pytorch3d.structures")
+    structures.Meshes = _FakeMeshes
+    root.structures = structures
+    monkeypatch.setitem(sys.modules, "pytorch3d", root)
+    monkeypatch.setitem(sys.modules, "pytorch3d.structures", structures)
+
+
+@pytest.mark.parametrize("name", ["grid/concave_3.obj", "tetris.obj", "grid/irr_poly_2.obj"])
+def test_triangulation_preserves_face_areas(name):
+    verts, faces = _read(name)  # planar meshes with non-convex faces of up to 10 corners
+    tris = triangle_faces(verts, faces)
+    assert tris.shape == (int((faces.sizes - 2).sum()), 3)
+    owner = torch.repeat_interleave(torch.arange(len(faces)), faces.sizes - 2)
+    per_face = torch.zeros(len(faces), dtype=verts.dtype).index_add_(
+        0, owner, _triangle_areas(verts, tris)
+    )
+    torch.testing.assert_close(per_face, tp.face_areas(verts, faces), rtol=1e-10, atol=1e-12)
+    # each triangle uses its own face's corners, and keeps its orientation
+    for t, f in zip(tris.tolist()[:50], owner.tolist()[:50], strict=True):
+        assert set(t) <= set(faces[f].tolist())
+    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+    tri_normal = torch.linalg.cross(b - a, c - a)
+    assert bool(((tri_normal * tp.face_normals(verts, faces)[owner]).sum(1) > 0).all())
+
+
+def test_to_pytorch3d_hands_over_triangles_and_the_vertices(fake_pytorch3d):
+    verts, faces = three_meshes()
+    leaves = [v.clone().requires_grad_(True) for v in verts]
+    m = PolygonMeshes(leaves, faces)
+    meshes = to_pytorch3d(m)
+    assert isinstance(meshes, _FakeMeshes)
+    assert all(a is b for a, b in zip(meshes.verts, leaves, strict=True))
+    for v, f, t in zip(verts, faces, meshes.faces, strict=True):
+        assert t.dtype == torch.int64 and torch.equal(t, triangle_faces(v, f))
+        assert int(t.min()) >= 0 and int(t.max()) < v.shape[0]  # local indices
+    # single mesh and method form
+    one = to_pytorch3d(verts[1], faces[1])
+    assert len(one.verts) == 1 and torch.equal(one.faces[0], meshes.faces[1])
+    assert torch.equal(m.to_pytorch3d().faces[2], meshes.faces[2])
+    # a loss on the triangles' areas back-propagates to the polygon mesh's vertices
+    area = sum(_triangle_areas(v, t).sum() for v, t in zip(meshes.verts, meshes.faces, strict=True))
+    area.backward()
+    assert all(v.grad is not None and bool(v.grad.abs().sum() > 0) for v in leaves)
+    # and back: a Meshes becomes a triangle PolygonMeshes with the same vertices
+    back = from_pytorch3d(meshes)
+    assert torch.equal(back.verts_packed(), m.verts_packed())
+    assert back.faces_list()[0].tolist() == meshes.faces[0].tolist()
+
+
+def test_to_pytorch3d_without_pytorch3d_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pytorch3d", None)
+    monkeypatch.setitem(sys.modules, "pytorch3d.structures", None)
+    v, f = quad_grid(1)
+    with pytest.raises(ImportError, match="pytorch3d.git") as info:
+        to_pytorch3d(v, f)
+    assert "triangle_faces" in str(info.value)
+
+
+def test_to_pytorch3d_real_meshes():
+    structures = pytest.importorskip(
+        "pytorch3d.structures", reason="pytorch3d not installed (compiled; optional)"
+    )
+    verts, faces = three_meshes()
+    meshes = to_pytorch3d(PolygonMeshes([v.float() for v in verts], faces))
+    assert isinstance(meshes, structures.Meshes)
+    expected = torch.cat(
+        [
+            t + int(o)
+            for t, o in zip(
+                triangle_faces(PolygonMeshes(verts, faces)),
+                PolygonMeshes(verts, faces).mesh_to_verts_packed_first_idx(),
+                strict=True,
+            )
+        ]
+    )
+    assert torch.equal(meshes.faces_packed(), expected)
+
+
+def test_adapter_argument_errors():
+    v, f = quad_grid(1)
+    with pytest.raises(TypeError, match="without faces"):
+        triangle_faces(v)
+    with pytest.raises(TypeError, match="alone"):
+        triangle_faces(PolygonMeshes([v], [f]), f)
+    with pytest.raises(ValueError, match="vertex"):
+        triangle_faces(v[:2], f)
+
+
+# --------------------------------------------------------------------------- chamfer_distance
+
+
+def _brute_force_chamfer(
+    x,
+    y,
+    x_lengths,
+    y_lengths,
+    x_normals=None,
+    y_normals=None,
+    weights=None,
+    batch_reduction="mean",
+    point_reduction="mean",
+    norm=2,
+    single_directional=False,
+    abs_cosine=True,
+):
+    """pytorch3d's documented semantics, spelled out with full distance matrices."""
+
+    def direction(a, b, la, lb, na, nb):
+        rows, cos_rows = [], []
+        for i in range(a.shape[0]):
+            d = torch.cdist(a[i, : la[i]], b[i, : lb[i]], p=norm)
+            d = d.square() if norm == 2 else d
+            best, j = d.min(dim=1)
+            row = a.new_zeros(a.shape[1])
+            row[: la[i]] = best
+            rows.append(row * (1.0 if weights is None else weights[i]))
+            if na is not None:
+                c = torch.nn.functional.cosine_similarity(na[i, : la[i]], nb[i][j], dim=1)
+                c = 1 - (c.abs() if abs_cosine else c)
+                crow = a.new_zeros(a.shape[1])
+                crow[: la[i]] = c
+                cos_rows.append(crow * (1.0 if weights is None else weights[i]))
+        return torch.stack(rows), (torch.stack(cos_rows) if na is not None else None)
+
+    def reduce(t, lengths):
+        if point_reduction is None:
+            return t
+        if point_reduction == "max":
+            per = t.max(dim=1).values
+        else:
+            per = t.sum(1)
+            if point_reduction == "mean":
+                per = per / torch.tensor(lengths, dtype=t.dtype).clamp(min=1)
+        if batch_reduction is None:
+            return per
+        if batch_reduction == "sum":
+            return per.sum()
+        return per.sum() / (weights.sum() if weights is not None else t.shape[0])
+
+    fx = direction(x, y, x_lengths, y_lengths, x_normals, y_normals)
+    if single_directional:
+        return reduce(fx[0], x_lengths), None if fx[1] is None else reduce(fx[1], x_lengths)
+    fy = direction(y, x, y_lengths, x_lengths, y_normals, x_normals)
+    loss = (reduce(fx[0], x_lengths), reduce(fy[0], y_lengths))
+    normals = None
+    if fx[1] is not None:
+        normals = (reduce(fx[1], x_lengths), reduce(fy[1], y_lengths))
+    if point_reduction is None:
+        return loss, normals
+    return loss[0] + loss[1], None if normals is None else normals[0] + normals[1]
+
+
+def _clouds(seed=0, n=3, p1=40, p2=30):
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, p1, 3, generator=gen, dtype=torch.float64)
+    y = torch.rand(n, p2, 3, generator=gen, dtype=torch.float64) * 1.2
+    xn = torch.randn(n, p1, 3, generator=gen, dtype=torch.float64)
+    yn = torch.randn(n, p2, 3, generator=gen, dtype=torch.float64)
+    return x, y, xn, yn, torch.tensor([40, 17, 25]), torch.tensor([30, 30, 9])
+
+
+def _assert_same(got, expected):
+    if isinstance(expected, tuple):
+        assert isinstance(got, tuple) and len(got) == len(expected)
+        for g, e in zip(got, expected, strict=True):
+            _assert_same(g, e)
+    elif expected is None:
+        assert got is None
+    else:
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("batch_reduction", ["mean", "sum", None])
+@pytest.mark.parametrize("point_reduction", ["mean", "sum", "max", None])
+@pytest.mark.parametrize("norm", [1, 2])
+@pytest.mark.parametrize("backend", ["kdtree", "cdist"])
+def test_chamfer_matches_brute_force_reference(batch_reduction, point_reduction, norm, backend):
+    x, y, xn, yn, lx, ly = _clouds()
+    normals = point_reduction != "max"
+    for single in (False, True):
+        for weights in (None, torch.tensor([0.5, 2.0, 0.0], dtype=torch.float64)):
+            kwargs = dict(
+                x_normals=xn if normals else None,
+                y_normals=yn if normals else None,
+                weights=weights,
+                batch_reduction=batch_reduction,
+                point_reduction=point_reduction,
+                norm=norm,
+                single_directional=single,
+            )
+            got = chamfer_distance(x, y, lx, ly, **kwargs, backend=backend, chunk_size=7)
+            expected = _brute_force_chamfer(x, y, lx.tolist(), ly.tolist(), **kwargs)
+            _assert_same(got, expected)
+
+
+def test_chamfer_defaults_and_the_single_cloud_extension():
+    x, y, xn, yn, _, _ = _clouds(seed=1)
+    loss, normals = chamfer_distance(x[:1], y[:1])
+    assert normals is None and loss.shape == ()
+    d = torch.cdist(x[0], y[0]).square()
+    expected = d.min(1).values.mean() + d.min(0).values.mean()  # squared, mean, mean
+    torch.testing.assert_close(loss, expected, rtol=1e-12, atol=0)
+    two_d, _ = chamfer_distance(x[0], y[0])  # (P, D) is one cloud
+    torch.testing.assert_close(two_d, loss, rtol=0, atol=0)
+    # abs_cosine: flipped normals cost nothing with it, 2 per point without
+    same, n_same = chamfer_distance(x[:1], x[:1], x_normals=xn[:1], y_normals=-xn[:1])
+    assert float(same) == 0.0 and float(n_same) < 1e-12
+    _, n_flip = chamfer_distance(
+        x[:1], x[:1], x_normals=xn[:1], y_normals=-xn[:1], abs_cosine=False
+    )
+    torch.testing.assert_close(n_flip, torch.tensor(4.0, dtype=torch.float64))
+
+
+def test_chamfer_reads_pointclouds_duck_typed():
+    x, y, xn, yn, lx, ly = _clouds(seed=2)
+    cloud = SimpleNamespace(
+        points_padded=lambda: x, num_points_per_cloud=lambda: lx, normals_padded=lambda: xn
+    )
+    target = SimpleNamespace(
+        points_padded=lambda: y, num_points_per_cloud=lambda: ly, normals_padded=lambda: yn
+    )
+    _assert_same(chamfer_distance(cloud, target), chamfer_distance(x, y, lx, ly, xn, yn))
+
+
+def test_chamfer_gradients_with_padding():
+    x, y, xn, yn, lx, ly = _clouds(seed=3, n=3, p1=40, p2=30)
+    x = x[:, :12].clone().requires_grad_(True)
+    y = y[:, :10].clone().requires_grad_(True)
+    lx, ly = torch.tensor([12, 5, 9]), torch.tensor([10, 10, 4])
+
+    def f(a, b):
+        loss, _ = chamfer_distance(a, b, lx, ly, batch_reduction="sum", point_reduction="mean")
+        return loss
+
+    assert torch.autograd.gradcheck(f, (x, y), eps=1e-7)
+    f(x, y).backward()
+    assert bool((x.grad[1, 5:] == 0).all()) and bool((y.grad[2, 4:] == 0).all())
+
+
+def test_chamfer_edge_cases():
+    x, y, _, _, _, _ = _clouds(seed=4)
+    zero, normals = chamfer_distance(x, y, weights=torch.zeros(3, dtype=torch.float64))
+    assert float(zero) == 0.0 and normals is None
+    empty, _ = chamfer_distance(
+        x, y, torch.tensor([0, 40, 40]), torch.tensor([0, 30, 30]), batch_reduction=None
+    )
+    assert float(empty[0]) == 0.0 and bool((empty[1:] > 0).all())
+    with pytest.raises(ValueError, match="none on the other"):
+        chamfer_distance(x, y, torch.tensor([3, 40, 40]), torch.tensor([0, 30, 30]))
+    with pytest.raises(ValueError, match="takes no normals"):
+        chamfer_distance(x, y, x_normals=x, y_normals=y, point_reduction="max")
+    with pytest.raises(ValueError, match="norm"):
+        chamfer_distance(x, y, norm=3)
+    with pytest.raises(ValueError, match="non-negative"):
+        chamfer_distance(x, y, weights=torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="x_lengths"):
+        chamfer_distance(x, y, x_lengths=torch.tensor([1, 2]))
+    with pytest.raises(ValueError, match="same number of clouds"):
+        chamfer_distance(x, y[:2])
