@@ -24,6 +24,8 @@ setup(
         # cholespy: CHOLMOD's supernodal Cholesky, the fast factorization behind eigs
         # hypothesis: the property-based tests of the mesh readers and writers
         # adobe-lagrange: de Goes et al. 2020's operators (polyddg), the dGBD20 reference (wheel)
+        # torch_geometric: the real Data/Batch that tests/test_interop.py checks to_pyg/from_pyg
+        # against (pure Python; its compiled extensions are not needed)
         "test": [
             "pytest>=7",
             "ruff>=0.4",
@@ -32,6 +34,7 @@ setup(
             "cholespy>=2.0",
             "hypothesis>=6",
             "adobe-lagrange>=6.49",
+            "torch_geometric>=2.3",
         ],
         "cholmod": ["cholespy>=2.0"],
         "plot": ["matplotlib>=3.5"],
