@@ -1,6 +1,8 @@
-"""What the benchmark scripts share: the CPU's name, and the peak resident memory of one step
-(Linux ``/proc``; an upper bound from ``ru_maxrss`` elsewhere). Imported by
-``bench_laplacian.py`` and ``bench_losses.py``."""
+"""What the benchmark scripts share: the CPU's name, the peak resident memory of one step
+(Linux ``/proc``; an upper bound from ``ru_maxrss`` elsewhere), and the timing and table
+helpers of the ``polylap`` command (median timing, thread pinning, Markdown tables), imported
+from the package (:mod:`torch_polylap.cli.timing`) rather than kept here as a second copy.
+Imported by the ``bench_*.py`` scripts (run from this folder, or with it on ``sys.path``)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,31 @@ import gc
 import platform
 import resource
 from collections.abc import Callable
+
+from torch_polylap.cli.timing import (
+    DEFAULT_THREADS,
+    fmt_time,
+    markdown_table,
+    median_time,
+    pinned_threads,
+    synchronizer,
+    timed,
+)
+
+__all__ = [
+    "cpu_model",
+    "rss_bytes",
+    "reset_peak_rss",
+    "trim_heap",
+    "peak_rss_growth",
+    "DEFAULT_THREADS",
+    "fmt_time",
+    "markdown_table",
+    "median_time",
+    "pinned_threads",
+    "synchronizer",
+    "timed",
+]
 
 
 def cpu_model() -> str:
