@@ -37,6 +37,10 @@ setup(
             "torch_geometric>=2.3",
         ],
         "cholmod": ["cholespy>=2.0"],
+        # mkdocs + mkdocstrings-python: the documentation site (docs/, mkdocs.yml), whose API
+        # reference is generated from the docstrings (2.0: the griffe extension API that
+        # docs/griffe_roles.py uses); CI builds it with --strict
+        "docs": ["mkdocs>=1.6", "mkdocstrings-python>=2.0"],
         "plot": ["matplotlib>=3.5"],
         # potpourri3d: the polygon heat-method peer of benchmarks/bench_geodesics.py
         "bench": [
