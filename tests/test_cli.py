@@ -7,22 +7,27 @@ formulas independent of the package where one exists (shoelace areas, corner ang
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
 import json
 import math
 import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.sparse.linalg
 import torch
 from conftest import DATA
 
 import torch_polylap as tp
-from torch_polylap.cli import main
-from torch_polylap.cli.common import DATA_DIR, DEFAULT_MESH, DISK_MESH
+from torch_polylap.cli import COMMANDS, build_parser, main
+from torch_polylap.cli.common import DATA_DIR, DEFAULT_MESH, DISK_MESH, Result
+from torch_polylap.cli.timing import pinned_threads
 
 COMMAND = [sys.executable, "-m", "torch_polylap.cli"]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -134,6 +139,48 @@ def test_info_reports_topology_defects(capsys, one_thread):
     assert "topology defect" not in out and field(out, "genus (closed, orientable)") == "0"
 
 
+def test_info_output_dir_writes_its_report_with_the_eigenvalues_of_eigs(
+    tmp_path, capsys, one_thread
+):
+    """``info -o DIR`` writes ``<mesh>_info.json``; its eigenvalues are those of ``tp.eigs`` and,
+    independently, of scipy's ARPACK on the generalized problem ``L phi = mu M0 phi``."""
+    out = tmp_path / "report"  # created by the command
+    assert main(["info", "-o", str(out), "--eigs", "8"]) == 0
+    stdout = capsys.readouterr().out
+    path = out / "spot_control_mesh_info.json"
+    assert f"wrote {path}" in stdout
+    report = json.loads(path.read_text())
+    assert report["vertices"] == 188 and report["faces"] == 180 and report["edges"] == 366
+    assert report["embedded"] and report["zero_eigenvalues"] == 1 and report["components"] == 1
+    assert report["threads"] == 1 and set(report["timings_s"]) == {
+        "first_assembly",
+        "reassembly",
+        "forward_backward",
+    }
+    mesh_table = dict(map(tuple, report["tables"]["mesh"]))
+    assert mesh_table["vertices / faces / edges"] == field(stdout, "vertices / faces / edges")
+    evals = np.array(report["eigenvalues"])
+    assert evals.shape == (8,)
+
+    verts, faces = tp.read_mesh(DEFAULT_MESH)
+    L, M0 = tp.laplacian(verts, faces)
+    assert evals == pytest.approx(tp.eigs(L, M0, 8)[0].numpy(), rel=1e-12, abs=1e-12)
+    Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
+    shift = -1e-3 * np.abs(Ls).max() / Ms.diagonal().max()
+    arpack = np.sort(scipy.sparse.linalg.eigsh(Ls, k=8, M=Ms, sigma=shift, which="LM")[0])
+    assert evals == pytest.approx(arpack, abs=1e-9 * arpack[-1])
+    printed = numbers(field(stdout, "smallest 8 eigenvalues of L = mu M0"))
+    assert printed == pytest.approx(evals, rel=1e-3, abs=1e-9)
+
+
+def test_info_writes_nothing_without_output_option(tmp_path, monkeypatch, capsys, one_thread):
+    monkeypatch.chdir(tmp_path)
+    assert main(["info", "--eigs", "2"]) == 0
+    assert "wrote" not in capsys.readouterr().out and not list(tmp_path.iterdir())
+    assert main(["info", "--eigs", "2", "--json"]) == 0  # --json: to the default directory
+    assert (tmp_path / "polylap_out" / "spot_control_mesh_info.json").is_file()
+
+
 def test_smooth_runs_on_a_moebius_band_without_a_volume_row(tmp_path, capsys, one_thread):
     argv = ["smooth", str(DATA / "moebius.obj"), "--steps", "2", "--no-plot", "--no-progress"]
     assert main([*argv, "-o", str(tmp_path)]) == 0
@@ -234,7 +281,7 @@ def test_spectrum_default_output_directory_and_npz(tmp_path, monkeypatch, capsys
     data = np.load(out / "spot_control_mesh_spectrum.npz")
     verts, faces = tp.read_mesh(DEFAULT_MESH)
     L, M0 = tp.laplacian(verts, faces)
-    Ld, Md = tp.to_scipy(L).toarray(), tp.to_scipy(M0).toarray()
+    Ld, Md = tp.sparse.to_scipy(L).toarray(), tp.sparse.to_scipy(M0).toarray()
     expected = scipy.linalg.eigh(Ld, Md, eigvals_only=True)[:8]
     assert data["eigenvalues"] == pytest.approx(expected, abs=1e-9 * expected[-1])
     phi = data["eigenvectors"]
@@ -262,6 +309,50 @@ def test_bench_json(tmp_path):
             assert r["ratio"] == pytest.approx(r["torch_polylap_s"] / r["reference_s"])
     assert rows["spmm(L, X), X (V, 3)"]["reference"] == "scipy CSR @ X"
     assert result.stdout.count("\n| ") == 8  # header and 7 rows
+    assert data["threads"] == 1 and "1 torch thread (pinned" in result.stdout
+
+
+def test_bench_pins_torch_threads_for_its_timings(tmp_path, monkeypatch, capsys):
+    """Without --threads the timings run on one torch thread (a busy machine otherwise makes
+    tiny multi-threaded kernels wait for descheduled threads); the caller's count comes back."""
+    import torch_polylap.cli.bench as bench
+
+    seen = []
+
+    def spy(A, B):
+        seen.append(torch.get_num_threads())
+        return tp.solve(A, B)
+
+    monkeypatch.setattr(bench, "solve", spy)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        argv = ["bench", str(DATA / "dodecahedron_poly.obj"), "--repeat", "1", "-k", "2"]
+        assert main([*argv, "--no-progress", "-o", str(tmp_path)]) == 0
+        assert seen and set(seen) == {1}
+        assert torch.get_num_threads() == 2  # restored after the timings
+        out = capsys.readouterr().out
+        assert "1 torch thread (pinned; polylap --threads N bench to change)" in out
+        data = json.loads((tmp_path / "dodecahedron_poly_bench.json").read_text())
+        assert data["threads"] == 1
+
+        seen.clear()
+        assert main(["--threads", "2", *argv, "--no-progress"]) == 0  # asked for: used as is
+        assert seen and set(seen) == {2}
+        out = capsys.readouterr().out
+        assert "2 torch threads" in out and "pinned" not in out
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_pinned_threads_restores_and_checks():
+    before = torch.get_num_threads()
+    with pytest.raises(RuntimeError), pinned_threads(1) as threads:
+        assert threads == 1 and torch.get_num_threads() == 1
+        raise RuntimeError
+    assert torch.get_num_threads() == before
+    with pytest.raises(ValueError, match="at least 1"), pinned_threads(0):
+        pass
 
 
 # ------------------------------------------------------------------------------------------
@@ -351,12 +442,81 @@ def test_argument_and_input_errors_are_one_line(tmp_path, capsys, one_thread):
     assert "not a directory" in capsys.readouterr().err
 
 
+def subcommands() -> list[str]:
+    """The command names, as the parser knows them."""
+    (action,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    return list(action.choices)
+
+
 def test_every_command_has_help(capsys):
-    for command in ("info", "smooth", "param", "planarize", "spectrum", "bench", "demo"):
+    assert subcommands() == ["info", "smooth", "param", "planarize", "spectrum", "bench", "demo"]
+    for command in subcommands():
         with pytest.raises(SystemExit) as exit_info:
             main([command, "--help"])
         assert exit_info.value.code == 0
         assert f"usage: polylap {command}" in capsys.readouterr().out
+
+
+def test_every_command_follows_the_protocol():
+    """add_parser / compute / run in every module; the parser dispatches to run and compute."""
+    parser = build_parser()
+    names = subcommands()
+    assert len(COMMANDS) == len(names)
+    for module, name in zip(COMMANDS, names, strict=True):
+        assert all(callable(getattr(module, f, None)) for f in ("add_parser", "compute", "run"))
+        args = parser.parse_args([name])
+        assert args.func is module.run and args.compute is module.compute
+
+
+# quick options of each command (the demo runs in test_demo_writes_report_meshes_and_figures)
+QUICK = {
+    "info": ["--eigs", "2"],
+    "smooth": ["--steps", "1", "--no-plot", "--no-progress"],
+    "param": ["--no-plot"],
+    "planarize": ["--max-iter", "1", "--no-plot", "--no-progress"],
+    "spectrum": ["-k", "2", "--no-plot", "--npz"],
+    "bench": [str(DATA / "dodecahedron_poly.obj"), "--repeat", "1", "-k", "2", "--no-progress"],
+}
+
+
+@pytest.mark.parametrize("command", subcommands())
+def test_every_command_accepts_output_dir(command, tmp_path, capsys, one_thread):
+    out = tmp_path / "out"
+    args = build_parser().parse_args([command, "-o", str(out)])
+    assert args.output == str(out)
+    if command not in QUICK:
+        return
+    assert main([command, *QUICK[command], "-o", str(out)]) == 0
+    written = sorted(p.name for p in out.iterdir())
+    assert written, f"polylap {command} -o DIR wrote nothing"
+    stdout = capsys.readouterr().out
+    assert all(f"wrote {out / name}" in stdout for name in written)
+
+
+def test_compute_prints_and_writes_nothing(tmp_path, capsys, one_thread):
+    """compute returns the result; files are written by Result.write (run does both)."""
+    out = tmp_path / "out"
+    args = build_parser().parse_args(["spectrum", "-k", "3", "--npz", "-o", str(out)])
+    result = args.compute(args)
+    assert isinstance(result, Result) and capsys.readouterr().out == ""
+    assert not out.exists()
+    names = [o.name for o in result.outputs]
+    assert names == ["spot_control_mesh_spectrum.npz", "spot_control_mesh_spectrum.png"]
+    out.mkdir()
+    assert result.write(out) == [out / name for name in names]
+    assert np.load(out / names[0])["eigenvalues"] == pytest.approx(result.data["eigenvalues"])
+
+
+def test_benchmarks_share_the_timing_helpers():
+    """benchmarks/common.py imports the package's timing helpers instead of keeping a copy."""
+    from torch_polylap.cli import timing
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "common.py"
+    spec = importlib.util.spec_from_file_location("benchmarks_common", path)
+    common = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(common)
+    for name in ("median_time", "timed", "pinned_threads", "markdown_table", "fmt_time"):
+        assert getattr(common, name) is getattr(timing, name)
 
 
 def test_console_script_entry_point():

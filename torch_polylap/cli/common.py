@@ -1,14 +1,17 @@
-"""Helpers every ``polylap`` command shares: mesh arguments, output files, tables, timings."""
+"""What every ``polylap`` command shares: the command protocol (:class:`Result`,
+:func:`execute`), mesh and output arguments, output files, tables. Timing helpers are in
+:mod:`.timing`."""
 
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
+import json
+import sys
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -23,22 +26,77 @@ DISK_MESH = DATA_DIR / "hex_hemisphere.obj"
 DEFAULT_OUTPUT = "polylap_out"
 
 
+Rows = list[tuple[str, str]]
+
+
+@dataclass
+class Output:
+    """A file a command writes: its name in the output directory and the function writing it."""
+
+    name: str
+    write: Callable[[Path], None]
+
+
 @dataclass
 class Result:
-    """What a command computed: a titled table of ``(label, value)`` rows, free text printed
-    after it, and the files written. ``polylap demo`` puts these into its report."""
+    """What a command computed, before anything is printed or written.
+
+    ``title`` and ``rows`` (``(label, value)``) form the summary table; ``sections`` are
+    further titled tables, ``text`` is printed after them and ``warnings`` go to stderr.
+    ``outputs`` are the files to write (deferred until :meth:`write`, which records the paths
+    in ``files``); ``data`` holds the machine-readable values (JSON reports, tests); ``parts``
+    are the results of sub-commands (``polylap demo``), printed and written first.
+    """
 
     title: str
-    rows: list[tuple[str, str]]
-    files: list[Path] = field(default_factory=list)
+    rows: Rows = field(default_factory=list)
+    sections: list[tuple[str, Rows]] = field(default_factory=list)
     text: str = ""
+    warnings: list[str] = field(default_factory=list)
+    outputs: list[Output] = field(default_factory=list)
+    data: dict[str, Any] = field(default_factory=dict)
+    parts: list[Result] = field(default_factory=list)
+    files: list[Path] = field(default_factory=list)
+
+    def write(self, out: Path) -> list[Path]:
+        """Write the parts' outputs, then this result's, into ``out``; the paths written."""
+        written = [path for part in self.parts for path in part.write(out)]
+        for output in self.outputs:
+            path = out / output.name
+            output.write(path)
+            self.files.append(path)
+        return written + self.files
 
     def print(self) -> None:
+        """The parts, the title and tables, the text and the files written (stdout); the
+        warnings (stderr)."""
+        for part in self.parts:
+            part.print()
         print_table(self.title, self.rows)
+        for heading, rows in self.sections:
+            print_table(heading, rows)
         if self.text:
             print(self.text)
+        for message in self.warnings:
+            print(f"warning: {message}", file=sys.stderr)
         for path in self.files:
             print(f"wrote {path}")
+
+
+def execute(compute: Callable[[argparse.Namespace], Result], args: argparse.Namespace) -> int:
+    """The ``run`` of every command: check (and create) the output directory before the work,
+    ``compute``, write the outputs, print; exit status 0."""
+    out = output_dir(args) if writes_files(args) else None
+    result = compute(args)
+    if result.outputs or result.parts:
+        result.write(out if out is not None else output_dir(args))
+    result.print()
+    return 0
+
+
+def json_output(name: str, data: dict[str, Any]) -> Output:
+    """An :class:`Output` writing ``data`` as indented JSON."""
+    return Output(name, lambda path: path.write_text(json.dumps(data, indent=2) + "\n"))
 
 
 def mean_edge_length(verts: torch.Tensor, edges: torch.Tensor) -> float:
@@ -55,31 +113,64 @@ def add_mesh_argument(parser: argparse.ArgumentParser, default: Path = DEFAULT_M
     parser.set_defaults(default_mesh=default)
 
 
-def add_output_arguments(parser: argparse.ArgumentParser, progress: bool = True) -> None:
-    parser.add_argument(
-        "-o",
-        "--output",
-        default=DEFAULT_OUTPUT,
-        metavar="DIR",
-        help=f"directory for the files written (default: ./{DEFAULT_OUTPUT}, created if needed)",
-    )
-    parser.add_argument(
-        "--no-plot", action="store_true", help="skip the PNG figure (faster, no matplotlib)"
-    )
-    parser.add_argument(
-        "--up",
-        choices=("auto", "x", "y", "z"),
-        default="auto",
-        help="axis drawn vertically in figures (default auto: the thin axis of a flat mesh, "
-        "else y as in most OBJ models)",
-    )
+def add_output_arguments(
+    parser: argparse.ArgumentParser,
+    *,
+    plot: bool = True,
+    progress: bool = True,
+    report: str | None = None,
+) -> None:
+    """``-o/--output DIR`` (every command), ``--no-plot`` and ``--up`` (commands with a figure),
+    ``--no-progress``. ``report``: the command only reports (``info``, ``bench``); it writes
+    ``<mesh>_<report>.json`` when given ``-o DIR`` or ``--json``, and nothing otherwise."""
+    if report is None:
+        parser.add_argument(
+            "-o",
+            "--output",
+            default=DEFAULT_OUTPUT,
+            metavar="DIR",
+            help=f"directory for the files written (default: ./{DEFAULT_OUTPUT}, created if "
+            "needed)",
+        )
+    else:
+        parser.add_argument(
+            "-o",
+            "--output",
+            default=None,
+            metavar="DIR",
+            help=f"also write the report as <mesh>_{report}.json into DIR (created if needed)",
+        )
+        parser.add_argument(
+            "--json",
+            action="store_true",
+            help=f"write <mesh>_{report}.json into -o DIR (default: ./{DEFAULT_OUTPUT})",
+        )
+    if plot:
+        parser.add_argument(
+            "--no-plot", action="store_true", help="skip the PNG figure (faster, no matplotlib)"
+        )
+        parser.add_argument(
+            "--up",
+            choices=("auto", "x", "y", "z"),
+            default="auto",
+            help="axis drawn vertically in figures (default auto: the thin axis of a flat mesh, "
+            "else y as in most OBJ models)",
+        )
     if progress:
         parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
+def writes_files(args: argparse.Namespace) -> bool:
+    """Whether the command writes into the output directory: always, except for the reporting
+    commands (``info``, ``bench``) without ``-o DIR`` or ``--json``."""
+    if not hasattr(args, "json"):
+        return True
+    return args.output is not None or args.json
+
+
 def add_method_argument(parser: argparse.ArgumentParser) -> None:
     """``--method {aw11,plms,degoes}``: which polygon Laplacian the command builds."""
-    from ..methods import METHODS
+    from ..kernels import METHODS
 
     parser.add_argument(
         "--method",
@@ -111,11 +202,13 @@ def positive_int(text: str) -> int:
 
 
 def load_mesh(
-    args: argparse.Namespace, dtype: torch.dtype = torch.float64
+    args: argparse.Namespace,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str = "cpu",
 ) -> tuple[torch.Tensor, PolygonFaces, Path, str]:
     """``(verts, faces, path, label)`` of the mesh argument or the command's default mesh."""
     path = Path(args.mesh) if args.mesh else args.default_mesh
-    verts, faces = read_mesh_quietly(path, not args.mesh, dtype=dtype)
+    verts, faces = read_mesh_quietly(path, not args.mesh, dtype=dtype, device=device)
     label = path.name + ("" if args.mesh else " (embedded default mesh)")
     return verts, faces, path, label
 
@@ -132,16 +225,17 @@ def read_mesh_quietly(
 
 
 def output_dir(args: argparse.Namespace) -> Path:
-    out = Path(args.output)
+    """``-o DIR`` (``./polylap_out`` when not given), created if needed."""
+    out = Path(args.output if args.output is not None else DEFAULT_OUTPUT)
     if out.exists() and not out.is_dir():
         raise ValueError(f"output path {out} exists and is not a directory; pass -o DIR.")
     out.mkdir(parents=True, exist_ok=True)
     return out
 
 
-def result_path(out: Path, source: Path, suffix: str, ext: str | None = None) -> Path:
-    """``out/<source stem>_<suffix><ext>``; ``ext`` defaults to the source mesh's extension."""
-    return out / f"{source.stem}_{suffix}{ext if ext is not None else source.suffix.lower()}"
+def result_name(source: Path, suffix: str, ext: str | None = None) -> str:
+    """``<source stem>_<suffix><ext>``; ``ext`` defaults to the source mesh's extension."""
+    return f"{source.stem}_{suffix}{ext if ext is not None else source.suffix.lower()}"
 
 
 def up_axis(args: argparse.Namespace, verts: torch.Tensor) -> str:
@@ -162,35 +256,3 @@ def print_table(title: str, rows: Iterable[tuple[str, object]]) -> None:
     print(title)
     for label, value in rows:
         print(row(label, value))
-
-
-def table(header: Sequence[str], body: Sequence[Sequence[object]]) -> str:
-    """A Markdown table (readable as plain text too), columns padded to their widest cell."""
-    # a "|" inside a cell (|H|) would end it in Markdown
-    cells = [[str(c).replace("|", "\\|") for c in r] for r in [header, *body]]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
-    lines = [
-        "| " + " | ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)) + " |" for r in cells
-    ]
-    lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    return "\n".join(lines)
-
-
-def timed(fn: Callable[[], object], repeat: int = 3, warmup: bool = False) -> tuple[float, object]:
-    """Median wall time of ``repeat`` calls (seconds) and the last result."""
-    if warmup:
-        fn()
-    times, out = [], None
-    for _ in range(repeat):
-        start = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), out
-
-
-def fmt_time(seconds: float) -> str:
-    if seconds < 1e-3:
-        return f"{seconds * 1e6:.0f} us"
-    if seconds < 1.0:
-        return f"{seconds * 1e3:.2f} ms"
-    return f"{seconds:.2f} s"

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -23,12 +22,13 @@ from ..topology import get_topology
 from .common import (
     DATA_DIR,
     DEFAULT_OUTPUT,
+    Output,
     Result,
     add_method_argument,
-    output_dir,
+    execute,
     read_mesh_quietly,
-    table,
 )
+from .timing import markdown_table
 
 PLATE_MESH = DATA_DIR / "grid_voronoi_1.obj"
 
@@ -52,7 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="run all applications on embedded meshes and write a Markdown report",
         description="Run mean-curvature flow, conformal parameterization, planarization and "
         "thin-plate bending (AW11 sec. 5.1-5.4) on small embedded meshes; write the result "
-        "meshes, figures and report.md into -o DIR. Takes about 10-20 s on a laptop CPU.",
+        "meshes, figures and report.md into -o DIR.",
     )
     p.add_argument(
         "-o",
@@ -64,17 +64,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-plot", action="store_true", help="numbers only, no figures")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_method_argument(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, compute=compute)
 
 
-def run(args: argparse.Namespace) -> int:
+def compute(args: argparse.Namespace) -> Result:
     from tqdm import tqdm
 
     from . import build_parser
 
-    out = output_dir(args)
     parser = build_parser()
-    common = ["-o", str(out)] + (["--no-plot"] if args.no_plot else [])
+    common = ["--no-plot"] if args.no_plot else []
     tasks: list[tuple[str, str, str, Callable[[], Result]]] = []
     for title, section, argv in STEPS:
         # the demo's own bar counts the applications; theirs would interleave with it
@@ -88,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
             "Thin-plate bending",
             "5.4",
             "(Python API: torch_polylap.apps.plate_bending)",
-            lambda: plate(out, not args.no_plot, args.method),
+            lambda: plate(not args.no_plot, args.method),
         )
     )
     sections = []
@@ -96,22 +95,29 @@ def run(args: argparse.Namespace) -> int:
     for title, section, command, task in tqdm(tasks, desc="demo", disable=args.no_progress):
         t0 = time.perf_counter()
         result = task()
-        # clear the bar (stderr) while the table goes to stdout, so the two do not interleave
-        with tqdm.external_write_mode(file=sys.stderr):
-            result.print()
         sections.append((title, section, command, result, time.perf_counter() - t0))
-    total = time.perf_counter() - start
-    report = out / "report.md"
-    report.write_text(_markdown(sections, out, total), encoding="utf-8")
-    print(f"demo finished in {total:.1f} s; wrote {report}")
-    return 0
+
+    def write_report(path: Path) -> None:
+        # written after the parts' meshes and figures: the total includes them
+        total = time.perf_counter() - start
+        path.write_text(_markdown(sections, total), encoding="utf-8")
+
+    return Result(
+        "polylap demo: the applications of AW11 sec. 5.1-5.4 on embedded meshes",
+        parts=[result for _, _, _, result, _ in sections],
+        outputs=[Output("report.md", write_report)],
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    return execute(compute, args)
 
 
 def _bound(sub_args: argparse.Namespace) -> Callable[[], Result]:
     return lambda: sub_args.compute(sub_args)
 
 
-def plate(out: Path, with_plot: bool, method: str = "aw11") -> Result:
+def plate(with_plot: bool, method: str = "aw11") -> Result:
     """Simply supported unit-square plate under unit load on a Voronoi polygon mesh, against
     Navier's solution (AW11 sec. 5.4, Fig. 6-7), for three values of lambda, with the Laplacian
     of ``method`` (``"plms"`` ignores lambda: the three errors are equal)."""
@@ -131,8 +137,6 @@ def plate(out: Path, with_plot: bool, method: str = "aw11") -> Result:
         errors[lam] = float(plate_error(verts, topo, u_lam, reference))
     deflected = verts.clone()
     deflected[:, 2] = u
-    mesh_out = out / "plate_deflection.obj"
-    write_mesh(mesh_out, deflected, faces)
     rows = [
         ("mesh", f"{PLATE_MESH.name}: {verts.shape[0]} vertices, {faces.num_faces} polygons"),
         ("load / support", "1 per unit area / simply supported boundary"),
@@ -144,32 +148,38 @@ def plate(out: Path, with_plot: bool, method: str = "aw11") -> Result:
         ),
         ("time (lambda = 1)", f"{seconds * 1e3:.1f} ms"),
     ]
-    files = [mesh_out]
+    outputs = [Output("plate_deflection.obj", lambda obj: write_mesh(obj, deflected, faces))]
     if with_plot:
-        from ..plot import new_figure, plot_mesh, save_figure
-
-        png = out / "plate_deflection.png"
-        fig, (ax1, ax2) = new_figure(1, 2, True, panel_size=4.5)
-        # exaggerate the deflection so that the shape is visible next to the unit square
-        shown = verts.clone()
-        shown[:, 2] = -u * (0.3 / float(u.max()))
-        plot_mesh(shown, faces, u, ax=ax1, title="deflection u (z exaggerated)", up="z", label="u")
-        plot_mesh(
-            verts,
-            faces,
-            u - reference,
-            ax=ax2,
-            title="u - Navier",
-            cmap="RdBu_r",
-            clim=_symmetric(u - reference),
-            up="z",
-            elev=90,
-            azim=-90,
-            label="error",
+        outputs.append(
+            Output(
+                "plate_deflection.png", lambda png: _plate_figure(verts, faces, u, reference, png)
+            )
         )
-        save_figure(fig, png)
-        files.append(png)
-    return Result("polylap demo: thin-plate bending", rows, files)
+    return Result("polylap demo: thin-plate bending", rows, outputs=outputs)
+
+
+def _plate_figure(verts, faces, u: torch.Tensor, reference: torch.Tensor, png: Path) -> None:
+    from ..plot import new_figure, plot_mesh, save_figure
+
+    fig, (ax1, ax2) = new_figure(1, 2, True, panel_size=4.5)
+    # exaggerate the deflection so that the shape is visible next to the unit square
+    shown = verts.clone()
+    shown[:, 2] = -u * (0.3 / float(u.max()))
+    plot_mesh(shown, faces, u, ax=ax1, title="deflection u (z exaggerated)", up="z", label="u")
+    plot_mesh(
+        verts,
+        faces,
+        u - reference,
+        ax=ax2,
+        title="u - Navier",
+        cmap="RdBu_r",
+        clim=_symmetric(u - reference),
+        up="z",
+        elev=90,
+        azim=-90,
+        label="error",
+    )
+    save_figure(fig, png)
 
 
 def _symmetric(x: torch.Tensor) -> tuple[float, float]:
@@ -177,7 +187,7 @@ def _symmetric(x: torch.Tensor) -> tuple[float, float]:
     return -bound, bound
 
 
-def _markdown(sections, out: Path, total: float) -> str:
+def _markdown(sections, total: float) -> str:
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
         "# torch_polylap demo",
@@ -193,13 +203,13 @@ def _markdown(sections, out: Path, total: float) -> str:
             "",
             f"`{command}` ({seconds:.1f} s)",
             "",
-            table(["quantity", "value"], result.rows),
+            markdown_table(["quantity", "value"], result.rows),
             "",
         ]
-        for path in result.files:
-            rel = Path(path).relative_to(out) if Path(path).is_relative_to(out) else Path(path)
-            if rel.suffix == ".png":
-                lines += [f"![{title}]({rel.as_posix()})", ""]
+        # the files are written into the report's directory: link them by name
+        for output in result.outputs:
+            if output.name.endswith(".png"):
+                lines += [f"![{title}]({output.name})", ""]
             else:
-                lines += [f"Result mesh: `{rel.as_posix()}`", ""]
+                lines += [f"Result mesh: `{output.name}`", ""]
     return "\n".join(lines)

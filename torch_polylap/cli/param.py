@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -14,15 +15,16 @@ from ..measures import vector_area
 from ..topology import get_topology
 from .common import (
     DISK_MESH,
+    Output,
     Result,
     add_mesh_argument,
     add_method_argument,
     add_output_arguments,
+    execute,
     load_mesh,
     method_label,
-    output_dir,
     positive_float,
-    result_path,
+    result_name,
     up_axis,
 )
 
@@ -65,7 +67,6 @@ def compute(args: argparse.Namespace) -> Result:
 
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
-    out = output_dir(args)
     if args.pins is not None and args.free_boundary:
         raise ValueError("--pins and --free-boundary exclude each other; pass one of them.")
     start = time.perf_counter()
@@ -89,8 +90,6 @@ def compute(args: argparse.Namespace) -> Result:
     flat = torch.cat([uv, torch.zeros_like(uv[:, :1])], 1)
     signed_area = vector_area(flat, topo)[:, 2]
     flipped = int((signed_area <= 0).sum())
-    mesh_out = result_path(out, path, "param", ".obj")
-    write_mesh(mesh_out, flat, faces)
     rows = [
         (
             "vertices / faces / boundary edges",
@@ -108,28 +107,28 @@ def compute(args: argparse.Namespace) -> Result:
         ),
         ("flipped faces", str(flipped)),
     ]
-    files = [mesh_out]
+    outputs = [Output(result_name(path, "param", ".obj"), lambda obj: write_mesh(obj, flat, faces))]
     if not args.no_plot:
-        from ..plot import new_figure, plot_mesh, plot_uv, save_figure
-
-        png = result_path(out, path, "param", ".png")
-        fig, (ax3, ax2) = new_figure(1, 2, [True, False], panel_size=4.5)
-        hi = float(np.nanmax(face_err_deg.numpy())) or 1.0
-        common = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
-        plot_mesh(
-            verts,
-            faces,
-            face_err_deg,
-            ax=ax3,
-            title="input",
-            colorbar=False,
-            up=up_axis(args, verts),
-            **common,
+        up = up_axis(args, verts)
+        outputs.append(
+            Output(
+                result_name(path, "param", ".png"),
+                lambda png: _figure(verts, uv, faces, face_err_deg, up, png),
+            )
         )
-        plot_uv(uv, faces, face_err_deg, ax=ax2, title="conformal map", **common)
-        save_figure(fig, png)
-        files.append(png)
-    return Result(f"polylap param: {label}", rows, files)
+    return Result(f"polylap param: {label}", rows, outputs=outputs)
+
+
+def _figure(verts, uv, faces, face_err_deg: torch.Tensor, up: str, png: Path) -> None:
+    """The mesh and its conformal image, faces colored by their mean angle error."""
+    from ..plot import new_figure, plot_mesh, plot_uv, save_figure
+
+    fig, (ax3, ax2) = new_figure(1, 2, [True, False], panel_size=4.5)
+    hi = float(np.nanmax(face_err_deg.numpy())) or 1.0
+    common = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
+    plot_mesh(verts, faces, face_err_deg, ax=ax3, title="input", colorbar=False, up=up, **common)
+    plot_uv(uv, faces, face_err_deg, ax=ax2, title="conformal map", **common)
+    save_figure(fig, png)
 
 
 def _area(verts: torch.Tensor, topo) -> torch.Tensor:
@@ -137,5 +136,4 @@ def _area(verts: torch.Tensor, topo) -> torch.Tensor:
 
 
 def run(args: argparse.Namespace) -> int:
-    compute(args).print()
-    return 0
+    return execute(compute, args)

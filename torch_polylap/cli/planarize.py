@@ -3,22 +3,24 @@
 from __future__ import annotations
 
 import argparse
-import sys
+from pathlib import Path
 
 import numpy as np
+import torch
 
 from ..io import write_mesh
 from ..measures import face_nonplanarity
 from ..topology import get_topology
 from .common import (
+    Output,
     Result,
     add_mesh_argument,
     add_output_arguments,
+    execute,
     load_mesh,
-    output_dir,
     positive_float,
     positive_int,
-    result_path,
+    result_name,
     up_axis,
 )
 
@@ -73,7 +75,6 @@ def compute(args: argparse.Namespace) -> Result:
 
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
-    out = output_dir(args)
     res = planarize(
         verts,
         topo,
@@ -86,10 +87,6 @@ def compute(args: argparse.Namespace) -> Result:
         time_limit=args.time_limit,
         warn=False,
     )
-    if not res.converged:
-        print(f"warning: {res.message}", file=sys.stderr)
-    mesh_out = result_path(out, path, "planar")
-    write_mesh(mesh_out, res.verts, faces)
     rows = [
         ("vertices / faces", f"{verts.shape[0]} / {faces.num_faces}"),
         ("method / lambda / tol", f"{res.method} / {args.lam} / {args.tol:g}"),
@@ -108,46 +105,58 @@ def compute(args: argparse.Namespace) -> Result:
         ("iterations / time", f"{res.iterations} / {res.seconds:.2f} s"),
         ("converged", "yes" if res.converged else f"no: {res.message}"),
     ]
-    files = [mesh_out]
+    outputs = [Output(result_name(path, "planar"), lambda mesh: write_mesh(mesh, res.verts, faces))]
     if not args.no_plot:
-        from ..plot import new_figure, plot_lines, plot_mesh, save_figure
-
-        png = result_path(out, path, "planar", ".png")
-        before = face_nonplanarity(verts, topo)
-        after = face_nonplanarity(res.verts, topo)
-        fig, axes = new_figure(1, 3, [True, True, False], panel_size=4.0)
-        clim = (0.0, float(before.max()) or 1.0)
         up = up_axis(args, verts)
-        for ax, x, values, title in (
-            (axes[0], verts, before, f"input, max {res.nonplanarity_before[0]:.2e}"),
-            (axes[1], res.verts, after, f"planarized, max {res.nonplanarity_after[0]:.2e}"),
-        ):
-            plot_mesh(
-                x,
-                faces,
-                values,
-                ax=ax,
-                title=title,
-                cmap="inferno",
-                clim=clim,
-                up=up,
-                label="non-planarity",
+        outputs.append(
+            Output(
+                result_name(path, "planar", ".png"),
+                lambda png: _figure(verts, faces, topo, res, up, png),
             )
-        if res.energies:
-            energies = np.maximum(np.asarray(res.energies), np.finfo(float).tiny)
-            plot_lines(
-                {"E_plan": (np.arange(len(energies)), energies)},
-                ax=axes[2],
-                title="planarity energy",
-                xlabel="iteration",
-                logy=True,
-                marker="",
-            )
-        save_figure(fig, png)
-        files.append(png)
-    return Result(f"polylap planarize: {label}", rows, files)
+        )
+    return Result(
+        f"polylap planarize: {label}",
+        rows,
+        warnings=[] if res.converged else [res.message],
+        outputs=outputs,
+    )
+
+
+def _figure(verts: torch.Tensor, faces, topo, res, up: str, png: Path) -> None:
+    """Input and result colored by face non-planarity, and the energy per iteration."""
+    from ..plot import new_figure, plot_lines, plot_mesh, save_figure
+
+    before = face_nonplanarity(verts, topo)
+    after = face_nonplanarity(res.verts, topo)
+    fig, axes = new_figure(1, 3, [True, True, False], panel_size=4.0)
+    clim = (0.0, float(before.max()) or 1.0)
+    for ax, x, values, title in (
+        (axes[0], verts, before, f"input, max {res.nonplanarity_before[0]:.2e}"),
+        (axes[1], res.verts, after, f"planarized, max {res.nonplanarity_after[0]:.2e}"),
+    ):
+        plot_mesh(
+            x,
+            faces,
+            values,
+            ax=ax,
+            title=title,
+            cmap="inferno",
+            clim=clim,
+            up=up,
+            label="non-planarity",
+        )
+    if res.energies:
+        energies = np.maximum(np.asarray(res.energies), np.finfo(float).tiny)
+        plot_lines(
+            {"E_plan": (np.arange(len(energies)), energies)},
+            ax=axes[2],
+            title="planarity energy",
+            xlabel="iteration",
+            logy=True,
+            marker="",
+        )
+    save_figure(fig, png)
 
 
 def run(args: argparse.Namespace) -> int:
-    compute(args).print()
-    return 0
+    return execute(compute, args)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from pathlib import Path
 
 import torch
 
@@ -13,17 +14,18 @@ from ..measures import face_areas
 from ..operators import laplacian, strong_laplacian
 from ..topology import get_topology
 from .common import (
+    Output,
     Result,
     add_mesh_argument,
     add_method_argument,
     add_output_arguments,
+    execute,
     load_mesh,
     mean_edge_length,
     method_label,
-    output_dir,
     positive_float,
     positive_int,
-    result_path,
+    result_name,
     up_axis,
 )
 
@@ -79,7 +81,6 @@ def compute(args: argparse.Namespace) -> Result:
 
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
-    out = output_dir(args)
     dt = args.dt if args.dt is not None else 0.1 * mean_edge_length(verts, topo.edges) ** 2
     normalize = None if args.normalize == "none" else args.normalize
     start = time.perf_counter()
@@ -95,8 +96,6 @@ def compute(args: argparse.Namespace) -> Result:
         method=args.method,
     )
     seconds = time.perf_counter() - start
-    mesh_out = result_path(out, path, "smooth")
-    write_mesh(mesh_out, smoothed, faces)
 
     try:  # the volume row only where a volume is defined: closed and consistently oriented
         _require_closed_oriented(topo, "enclosed volume")
@@ -142,37 +141,35 @@ def compute(args: argparse.Namespace) -> Result:
         ),
         ("largest vertex move / bbox diagonal", f"{float(shift / diag):.3g}"),
     ]
-    files = [mesh_out]
+    outputs = [Output(result_name(path, "smooth"), lambda mesh: write_mesh(mesh, smoothed, faces))]
     if not args.no_plot:
-        from ..plot import plot_meshes
-
-        png = result_path(out, path, "smooth", ".png")
-        up = up_axis(args, verts)
-        # boundary vertices carry a boundary term, not curvature: leave them out of the color;
+        # boundary vertices carry a boundary term, not curvature: leave them out of the color
+        # (painted with the interior mean)
+        before = h_before.where(interior, h_before[interior].mean())
+        after = h_after.where(interior, h_after[interior].mean())
         # the 95th percentile as the top color keeps a few sharp corners from washing it out
         top = float(torch.quantile(h_before[interior], 0.95))
-        panel = dict(faces=faces, label="|H| sqrt(A/4pi)", up=up, clim=(0.0, top))
-        plot_meshes(
-            [
-                dict(
-                    verts=verts,
-                    values=h_before.where(interior, h_before[interior].mean()),
-                    title="input",
-                    **panel,
-                ),
-                dict(
-                    verts=smoothed,
-                    values=h_after.where(interior, h_after[interior].mean()),
-                    title=f"after {args.steps} steps, dt = {dt:.3g}",
-                    **panel,
-                ),
-            ],
-            path=png,
+        panel = dict(faces=faces, label="|H| sqrt(A/4pi)", up=up_axis(args, verts), clim=(0.0, top))
+        panels = [
+            dict(verts=verts, values=before, title="input", **panel),
+            dict(
+                verts=smoothed,
+                values=after,
+                title=f"after {args.steps} steps, dt = {dt:.3g}",
+                **panel,
+            ),
+        ]
+        outputs.append(
+            Output(result_name(path, "smooth", ".png"), lambda png: _figure(panels, png))
         )
-        files.append(png)
-    return Result(f"polylap smooth: {label}", rows, files)
+    return Result(f"polylap smooth: {label}", rows, outputs=outputs)
+
+
+def _figure(panels: list[dict], png: Path) -> None:
+    from ..plot import plot_meshes
+
+    plot_meshes(panels, path=png)
 
 
 def run(args: argparse.Namespace) -> int:
-    compute(args).print()
-    return 0
+    return execute(compute, args)

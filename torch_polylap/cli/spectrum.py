@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -12,16 +13,17 @@ from ..linalg import eigs
 from ..operators import laplacian
 from ..sparse import to_scipy
 from .common import (
+    Output,
+    Result,
     add_mesh_argument,
     add_method_argument,
     add_output_arguments,
+    execute,
     load_mesh,
     method_label,
-    output_dir,
     positive_float,
     positive_int,
-    print_table,
-    result_path,
+    result_name,
     up_axis,
 )
 
@@ -47,15 +49,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="also write eigenvalues, eigenvectors (columns) and masses to <mesh>_spectrum.npz",
     )
     add_output_arguments(p, progress=False)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, compute=compute)
 
 
-def run(args: argparse.Namespace) -> int:
+def compute(args: argparse.Namespace) -> Result:
     verts, faces, path, label = load_mesh(args)
     n = verts.shape[0]
     if args.k >= n:
         raise ValueError(f"-k {args.k} is too large for a mesh with {n} vertices (k < {n}).")
-    out = output_dir(args)
     start = time.perf_counter()
     L, M0 = laplacian(verts, faces, args.lam, method=args.method)
     t_assembly = time.perf_counter() - start
@@ -65,46 +66,57 @@ def run(args: argparse.Namespace) -> int:
 
     # checks a reader can trust: residual of each pair and M0-orthonormality
     residual = L @ evecs - (M0 @ evecs) * evals
+    mass = to_scipy(M0).diagonal()
     scale = float(to_scipy(L).diagonal().max())
     rel_residual = float(residual.abs().max()) / scale
     gram = evecs.T @ (M0 @ evecs)
     ortho = float((gram - torch.eye(args.k, dtype=gram.dtype)).abs().max())
 
-    print_table(
-        f"polylap spectrum: {label}",
-        [
-            ("vertices / faces", f"{n} / {faces.num_faces}"),
-            ("lambda / k", f"{args.lam} / {args.k}"),
-            ("Laplacian", method_label(args)),
-            ("assembly / eigs", f"{t_assembly * 1e3:.1f} ms / {t_eigs * 1e3:.1f} ms"),
-            ("max |L phi - mu M0 phi| / max L_ii", f"{rel_residual:.1e}"),
-            ("max |Phi^T M0 Phi - I|", f"{ortho:.1e}"),
-        ],
-    )
-    print("eigenvalues mu_i")
+    rows = [
+        ("vertices / faces", f"{n} / {faces.num_faces}"),
+        ("lambda / k", f"{args.lam} / {args.k}"),
+        ("Laplacian", method_label(args)),
+        ("assembly / eigs", f"{t_assembly * 1e3:.1f} ms / {t_eigs * 1e3:.1f} ms"),
+        ("max |L phi - mu M0 phi| / max L_ii", f"{rel_residual:.1e}"),
+        ("max |Phi^T M0 Phi - I|", f"{ortho:.1e}"),
+    ]
     values = evals.tolist()
-    for i in range(0, len(values), 5):
-        print("  " + "  ".join(f"{j:>3}: {v:<12.6g}" for j, v in enumerate(values[i : i + 5], i)))
-
-    written = []
+    lines = ["eigenvalues mu_i"] + [
+        "  " + "  ".join(f"{j:>3}: {v:<12.6g}" for j, v in enumerate(values[i : i + 5], i))
+        for i in range(0, len(values), 5)
+    ]
+    result = Result(
+        f"polylap spectrum: {label}",
+        rows,
+        text="\n".join(lines),
+        data={"eigenvalues": values, "residual": rel_residual, "orthonormality": ortho},
+    )
     if args.npz:
-        npz = result_path(out, path, "spectrum", ".npz")
-        np.savez(
-            npz,
-            eigenvalues=evals.numpy(),
-            eigenvectors=evecs.numpy(),
-            mass=to_scipy(M0).diagonal(),
-            lam=args.lam,
-            method=args.method,
-        )
-        written.append(npz)
+
+        def write_npz(npz: Path) -> None:
+            np.savez(
+                npz,
+                eigenvalues=evals.numpy(),
+                eigenvectors=evecs.numpy(),
+                mass=mass,
+                lam=args.lam,
+                method=args.method,
+            )
+
+        result.outputs.append(Output(result_name(path, "spectrum", ".npz"), write_npz))
     if not args.no_plot:
-        png = result_path(out, path, "spectrum", ".png")
-        _figure(verts, faces, evals, evecs, args.show, up_axis(args, verts), png)
-        written.append(png)
-    for f in written:
-        print(f"wrote {f}")
-    return 0
+        up = up_axis(args, verts)
+        result.outputs.append(
+            Output(
+                result_name(path, "spectrum", ".png"),
+                lambda png: _figure(verts, faces, evals, evecs, args.show, up, png),
+            )
+        )
+    return result
+
+
+def run(args: argparse.Namespace) -> int:
+    return execute(compute, args)
 
 
 def _figure(verts, faces, evals, evecs, show: int, up: str, png) -> None:
