@@ -227,10 +227,12 @@ def chamfer_distance(
             ``points_padded``, ``num_points_per_cloud``, ``normals_padded``), or ``(P1, D)``:
             one cloud, the same as ``x[None]`` (an extension; pytorch3d wants 3-D input).
         y: ``(N, P2, D)``, a ``Pointclouds`` or ``(P2, D)``, like ``x``.
-        x_lengths, y_lengths: ``(N,)`` int64 points in each cloud (the rest is padding);
-            default: all ``P1`` / ``P2``.
-        x_normals, y_normals: ``(N, P1, D)`` / ``(N, P2, D)`` normals (both, or the normal term
-            is not computed).
+        x_lengths: ``(N,)`` int64 number of points in each cloud of ``x`` (the rest is
+            padding); default: all ``P1``.
+        y_lengths: the same for ``y``; default: all ``P2``.
+        x_normals: ``(N, P1, D)`` normals of ``x`` (give both normals, or the normal term is
+            not computed).
+        y_normals: ``(N, P2, D)`` normals of ``y``.
         weights: ``(N,)`` non-negative weights of the clouds, multiplying their terms; the
             batch ``"mean"`` then divides by ``weights.sum()``.
         batch_reduction: ``"mean"`` (default), ``"sum"`` or ``None`` (per cloud, ``(N,)``).
@@ -240,7 +242,9 @@ def chamfer_distance(
         single_directional: only the ``x -> y`` term.
         abs_cosine: the normal term is ``1 - |cos|`` (orientation ignored; default) or
             ``1 - cos``, of each point's normal and that of its nearest neighbour.
-        chunk_size, backend: the nearest-neighbour search, see :func:`nearest_neighbors`.
+        chunk_size: the nearest-neighbour search's chunk size, see
+            :func:`nearest_neighbors`.
+        backend: the nearest-neighbour search's backend, see :func:`nearest_neighbors`.
 
     Returns:
         ``(loss, loss_normals)``: the reduced ``x -> y`` plus ``y -> x`` terms, and the same for

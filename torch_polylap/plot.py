@@ -121,9 +121,13 @@ def plot_mesh(
         values: ``(F,)`` per-face or ``(V,)`` per-vertex values (averaged to the faces).
         ax: a 3D axes to draw into (``projection="3d"``); a new figure when ``None``.
         path: save the figure there (PNG, or any format matplotlib infers from the suffix).
-        title, cmap, clim: axes title, colormap name, color limits (default: data range).
-        colorbar: add a colorbar when ``values`` is given; ``label`` labels it.
-        elev, azim: view angles in degrees.
+        title: axes title.
+        cmap: colormap name.
+        clim: color limits ``(low, high)``; default: the data range.
+        colorbar: add a colorbar when ``values`` is given.
+        label: the colorbar's label.
+        elev: view elevation in degrees.
+        azim: view azimuth in degrees.
         edges: draw the polygon outlines.
         up: the coordinate axis drawn vertically, ``"x"``, ``"y"`` (common for OBJ models) or
             ``"z"``; the axes are permuted cyclically, so the view is not mirrored.
@@ -244,7 +248,11 @@ def plot_uv(
         faces: the polygons.
         values: ``(F,)`` or ``(V,)`` values; without them the polygons are white.
         ax: a 2D axes to draw into; a new figure when ``None``.
-        path, title, cmap, clim, label: as in :func:`plot_mesh`.
+        path: save the figure there, as in :func:`plot_mesh`.
+        title: axes title.
+        cmap: colormap name.
+        clim: color limits; default: the data range.
+        label: the colorbar's label.
 
     Returns:
         The axes drawn into.

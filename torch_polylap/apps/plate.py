@@ -141,8 +141,9 @@ def navier_deflection(
     orientation with the larger ``d``, and only as many terms as its ``d`` needs are summed.
 
     Args:
-        x, y: coordinates in ``[0, 1]``, broadcastable (tensors keep their dtype and device;
-            other inputs become float64; the series is summed in float64).
+        x: coordinates in ``[0, 1]``, broadcastable with ``y`` (tensors keep their dtype and
+            device; other inputs become float64; the series is summed in float64).
+        y: coordinates in ``[0, 1]``, like ``x``.
         load: uniform load ``q``.
         terms: largest number of odd ``m`` summed (points far from the edges need far fewer).
             Default: enough that the remainder is below float64 round-off of the center

@@ -196,8 +196,9 @@ def spatial_gradient_features(
     """``tanh(<g_c, (A g)_c>)`` per vertex and channel (DiffusionNet section 3.3).
 
     Args:
-        gx, gy: ``(V, C)`` tangent components of the gradients of ``C`` channels (``grad_x @ x``,
-            ``grad_y @ x``).
+        gx: ``(V, C)`` first tangent component of the gradients of ``C`` channels
+            (``grad_x @ x``).
+        gy: ``(V, C)`` second tangent component (``grad_y @ x``).
         weight_re: ``(C, C)`` real part of ``A`` (``(A g)_c = sum_d A[c, d] g_d``).
         weight_im: ``(C, C)`` imaginary part of ``A`` (the rotation component), or ``None``
             for a real ``A`` acting alike on both tangent components.
