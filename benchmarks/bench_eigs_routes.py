@@ -89,7 +89,7 @@ def arpack_cholmod(Ls: sp.csr_matrix, Ms: sp.csr_matrix, k: int, shift: float):
 def bench_routes(n_target: int, k: int, repeat: int, dense_max: int, generalized_max: int) -> dict:
     V, F = grid_mesh(n_target)
     L, M0 = tp.laplacian(V, F)
-    Ls, Ms = tp.to_scipy(L).astype(np.float64), tp.to_scipy(M0).astype(np.float64)
+    Ls, Ms = tp.sparse.to_scipy(L).astype(np.float64), tp.sparse.to_scipy(M0).astype(np.float64)
     n = Ls.shape[0]
     scale = abs(Ls).max() / Ms.diagonal().max()
     shift = -1e-6 * scale

@@ -6,7 +6,8 @@ real polygon meshes of ``--real-dir``:
 1. first assembly of ``(L, M0)``: ``build_topology`` + ``laplacian``;
 2. re-assembly of ``(L, M0)`` with the cached ``Topology``;
 3. forward + backward of ``sum((L X)^2)`` with respect to the vertex positions ``X``;
-4. ``L @ X`` for ``X`` ``(V, 3)``: ``torch_polylap.spmm`` and plain ``L @ X`` on a detached ``L``;
+4. ``L @ X`` for ``X`` ``(V, 3)``: ``torch_polylap.sparse.spmm`` and plain ``L @ X`` on a
+   detached ``L``;
 5. peak memory of (3), in a fresh process per grid size.
 
 Side by side: libigl's triangle ``cotmatrix`` on the fan triangulation of the same mesh (two
@@ -159,7 +160,7 @@ def forward_backward(verts: torch.Tensor, topo: tp.Topology) -> None:
     """One training step's worth of work: ``(L, M0)`` from ``X``, ``sum((L X)^2)``, backward."""
     X = verts.detach().requires_grad_(True)
     L, _ = tp.laplacian(X, topo)
-    loss = (tp.spmm(L, X) ** 2).sum()
+    loss = (tp.sparse.spmm(L, X) ** 2).sum()
     loss.backward()
 
 
@@ -172,7 +173,7 @@ def bench_mesh(mesh: Mesh, dtype: torch.dtype, device: torch.device, repeat: int
         warnings.simplefilter("ignore")  # isolated-vertex warnings were reported by validate()
         topo = tp.build_topology(mesh.faces, num_verts)
         L, _ = tp.laplacian(verts, topo)
-        S = tp.to_scipy(L)
+        S = tp.sparse.to_scipy(L)
         X_np = verts.cpu().numpy()
         tris = mesh.fan_triangles()
         corners = mesh.packed.indices.numpy()
@@ -184,7 +185,7 @@ def bench_mesh(mesh: Mesh, dtype: torch.dtype, device: torch.device, repeat: int
             ),
             "reassembly": median_time(lambda: tp.laplacian(verts, topo), repeat, sync),
             "fwd_bwd": median_time(lambda: forward_backward(verts, topo), repeat, sync),
-            "spmm": median_time(lambda: tp.spmm(L, verts), repeat, sync),
+            "spmm": median_time(lambda: tp.sparse.spmm(L, verts), repeat, sync),
             "torch_matmul": median_time(lambda: L @ verts, repeat, sync),
             "scipy_matmul": median_time(lambda: S @ X_np, repeat, sync),
             "igl_tri": median_time(lambda: igl.cotmatrix(mesh.verts, tris), repeat, sync),
@@ -241,7 +242,7 @@ def check_against_igl(n: int, device: torch.device) -> dict:
     tris = mesh.fan_triangles()
     verts = torch.as_tensor(mesh.verts, dtype=torch.float64, device=device)
     L, _ = tp.laplacian(verts, torch.from_numpy(tris))
-    diff = tp.to_scipy(L) + igl.cotmatrix(mesh.verts, tris)
+    diff = tp.sparse.to_scipy(L) + igl.cotmatrix(mesh.verts, tris)
     max_abs = float(abs(diff).max()) if diff.nnz else 0.0
     return {
         "mesh": f"{mesh.name} split into triangles",

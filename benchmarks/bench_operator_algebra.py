@@ -7,8 +7,8 @@ on regular quad grids (default 100k and 1M quads, gently bumped so the faces are
 
 * **ours**: the expression as written, on the operators ``laplacian`` returns;
 * **by hand**: the same computation without operator algebra, on the unmodified ``L`` and ``M0``
-  (``tp.spmm(L, X)`` products combined afterwards; for the solve, the system's values scattered
-  onto ``L``'s pattern by hand), which is how it had to be written before the sparse seam;
+  (``tp.sparse.spmm(L, X)`` products combined afterwards; for the solve, the system's values
+  scattered onto ``L``'s pattern by hand), which is how it had to be written before the sparse seam;
 * **torch native**: ``torch.sparse_csr_tensor(...) @ X`` with the differentiable values, whose
   backward asks for a dense ``V x V`` gradient; attempted once per grid and reported.
 
@@ -69,39 +69,39 @@ def implicit_by_hand(L: torch.Tensor, M0: torch.Tensor, t: float) -> torch.Tenso
 
 # (name, ours, the same computation by hand on the unmodified L and M0)
 EXPRESSIONS: list[tuple[str, Expr, Expr]] = [
-    ("L @ X", lambda L, M0, X: L @ X, lambda L, M0, X: tp.spmm(L, X)),
-    ("torch.mm(L, X)", lambda L, M0, X: torch.mm(L, X), lambda L, M0, X: tp.spmm(L, X)),
+    ("L @ X", lambda L, M0, X: L @ X, lambda L, M0, X: tp.sparse.spmm(L, X)),
+    ("torch.mm(L, X)", lambda L, M0, X: torch.mm(L, X), lambda L, M0, X: tp.sparse.spmm(L, X)),
     (
         "torch.sparse.mm(L, X)",
         lambda L, M0, X: torch.sparse.mm(L, X),
-        lambda L, M0, X: tp.spmm(L, X),
+        lambda L, M0, X: tp.sparse.spmm(L, X),
     ),
-    ("(2 * L) @ X", lambda L, M0, X: (2 * L) @ X, lambda L, M0, X: 2 * tp.spmm(L, X)),
+    ("(2 * L) @ X", lambda L, M0, X: (2 * L) @ X, lambda L, M0, X: 2 * tp.sparse.spmm(L, X)),
     (
         "(L + M0) @ X",
         lambda L, M0, X: (L + M0) @ X,
-        lambda L, M0, X: tp.spmm(L, X) + tp.spmm(M0, X),
+        lambda L, M0, X: tp.sparse.spmm(L, X) + tp.sparse.spmm(M0, X),
     ),
     (
         "(0.5 * L + M0) @ X",
         lambda L, M0, X: (0.5 * L + M0) @ X,
-        lambda L, M0, X: 0.5 * tp.spmm(L, X) + tp.spmm(M0, X),
+        lambda L, M0, X: 0.5 * tp.sparse.spmm(L, X) + tp.sparse.spmm(M0, X),
     ),
     (
         "(L - 0.25 * M0) @ X",
         lambda L, M0, X: (L - 0.25 * M0) @ X,
-        lambda L, M0, X: tp.spmm(L, X) - 0.25 * tp.spmm(M0, X),
+        lambda L, M0, X: tp.sparse.spmm(L, X) - 0.25 * tp.sparse.spmm(M0, X),
     ),
     (
         "L.to_sparse_coo().coalesce() @ X",
         lambda L, M0, X: L.to_sparse_coo().coalesce() @ X,
-        lambda L, M0, X: tp.spmm(L, X),
+        lambda L, M0, X: tp.sparse.spmm(L, X),
     ),
-    ("L.T @ X", lambda L, M0, X: L.T @ X, lambda L, M0, X: tp.spmm(L, X)),
+    ("L.T @ X", lambda L, M0, X: L.T @ X, lambda L, M0, X: tp.sparse.spmm(L, X)),
     (
         "X * (L @ X) (Dirichlet)",
         lambda L, M0, X: X * (L @ X),
-        lambda L, M0, X: X * tp.spmm(L, X),
+        lambda L, M0, X: X * tp.sparse.spmm(L, X),
     ),
     (
         "solve(M0 + 0.1 * L, X)",

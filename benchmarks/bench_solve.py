@@ -74,7 +74,7 @@ def bench_solve(n: int, repeat: int) -> dict:
     B = torch.randn(
         verts.shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)
     )
-    A_csc = sp.csc_matrix(tp.to_scipy(implicit_matrix(L, M0, 1e-2)))
+    A_csc = sp.csc_matrix(tp.sparse.to_scipy(implicit_matrix(L, M0, 1e-2)))
     out = {"faces": faces.shape[0], "verts": verts.shape[0]}
     # a fresh A each call, so the factorization is part of every timing
     out["ours_factor_solve"] = timed(lambda: tp.solve(implicit_matrix(L, M0, 1e-2), B), repeat)
@@ -108,7 +108,7 @@ def bench_solve(n: int, repeat: int) -> dict:
 def bench_eigs(n: int, k: int, repeat: int) -> dict:
     verts, faces = grid(n)
     L, M0 = tp.laplacian(verts, faces)
-    Ls, Ms = tp.to_scipy(L), tp.to_scipy(M0)
+    Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
     shift = -1e-8 * abs(Ls).max() / Ms.diagonal().max()
     return {
         "faces": faces.shape[0],
@@ -136,7 +136,7 @@ def bench_precompute(k: int, repeat: int) -> dict | None:
 
     out["ours_polygon"] = timed(ours, repeat)
     L, M0 = tp.laplacian(verts, faces)
-    Ls, Ms = tp.to_scipy(L), tp.to_scipy(M0)
+    Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
     out["scipy_eigsh_polygon_L"] = timed(
         lambda: spla.eigsh(Ls, k=k, M=Ms, sigma=-1e-8, which="LM"), repeat
     )

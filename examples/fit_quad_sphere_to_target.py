@@ -98,7 +98,7 @@ def uniform_laplacian(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     rows = torch.cat([edges[:, 0], edges[:, 1], torch.arange(num_verts)])
     cols = torch.cat([edges[:, 1], edges[:, 0], torch.arange(num_verts)])
     degree = torch.bincount(edges.reshape(-1), minlength=num_verts).to(dtype)
-    trace = float(tp.to_scipy(tp.laplacian(verts.detach(), faces)[0]).diagonal().sum())
+    trace = float(tp.sparse.to_scipy(tp.laplacian(verts.detach(), faces)[0]).diagonal().sum())
     values = (
         trace
         / float(degree.sum())

@@ -49,7 +49,7 @@ def unit_square_mesh(path: Path) -> tuple[torch.Tensor, tp.PolygonFaces]:
 def full_energy_error(verts, faces, reference) -> float:
     """Minimize 1/2 u^T L^T M0^-1 L u - u^T M0 q over u with u_B = 0, keeping every row of L."""
     L, M0 = tp.laplacian(verts, faces, 1.0)
-    Ls, m = tp.to_scipy(L).tocsc(), tp.to_scipy(M0).diagonal()
+    Ls, m = tp.sparse.to_scipy(L).tocsc(), tp.sparse.to_scipy(M0).diagonal()
     boundary = tp.get_topology(faces, verts.shape[0]).boundary_vertices.numpy()
     inner = np.setdiff1d(np.arange(verts.shape[0]), boundary)
     L_in = Ls[:, inner]

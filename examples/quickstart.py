@@ -51,7 +51,7 @@ def main(path: Path) -> None:
     print(f"|grad| of |L X|^2 + |smoothing step|^2 w.r.t. the vertices: {X.grad.norm():.4f}")
 
     # scipy interop
-    S = tp.to_scipy(L)
+    S = tp.sparse.to_scipy(L)
     print(f"scipy: {type(S).__name__} {S.shape}, symmetric: {abs(S - S.T).max() == 0}")
 
 

@@ -98,13 +98,13 @@ def test_lambda_zero_has_spurious_zero_energy_modes():
 
     def bending_energy(lam):
         L, M0 = tp.laplacian(verts, faces, lam)
-        Lu = tp.spmm(L, checker)
+        Lu = tp.sparse.spmm(L, checker)
         return float(0.5 * (Lu * Lu / tp.mass(verts, faces)).sum())
 
     assert bending_energy(0.0) < 1e-24 and bending_energy(1.0) > 1.0
     verts, faces = unit_square_grid("str_hex_1.obj")
     for lam, nullity in ((0.0, 15), (1e-3, 1)):
-        L = tp.to_scipy(tp.laplacian(verts, faces, lam)[0]).toarray()
+        L = tp.sparse.to_scipy(tp.laplacian(verts, faces, lam)[0]).toarray()
         evals = np.linalg.eigvalsh(L)
         assert int((evals < 1e-10 * np.abs(L).max()).sum()) == nullity
     # the modes spoil the supported plate too: a meaningless deflection at lambda = 0
@@ -153,7 +153,7 @@ def test_all_rows_of_the_energy_give_the_clamped_plate():
     """
     verts, faces = unit_square_grid("quad_3.obj")
     L, M0 = tp.laplacian(verts, faces, 1.0)
-    Ls, m = tp.to_scipy(L).tocsc(), tp.to_scipy(M0).diagonal()
+    Ls, m = tp.sparse.to_scipy(L).tocsc(), tp.sparse.to_scipy(M0).diagonal()
     boundary = tp.build_topology(faces, verts.shape[0]).boundary_vertices.numpy()
     inner = np.setdiff1d(np.arange(verts.shape[0]), boundary)
     L_in = Ls[:, inner]
@@ -169,7 +169,7 @@ def test_plate_minimizes_the_interior_bending_energy():
     load = 1.0 + verts[:, 0]  # a non-uniform load
     u = plate_bending(verts, faces, load=load, lam=2.0)
     L, M0 = tp.laplacian(verts, faces, 2.0)
-    Ld = tp.to_scipy(L).toarray()
+    Ld = tp.sparse.to_scipy(L).toarray()
     m = tp.mass(verts, faces).numpy()
     boundary = tp.build_topology(faces, verts.shape[0]).boundary_vertices.numpy()
     inner = np.setdiff1d(np.arange(verts.shape[0]), boundary)

@@ -125,7 +125,7 @@ def test_normal_consistency_refuses_misoriented_meshes_and_skips_fin_edges():
     with pytest.raises(
         ValueError, match=r"mesh 0: normal_consistency " + MISORIENTED + ORIENT_FACES
     ):
-        tp.normal_consistency((V, F))
+        tp.losses.normal_consistency((V, F))
     with pytest.raises(ValueError, match="mesh 0: normal_consistency " + NON_ORIENTABLE):
         tp.losses.NormalConsistencyLoss()(moebius())
     # a fin: its edge has no two sides and is left out of the mean, like a boundary edge
@@ -138,7 +138,7 @@ def test_normal_consistency_refuses_misoriented_meshes_and_skips_fin_edges():
     assert sorted(len(o) for o in owners.values())[-1] == 3
     pairs = [o for o in owners.values() if len(o) == 2]
     expected = torch.stack([1 - n[a] @ n[b] for a, b in pairs]).mean()
-    torch.testing.assert_close(tp.normal_consistency((Vf, Ff)), expected)
+    torch.testing.assert_close(tp.losses.normal_consistency((Vf, Ff)), expected)
 
 
 # -- mesh quality: folded_edges needs an orientation -------------------------------------------

@@ -65,7 +65,7 @@ def test_gradcheck_spmm(symmetric, layout):
 
     def product(v, X):
         A = operator.with_values(v, symmetric=symmetric)
-        return tp.spmm(A, X)
+        return tp.sparse.spmm(A, X)
 
     assert torch.autograd.gradcheck(product, (values, X))
     x1 = torch.randn(dense.shape[1], **D64, requires_grad=True)
@@ -76,11 +76,11 @@ def test_gradcheck_spmm(symmetric, layout):
 def test_spmm_rejects_mismatches():
     _, A = random_sparse(4, 3, 0.6, 1)
     with pytest.raises(ValueError, match="dtype"):
-        tp.spmm(A, torch.randn(3, 2))
+        tp.sparse.spmm(A, torch.randn(3, 2))
     with pytest.raises(ValueError, match="cannot multiply"):
-        tp.spmm(A, torch.randn(4, 2, **D64))
+        tp.sparse.spmm(A, torch.randn(4, 2, **D64))
     with pytest.raises(TypeError, match="expected a sparse matrix"):
-        tp.spmm(torch.randn(4, 3, **D64), torch.randn(3, 2, **D64))
+        tp.sparse.spmm(torch.randn(4, 3, **D64), torch.randn(3, 2, **D64))
 
 
 def test_gradient_of_dirichlet_energy_matches_finite_differences():
@@ -90,7 +90,7 @@ def test_gradient_of_dirichlet_energy_matches_finite_differences():
 
     def energy(X):
         L, _ = tp.laplacian(X, topo, 1.5)
-        return 0.5 * (u * tp.spmm(L, u)).sum()
+        return 0.5 * (u * tp.sparse.spmm(L, u)).sum()
 
     assert_directional_derivative(energy, V, rtol=1e-7)
 
@@ -117,7 +117,7 @@ def test_thin_faces_have_finite_values_and_gradients(dtype, thinness):
     X = verts.clone().requires_grad_(True)
     L, M0 = tp.laplacian(X, faces)
     assert torch.isfinite(sparse_values(L)).all() and torch.isfinite(sparse_values(M0)).all()
-    loss = (tp.spmm(L, X) ** 2).sum() + tp.planarity_energy(X, faces)
+    loss = (tp.sparse.spmm(L, X) ** 2).sum() + tp.planarity_energy(X, faces)
     loss.backward()
     assert torch.isfinite(X.grad).all()
 
@@ -130,9 +130,9 @@ def test_cuda_matches_cpu():
     Lc, M0c = tp.laplacian(Vc, F, 1.5)
     assert Lc.device.type == "cuda" and M0c.device.type == "cuda"
     assert torch.allclose(Lc.to_dense().cpu(), L.to_dense(), atol=1e-12)
-    (tp.spmm(Lc, Vc) ** 2).sum().backward()
+    (tp.sparse.spmm(Lc, Vc) ** 2).sum().backward()
     X = V.clone().requires_grad_(True)
-    (tp.spmm(tp.laplacian(X, F, 1.5)[0], X) ** 2).sum().backward()
+    (tp.sparse.spmm(tp.laplacian(X, F, 1.5)[0], X) ** 2).sum().backward()
     assert torch.allclose(Vc.grad.cpu(), X.grad, atol=1e-9)
     Lf, _ = tp.laplacian(V.float().cuda(), F)
     assert Lf.dtype == torch.float32

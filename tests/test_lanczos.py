@@ -66,7 +66,7 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
     monkeypatch.setattr(linalg, "_eigs_arpack", lambda *a: calls.append(a))  # must not be used
     evals, evecs = tp.eigs(L, M0, k)
     assert not calls
-    Ls, Ms = tp.to_scipy(L), tp.to_scipy(M0)
+    Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
     ref_vals, ref_vecs = spla.eigsh(Ls, k=k, M=Ms, sigma=-1e-6, which="LM", tol=0)
     np.testing.assert_allclose(evals.numpy(), np.sort(ref_vals), rtol=1e-9, atol=1e-11)
     phi = evecs.numpy()
@@ -86,14 +86,18 @@ def test_sparse_eigs_count_components(route, monkeypatch):
     V, F = tp.read_mesh(DATA / "mixedFaring.off", dtype=torch.float64)
     n = V.shape[0]
     blocks = [tp.laplacian(V + 10.0 * i, F) for i in range(3)]
-    L = tp.from_scipy(sp.block_diag([tp.to_scipy(b[0]) for b in blocks], format="csr"))
-    M0 = tp.from_scipy(sp.block_diag([tp.to_scipy(b[1]) for b in blocks], format="csr"))
+    L = tp.sparse.from_scipy(
+        sp.block_diag([tp.sparse.to_scipy(b[0]) for b in blocks], format="csr")
+    )
+    M0 = tp.sparse.from_scipy(
+        sp.block_diag([tp.sparse.to_scipy(b[1]) for b in blocks], format="csr")
+    )
     evals, evecs = tp.eigs(L, M0, 6)
     assert (evals[:3].abs() < 1e-9).all() and evals[3] > 1e-4
     # the kernel is spanned by the indicator functions of the three copies
     indicator = np.kron(np.eye(3), np.ones((n, 1)))
     kernel = evecs[:, :3].numpy()
-    projection = kernel @ (kernel.T @ (tp.to_scipy(M0) @ indicator))
+    projection = kernel @ (kernel.T @ (tp.sparse.to_scipy(M0) @ indicator))
     np.testing.assert_allclose(projection, indicator, atol=1e-8)
 
 

@@ -151,8 +151,8 @@ def test_dirichlet_energy_via_coboundary_and_one_form_inner_product():
     first = m.mesh_to_verts_packed_first_idx().tolist() + [m.verts_packed().shape[0]]
     expected = []
     for i, (v, f) in enumerate(zip(verts, faces, strict=True)):
-        d = tp.coboundary(f, v.shape[0]).to_dense()
-        M1 = tp.one_form_inner_product(v, f, 2.0).to_dense()
+        d = tp.dec.coboundary(f, v.shape[0]).to_dense()
+        M1 = tp.dec.one_form_inner_product(v, f, 2.0).to_dense()
         df = d @ signal[first[i] : first[i + 1]]
         expected.append(0.5 * torch.trace(df.t() @ M1 @ df))
     out = losses.dirichlet_energy(m, signal, lam=2.0, reduction="none")

@@ -273,7 +273,7 @@ def test_dataset_caches_each_method_separately(pair, tmp_path):
 def test_mean_curvature_flow(pair, method, frozen):
     verts, faces = pair[0]
     dt = 1e-2
-    got = tp.mean_curvature_flow(verts, faces, dt, 2, lam=LAM, frozen=frozen, method=method)
+    got = tp.apps.mean_curvature_flow(verts, faces, dt, 2, lam=LAM, frozen=frozen, method=method)
     X = verts
     L0, M0_0 = direct(verts, faces, method)
     for _ in range(2):
@@ -291,16 +291,18 @@ def test_conformal(pair, method):
     torch.testing.assert_close(dense(LC)[:n, :n], dense(L), **TIGHT)
     torch.testing.assert_close(dense(LC)[n:, n:], dense(L), **TIGHT)
 
-    uv = tp.conformal_parameterization(verts, faces, lam=LAM, method=method)
+    uv = tp.apps.conformal_parameterization(verts, faces, lam=LAM, method=method)
     # E_C = 1/2 sum_c uv_c^T L uv_c - A(uv) with this method's L
-    energy = tp.conformal_energy(uv, verts, faces, LAM, method=method)
+    energy = tp.apps.conformal_energy(uv, verts, faces, LAM, method=method)
     z = torch.cat((uv[:, 0], uv[:, 1]))
     torch.testing.assert_close(energy, 0.5 * z @ (LC @ z), rtol=1e-10, atol=1e-12)
     # The pinned map minimizes E_C with this method's L_C: stationary at every free unknown.
     pins = torch.nonzero((LC @ z).abs() > 1e-9 * dense(LC).abs().max()).flatten() % n
     assert len(set(pins.tolist())) <= 2, "more than the two pinned vertices are not stationary"
 
-    free = tp.conformal_parameterization(verts, faces, lam=LAM, free_boundary=True, method=method)
+    free = tp.apps.conformal_parameterization(
+        verts, faces, lam=LAM, free_boundary=True, method=method
+    )
     # The free-boundary map is L-harmonic inside (AW11 eq. 15) for this method's L.
     interior = torch.ones(n, dtype=torch.bool)
     interior[tp.build_topology(faces, n).boundary_vertices] = False
@@ -310,8 +312,8 @@ def test_conformal(pair, method):
 
 def test_conformal_defaults_and_method_matters(pair):
     verts, faces = pair[0]
-    uv = {m: tp.conformal_parameterization(verts, faces, method=m) for m in METHODS}
-    assert torch.equal(tp.conformal_parameterization(verts, faces), uv["aw11"])
+    uv = {m: tp.apps.conformal_parameterization(verts, faces, method=m) for m in METHODS}
+    assert torch.equal(tp.apps.conformal_parameterization(verts, faces), uv["aw11"])
     assert (uv["plms"] - uv["aw11"]).abs().max() > 1e-4
     assert (uv["degoes"] - uv["aw11"]).abs().max() > 1e-4
 
@@ -321,9 +323,9 @@ def test_plate_bending(method):
     V, F = tp.read_mesh(DATA / "grid" / "irr_poly_1.obj", dtype=torch.float64)
     V = V + torch.tensor([0.5, 0.5, 0.0], dtype=V.dtype)
     V[:, 2] = 0.05 * torch.sin(3 * V[:, 0]) * torch.cos(2 * V[:, 1])  # non-planar faces too
-    u = tp.plate_bending(V, F, load=1.0, lam=LAM, method=method)
+    u = tp.apps.plate_bending(V, F, load=1.0, lam=LAM, method=method)
     L, M0 = direct(V, F, method)
-    Ls, m = tp.to_scipy(L).tocsr(), dense(M0).diagonal().numpy()
+    Ls, m = tp.sparse.to_scipy(L).tocsr(), dense(M0).diagonal().numpy()
     boundary = tp.build_topology(F, V.shape[0]).boundary_vertices.numpy()
     inner = np.setdiff1d(np.arange(V.shape[0]), boundary)
     L_II = Ls[inner][:, inner].tocsc()
@@ -336,11 +338,11 @@ def test_plate_bending(method):
 def test_applications_reject_unknown_methods(pair):
     verts, faces = pair[0]
     for call in (
-        lambda: tp.mean_curvature_flow(verts, faces, 1e-2, 1, method="x"),
-        lambda: tp.conformal_parameterization(verts, faces, method="x"),
-        lambda: tp.conformal_energy(verts[:, :2], verts, faces, method="x"),
+        lambda: tp.apps.mean_curvature_flow(verts, faces, 1e-2, 1, method="x"),
+        lambda: tp.apps.conformal_parameterization(verts, faces, method="x"),
+        lambda: tp.apps.conformal_energy(verts[:, :2], verts, faces, method="x"),
         lambda: conformal_matrix(verts, faces, method="x"),
-        lambda: tp.plate_bending(verts, faces, method="x"),
+        lambda: tp.apps.plate_bending(verts, faces, method="x"),
     ):
         with pytest.raises(ValueError, match="method must be one of"):
             call()
@@ -380,7 +382,7 @@ def test_cli_smooth_and_param(method, tmp_path, capsys, one_thread):
     assert _field(capsys.readouterr().out, "Laplacian").startswith(method)
     verts, faces = tp.read_mesh(mesh, dtype=torch.float64)
     smoothed, _ = tp.read_mesh(tmp_path / "dodecahedron_poly_smooth.obj", dtype=torch.float64)
-    expected = tp.mean_curvature_flow(verts, faces, 0.01, 2, lam=LAM, method=method)
+    expected = tp.apps.mean_curvature_flow(verts, faces, 0.01, 2, lam=LAM, method=method)
     # the OBJ writer prints 17 significant digits
     torch.testing.assert_close(smoothed, expected, rtol=1e-12, atol=1e-14)
 
@@ -391,9 +393,9 @@ def test_cli_smooth_and_param(method, tmp_path, capsys, one_thread):
     assert main([*argv, "-o", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     uv, _ = tp.read_mesh(tmp_path / "disk_param.obj", dtype=torch.float64)
-    expected = tp.conformal_parameterization(verts, faces, lam=LAM, method=method)
+    expected = tp.apps.conformal_parameterization(verts, faces, lam=LAM, method=method)
     torch.testing.assert_close(uv[:, :2], expected, rtol=1e-10, atol=1e-12)
-    energy = float(tp.conformal_energy(expected, verts, faces, LAM, method=method))
+    energy = float(tp.apps.conformal_energy(expected, verts, faces, LAM, method=method))
     assert float(_field(out, "conformal energy E_C")) == pytest.approx(energy, rel=1e-3)
 
 

@@ -41,7 +41,7 @@ def batch():
 
 
 def m_norm(M0, u):
-    return torch.sqrt((tnn.diagonal(M0)[:, None] * u * u).sum())
+    return torch.sqrt((M0.diagonal()[:, None] * u * u).sum())
 
 
 def test_spectral_diffusion_is_the_library_functional(sphere):
@@ -49,7 +49,7 @@ def test_spectral_diffusion_is_the_library_functional(sphere):
     spectrum = tnn.Spectrum.from_meshes([(evals, evecs, M0)])
     x = torch.stack([V[:, 2], V[:, 0] * V[:, 1], torch.cos(4 * V[:, 0])], 1)
     times = torch.tensor([1e-3, 1e-2, 0.1], **D64)
-    out = tnn.spectral_diffusion(x, spectrum, times)
+    out = spectrum.heat_diffusion(x, times)
     ref = tp.spectral_heat_diffusion(x, evals, evecs, M0, times)
     assert torch.allclose(out, ref, atol=1e-13)
 
@@ -58,13 +58,13 @@ def test_implicit_diffusion_is_the_library_functional_and_the_resolvent(sphere):
     V, _, L, M0, evals, evecs = sphere
     times = torch.tensor([1e-3, 0.05], **D64)
     x = torch.stack([V[:, 2], torch.sin(3 * V[:, 1])], 1)
-    out = tnn.implicit_diffusion(x, L, M0, times)
+    out = tp.implicit_heat_diffusion(L, M0, x, times)
     for c in range(2):
         ref = tp.implicit_heat_diffusion(L, M0, x[:, c], times[c])
         assert torch.allclose(out[:, c], ref, atol=1e-13)
     # on an eigenvector (M0 + tL) phi = (1 + t mu) M0 phi: one step scales it by 1 / (1 + t mu)
     phi = evecs[:, [3, 7]]
-    out = tnn.implicit_diffusion(phi, L, M0, times)
+    out = tp.implicit_heat_diffusion(L, M0, phi, times)
     expected = phi / (1 + times * evals[[3, 7]])
     assert torch.allclose(out, expected, atol=1e-9)
 
@@ -86,7 +86,7 @@ def test_spectral_and_implicit_diffusion_agree_for_small_times(sphere):
         times = torch.full((2,), t, **D64)
         gap = (torch.exp(-t * evals) - 1 / (1 + t * evals)).abs().max()
         diff = m_norm(
-            M0, tnn.spectral_diffusion(u, spectrum, times) - tnn.implicit_diffusion(u, L, M0, times)
+            M0, spectrum.heat_diffusion(u, times) - tp.implicit_heat_diffusion(L, M0, u, times)
         )
         assert diff <= gap * m_norm(M0, projected) + residual + 1e-12
         errors.append(diff)
@@ -99,9 +99,8 @@ def test_spectral_and_implicit_diffusion_agree_for_small_times(sphere):
     for t in (1e-3, 1e-4):
         times = torch.full((2,), t, **D64)
         factor = (torch.exp(-t * evals) - 1 / (1 + t * evals))[:, None]
-        diff = tnn.spectral_diffusion(projected, spectrum, times) - tnn.implicit_diffusion(
-            projected, L, M0, times
-        )
+        implicit = tp.implicit_heat_diffusion(L, M0, projected, times)
+        diff = spectrum.heat_diffusion(projected, times) - implicit
         gaps.append(m_norm(M0, diff))
         assert torch.isclose(gaps[-1], torch.linalg.norm(factor * coeffs), rtol=1e-6)
     assert 80 < gaps[0] / gaps[1] < 101
@@ -114,12 +113,10 @@ def test_zero_time_is_the_identity(sphere):
         12, 3, generator=torch.Generator().manual_seed(0), **D64
     )
     zero = torch.zeros(3, **D64)
-    assert torch.allclose(
-        tnn.spectral_diffusion(band_limited, spectrum, zero), band_limited, atol=1e-10
-    )
+    assert torch.allclose(spectrum.heat_diffusion(band_limited, zero), band_limited, atol=1e-10)
     x = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(1), **D64)
     tiny = torch.full((2,), 1e-12, **D64)
-    assert torch.allclose(tnn.implicit_diffusion(x, L, M0, tiny), x, atol=1e-8)
+    assert torch.allclose(tp.implicit_heat_diffusion(L, M0, x, tiny), x, atol=1e-8)
     layer = tnn.LearnedDiffusion(2, mode="implicit").double()
     with torch.no_grad():
         layer.raw_times.fill_(-40.0)  # softplus(-40) ~ 4e-18
@@ -131,13 +128,13 @@ def test_diffusion_conserves_heat_on_closed_meshes(batch, mode):
     """``1^T M0 u(t) = 1^T M0 u0``: L 1 = 0 (implicit: exactly; spectral: phi_0 is constant and
     the other eigenvectors are M0-orthogonal to it)."""
     meshes, spectrum = batch
-    L = tnn.block_diagonal([m[2] for m in meshes])
-    M0 = tnn.block_diagonal([m[3] for m in meshes])
+    L = tp.sparse.block_diag([m[2] for m in meshes])
+    M0 = tp.sparse.block_diag([m[3] for m in meshes])
     x = torch.rand(spectrum.evecs.shape[0], 3, generator=torch.Generator().manual_seed(2), **D64)
     layer = tnn.LearnedDiffusion(3, mode=mode, init_times=(0.01, 1.0)).double()
     out = layer(x, spectrum, L, M0)
-    before = tnn.per_mesh_weighted_mean(x, spectrum.mass, spectrum.vert_to_mesh, 3)
-    after = tnn.per_mesh_weighted_mean(out, spectrum.mass, spectrum.vert_to_mesh, 3)
+    before = tp.per_mesh_mean(x, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
+    after = tp.per_mesh_mean(out, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
     assert torch.allclose(before, after, atol=1e-10)
     assert not torch.allclose(out, x, atol=1e-3)  # it did diffuse
 
@@ -181,7 +178,7 @@ def test_batch_equals_meshes_one_by_one(batch):
     for name, out in batched.items():
         assert torch.allclose(out, torch.cat(singles[name]), atol=1e-12), name
     # the batch's own block-diagonal assembly equals the concatenated blocks
-    assert torch.allclose(L.to_dense(), tnn.block_diagonal([m[2] for m in meshes]).to_dense())
+    assert torch.allclose(L.to_dense(), tp.sparse.block_diag([m[2] for m in meshes]).to_dense())
 
 
 def test_spectrum_from_polygon_meshes_uses_the_disk_cache(batch, tmp_path):
@@ -203,10 +200,10 @@ def test_diffusion_gradcheck():
     spectrum = tnn.Spectrum.from_meshes([(evals, evecs, M0)])
     x = torch.randn(20, 2, generator=torch.Generator().manual_seed(4), **D64, requires_grad=True)
     t = torch.tensor([0.05, 0.3], **D64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda x, t: tnn.spectral_diffusion(x, spectrum, t), (x, t))
+    assert torch.autograd.gradcheck(lambda x, t: spectrum.heat_diffusion(x, t), (x, t))
     # fast mode (random directions): every perturbed evaluation costs two sparse factorizations
     assert torch.autograd.gradcheck(
-        lambda x, t: tnn.implicit_diffusion(x, L, M0, t), (x, t), fast_mode=True
+        lambda x, t: tp.implicit_heat_diffusion(L, M0, x, t), (x, t), fast_mode=True
     )
     # the module's parameters (raw times behind a softplus) receive gradients too
     for mode in ("spectral", "implicit"):
@@ -222,7 +219,7 @@ def test_implicit_diffusion_differentiates_vertex_positions():
 
     def f(X):
         L, M0 = tp.laplacian(X, F)
-        return tnn.implicit_diffusion(x, L, M0, times).pow(2).sum()
+        return tp.implicit_heat_diffusion(L, M0, x, times).pow(2).sum()
 
     assert_directional_derivative(f, V, rtol=1e-5)
 
@@ -230,7 +227,7 @@ def test_implicit_diffusion_differentiates_vertex_positions():
 def dense_chebyshev(L, M0, K, normalization):
     """``T_k(S_hat) = U cos(k arccos Lambda) U^T`` from a dense eigendecomposition."""
     Ld = L.to_dense()
-    m = tnn.diagonal(M0)
+    m = M0.diagonal()
     S = Ld / torch.sqrt(m[:, None] * m[None, :])
     if normalization == "sym":
         lam_max = (S.abs()).sum(1).max()
@@ -313,7 +310,7 @@ def test_classifier_pools_with_mass_weights(batch):
         for p in model.blocks.parameters():
             p.zero_()
     logits = model(x, spectrum)
-    mean = tnn.per_mesh_weighted_mean(x, spectrum.mass, spectrum.vert_to_mesh, 3)
+    mean = tp.per_mesh_mean(x, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
     expected = model.head(model.lift(mean))
     assert logits.shape == (3, 4) and torch.allclose(logits, expected, atol=1e-12)
     for b in range(3):
@@ -335,7 +332,7 @@ def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="normalization"):
         tnn.chebyshev_operator(L, M0, "lap")
     with pytest.raises(ValueError, match="diagonal"):
-        tnn.diagonal(L)
+        tnn.Spectrum.from_meshes([(torch.zeros(2), torch.zeros(9, 2), L)])
     with pytest.raises(ValueError, match="same number of eigenpairs"):
         e, v = tp.eigs(L, M0, 3)
         tnn.Spectrum.from_meshes([(e, v, M0), (e[:2], v[:, :2], M0)])

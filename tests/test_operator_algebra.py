@@ -1,7 +1,7 @@
 """What users write with L and M0 in plain torch: correct gradients, O(nnz) memory, clear refusals.
 
 References are independent of the sparse seam: dense ``L`` and ``M0`` assembled in the test from
-the per-face blocks (``tp.local_laplacians``) and face areas with dense torch ops, the same
+the per-face blocks (``tp.dec.local_laplacians``) and face areas with dense torch ops, the same
 expression evaluated on them by torch, and finite differences for second derivatives.
 """
 
@@ -30,7 +30,7 @@ def dense_operators(X: torch.Tensor, faces, lam) -> tuple[torch.Tensor, torch.Te
     n = X.shape[0]
     topo = tp.build_topology(faces, n)
     L = X.new_zeros(n, n)
-    for face_ids, blocks in tp.local_laplacians(X, topo, lam):
+    for face_ids, blocks in tp.dec.local_laplacians(X, topo, lam):
         for local, f in enumerate(face_ids.tolist()):
             idx = topo.faces[f]
             L = L.index_put((idx[:, None], idx[None, :]), blocks[local], accumulate=True)
@@ -83,7 +83,7 @@ EXPRESSIONS = {
     "(L + L2) @ X": lambda L, M0, X: (L + second_mesh_operator(X, L)) @ X,
     "(L2 - L).T @ X": lambda L, M0, X: (second_mesh_operator(X, L) - L).T @ X,
     "row scaling L / m": lambda L, M0, X: (L / torch.diagonal(M0)[:, None]) @ X,
-    "tp.spmm(2 * L, X)": lambda L, M0, X: (2 * L) @ X,
+    "tp.sparse.spmm(2 * L, X)": lambda L, M0, X: (2 * L) @ X,
     "dirichlet energy": lambda L, M0, X: (X * (L @ X)).sum(),
     "solve(M0 + 0.1 L, X)": lambda L, M0, X: _solve(M0 + 0.1 * L, X),
     "L.to_dense() @ X": lambda L, M0, X: L.to_dense() @ X,
@@ -145,9 +145,9 @@ def test_operator_is_a_tensor_with_the_interop_users_expect():
     n = V.shape[0]
     dense = L.to_dense()
     assert torch.equal(dense, dense.T)
-    S = tp.to_scipy(L)
+    S = tp.sparse.to_scipy(L)
     assert S.shape == (n, n) and abs(S.toarray() - dense.detach().numpy()).max() == 0
-    back = tp.from_scipy(S)
+    back = tp.sparse.from_scipy(S)
     assert torch.equal(back.to_dense(), dense.detach())
     # indices and differentiable values, CSR and COO views
     assert L.crow_indices().shape == (n + 1,) and L.col_indices().shape == (L._nnz(),)
@@ -197,9 +197,9 @@ def test_native_torch_sparse_with_grad_is_refused_not_densified():
     values = native.values().clone().requires_grad_(True)
     A = torch.sparse_csr_tensor(native.crow_indices(), native.col_indices(), values, (3, 3))
     with pytest.raises(TypeError, match="operator_from_parts"):
-        tp.spmm(A, torch.ones(3, 1, **D64))
+        tp.sparse.spmm(A, torch.ones(3, 1, **D64))
     # without grad it is accepted
-    assert torch.equal(tp.spmm(native, torch.ones(3, 1, **D64)), torch.ones(3, 1, **D64))
+    assert torch.equal(tp.sparse.spmm(native, torch.ones(3, 1, **D64)), torch.ones(3, 1, **D64))
 
 
 def test_hessian_vector_products_match_finite_differences():
@@ -306,10 +306,10 @@ _MEMORY_SCRIPT = textwrap.dedent(
         "L @ X": lambda L, M0, X: L @ X,
         "torch.mm": lambda L, M0, X: torch.mm(L, X),
         "torch.sparse.mm": lambda L, M0, X: torch.sparse.mm(L, X),
-        "spmm(2 L)": lambda L, M0, X: tp.spmm(2 * L, X),
-        "spmm(L + M0)": lambda L, M0, X: tp.spmm(L + M0, X),
-        "spmm(0.5 L + M0)": lambda L, M0, X: tp.spmm(0.5 * L + M0, X),
-        "coo": lambda L, M0, X: tp.spmm(L.to_sparse_coo().coalesce(), X),
+        "spmm(2 L)": lambda L, M0, X: tp.sparse.spmm(2 * L, X),
+        "spmm(L + M0)": lambda L, M0, X: tp.sparse.spmm(L + M0, X),
+        "spmm(0.5 L + M0)": lambda L, M0, X: tp.sparse.spmm(0.5 * L + M0, X),
+        "coo": lambda L, M0, X: tp.sparse.spmm(L.to_sparse_coo().coalesce(), X),
         "L - 0.25 M0": lambda L, M0, X: (L - 0.25 * M0) @ X,
         "L.T": lambda L, M0, X: L.T @ X,
         "solve(M0 + 0.1 L)": lambda L, M0, X: tp.solve(M0 + 0.1 * L, X),

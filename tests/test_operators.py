@@ -95,7 +95,7 @@ def test_triangles_match_libigl():
 def test_blocks_match_svd_construction(name, V, F, lam):
     """Our closed-form blocks equal the paper's construction with an SVD kernel basis."""
     faces = tp.as_faces(F)
-    for ids, blocks in tp.local_laplacians(V, faces, lam):
+    for ids, blocks in tp.dec.local_laplacians(V, faces, lam):
         for local, f in enumerate(ids.tolist()[:25]):
             _, ref = polygon_blocks_svd(V[faces[f]], lam)
             scale = ref.abs().max()
@@ -136,7 +136,7 @@ def test_linear_precision_on_planar_mesh():
     interior[topo.boundary_vertices] = False
     for lam in (0.5, 1.0, 3.0):
         L, _ = tp.laplacian(V, topo, lam)
-        LX = tp.spmm(L, V)
+        LX = tp.sparse.spmm(L, V)
         assert LX[interior].abs().max() <= 1e-13 * dense(L).abs().max()
         assert LX[~interior].abs().max() > 1e-3  # boundary rows are not zero: the test can fail
 
@@ -148,7 +148,7 @@ def test_linear_precision_nonconvex_polygons():
     interior[topo.boundary_vertices] = False
     L, _ = tp.laplacian(V, topo)
     assert interior.any()
-    assert tp.spmm(L, V)[interior].abs().max() <= 1e-12 * dense(L).abs().max()
+    assert tp.sparse.spmm(L, V)[interior].abs().max() <= 1e-12 * dense(L).abs().max()
 
 
 def random_rotation(seed: int) -> torch.Tensor:
@@ -190,7 +190,7 @@ def test_lemma3_area_gradient(name, V, F):
     X = V.clone().requires_grad_(True)
     (grad,) = torch.autograd.grad(tp.face_areas(X, F).sum(), X)
     L0, _ = tp.laplacian(V, F, lam=0.0)
-    assert torch.allclose(grad, tp.spmm(L0, V), atol=1e-13 * grad.abs().max())
+    assert torch.allclose(grad, tp.sparse.spmm(L0, V), atol=1e-13 * grad.abs().max())
 
 
 def test_lemma5_nonplanar_face():
@@ -205,12 +205,12 @@ def test_lemma5_nonplanar_face():
         )
         face = [list(range(k))]
         lam = 1.7
-        ((_, (Lf,)),) = [(i, b) for i, b in tp.local_laplacians(X, face, lam)]
-        ((_, (Lg,)),) = [(i, b) for i, b in tp.local_laplacians(X, face, 0.0)]
+        ((_, (Lf,)),) = [(i, b) for i, b in tp.dec.local_laplacians(X, face, lam)]
+        ((_, (Lg,)),) = [(i, b) for i, b in tp.dec.local_laplacians(X, face, 0.0)]
         n = tp.face_normals(X, face)[0]
         h = (X - X.mean(0)) @ n
         Xbar = X - h[:, None] * n
-        ((_, (Lbar,)),) = [(i, b) for i, b in tp.local_laplacians(Xbar, face, 0.0)]
+        ((_, (Lbar,)),) = [(i, b) for i, b in tp.dec.local_laplacians(Xbar, face, 0.0)]
         assert torch.allclose(Lg @ X, Lbar @ Xbar, atol=1e-13)
         # hbar_e: projection of h_e = d h onto ker(Ebar^T), from an independent SVD
         d = torch.roll(torch.eye(k, **D64), 1, 1) - torch.eye(k, **D64)
@@ -224,8 +224,8 @@ def test_lemma5_nonplanar_face():
 def test_inner_product_definiteness(name, V, F):
     """Theorem 1: M_f positive definite for lam > 0; the geometric part alone is rank deficient."""
     faces = tp.as_faces(F)
-    M1 = dense(tp.one_form_inner_product(V, faces, 1.0))
-    M1g = dense(tp.one_form_inner_product(V, faces, 0.0))
+    M1 = dense(tp.dec.one_form_inner_product(V, faces, 1.0))
+    M1g = dense(tp.dec.one_form_inner_product(V, faces, 0.0))
     start = faces.offsets.tolist()
     for f in range(min(faces.num_faces, 40)):
         a, b = start[f], start[f + 1]
@@ -237,7 +237,7 @@ def test_inner_product_definiteness(name, V, F):
         if k > 3:
             assert rank_geo < k
             # for quads and planar faces G = d^T B has rank 2
-            Lg = tp.local_laplacians(V[faces[f]], [list(range(k))], 0.0)[0][1][0]
+            Lg = tp.dec.local_laplacians(V[faces[f]], [list(range(k))], 0.0)[0][1][0]
             if k == 4 or name in ("tetris.obj",):
                 assert int(torch.linalg.matrix_rank(Lg, rtol=1e-10)) == 2
 
@@ -245,9 +245,9 @@ def test_inner_product_definiteness(name, V, F):
 @pytest.mark.parametrize("name,V,F", MESHES, ids=IDS)
 def test_half_edge_factorization(name, V, F):
     """L = d^T M1 d (AW11 eq. 3) with the half-edge coboundary of eq. 2."""
-    d = dense(tp.coboundary(F, V.shape[0]))
+    d = dense(tp.dec.coboundary(F, V.shape[0]))
     for lam in (0.0, 1.0):
-        M1 = dense(tp.one_form_inner_product(V, F, lam))
+        M1 = dense(tp.dec.one_form_inner_product(V, F, lam))
         L = dense(tp.laplacian(V, F, lam)[0])
         assert torch.allclose(d.T @ M1 @ d, L, atol=1e-12 * L.abs().max())
     assert torch.all(d.sum(1) == 0) and torch.all(d.abs().sum(1) == 2)
@@ -257,7 +257,7 @@ def test_planarity_operator_and_energy(hexpent):
     V, F = hexpent
     P = tp.planarity_laplacian(V, F, lam=2.0)
     energy = tp.planarity_energy(V, F, lam=2.0)
-    quad = 0.5 * (V * tp.spmm(P, V)).sum()
+    quad = 0.5 * (V * tp.sparse.spmm(P, V)).sum()
     assert energy > 1e-3
     assert torch.isclose(energy, quad, rtol=1e-12)
     # L = geometric part + planarity operator
@@ -269,7 +269,9 @@ def test_planarity_operator_and_energy(hexpent):
     Vf[:, 2] = 0.0
     assert tp.planarity_energy(Vf, F, 2.0).abs() < 1e-26
     Pf = tp.planarity_laplacian(Vf, F)
-    assert tp.spmm(Pf, Vf).abs().max() < 1e-13 * dense(Pf).abs().max()  # Lplan X = 0, Lplan != 0
+    assert (
+        tp.sparse.spmm(Pf, Vf).abs().max() < 1e-13 * dense(Pf).abs().max()
+    )  # Lplan X = 0, Lplan != 0
 
 
 def test_mean_curvature_on_sphere():
@@ -314,15 +316,15 @@ def test_coo_layout_equals_csr(mixed):
     assert Lc.layout == torch.sparse_coo and Lc.is_coalesced()
     assert torch.equal(dense(Lc), dense(L)) and torch.equal(dense(Mc), dense(M))
     X = torch.randn(V.shape[0], 2, **D64)
-    assert torch.allclose(tp.spmm(Lc, X), tp.spmm(L, X))
+    assert torch.allclose(tp.sparse.spmm(Lc, X), tp.sparse.spmm(L, X))
 
 
 def test_scipy_roundtrip(mixed):
     V, F = mixed
     L, _ = tp.laplacian(V, F)
-    S = tp.to_scipy(L)
+    S = tp.sparse.to_scipy(L)
     assert np.allclose(S.toarray(), dense(L).numpy())
-    back = tp.from_scipy(S)
+    back = tp.sparse.from_scipy(S)
     assert torch.equal(dense(back), dense(L))
 
 
@@ -354,11 +356,11 @@ def test_learnable_lambda_gets_gradient():
     V, F = quad_grid(3, bump=0.4, seed=2)
     module = tp.PolygonLaplacian(lam=1.0, learn_lam=True)
     L, _ = module(V, F)
-    (tp.spmm(L, V) ** 2).sum().backward()
+    (tp.sparse.spmm(L, V) ** 2).sum().backward()
     assert module.lam.grad is not None and module.lam.grad.abs() > 0
     # d/dlam of sum (L X)^2 = 2 <L X, Lplan X>, with Lplan the planarity operator at lam = 1
     P = tp.planarity_laplacian(V, F, 1.0)
-    ref = 2 * (tp.spmm(L, V).detach() * tp.spmm(P, V)).sum()
+    ref = 2 * (tp.sparse.spmm(L, V).detach() * tp.sparse.spmm(P, V)).sum()
     assert torch.isclose(module.lam.grad.double(), ref, rtol=1e-6)  # the parameter is float32
 
 

@@ -144,8 +144,8 @@ class MeshOps:
         self.V = self.verts.shape[0]
         self.topo = tp.build_topology(self.faces, self.V)
         L, M0 = tp.laplacian(self.verts, self.faces, LAM)
-        self.L = tp.to_scipy(L)
-        self.M0 = tp.to_scipy(M0)
+        self.L = tp.sparse.to_scipy(L)
+        self.M0 = tp.sparse.to_scipy(M0)
         self.m = self.M0.diagonal()
         self.maxabs = abs(self.L).max()
         # Rayleigh quotients e_i^T L e_i = L_ii are lower bounds of lambda_max, and the largest
@@ -245,13 +245,13 @@ def test_moebius_builds_operators_and_refuses_what_needs_an_orientation():
     assert topo.is_manifold and not topo.is_oriented
     assert topo.report.non_orientable_components == 1
     L, M0 = tp.laplacian(verts, topo, LAM)
-    Ls, Ms = tp.to_scipy(L), tp.to_scipy(M0)
+    Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
     assert abs(Ls - Ls.T).max() == 0 and np.abs(Ls.sum(1)).max() < 1e-10 * abs(Ls).max()
     assert Ms.diagonal().min() > 0
     with pytest.raises(ValueError, match=r"conformal_parameterization needs an oriented mesh"):
         conformal_parameterization(verts, topo)
     with pytest.raises(ValueError, match=r"1 of its components cannot be oriented"):
-        tp.normal_consistency((verts, faces))
+        tp.losses.normal_consistency((verts, faces))
 
 
 @pytest.mark.parametrize("name", ORIENTABLE_REAL)

@@ -236,10 +236,10 @@ IRREGULAR = irregular_meshes()
 
 
 def _reference_laplacian(V: torch.Tensor, F: list[list[int]]) -> np.ndarray:
-    """Dense L summed from the per-face blocks of tp.local_laplacians with numpy, face by face."""
+    """Dense L summed with numpy, face by face, from the blocks of tp.dec.local_laplacians."""
     n = V.shape[0]
     L = np.zeros((n, n))
-    for face_ids, blocks in tp.local_laplacians(V, F):
+    for face_ids, blocks in tp.dec.local_laplacians(V, F):
         for f, block in zip(face_ids.tolist(), blocks.numpy(), strict=True):
             c = np.asarray(F[f])
             np.add.at(L, (c[:, None], c[None, :]), block)

@@ -1,152 +1,75 @@
 """torch_polylap: the Alexa-Wardetzky discrete Laplacian on general polygon meshes, in PyTorch.
 
 Differentiable with respect to vertex positions, on CPU and CUDA, for faces of any degree
-(non-planar, non-convex, mixed).  See README.md for the conventions.
+(non-planar, non-convex, mixed).  See README.md for the conventions and ``docs/`` for the
+mathematics.
+
+The API has two tiers, in the manner of pytorch3d and kornia:
+
+- the core, at the top level: faces and topology, the operators (``laplacian``, ``mass``,
+  ``PolygonLaplacian``, ...), face measures, the polygon calculus (gradient, divergence, heat
+  geodesics), solves and spectra, I/O and interop (trimesh, pytorch3d, PyG) and batches;
+- subpackages for what is built on it: :mod:`~torch_polylap.losses`,
+  :mod:`~torch_polylap.apps` (the paper's applications), :mod:`~torch_polylap.nn` (layers),
+  :mod:`~torch_polylap.fitting`, :mod:`~torch_polylap.datasets`, :mod:`~torch_polylap.plot`,
+  and the building blocks :mod:`~torch_polylap.sparse` (the operator type and its algebra),
+  :mod:`~torch_polylap.io`, :mod:`~torch_polylap.topology`, :mod:`~torch_polylap.kernels`,
+  :mod:`~torch_polylap.dec` (AW11's ``d`` and ``M1``), :mod:`~torch_polylap.checks` and
+  :mod:`~torch_polylap.repair`.
+
+``__all__`` is derived from the core modules' own ``__all__`` lists plus the subpackage names.
 """
 
-from . import apps, checks, datasets, fitting, losses, nn, repair, sparse
-from .apps import (
-    PlanarizeResult,
-    angle_distortion,
-    conformal_energy,
-    conformal_parameterization,
-    mean_curvature_flow,
-    navier_deflection,
-    planarize,
-    plate_bending,
+from types import ModuleType as _ModuleType
+
+from . import (
+    apps,
+    checks,
+    datasets,
+    dec,
+    fitting,
+    interop,
+    io,
+    kernels,
+    losses,
+    nn,
+    plot,
+    repair,
+    sparse,
+    topology,
 )
-from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
-from .calculus import (
-    HeatGeodesicSolver,
-    divergence,
-    face_gradient,
-    gradient_operator,
-    heat_geodesic_distance,
-)
-from .datasets import PolygonMeshDataset, collate_meshes
-from .dec import coboundary, local_laplacians, one_form_inner_product
-from .faces import PolygonFaces, as_faces
-from .fitting import chamfer_distance, mesh_quality, nearest_neighbors, sample_points
+from .batch import *
+from .calculus import *
+from .faces import *
+from .interop import from_pyg, from_pytorch3d, to_pyg, to_pytorch3d
 from .io import from_trimesh, read_mesh, to_trimesh, write_mesh
-from .linalg import dirichlet_solve, eigs, solve
-from .losses import (
-    BendingEnergy,
-    DirichletEnergy,
-    LaplacianSmoothingLoss,
-    MeanCurvatureSmoothingLoss,
-    NormalConsistencyLoss,
-    PlanarityLoss,
-    bending_energy,
-    dirichlet_energy,
-    laplacian_smoothing,
-    mean_curvature_smoothing,
-    normal_consistency,
-    planarity_loss,
-)
-from .measures import (
-    face_areas,
-    face_nonplanarity,
-    face_normals,
-    face_planarity_energy,
-    mass,
-    planarity_energy,
-    vector_area,
-)
-from .operators import (
-    PolygonLaplacian,
-    laplacian,
-    mean_curvature_normal,
-    planarity_laplacian,
-    strong_laplacian,
-)
-from .sparse import from_scipy, spmm, to_scipy
-from .spectral import (
-    cached_eigs,
-    heat_kernel_signature,
-    implicit_heat_diffusion,
-    spectral_heat_diffusion,
-    wave_kernel_signature,
-)
-from .topology import Topology, build_topology, get_topology
+from .linalg import *
+from .measures import *
+from .operators import *
+from .spectral import *
+from .topology import Topology, TopologyReport, build_topology, get_topology
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "PolygonFaces",
-    "as_faces",
-    "Topology",
-    "build_topology",
-    "get_topology",
-    "laplacian",
-    "mass",
-    "PolygonLaplacian",
-    "planarity_laplacian",
-    "planarity_energy",
-    "coboundary",
-    "one_form_inner_product",
-    "local_laplacians",
-    "mean_curvature_normal",
-    "strong_laplacian",
-    "vector_area",
-    "face_areas",
-    "face_normals",
-    "face_nonplanarity",
-    "face_planarity_energy",
-    "sparse",
-    "checks",
-    "repair",
-    "spmm",
-    "solve",
-    "dirichlet_solve",
-    "eigs",
-    "heat_kernel_signature",
-    "wave_kernel_signature",
-    "spectral_heat_diffusion",
-    "implicit_heat_diffusion",
-    "cached_eigs",
-    "to_scipy",
-    "from_scipy",
-    "read_mesh",
-    "write_mesh",
-    "from_trimesh",
-    "to_trimesh",
-    "PolygonMeshes",
-    "per_mesh_sum",
-    "per_mesh_mean",
-    "losses",
-    "laplacian_smoothing",
-    "mean_curvature_smoothing",
-    "dirichlet_energy",
-    "planarity_loss",
-    "bending_energy",
-    "normal_consistency",
-    "LaplacianSmoothingLoss",
-    "MeanCurvatureSmoothingLoss",
-    "DirichletEnergy",
-    "PlanarityLoss",
-    "BendingEnergy",
-    "NormalConsistencyLoss",
+_SUBPACKAGES = (
     "apps",
-    "mean_curvature_flow",
-    "conformal_parameterization",
-    "conformal_energy",
-    "angle_distortion",
-    "planarize",
-    "PlanarizeResult",
-    "plate_bending",
-    "navier_deflection",
-    "fitting",
-    "chamfer_distance",
-    "nearest_neighbors",
-    "sample_points",
-    "mesh_quality",
-    "nn",
+    "checks",
     "datasets",
-    "PolygonMeshDataset",
-    "collate_meshes",
-    "face_gradient",
-    "gradient_operator",
-    "divergence",
-    "HeatGeodesicSolver",
-    "heat_geodesic_distance",
-]
+    "dec",
+    "fitting",
+    "interop",
+    "io",
+    "kernels",
+    "losses",
+    "nn",
+    "plot",
+    "repair",
+    "sparse",
+    "topology",
+)
+
+__all__ = sorted(
+    name
+    for name, value in list(globals().items())
+    if not name.startswith("_") and (not isinstance(value, _ModuleType) or name in _SUBPACKAGES)
+)

@@ -56,14 +56,32 @@ def per_mesh_sum(values: torch.Tensor, index: torch.Tensor, num_meshes: int) -> 
     return out.index_add(0, index.to(values.device), values)
 
 
-def per_mesh_mean(values: torch.Tensor, index: torch.Tensor, num_meshes: int) -> torch.Tensor:
+def per_mesh_mean(
+    values: torch.Tensor,
+    index: torch.Tensor,
+    num_meshes: int,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
     """``(B, ...)`` per-mesh means of packed values (see :func:`per_mesh_sum`).
 
-    A mesh without rows (no vertices, or no faces/edges of the kind averaged) gets ``0``.
+    With ``weights`` ``(N,)`` the weighted mean ``sum_v w_v x_v / sum_v w_v``: with the lumped
+    masses (``M0.diagonal()``) the area-weighted mean, a global pooling that does not depend on
+    the tessellation density. A mesh without rows (or without weight) gets ``0``.
     """
-    sums = per_mesh_sum(values, index, num_meshes)
-    counts = torch.bincount(index.to(values.device), minlength=num_meshes).clamp_min(1)
-    return sums / counts.to(values.dtype).reshape(-1, *([1] * (values.dim() - 1)))
+    if weights is None:
+        sums = per_mesh_sum(values, index, num_meshes)
+        counts = torch.bincount(index.to(values.device), minlength=num_meshes).clamp_min(1)
+        return sums / counts.to(values.dtype).reshape(-1, *([1] * (values.dim() - 1)))
+    if weights.shape != values.shape[:1]:
+        raise ValueError(
+            f"weights must have shape ({values.shape[0]},), one per row of values, "
+            f"got {tuple(weights.shape)}."
+        )
+    w = weights.to(values.dtype).reshape(-1, *([1] * (values.dim() - 1)))
+    sums = per_mesh_sum(w * values, index, num_meshes)
+    total = per_mesh_sum(weights.to(values.dtype), index, num_meshes)
+    total = torch.where(total > 0, total, torch.ones_like(total))
+    return sums / total.reshape(-1, *([1] * (values.dim() - 1)))
 
 
 class _Connectivity:
@@ -545,7 +563,7 @@ class PolygonMeshes:
 
     def half_edges_packed(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(src, dst)``, each ``(N,)``: the half-edges of the packed faces (see
-        :func:`~torch_polylap.coboundary`), on :attr:`device`."""
+        :func:`~torch_polylap.dec.coboundary`), on :attr:`device`."""
         return self._conn.cached(
             "half_edges", self.device, lambda: half_edge_vertices(self.faces_packed())
         )

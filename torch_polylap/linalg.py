@@ -36,7 +36,7 @@ from .sparse import (
     to_scipy,
 )
 
-__all__ = ["solve", "dirichlet_solve", "eigs", "Factorization", "spd_splu"]
+__all__ = ["solve", "dirichlet_solve", "eigs"]
 
 
 def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:

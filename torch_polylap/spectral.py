@@ -105,14 +105,31 @@ def spectral_heat_diffusion(
 
 
 def implicit_heat_diffusion(
-    L: torch.Tensor, M0: torch.Tensor, u0: torch.Tensor, time: float | torch.Tensor
+    L: torch.Tensor, M0: torch.Tensor, u0: torch.Tensor, times: float | torch.Tensor
 ) -> torch.Tensor:
     """One implicit Euler step of the heat equation: ``(M0 + t L) u = M0 u0``.
 
-    Differentiable in ``L``'s and ``M0``'s values, ``u0`` and ``time`` (one time for all
-    channels; call once per time for several), at O(nnz) memory.
+    Args:
+        L, M0: ``(V, V)`` operators (block-diagonal for a packed batch).
+        u0: ``(V,)`` or ``(V, C)`` signals.
+        times: a scalar (one time for all channels: one factorization), or ``(C,)`` one time
+            per channel (one factorization per channel).
+
+    Returns:
+        ``u0``'s shape. Differentiable in ``L``'s and ``M0``'s values, ``u0`` and the times, at
+        O(nnz) memory.
     """
-    return solve(M0 + time * L, M0 @ u0)
+    t = torch.as_tensor(times)
+    if t.dim() == 0:
+        return solve(M0 + times * L, M0 @ u0)
+    if u0.dim() != 2 or t.shape != (u0.shape[1],):
+        raise ValueError(
+            f"per-channel times must have shape (C,) for u0 of shape (V, C); got times "
+            f"{tuple(t.shape)} and u0 {tuple(u0.shape)}."
+        )
+    tt = times if isinstance(times, torch.Tensor) else t
+    columns = [solve(M0 + tt[c] * L, M0 @ u0[:, c]) for c in range(u0.shape[1])]
+    return torch.stack(columns, 1)
 
 
 def _mesh_key(

@@ -2,16 +2,16 @@
 spatial gradient features.
 
 Kornia-style: each layer is a thin :class:`torch.nn.Module` over a plain function
-(:func:`spectral_diffusion`, :func:`implicit_diffusion`, :func:`chebyshev_operator`,
-:func:`chebyshev_filter`, and the library's :func:`torch_polylap.heat_kernel_signature` /
-:func:`torch_polylap.wave_kernel_signature`).  Batches of heterogeneous meshes are packed
-(vertices of all meshes concatenated) with index maps; per-mesh eigenpairs travel in a
-:class:`Spectrum`, and ``L, M0`` of a batch are block-diagonal (:func:`block_diagonal`, or
-``PolygonMeshes.laplacian``).
+(:meth:`Spectrum.heat_diffusion`, :func:`torch_polylap.implicit_heat_diffusion`,
+:func:`chebyshev_operator`, :func:`chebyshev_filter`, and the library's
+:func:`torch_polylap.heat_kernel_signature` / :func:`torch_polylap.wave_kernel_signature`).
+Batches of heterogeneous meshes are packed (vertices of all meshes concatenated) with index
+maps; per-mesh eigenpairs travel in a :class:`Spectrum`, and ``L, M0`` of a batch are
+block-diagonal (``PolygonMeshes.laplacian`` or :func:`torch_polylap.sparse.block_diag`).
 """
 
 from .chebyshev import ChebyshevFilter, chebyshev_filter, chebyshev_operator
-from .diffusion import LearnedDiffusion, implicit_diffusion, spectral_diffusion
+from .diffusion import LearnedDiffusion
 from .gradient_features import (
     SpatialGradientFeatures,
     spatial_gradient_features,
@@ -20,19 +20,14 @@ from .gradient_features import (
 )
 from .models import DiffusionBlock, DiffusionNetLike
 from .spectral_features import SpectralFeatures, hks_time_range, wks_energy_range
-from .spectrum import Spectrum, block_diagonal, diagonal, per_mesh_weighted_mean
+from .spectrum import Spectrum
 
 __all__ = [
     "Spectrum",
-    "block_diagonal",
-    "diagonal",
-    "per_mesh_weighted_mean",
     "SpectralFeatures",
     "hks_time_range",
     "wks_energy_range",
     "LearnedDiffusion",
-    "spectral_diffusion",
-    "implicit_diffusion",
     "ChebyshevFilter",
     "chebyshev_operator",
     "chebyshev_filter",

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from ..sparse import as_operator, identity, mark_symmetric
-from .spectrum import diagonal
+from .spectrum import masses_of
 
 __all__ = ["chebyshev_operator", "chebyshev_filter", "ChebyshevFilter"]
 
@@ -58,7 +58,7 @@ def chebyshev_operator(
     if normalization not in ("sym", "rw"):
         raise ValueError(f"normalization must be 'sym' or 'rw', got {normalization!r}.")
     L = as_operator(L)
-    m = diagonal(M0).to(L.dtype)
+    m = masses_of(M0).to(L.dtype)
     n = L.shape[0]
     if normalization == "sym":
         r = torch.rsqrt(m)

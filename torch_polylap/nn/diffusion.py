@@ -4,16 +4,16 @@ Each channel ``c`` of a per-vertex signal ``x`` is diffused for its own learned 
 by the heat operator ``exp(-t_c M0^{-1} L)`` of the Alexa-Wardetzky Laplacian (AW11 eq. 3,
 9, 10).  Two discretizations:
 
-* ``"spectral"``: ``Phi exp(-t_c mu) Phi^T M0 x`` in the truncated eigenbasis (``k``
-  eigenpairs per mesh, precomputed once per mesh and cached).  Cost per forward
-  ``O(sumV * k * C)`` dense work; exact for the low frequencies, drops everything above
-  ``mu_k`` (a low-pass filter even at ``t = 0``).
-* ``"implicit"``: one backward Euler step ``(M0 + t_c L) u = M0 x`` per channel through
-  :func:`torch_polylap.solve`.  Cost per forward: ``C`` sparse factorizations of the
-  ``sumV x sumV`` block-diagonal matrix (SuperLU on the CPU, cached for the backward pass), so
-  it is far slower than the spectral mode for many channels; it needs no eigenpairs, keeps all
-  frequencies (``1 / (1 + t mu)`` instead of ``exp(-t mu)``) and is differentiable in ``L`` and
-  ``M0`` too (gradients to vertex positions).
+* ``"spectral"`` (:meth:`Spectrum.heat_diffusion`): ``Phi exp(-t_c mu) Phi^T M0 x`` in the
+  truncated eigenbasis (``k`` eigenpairs per mesh, precomputed once per mesh and cached).
+  Cost per forward ``O(sumV * k * C)`` dense work; exact for the low frequencies, drops
+  everything above ``mu_k`` (a low-pass filter even at ``t = 0``).
+* ``"implicit"`` (:func:`torch_polylap.implicit_heat_diffusion`): one backward Euler step
+  ``(M0 + t_c L) u = M0 x`` per channel through :func:`torch_polylap.solve`. Cost per
+  forward: ``C`` sparse factorizations of the ``sumV x sumV`` block-diagonal matrix (cached
+  for the backward pass), so it is far slower than the spectral mode for many channels; it
+  needs no eigenpairs, keeps all frequencies (``1 / (1 + t mu)`` instead of ``exp(-t mu)``)
+  and is differentiable in ``L`` and ``M0`` too (gradients to vertex positions).
 
 torch.compile: the spectral path is dense (scatter, batched matmul, gather) and compiles to a
 single graph without breaks (checked with ``torch._dynamo.explain`` on torch 2.13, CPU; about
@@ -32,44 +32,7 @@ from torch import nn
 from ..spectral import implicit_heat_diffusion
 from .spectrum import Spectrum
 
-__all__ = ["spectral_diffusion", "implicit_diffusion", "LearnedDiffusion"]
-
-
-def spectral_diffusion(x: torch.Tensor, spectrum: Spectrum, times: torch.Tensor) -> torch.Tensor:
-    """Per-channel heat diffusion ``Phi_b exp(-t_c mu_b) Phi_b^T M0_b x_b`` of a packed batch.
-
-    Args:
-        x: ``(sumV, C)`` packed per-vertex signals.
-        spectrum: the batch's packed eigenpairs (:class:`Spectrum`).
-        times: ``(C,)`` non-negative diffusion times, one per channel (differentiable).
-
-    Returns:
-        ``(sumV, C)``. For one mesh this equals
-        :func:`torch_polylap.spectral_heat_diffusion` with the same eigenpairs.
-    """
-    coeffs = spectrum.project(x)  # (B, k, C), M0-weighted projection per mesh
-    decay = torch.exp(-spectrum.evals[:, :, None] * times[None, None, :])
-    return spectrum.synthesize(decay * coeffs)
-
-
-def implicit_diffusion(
-    x: torch.Tensor, L: torch.Tensor, M0: torch.Tensor, times: torch.Tensor
-) -> torch.Tensor:
-    """Per-channel implicit Euler step ``(M0 + t_c L) u_c = M0 x_c``.
-
-    Args:
-        x: ``(sumV, C)`` packed signals.
-        L, M0: ``(sumV, sumV)`` sparse (block-diagonal for a batch) operators from
-            :func:`torch_polylap.laplacian`; values may require grad.
-        times: ``(C,)`` positive times (differentiable).
-
-    Returns:
-        ``(sumV, C)``. One sparse factorization per channel (see the module docstring).
-    """
-    if times.shape != (x.shape[1],):
-        raise ValueError(f"times must have shape ({x.shape[1]},), got {tuple(times.shape)}.")
-    columns = [implicit_heat_diffusion(L, M0, x[:, c], times[c]) for c in range(x.shape[1])]
-    return torch.stack(columns, 1)
+__all__ = ["LearnedDiffusion"]
 
 
 def _inverse_softplus(t: torch.Tensor) -> torch.Tensor:
@@ -127,10 +90,10 @@ class LearnedDiffusion(nn.Module):
         if self.mode == "spectral":
             if spectrum is None:
                 raise ValueError("mode 'spectral' needs the batch's Spectrum (eigenpairs).")
-            return spectral_diffusion(x, spectrum, times)
+            return spectrum.heat_diffusion(x, times)
         if L is None or M0 is None:
             raise ValueError("mode 'implicit' needs the (block-diagonal) L and M0.")
-        return implicit_diffusion(x, L, M0, times)
+        return implicit_heat_diffusion(L, M0, x, times)
 
     def extra_repr(self) -> str:
         return f"channels={self.channels}, mode={self.mode!r}"

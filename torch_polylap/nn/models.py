@@ -20,10 +20,11 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..batch import per_mesh_mean
 from .diffusion import LearnedDiffusion
 from .gradient_features import SpatialGradientFeatures
 from .spectral_features import SpectralFeatures
-from .spectrum import Spectrum, diagonal, per_mesh_weighted_mean
+from .spectrum import Spectrum, masses_of
 
 __all__ = ["DiffusionBlock", "DiffusionNetLike"]
 
@@ -160,8 +161,8 @@ class DiffusionNetLike(nn.Module):
         if spectrum is not None:
             mass, index, num = spectrum.mass, spectrum.vert_to_mesh, spectrum.num_meshes
         elif M0 is not None and vert_to_mesh is not None:
-            mass, index = diagonal(M0), vert_to_mesh
+            mass, index = masses_of(M0), vert_to_mesh
             num = int(vert_to_mesh.max()) + 1
         else:
             raise ValueError("classification pooling needs a Spectrum, or M0 and vert_to_mesh.")
-        return self.head(per_mesh_weighted_mean(h, mass.to(h.dtype), index, num))
+        return self.head(per_mesh_mean(h, index, num, weights=mass.to(h.dtype)))

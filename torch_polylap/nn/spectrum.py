@@ -20,15 +20,15 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from ..sparse import as_operator, block_diag, is_operator
+from ..sparse import as_operator, is_operator
 
 if TYPE_CHECKING:
     from ..batch import PolygonMeshes
 
-__all__ = ["Spectrum", "diagonal", "per_mesh_weighted_mean", "block_diagonal"]
+__all__ = ["Spectrum"]
 
 
-def diagonal(M0: torch.Tensor) -> torch.Tensor:
+def masses_of(M0: torch.Tensor) -> torch.Tensor:
     """``(V,)`` diagonal of a sparse diagonal matrix (``M0``), differentiable in its values.
 
     A ``(V,)`` dense tensor is returned unchanged, so callers may pass masses directly.
@@ -50,24 +50,6 @@ def diagonal(M0: torch.Tensor) -> torch.Tensor:
             "masses instead."
         )
     return d
-
-
-def block_diagonal(mats: Sequence[torch.Tensor]) -> torch.Tensor:
-    """The block-diagonal operator of square sparse ``mats`` (values stay differentiable)."""
-    return block_diag(mats)
-
-
-def per_mesh_weighted_mean(
-    x: torch.Tensor, weights: torch.Tensor, vert_to_mesh: torch.Tensor, num_meshes: int
-) -> torch.Tensor:
-    """``(B, C)`` per-mesh mean ``sum_v w_v x_v / sum_v w_v`` of packed ``x: (sumV, C)``.
-
-    With ``weights`` the lumped masses this is the area-weighted mean (global mean pooling that
-    does not depend on the tessellation density).
-    """
-    num = x.new_zeros(num_meshes, x.shape[1]).index_add(0, vert_to_mesh, weights[:, None] * x)
-    den = weights.new_zeros(num_meshes).index_add(0, vert_to_mesh, weights)
-    return num / den[:, None]
 
 
 @dataclass
@@ -114,7 +96,7 @@ class Spectrum:
         ks = {int(e.shape[0]) for e, _, _ in items}
         if len(ks) != 1:
             raise ValueError(f"every mesh needs the same number of eigenpairs, got k in {ks}.")
-        masses = [diagonal(m) for _, _, m in items]
+        masses = [masses_of(m) for _, _, m in items]
         return cls(
             torch.stack([e for e, _, _ in items]),
             torch.cat([v for _, v, _ in items]),
@@ -145,7 +127,7 @@ class Spectrum:
         from ..spectral import cached_eigs
 
         with torch.no_grad():
-            mass = diagonal(meshes.laplacian(lam, method=method)[1])
+            mass = masses_of(meshes.laplacian(lam, method=method)[1])
             pairs = []
             for verts, faces in (meshes[i] for i in range(len(meshes))):
                 if cache_dir is not None:
@@ -196,6 +178,21 @@ class Spectrum:
     def project(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, k, C)`` spectral coefficients ``Phi_b^T M0_b x_b`` of packed ``x: (sumV, C)``."""
         return self.padded_evecs().transpose(1, 2) @ self.to_padded(self.mass[:, None] * x)
+
+    def heat_diffusion(self, x: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+        """Per-channel heat diffusion ``Phi_b exp(-t_c mu_b) Phi_b^T M0_b x_b`` of a packed batch.
+
+        Args:
+            x: ``(sumV, C)`` packed per-vertex signals.
+            times: ``(C,)`` non-negative diffusion times, one per channel (differentiable).
+
+        Returns:
+            ``(sumV, C)``. For one mesh this equals
+            :func:`torch_polylap.spectral_heat_diffusion` with the same eigenpairs.
+        """
+        coeffs = self.project(x)  # (B, k, C), M0-weighted projection per mesh
+        decay = torch.exp(-self.evals[:, :, None] * times[None, None, :])
+        return self.synthesize(decay * coeffs)
 
     def synthesize(self, coeffs: torch.Tensor) -> torch.Tensor:
         """Packed ``(sumV, C)`` signal ``Phi_b c_b`` from coefficients ``(B, k, C)``."""

@@ -194,7 +194,7 @@ def _unsupported_message(func: Callable) -> str:
         "Supported: products with dense tensors (A @ X, torch.mm, torch.sparse.mm), sums and "
         "differences of operators, scalar multiples, row/column scaling, transposes, .to(), "
         "A.values(), A.diagonal(), A.sum(dim). For other uses take A.to_dense() (small meshes), "
-        "torch_polylap.to_scipy(A), or A.detach().to_sparse_csr() and convert it with "
+        "torch_polylap.sparse.to_scipy(A), or A.detach().to_sparse_csr() and convert it with "
         "torch_polylap.sparse.to_torch_sparse."
     )
 
