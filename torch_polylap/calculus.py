@@ -99,6 +99,21 @@ def face_gradient(verts: torch.Tensor, faces: MeshFaces, u: torch.Tensor) -> tor
 
     Returns:
         ``(F, 3)``, or ``(F, 3, C)`` for ``u`` of shape ``(V, C)``.
+
+    Examples:
+        The gradient of a linear function is exact on every face, here a square and a triangle:
+
+        >>> import torch
+        >>> import torch_polylap as tp
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0]],
+        ...                      dtype=torch.float64)
+        >>> faces = [[0, 1, 2, 3], [1, 4, 2]]
+        >>> u = 2 * verts[:, 0] - verts[:, 1]
+        >>> g = tp.face_gradient(verts, faces, u)
+        >>> g.shape
+        torch.Size([2, 3])
+        >>> torch.allclose(g, torch.tensor([2.0, -1.0, 0.0], dtype=torch.float64))
+        True
     """
     topo = _topology(verts, faces)
     if u.dim() not in (1, 2) or u.shape[0] != topo.num_verts:

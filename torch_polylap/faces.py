@@ -168,6 +168,16 @@ def as_faces(faces: FacesLike) -> PolygonFaces:
         * an ``(F, k)`` integer tensor or numpy array (uniform degree ``k >= 3``);
         * a sequence of index sequences of mixed length, e.g. ``[[0, 1, 2, 3], [3, 2, 4]]``;
         * a ``(indices, sizes)`` pair is *not* guessed: build ``PolygonFaces(indices, sizes=...)``.
+
+    Examples:
+        >>> import torch_polylap as tp
+        >>> faces = tp.as_faces([[0, 1, 2, 3], [3, 2, 4]])
+        >>> faces
+        PolygonFaces(num_faces=2, degrees=[3, 4])
+        >>> faces.sizes.tolist(), faces.offsets.tolist()
+        ([4, 3], [0, 4, 7])
+        >>> faces[1].tolist()
+        [3, 2, 4]
     """
     if isinstance(faces, PolygonFaces):
         return faces

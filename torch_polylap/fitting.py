@@ -257,6 +257,15 @@ def chamfer_distance(
     Raises:
         ValueError: an unknown reduction or norm, ``"max"`` with normals, mismatched shapes,
             negative weights, or a non-empty cloud paired with an empty one.
+
+    Examples:
+        >>> import torch
+        >>> from torch_polylap.fitting import chamfer_distance
+        >>> x = torch.tensor([[0.0, 0, 0], [1, 0, 0]])
+        >>> y = torch.tensor([[0.0, 0, 0], [1, 1, 0], [1, 0, 0]])
+        >>> loss, _ = chamfer_distance(x, y)   # (0 + 0) / 2 + (0 + 1 + 0) / 3
+        >>> round(float(loss), 6)
+        0.333333
     """
     if batch_reduction not in ("mean", "sum", None):
         raise ValueError(f"batch_reduction must be 'mean', 'sum' or None, got {batch_reduction!r}.")

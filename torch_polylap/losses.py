@@ -128,6 +128,16 @@ def laplacian_smoothing(
         reduction: ``"mean"``, ``"sum"`` or ``"none"`` (``(B,)``).
 
     Isolated vertices contribute 0 (pytorch3d counts ``|X_p|`` for them).
+
+    Examples:
+        >>> import torch
+        >>> from torch_polylap.losses import laplacian_smoothing
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0.5]],
+        ...                      dtype=torch.float64, requires_grad=True)
+        >>> loss = laplacian_smoothing((verts, [[0, 1, 2, 3], [1, 4, 2]]), method="polygon")
+        >>> loss.backward()
+        >>> loss.dim(), verts.grad.shape
+        (0, torch.Size([5, 3]))
     """
     _check_reduction(reduction)
     m = _as_meshes(meshes)

@@ -145,6 +145,17 @@ def weld_vertices(
     Welding is transitive (chains of close vertices become one vertex). Each merged vertex
     keeps the position of its lowest-indexed member. Faces that then visit a vertex twice are
     reported in ``notes``; :func:`remove_degenerate_faces` collapses or removes them.
+
+    Examples:
+        Vertex 5 duplicates vertex 2, so the two faces did not share an edge:
+
+        >>> import torch
+        >>> from torch_polylap.repair import weld_vertices
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0],
+        ...                       [1, 1, 0]])
+        >>> verts2, faces2, report = weld_vertices(verts, [[0, 1, 2, 3], [1, 4, 5]])
+        >>> verts2.shape, faces2.tolist(), report.notes
+        (torch.Size([5, 3]), [[0, 1, 2, 3], [1, 4, 2]], ('1 vertex(es) merged',))
     """
     pf = _faces(faces)
     x = _numpy_verts(verts)

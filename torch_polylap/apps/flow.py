@@ -83,6 +83,18 @@ def enclosed_volume(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
             face, a non-orientable component, an edge of 3+ faces not traversed equally often
             in both directions); the volume would depend on the origin. The message says
             which, and which repair to run (e.g. :func:`torch_polylap.repair.orient_faces`).
+
+    Examples:
+        The unit cube, six outward-oriented quads:
+
+        >>> import torch
+        >>> from torch_polylap.apps import enclosed_volume
+        >>> verts = torch.tensor([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)],
+        ...                      dtype=torch.float64)
+        >>> faces = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4],
+        ...          [1, 5, 7, 3]]
+        >>> float(enclosed_volume(verts, faces))
+        1.0
     """
     topo = get_topology(faces, verts.shape[0])
     _require_closed_oriented(topo, "enclosed_volume")

@@ -151,6 +151,11 @@ def navier_deflection(
 
     Returns:
         ``w`` with the broadcast shape of ``x`` and ``y``. Center value ``0.00406235 q``.
+
+    Examples:
+        >>> from torch_polylap.apps import navier_deflection
+        >>> round(float(navier_deflection(0.5, 0.5)), 8)
+        0.00406235
     """
     x = torch.as_tensor(x, dtype=torch.float64) if not torch.is_tensor(x) else x
     y = torch.as_tensor(y, dtype=x.dtype, device=x.device) if not torch.is_tensor(y) else y

@@ -105,6 +105,21 @@ def read_mesh(
             index out of range, fewer vertices or faces than the header declares (or more than
             the file has room for), no faces at all, a PLY without a ``face`` element holding
             ``vertex_indices``.
+
+    Examples:
+        A square and a triangle, written and read back unchanged:
+
+        >>> import pathlib, tempfile
+        >>> import torch
+        >>> import torch_polylap as tp
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0]],
+        ...                      dtype=torch.float64)
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     path = pathlib.Path(folder) / "mesh.obj"
+        ...     tp.write_mesh(path, verts, [[0, 1, 2, 3], [1, 4, 2]])
+        ...     verts2, faces2 = tp.read_mesh(path)
+        >>> torch.equal(verts2, verts), faces2.tolist()
+        (True, [[0, 1, 2, 3], [1, 4, 2]])
     """
     if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
         raise ValueError(

@@ -289,7 +289,18 @@ def from_scipy(
     *,
     symmetric: bool = False,
 ) -> SparseOperator:
-    """A scipy sparse matrix as a :class:`SparseOperator` (indices sorted, duplicates summed)."""
+    """A scipy sparse matrix as a :class:`SparseOperator` (indices sorted, duplicates summed).
+
+    Examples:
+        >>> import scipy.sparse as sp
+        >>> import torch
+        >>> from torch_polylap.sparse import from_scipy, to_scipy
+        >>> A = from_scipy(sp.diags([1.0, 2.0, 3.0]).tocsr())
+        >>> A @ torch.ones(3, dtype=torch.float64)
+        tensor([1., 2., 3.], dtype=torch.float64)
+        >>> (to_scipy(2 * A) - 2 * sp.diags([1.0, 2.0, 3.0])).nnz
+        0
+    """
     S = sp.csr_matrix(S)
     S.sum_duplicates()
     S.sort_indices()
