@@ -9,7 +9,8 @@ time goes for ``k`` in the hundreds, and each step is one triangular solve. Work
 block).
 
 The method is unrestarted: the basis grows until every wanted Ritz pair has converged
-(``3.4 k`` to ``4.3 k`` vectors on the Laplacian spectra measured here), so it stores
+(a few times ``k`` vectors on Laplacian spectra; ``benchmarks/README.md`` records the sizes
+measured), so it stores
 ``n x dim`` floats; the caller bounds ``dim``.
 """
 

@@ -44,9 +44,8 @@ def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:
 
     Symmetric mode without row pivoting keeps ``L`` and ``U^T`` on one pattern, as a Cholesky
     would. The column ordering is COLAMD, SuperLU's default: minimum degree on ``A + A^T``
-    (``MMD_AT_PLUS_A``) factors grid meshes about twice as fast, but on some meshes (the
-    hexagonal sphere ``hex_cos_6``, 82k vertices) it ran for more than five minutes where
-    COLAMD needs three seconds.
+    (``MMD_AT_PLUS_A``) is faster on grid meshes but far slower on some others
+    (``benchmarks/README.md`` has the measurements).
     """
     return spla.splu(S, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
@@ -300,7 +299,8 @@ def solve(
             gradients on ``A``'s device), or ``"auto"``: ``"cholesky"`` for a symmetric ``A``
             when cholespy is installed, else ``"splu"`` on the CPU and ``"cg"`` on CUDA.
             Factorizations are cached on ``A`` and reused by the backward solve.
-        tol, max_iter: relative residual and iteration limit of ``"cg"``.
+        tol: relative residual at which ``"cg"`` stops.
+        max_iter: iteration limit of ``"cg"``.
 
     Returns:
         ``X`` with ``B``'s shape, dtype and device. The direct solvers work in float64 and
@@ -309,6 +309,20 @@ def solve(
     Raises:
         ValueError: ``A`` singular (e.g. ``L`` without a mass term or Dirichlet values), shapes
             or dtypes that do not match, or CG that does not converge.
+
+    Examples:
+        One implicit smoothing step ``(M0 + h L) X = M0 X0`` on a square and a triangle:
+
+        >>> import torch
+        >>> import torch_polylap as tp
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0.5]],
+        ...                      dtype=torch.float64)
+        >>> L, M0 = tp.laplacian(verts, [[0, 1, 2, 3], [1, 4, 2]])
+        >>> X = tp.solve(M0 + 0.1 * L, M0 @ verts)
+        >>> X.shape
+        torch.Size([5, 3])
+        >>> torch.allclose((M0 + 0.1 * L) @ X, M0 @ verts)
+        True
     """
     A = as_operator(A)
     if A.dim() != 2 or A.shape[0] != A.shape[1]:
@@ -675,27 +689,16 @@ def eigs_route(n: int, k: int, diagonal_mass: bool, cholmod: bool = True) -> str
     ``"arpack"`` or ``"lanczos"`` (``diagonal_mass``: ``M`` is diagonal and the shift negative,
     so ``L - shift M`` has a Cholesky factorization; ``cholmod``: ``cholespy`` is installed).
 
-    Chosen by measurement (``benchmarks/bench_eigs_routes.py routes``: non-planar quad grids,
-    one thread, interleaved medians, on a shared 2-core VM; ``benchmarks/README.md`` has the
-    table):
+    The thresholds were chosen by measurement (``benchmarks/bench_eigs_routes.py routes``;
+    ``benchmarks/README.md`` has the crossover measurements behind each of them):
 
-    - ``"dense"`` (LAPACK ``eigh`` with ``subset_by_index``) for ``n <= max(200, 5 k)``: it
-      beat ARPACK at 289 vertices for ``k = 64, 128``, at 484 and 676 for ``k = 128``, and lost
-      at 289 for ``k = 16``, at 484 for ``k = 64`` and at 1,024 for every ``k`` (its cost
-      grows as ``n^3``: 0.2 s at 1k, 9 s at 3k vertices);
+    - ``"dense"`` (LAPACK ``eigh`` with ``subset_by_index``) for ``n <= max(200, 5 k)``; its
+      cost grows as ``n^3``;
     - ``"arpack"`` (ARPACK on the standard symmetric problem ``M^{1/2} (L - shift M)^{-1}
-      M^{1/2}``, one CHOLMOD or SuperLU solve per step; 0.6-0.9x the time of scipy's
-      generalized ``eigsh(L, M=M, sigma=shift)`` with SuperLU at 1k-30k vertices) up to a
-      block Lanczos threshold that falls with ``k``: block Lanczos over ARPACK took 1.3-2.2x
-      the time for ``k = 16`` at every size from 1k to 100k; for ``k = 32`` 1.17x at 10k and
-      0.98x at 100k; for ``k = 64`` 1.7x at 1k, 1.4x at 3k, 1.06x at 5.5k, 0.88x at 10k,
-      0.81x at 100k; for ``k = 128`` 1.5x at 1k, 0.95-1.5x at 3k (noise), 0.78x at 5.5k,
-      0.63x at 10k. Spheres (clustered spectra) favour block Lanczos earlier: for ``k = 64``
-      0.84x on the 5,120-vertex hexagonal and 0.75x on the 6,146-vertex quad sphere, 1.4x on
-      the 1,538-vertex one; for ``k = 32`` 0.91x (hex, 20k) and 1.11x (quad, 25k); for
-      ``k = 16`` 0.99-1.04x at 20k-25k. Hence ``_LANCZOS_SIZE``: 100,000 vertices at
-      ``k = 32``, 4,500 at 64 (the grid loses up to 6% between 4.5k and 7k, the spheres gain
-      16-25%), 3,000 at 128 and above, log-log interpolation between, never below ``k = 32``;
+      M^{1/2}``, one CHOLMOD or SuperLU solve per step, which beats scipy's generalized
+      ``eigsh(L, M=M, sigma=shift)``) up to a block Lanczos threshold that falls with ``k``:
+      ``_LANCZOS_SIZE`` holds 100,000 unknowns at ``k = 32``, 4,500 at 64 and 3,000 at 128 and
+      above, interpolated log-log between, and ARPACK at every size below ``k = 32``;
     - ``"lanczos"`` (block Lanczos with blocks of 8, :mod:`torch_polylap.lanczos`) above it, for
       a diagonal ``M`` only, and only while its basis of ``6 k`` vectors fits in 4 GiB
       (``"arpack"`` otherwise). Without ``cholespy`` its block solves are SuperLU's one column
@@ -716,8 +719,8 @@ def eigs_route(n: int, k: int, diagonal_mass: bool, cholmod: bool = True) -> str
 
 
 def _lanczos_dim(n: int, k: int) -> int:
-    """The largest Krylov basis :func:`eigs` lets block Lanczos build (the tests used 3.4 k to
-    4.3 k)."""
+    """The largest Krylov basis :func:`eigs` lets block Lanczos build (the bases measured in
+    ``benchmarks/README.md`` stayed well below it)."""
     return min(n, max(6 * k, k + 200))
 
 
@@ -797,9 +800,9 @@ def _eigs_arpack(
 
     For a diagonal ``M`` and a negative shift, on the standard symmetric problem
     ``C = M^{1/2} (L - shift M)^{-1} M^{1/2}`` (as block Lanczos), with one Cholesky solve per
-    step: about 0.6-0.8x the time of ARPACK's generalized mode, which also multiplies by ``M``
-    and ``M``-orthogonalizes each step. Otherwise scipy's generalized shift-invert mode, with
-    SuperLU."""
+    step: faster than ARPACK's generalized mode, which also multiplies by ``M`` and
+    ``M``-orthogonalizes each step (``benchmarks/README.md``). Otherwise scipy's generalized
+    shift-invert mode, with SuperLU."""
     n = Ls.shape[0]
     shifts = [sigma] if sigma is not None else [-1e-6 * scale, -1e-5 * scale, -1e-3 * scale]
     for attempt, shift in enumerate(shifts):
@@ -908,6 +911,20 @@ def eigs(
         RuntimeError: in the backward pass, for a gradient through the eigenvectors of a
             repeated eigenvalue by a loss that depends on more than their span, or for a second
             derivative.
+
+    Examples:
+        >>> import torch
+        >>> import torch_polylap as tp
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0.5]],
+        ...                      dtype=torch.float64)
+        >>> L, M0 = tp.laplacian(verts, [[0, 1, 2, 3], [1, 4, 2]])
+        >>> evals, evecs = tp.eigs(L, M0, k=3)
+        >>> abs(float(evals[0])) < 1e-10  # the constants: one connected component
+        True
+        >>> bool((evals[1:] > 0).all())
+        True
+        >>> torch.allclose(evecs.T @ (M0 @ evecs), torch.eye(3, dtype=torch.float64))
+        True
     """
     L, M = as_operator(L), as_operator(M)
     n = L.shape[0]

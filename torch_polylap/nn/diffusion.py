@@ -16,8 +16,8 @@ by the heat operator ``exp(-t_c M0^{-1} L)`` of the Alexa-Wardetzky Laplacian (A
   and is differentiable in ``L`` and ``M0`` too (gradients to vertex positions).
 
 torch.compile: the spectral path is dense (scatter, batched matmul, gather) and compiles to a
-single graph without breaks (checked with ``torch._dynamo.explain`` on torch 2.13, CPU; about
-5 s to compile a layer, same values as eager); the implicit path calls SciPy's SuperLU through
+single graph without breaks (checked with ``torch._dynamo.explain`` on torch 2.13, CPU; same
+values as eager); the implicit path calls SciPy's SuperLU through
 a custom autograd function: Dynamo splits it into ten graphs (nine breaks at the NumPy/SciPy
 calls of each layer), so compiling it gains nothing.
 """
