@@ -47,8 +47,20 @@ def heat_kernel_signature(
     """``(V, T)`` heat kernel signature ``sum_i exp(-mu_i t) phi_i(x)^2`` at each time.
 
     Args:
-        evals: ``(k,)`` eigenvalues; evecs: ``(V, k)`` ``M0``-orthonormal eigenvectors.
+        evals: ``(k,)`` eigenvalues.
+        evecs: ``(V, k)`` ``M0``-orthonormal eigenvectors.
         times: ``(T,)`` diffusion times (may require grad, e.g. learnable times).
+
+    Examples:
+        >>> import torch
+        >>> import torch_polylap as tp
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0.5]],
+        ...                      dtype=torch.float64)
+        >>> L, M0 = tp.laplacian(verts, [[0, 1, 2, 3], [1, 4, 2]])
+        >>> evals, evecs = tp.eigs(L, M0, k=3)
+        >>> times = torch.tensor([0.1, 1.0, 10.0], dtype=torch.float64)
+        >>> tp.heat_kernel_signature(evals, evecs, times).shape
+        torch.Size([5, 3])
     """
     decay = torch.exp(-evals[:, None] * times[None, :])  # (k, T)
     return (evecs * evecs) @ decay
@@ -110,7 +122,8 @@ def implicit_heat_diffusion(
     """One implicit Euler step of the heat equation: ``(M0 + t L) u = M0 u0``.
 
     Args:
-        L, M0: ``(V, V)`` operators (block-diagonal for a packed batch).
+        L: ``(V, V)`` Laplacian (block-diagonal for a packed batch).
+        M0: ``(V, V)`` mass matrix, of the same mesh or batch.
         u0: ``(V,)`` or ``(V, C)`` signals.
         times: a scalar (one time for all channels: one factorization), or ``(C,)`` one time
             per channel (one factorization per channel).

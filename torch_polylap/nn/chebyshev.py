@@ -107,7 +107,8 @@ class ChebyshevFilter(nn.Module):
     """Learnable ``K``-term Chebyshev filter ``(sumV, C_in) -> (sumV, C_out)``.
 
     Args:
-        in_channels, out_channels: ``C_in``, ``C_out``.
+        in_channels: ``C_in``, the channels of the input.
+        out_channels: ``C_out``, the channels of the output.
         K: number of polynomial terms (degree ``K - 1``, support ``K - 1`` rings).
         normalization: ``"sym"`` or ``"rw"`` (see :func:`chebyshev_operator`).
         bias: add a learnable ``(C_out,)`` bias.

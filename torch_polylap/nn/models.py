@@ -86,7 +86,8 @@ class DiffusionNetLike(nn.Module):
     Args:
         in_channels: per-vertex input channels passed as ``x`` (0: HKS features only).
         out_channels: classes (or per-vertex outputs).
-        width: hidden channels; num_blocks: residual diffusion blocks.
+        width: hidden channels.
+        num_blocks: number of residual diffusion blocks.
         mode: ``"spectral"`` or ``"implicit"`` diffusion (see :class:`LearnedDiffusion`).
         hks_features: number of normalized per-mesh HKS input features (0: none); needs a
             :class:`Spectrum` in ``forward``.
