@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .checks import Lam, warn_outside_package
+from .checks import Lam, check_verts, warn_outside_package
 from .faces import FacesLike, PolygonFaces, as_faces
 from .operators import laplacian
 from .topology import (
@@ -121,12 +121,7 @@ class _Connectivity:
 
 
 def _check_mesh(i: int, verts: torch.Tensor, faces: PolygonFaces) -> None:
-    if not isinstance(verts, torch.Tensor):
-        raise TypeError(f"verts of mesh {i} must be a torch.Tensor (V, 3), got {type(verts)}.")
-    if verts.dim() != 2 or verts.shape[1] != 3:
-        raise ValueError(f"verts of mesh {i} must have shape (V, 3), got {tuple(verts.shape)}.")
-    if not verts.is_floating_point():
-        raise ValueError(f"verts of mesh {i} must be floating point, got {verts.dtype}.")
+    check_verts(verts, f"verts of mesh {i}", finite=False)
     if faces.num_corners:
         hi, lo = int(faces.indices.max()), int(faces.indices.min())
         if hi >= verts.shape[0] or lo < 0:

@@ -25,6 +25,7 @@ import torch
 
 __all__ = [
     "check_verts",
+    "check_verts_array",
     "check_lam",
     "check_index_or_mask",
     "check_positive_int",
@@ -75,6 +76,27 @@ def check_verts(verts: object, name: str = "verts", *, finite: bool = True) -> t
     if finite:
         check_finite(verts, name, what="vertex")
     return verts
+
+
+def check_verts_array(verts: object, name: str = "verts") -> np.ndarray:
+    """``verts`` as a ``(V, 3)`` float64 numpy array, for the numpy-side entries (writers,
+    repairs, figures) that accept arrays as well as tensors (detached and copied to the CPU).
+
+    Raises:
+        TypeError: not numeric (strings, objects, complex numbers).
+        ValueError: wrong shape.
+    """
+    if isinstance(verts, torch.Tensor):
+        if verts.is_complex() or verts.dtype == torch.bool:
+            raise TypeError(f"{name} must hold real coordinates, got dtype {verts.dtype}.")
+        arr = verts.detach().cpu().to(torch.float64).numpy()
+    else:
+        arr = np.asarray(verts)
+    if arr.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must hold real coordinates, got {arr.dtype} values.")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (V, 3), got {tuple(arr.shape)}.")
+    return arr.astype(np.float64, copy=False)
 
 
 def check_finite(x: torch.Tensor, name: str, what: str = "row") -> None:
@@ -200,6 +222,9 @@ def _as_tensor(x: object, name: str) -> torch.Tensor:
             f"{name} must be indices or a boolean mask, got an object array from "
             f"{type(x).__name__}."
         )
+    if arr.size == 0:
+        # numpy gives an empty list the dtype float64; no index is an index list all the same
+        arr = arr.astype(np.int64)
     return torch.from_numpy(np.ascontiguousarray(arr))
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from .checks import check_positive_int, check_verts
 from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
 from .measures import face_nonplanarity, face_normals
@@ -378,10 +379,8 @@ def sample_points(
         barycentric coordinates are random constants; each point is a fixed convex combination
         of its face's corners), and ``(S,)`` face ids if asked for.
     """
-    if num_samples < 1:
-        raise ValueError(f"num_samples must be positive, got {num_samples}.")
-    if verts.dim() != 2 or verts.shape[1] != 3:
-        raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
+    check_positive_int(num_samples, "num_samples")
+    check_verts(verts, finite=False)
     topo = get_topology(faces, verts.shape[0])
     fans = _fan_triangles(verts, topo)
     weights = torch.cat([areas.detach().reshape(-1) for _, _, _, areas in fans])

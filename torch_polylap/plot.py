@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from .checks import check_verts_array
 from .faces import FacesLike, as_faces
 from .measures import vector_area
 
@@ -138,9 +139,7 @@ def plot_mesh(
     import mpl_toolkits.mplot3d  # noqa: F401  (registers the "3d" projection)
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    pts = _numpy(verts)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"plot_mesh: verts must have shape (V, 3), got {pts.shape}.")
+    pts = check_verts_array(verts)
     if up not in _UP:
         raise ValueError(f"plot_mesh: up must be 'x', 'y' or 'z', got {up!r}.")
     pts = pts[:, _UP[up]]

@@ -34,6 +34,7 @@ import torch
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .checks import check_verts_array
 from .faces import FacesLike, PolygonFaces, as_faces
 from .kernels.frames import corner_terms
 from .topology import duplicate_faces, orientation_flips
@@ -296,7 +297,7 @@ def _faces(faces: FacesLike) -> PolygonFaces:
 
 
 def _num_verts(verts: VertsLike, pf: PolygonFaces) -> int:
-    n = int(verts.shape[0])
+    n = check_verts_array(verts).shape[0]
     if pf.num_corners and int(pf.indices.max()) >= n:
         f = int(torch.nonzero(pf.indices >= n)[0, 0])
         raise ValueError(
@@ -307,10 +308,7 @@ def _num_verts(verts: VertsLike, pf: PolygonFaces) -> int:
 
 
 def _numpy_verts(verts: VertsLike) -> np.ndarray:
-    x = verts.detach().cpu().numpy() if isinstance(verts, torch.Tensor) else np.asarray(verts)
-    if x.ndim != 2 or x.shape[1] != 3:
-        raise ValueError(f"verts must have shape (V, 3), got {tuple(x.shape)}.")
-    return x
+    return check_verts_array(verts)
 
 
 def _take(verts: VertsLike, rows: np.ndarray) -> VertsLike:

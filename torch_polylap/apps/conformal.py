@@ -35,6 +35,7 @@ import scipy.sparse.linalg as spla
 import torch
 
 from ..assembly import MeshFaces
+from ..checks import check_verts
 from ..kernels import check_method
 from ..linalg import dirichlet_solve
 from ..measures import face_normals, vector_area
@@ -326,8 +327,7 @@ def conformal_parameterization(
             boundary, several connected components, unreferenced vertices, pins that are not
             two distinct boundary vertices, ``pins`` with ``free_boundary``.
     """
-    if verts.dim() != 2 or verts.shape[1] != 3:
-        raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
+    check_verts(verts)
     check_method(method)
     topo = get_topology(faces, verts.shape[0])
     boundary = _check_mesh(verts, topo)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..assembly import MeshFaces
-from ..checks import check_index_or_mask
+from ..checks import check_index_or_mask, check_verts
 from ..kernels import check_method
 from ..kernels.frames import corner_terms, gather_corners
 from ..linalg import solve
@@ -168,10 +168,7 @@ def schwarz_lantern(
 
 
 def _check_args(verts: torch.Tensor, dt: float, steps: int, normalize: str | None) -> None:
-    if verts.dim() != 2 or verts.shape[1] != 3:
-        raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
-    if not verts.is_floating_point():
-        raise ValueError(f"verts must be float32 or float64, got {verts.dtype}.")
+    check_verts(verts)
     if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
         raise ValueError(f"steps must be an integer >= 0, got {steps!r}.")
     dt_value = float(dt)

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..assembly import MeshFaces
-from ..checks import check_index_or_mask
+from ..checks import check_index_or_mask, check_verts
 from ..linalg import solve
 from ..measures import face_nonplanarity, planarity_energy
 from ..sparse.operator import SparseOperator
@@ -233,10 +233,7 @@ def planarize(
     Positions are optimized in units of the bounding-box diagonal (centered), in float64 for
     ``"gauss-newton"``; tolerances are scale free.
     """
-    if verts.dim() != 2 or verts.shape[1] != 3:
-        raise ValueError(f"verts must have shape (V, 3), got {tuple(verts.shape)}.")
-    if not verts.is_floating_point():
-        raise ValueError(f"verts must be float32 or float64, got {verts.dtype}.")
+    check_verts(verts)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}.")
     if max_iter is None:

@@ -20,6 +20,8 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
+from ..checks import check_verts_array
+
 __all__ = ["MeshAttributes", "SkippedContentWarning", "atomic_write"]
 
 PathLike = str | os.PathLike
@@ -350,13 +352,7 @@ def content_lines(lines: list[str], start: int) -> Iterator[tuple[int, list[str]
 
 def verts_numpy(verts: ArrayLike) -> np.ndarray:
     """``(V, 3)`` float64 array of a tensor (detached, on the CPU) or array."""
-    if isinstance(verts, torch.Tensor):
-        v = verts.detach().cpu().to(torch.float64).numpy()
-    else:
-        v = np.asarray(verts, dtype=np.float64)
-    if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"verts must have shape (V, 3), got {tuple(v.shape)}.")
-    return v
+    return check_verts_array(verts)
 
 
 # --------------------------------------------------------------------------------------------
