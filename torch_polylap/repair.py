@@ -3,7 +3,7 @@
 Every function takes ``(verts, faces)`` and returns ``(verts, faces, report)``: the new vertex
 positions (same type as given: tensor or array), the new faces as
 :class:`~torch_polylap.PolygonFaces`, and a :class:`RepairReport` saying what changed, with
-index maps so that per-vertex and per-face data can follow::
+index maps so that per-vertex and per-face data can follow:
 
     verts2, faces2, rep = orient_faces(verts, faces)
     colors2 = colors[rep.vertex_source]      # per-vertex data

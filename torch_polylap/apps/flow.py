@@ -2,8 +2,9 @@
 
 The flow ``dX/dt = -M0^{-1} L X`` moves every vertex along minus its mean-curvature vector.  With
 this package's ``L`` (positive semi-definite, weak form) ``M0^{-1} L X`` tends to ``2 H n`` with
-``H`` the mean of the principal curvatures (MATH.md), so a round sphere of radius ``r`` shrinks
-as ``r(t)^2 = r(0)^2 - 4 t``.  Each step is one backward-Euler solve
+``H`` the mean of the principal curvatures (``docs/math/aw11.md``, "Mean curvature"), so a
+round sphere of radius ``r`` shrinks as ``r(t)^2 = r(0)^2 - 4 t``.  Each step is one
+backward-Euler solve
 
     (M0 + dt L) X_{t+1} = M0 X_t,
 
