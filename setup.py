@@ -28,6 +28,8 @@ setup(
         # against (pure Python; its compiled extensions are not needed)
         "test": [
             "pytest>=7",
+            # build: CI builds the sdist and the wheel from it and installs that (.ci/package)
+            "build>=1.0",
             "ruff>=0.4",
             "libigl>=2.5",
             "matplotlib>=3.5",
