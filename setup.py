@@ -1,16 +1,23 @@
 """Packaging for torch_polylap (pure Python; torch is a runtime dependency only)."""
 
+import re
 from pathlib import Path
 
 from setuptools import find_packages, setup
 
+HERE = Path(__file__).parent
+# one version, written once: torch_polylap.__version__
+VERSION = re.search(
+    r'^__version__ = "([^"]+)"', (HERE / "torch_polylap" / "__init__.py").read_text(), re.M
+)[1]
+
 setup(
     name="torch_polylap",
-    version="0.1.0",
+    version=VERSION,
     description=(
         "Differentiable Alexa-Wardetzky discrete Laplacian on general polygon meshes for PyTorch"
     ),
-    long_description=Path(__file__).with_name("README.md").read_text(encoding="utf-8"),
+    long_description=(HERE / "README.md").read_text(encoding="utf-8"),
     long_description_content_type="text/markdown",
     license="MIT",
     python_requires=">=3.10",
