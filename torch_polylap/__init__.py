@@ -1,8 +1,8 @@
 """torch_polylap: the Alexa-Wardetzky discrete Laplacian on general polygon meshes, in PyTorch.
 
 Differentiable with respect to vertex positions, on CPU and CUDA, for faces of any degree
-(non-planar, non-convex, mixed).  See README.md for the conventions and ``docs/`` for the
-mathematics.
+(non-planar, non-convex, mixed).  See ``docs/conventions.md`` for the conventions and
+``docs/math/`` for the mathematics.
 
 The API has two tiers, in the manner of pytorch3d and kornia:
 

@@ -45,6 +45,11 @@ def vector_area(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
 
     Its norm is the area of the maximal projection and its direction that projection's normal;
     it depends only on the boundary loop, so it is well defined for non-planar faces.
+
+    >>> import torch, torch_polylap as tp
+    >>> tilted = torch.tensor([[0.0, 0, 0], [2, 0, 0], [2, 1, 1], [0, 1, 1]])
+    >>> tp.vector_area(tilted, [[0, 1, 2, 3]]).tolist()  # 2 x sqrt(2) rectangle, tilted 45 deg
+    [[0.0, -2.0, 2.0]]
     """
     out = None
     for topo, grp, x in face_groups(verts, faces):

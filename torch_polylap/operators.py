@@ -94,6 +94,15 @@ def laplacian(
         ``M0.diagonal()``, the value array ``tp.sparse.sparse_values(L)`` (see
         :mod:`torch_polylap.sparse`).
 
+    Example:
+        A unit square: ``L`` is symmetric with zero row sums, ``M0`` shares the area evenly.
+
+        >>> import torch, torch_polylap as tp
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]).double()
+        >>> L, M0 = tp.laplacian(verts, [[0, 1, 2, 3]])
+        >>> L.to_dense().sum(1).abs().max() < 1e-15, M0.diagonal().sum().item()
+        (tensor(True), 1.0)
+
     Raises:
         ValueError: bad connectivity (see :func:`~torch_polylap.topology.build_topology`),
             non-finite coordinates or zero-area faces, naming the vertex or face.
@@ -162,10 +171,16 @@ class PolygonLaplacian(nn.Module):
         validate: see :func:`laplacian`.
         method: ``"aw11"`` (default), ``"plms"`` or ``"degoes"`` (see :func:`laplacian`).
 
-    ``forward(verts, faces=None)``: ``verts`` ``(V, 3)``; ``faces`` in any accepted form, or
-    ``None`` to reuse the faces of the previous call.  The topology is rebuilt only when the
-    faces change (a different object, or a tensor modified in place), so a training loop with
-    fixed connectivity only recomputes values.
+    The topology is rebuilt only when the faces change (a different object, or a tensor
+    modified in place), so a training loop with fixed connectivity only recomputes values.
+
+    >>> import torch, torch_polylap as tp
+    >>> lap = tp.PolygonLaplacian(lam=1.0)
+    >>> square = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
+    >>> L, M0 = lap(square, [[0, 1, 2, 3]])
+    >>> L, M0 = lap(square + 1.0)  # same faces: the cached topology, new values
+    >>> M0.diagonal().tolist()
+    [0.25, 0.25, 0.25, 0.25]
     """
 
     def __init__(
@@ -199,6 +214,16 @@ class PolygonLaplacian(nn.Module):
     def forward(
         self, verts: torch.Tensor, faces: MeshFaces | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(L, M0)`` at ``verts``.
+
+        Args:
+            verts: ``(V, 3)`` vertex positions (float32 or float64, any device).
+            faces: the faces in any accepted form, or ``None`` to reuse those of the previous
+                call.
+
+        Returns:
+            ``L`` and ``M0``, ``(V, V)`` operators as :func:`laplacian` returns them.
+        """
         check_verts(verts, finite=False)
         topo = self._topology_for(faces, verts.shape[0])
         lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam

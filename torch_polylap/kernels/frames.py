@@ -61,7 +61,7 @@ def corner_terms(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
         ``e`` ``(3, k, F)``: edges ``x_{i+1} - x_i``;
         ``g`` ``(3, k, F)``: ``(x_{i+1} - x_{i-1}) / 2 = (e_i + e_{i-1}) / 2``, rows of ``d^T B``
         whose Gram matrix divided by ``|f|`` is the geometric part ``d^T (B B^T / |f|) d``
-        (MATH.md; origin-free, unlike ``B``);
+        (``docs/math/aw11.md``, "The geometric part"; origin-free, unlike ``B``);
         ``a`` ``(3, F)``: vector area ``1/2 sum_i x_i x x_{i+1}`` (AW11 eq. 8), summed as the fan
         ``1/2 sum_i (x_i - x_0) x (x_{i+1} - x_0)`` so that a mesh far from the origin loses no
         precision.
@@ -114,7 +114,8 @@ def stabilizer_factors(e: torch.Tensor, n: torch.Tensor) -> tuple[torch.Tensor, 
     coordinates ``u_i = e_i . t1`` and ``w_i = e_i . t2`` (``e_i . t = ebar_i . t`` for ``t`` in the
     plane, so the edges need not be projected).  Gram-Schmidt turns ``(u, w)`` into an
     orthonormal pair ``(q1, q2)``, so ``Pi = I - q1 q1^T - q2 q2^T`` without any SVD
-    (MATH.md: SVD gradients divide by differences of the ``k - 2`` equal singular values).
+    (``docs/math/aw11.md``, "How the code forms Pi": SVD gradients divide by differences of
+    the ``k - 2`` equal singular values).
 
     Args:
         e: ``(3, k, F)`` edges.
