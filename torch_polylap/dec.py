@@ -12,7 +12,8 @@ import torch
 
 from .assembly import MeshFaces, face_groups
 from .checks import Lam, check_lam
-from .kernels.aw11 import aw11_entries, row_sums
+from .kernels import block_kernel
+from .kernels.aw11 import row_sums
 from .kernels.frames import corner_terms, plane_basis, stable_norm
 from .sparse import operator_from_parts
 from .topology import Topology, build_topology, half_edge_vertices
@@ -21,17 +22,26 @@ __all__ = ["coboundary", "one_form_inner_product", "local_laplacians"]
 
 
 def local_laplacians(
-    verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0, *, geometric: bool = True
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    lam: Lam = 1.0,
+    *,
+    geometric: bool = True,
+    method: str = "aw11",
 ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Dense blocks ``L_f = d^T M_f d``: ``(face_ids (F_k,), blocks (F_k, k, k))`` per degree.
 
-    For inspection and tests; :func:`laplacian` never materializes them.
-    ``geometric=False`` gives the planarity blocks ``lambda d^T Pi d``.
+    For inspection and tests; :func:`~torch_polylap.laplacian` never materializes them.
+    ``geometric=False`` gives AW11's planarity blocks ``lambda d^T Pi d``; ``method`` the
+    blocks of another Laplacian (``"plms"``, ``"degoes"``; see
+    :func:`~torch_polylap.laplacian`), which sum to its ``L`` the same way.
     """
     lam = check_lam(lam)
+    kernel = block_kernel(method, lam, geometric)
+    verts_t = verts.t().contiguous()
     out = []
     for _, grp, x in face_groups(verts, faces):
-        off, _, _ = aw11_entries(x, grp, lam, geometric)
+        off = kernel(verts_t, grp, grp.corners_t)[0]
         blocks = verts.new_zeros(x.shape[2], grp.k, grp.k)
         blocks[:, grp.pair_i, grp.pair_j] = off.t()
         blocks[:, grp.pair_j, grp.pair_i] = off.t()

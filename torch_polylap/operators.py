@@ -151,13 +151,16 @@ def strong_laplacian(L: torch.Tensor, M0: torch.Tensor, u: torch.Tensor) -> torc
     return Lu * (inv if u.dim() == 1 else inv[:, None])
 
 
-def mean_curvature_normal(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
+def mean_curvature_normal(
+    verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0, *, method: str = "aw11"
+) -> torch.Tensor:
     """``(V, 3)`` mean curvature vector ``H = M0^{-1} L X`` (AW11 sec. 3.2).
 
     ``H`` tends to ``2 H_mean n`` (outward ``n`` for counter-clockwise faces seen from outside),
-    so on the unit sphere ``|H| / 2 -> 1``.
+    so on the unit sphere ``|H| / 2 -> 1``. ``method`` picks the Laplacian (see
+    :func:`laplacian`).
     """
-    L, M0 = laplacian(verts, faces, lam)
+    L, M0 = laplacian(verts, faces, lam, method=method)
     return strong_laplacian(L, M0, verts)
 
 
