@@ -224,7 +224,7 @@ def _flow_before_singularity(
                 reason = (
                     f"the scale-free mean curvature at vertex {v} would reach {float(h[v]):.3g}, "
                     f"more than {SINGULARITY_FACTOR:g} x the input's largest "
-                    f"({largest:.3g}): a thin part is pinching off"
+                    f"({largest:.3g}): a thin part is pinching off or faces are folding over"
                 )
         except ValueError as err:
             reason = f"its system is singular ({err}): a small closed part shrank to a point"
