@@ -34,7 +34,7 @@ class Output:
     """A file a command writes: its name in the output directory and the function writing it."""
 
     name: str
-    write: Callable[[Path], None]
+    write: Callable[[Path], object]
 
 
 @dataclass
@@ -214,14 +214,17 @@ def load_mesh(
 
 
 def read_mesh_quietly(
-    path: Path, embedded: bool, **options: object
+    path: Path,
+    embedded: bool,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
 ) -> tuple[torch.Tensor, PolygonFaces]:
     """``read_mesh``; for the package's embedded meshes without the warning about the texture
     coordinates and materials they carry, which the commands have no use for."""
     with warnings.catch_warnings():
         if embedded:
             warnings.simplefilter("ignore", SkippedContentWarning)
-        return read_mesh(path, **options)  # type: ignore[arg-type]
+        return read_mesh(path, dtype, device)
 
 
 def output_dir(args: argparse.Namespace) -> Path:

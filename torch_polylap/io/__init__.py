@@ -21,7 +21,7 @@ share), :mod:`.writers` (text blocks, PLY) and :mod:`.triangulate` (for :func:`t
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, overload
 
 import numpy as np
 import torch
@@ -64,6 +64,30 @@ _READERS = {".obj": read_obj, ".off": read_off, ".ply": read_ply}
 _SUPPORTED = tuple(_READERS)
 
 
+@overload
+def read_mesh(
+    path: PathLike,
+    dtype: torch.dtype = ...,
+    device: torch.device | str | None = ...,
+    *,
+    return_attributes: Literal[False] = ...,
+) -> tuple[torch.Tensor, PolygonFaces]: ...
+@overload
+def read_mesh(
+    path: PathLike,
+    dtype: torch.dtype = ...,
+    device: torch.device | str | None = ...,
+    *,
+    return_attributes: Literal[True],
+) -> tuple[torch.Tensor, PolygonFaces, MeshAttributes]: ...
+@overload
+def read_mesh(
+    path: PathLike,
+    dtype: torch.dtype = ...,
+    device: torch.device | str | None = ...,
+    *,
+    return_attributes: bool = ...,
+) -> tuple[torch.Tensor, PolygonFaces] | tuple[torch.Tensor, PolygonFaces, MeshAttributes]: ...
 def read_mesh(
     path: PathLike,
     dtype: torch.dtype = torch.float64,

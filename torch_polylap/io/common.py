@@ -360,7 +360,7 @@ def verts_numpy(verts: ArrayLike) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def atomic_write(path: PathLike, write: Callable[[BinaryIO], None]) -> None:
+def atomic_write(path: PathLike, write: Callable[[BinaryIO], object]) -> None:
     """Replace ``path`` by what ``write`` writes, all or nothing.
 
     ``write`` fills a uniquely named temporary file in the target's folder (hidden, ending in

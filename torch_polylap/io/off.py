@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import struct
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -38,6 +39,7 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     """Parse ASCII or binary OFF.  OFF files carry no per-corner attributes; per-vertex
     normals, colours and texture coordinates are skipped (and named in the warning)."""
     first = _FIRST_LINE.match(data)
+    assert first is not None  # the pattern matches any input (possibly empty)
     toks = first.group(1).decode("latin-1").split()
     if len(toks) >= 2 and toks[1].upper() == "BINARY" and _OFF_KEYWORD.fullmatch(toks[0]):
         return _read_off_binary(data[first.end() :], toks[0], name, skipped)
@@ -82,7 +84,13 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     return Parsed(verts, indices, sizes)
 
 
-def _ascii_vertices(content, num_verts: int, name: str, skipped: Skipped, keyword: str):
+def _ascii_vertices(
+    content: Iterator[tuple[int, list[str]]],
+    num_verts: int,
+    name: str,
+    skipped: Skipped,
+    keyword: str,
+) -> np.ndarray:
     # Only flat lists of strings and ints are kept: millions of retained per-line lists would
     # make the cyclic GC rescan them over and over.
     coords: list[str] = []
@@ -113,7 +121,9 @@ def _ascii_vertices(content, num_verts: int, name: str, skipped: Skipped, keywor
         ) from None
 
 
-def _ascii_faces(content, num_faces: int, name: str, skipped: Skipped):
+def _ascii_faces(
+    content: Iterator[tuple[int, list[str]]], num_faces: int, name: str, skipped: Skipped
+) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """Face records are a token stream: k, then k indices, possibly wrapped over several lines;
     tokens left on the line where a record ends are its colour."""
     corners: list[str] = []

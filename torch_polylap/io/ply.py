@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import re
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -88,15 +89,17 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     else:
         columns = _read_ply_binary(data, body, _PLY_FORMATS[fmt], elements, wanted, name)
     vcols = columns["vertex"]
-    verts = np.stack([vcols[a].astype(np.float64) for a in "xyz"], axis=1)
-    values, counts = columns["face"][face_list.name]
+    verts = np.stack([_scalar(vcols[a]).astype(np.float64) for a in "xyz"], axis=1)
+    values, counts = _list(columns["face"][face_list.name])
     indices = values.astype(np.int64)
     sizes = counts.astype(np.int64)
     check_faces(name, indices, sizes, len(verts), lambda f: f"element 'face' record {f}")
     parsed = Parsed(verts, indices, sizes)
     for key, names in (("normals", normals), ("uv", uv)):
         if want_attributes and names:
-            parsed.attributes[key] = np.stack([vcols[n].astype(np.float64) for n in names], 1)
+            parsed.attributes[key] = np.stack(
+                [_scalar(vcols[n]).astype(np.float64) for n in names], 1
+            )
             parsed.attributes["corner_" + key] = indices.copy()
     return parsed
 
@@ -215,7 +218,21 @@ def _parse_ply_property(toks: list[str], no: int, name: str) -> _PlyProperty:
     raise ValueError(f"{name}, line {no}: malformed property line {' '.join(toks)!r}.")
 
 
-_Columns = dict[str, dict[str, object]]
+# a scalar property's values, or a list property's (values, list lengths)
+_Column = np.ndarray | tuple[np.ndarray, np.ndarray]
+_Columns = dict[str, dict[str, _Column]]
+
+
+def _scalar(column: _Column) -> np.ndarray:
+    """A column that the header declares scalar (checked by the caller)."""
+    assert not isinstance(column, tuple)
+    return column
+
+
+def _list(column: _Column) -> tuple[np.ndarray, np.ndarray]:
+    """A column that the header declares a list (checked by the caller)."""
+    assert isinstance(column, tuple)
+    return column
 
 
 def _read_ply_binary(
@@ -244,7 +261,7 @@ def _read_ply_binary(
 
 def _binary_fixed_element(
     data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
-) -> tuple[dict[str, object], int]:
+) -> tuple[dict[str, _Column], int]:
     dt = np.dtype([(f"p{i}", order + p.dtype) for i, p in enumerate(el.props)])
     available = (len(data) - pos) // dt.itemsize if dt.itemsize else el.count
     if available < el.count:
@@ -252,14 +269,18 @@ def _binary_fixed_element(
             f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
             f"after {available} (truncated file)."
         )
-    rec = np.frombuffer(data, dt, el.count, pos) if dt.itemsize else None
-    cols = {p.name: rec[f"p{i}"] for i, p in enumerate(el.props) if p.name in want}
+    if not dt.itemsize:
+        return {}, pos  # an element without properties
+    rec = np.frombuffer(data, dt, el.count, pos)
+    cols: dict[str, _Column] = {
+        p.name: rec[f"p{i}"] for i, p in enumerate(el.props) if p.name in want
+    }
     return cols, pos + el.count * dt.itemsize
 
 
 def _binary_list_element(
     data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
-) -> tuple[dict[str, object], int]:
+) -> tuple[dict[str, _Column], int]:
     """An element with list properties: records of varying length.
 
     When every record's lists have the lengths of the first record's (all-triangle or all-quad
@@ -286,15 +307,16 @@ def _binary_list_element(
     steps: list[tuple[int, int, int]] = []  # (scalar bytes before the count, count size, item size)
     for j, i in enumerate(lists):
         prop = el.props[i]
-        if prop.count_dtype == "u1":
+        count_dtype = prop.count_dtype
+        assert count_dtype is not None  # `lists` holds the list properties
+        if count_dtype == "u1":
             readers.append(data.__getitem__)
         else:
-            unpack = struct.Struct(order + _STRUCT_CODES[prop.count_dtype]).unpack_from
-            readers.append(lambda q, unpack=unpack: unpack(data, q)[0])
+            readers.append(_count_reader(data, order + _STRUCT_CODES[count_dtype]))
         steps.append(
             (
                 seg_scalar_bytes[j],
-                np.dtype(prop.count_dtype).itemsize,
+                np.dtype(count_dtype).itemsize,
                 np.dtype(prop.dtype).itemsize,
             )
         )
@@ -327,7 +349,7 @@ def _binary_list_element(
             f"element {el.name!r} is complete (truncated file)."
         )
     buf = np.frombuffer(data, np.uint8)
-    cols: dict[str, object] = {}
+    cols: dict[str, _Column] = {}
     for i, prop in enumerate(el.props):
         if prop.name not in want:
             continue
@@ -344,11 +366,17 @@ def _binary_list_element(
     return cols, p
 
 
+def _count_reader(data: bytes, fmt: str) -> Callable[[int], int]:
+    """Reads the list length (struct format ``fmt``) stored at a byte offset of ``data``."""
+    unpack = struct.Struct(fmt).unpack_from
+    return lambda q: unpack(data, q)[0]
+
+
 def _binary_uniform_lists(
     data: bytes, pos: int, order: str, el: _PlyElement, want: set[str]
-) -> tuple[dict[str, object], int] | None:
+) -> tuple[dict[str, _Column], int] | None:
     """Read a list element in one go if all its lists have the first record's lengths."""
-    fields = []
+    fields: list[tuple[Any, ...]] = []  # (name, dtype) or (name, dtype, shape)
     lengths: dict[int, int] = {}
     p = pos
     for i, prop in enumerate(el.props):
@@ -372,7 +400,7 @@ def _binary_uniform_lists(
     rec = np.frombuffer(data, dt, el.count, pos)
     if not all((rec[f"c{i}"] == k).all() for i, k in lengths.items()):
         return None
-    cols: dict[str, object] = {}
+    cols: dict[str, _Column] = {}
     for i, prop in enumerate(el.props):
         if prop.name not in want:
             continue
@@ -391,7 +419,7 @@ def _gather(buf: np.ndarray, at: np.ndarray, dtype: str) -> np.ndarray:
     return raw.view(dt).reshape(-1)
 
 
-def _empty_column(prop: _PlyProperty) -> object:
+def _empty_column(prop: _PlyProperty) -> _Column:
     if prop.count_dtype is None:
         return np.zeros(0, dtype=prop.dtype)
     return np.zeros(0, dtype=prop.dtype), np.zeros(0, dtype=np.int64)
@@ -439,15 +467,15 @@ class _AsciiRows:
         return self.rows[record] + self.first_line
 
 
-_Tokens = tuple[dict[str, list[str]], dict[str, list[int] | np.ndarray]]
+_Tokens = tuple[dict[str, list[str]], Mapping[str, list[int] | np.ndarray]]
 
 
 def _ascii_element(
     table: _AsciiRows, el: _PlyElement, want: set[str], name: str
-) -> dict[str, object]:
+) -> dict[str, _Column]:
     """Wanted properties of an ASCII element: arrays (scalars) or (values, sizes) (lists)."""
     scalars, sizes = _ascii_tokens_fast(table, el, want) or _ascii_tokens(table, el, want, name)
-    cols: dict[str, object] = {}
+    cols: dict[str, _Column] = {}
     for prop in el.props:
         if prop.name not in scalars:
             continue
