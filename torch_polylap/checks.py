@@ -18,6 +18,7 @@ from __future__ import annotations
 import numbers
 import os
 import sys
+import types
 import warnings
 
 import numpy as np
@@ -142,7 +143,7 @@ def check_lam(lam: object, name: str = "lam") -> Lam:
             f"{name} must be a finite number >= 0, got {value}; the stabilizer weight lambda of "
             "AW11 eq. 9 is usually between 1 and 3 (0 keeps only the geometric part)."
         )
-    return lam
+    return lam if isinstance(lam, torch.Tensor) else value
 
 
 def check_positive_int(k: object, name: str) -> int:
@@ -231,7 +232,8 @@ def _as_tensor(x: object, name: str) -> torch.Tensor:
 def warn_outside_package(message: str) -> None:
     """``warnings.warn`` attributed to the first caller outside torch_polylap."""
     package = os.path.dirname(os.path.abspath(__file__))
-    level, frame = 2, sys._getframe(1)  # level 2: the caller of this helper
+    level = 2  # the caller of this helper
+    frame: types.FrameType | None = sys._getframe(1)
     while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
         level += 1
         frame = frame.f_back

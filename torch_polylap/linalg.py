@@ -544,7 +544,7 @@ def _eigenvector_adjoint(
 
     nearest = float("nan")
     if check_next is not None:
-        x = np.random.default_rng(0).standard_normal(n)
+        x = np.random.default_rng(0).standard_normal((n,))
         x -= Phi @ (MPhi.T @ x)
         t = norm = 0.0
         for _ in range(_GAP_ITERATIONS):
@@ -768,7 +768,7 @@ def _eigs_block_lanczos(
 
 
 def _shifted_vector_solver(
-    S: sp.spmatrix, device: torch.device
+    S: sp.spmatrix, device: torch.device | str
 ) -> Callable[[np.ndarray], np.ndarray]:
     """``x (n,) -> S^{-1} x`` for a sparse SPD ``S``, one column per call (ARPACK's step):
     CHOLMOD when ``cholespy`` is installed, SuperLU otherwise."""

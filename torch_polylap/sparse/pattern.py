@@ -59,7 +59,11 @@ class SparsityPattern:
         self._row: torch.Tensor | None = None
         self._transpose: tuple[SparsityPattern, torch.Tensor] | None = None
         self._diag_pos: torch.Tensor | None = None
-        self._unions: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        # other pattern -> (union, or None where it is the other pattern itself; index maps)
+        self._unions: weakref.WeakKeyDictionary[
+            SparsityPattern,
+            tuple[SparsityPattern | None, torch.Tensor | None, torch.Tensor | None],
+        ] = weakref.WeakKeyDictionary()
         self._devices: dict[torch.device, SparsityPattern] = {}
 
     @classmethod
@@ -147,8 +151,8 @@ class SparsityPattern:
             # the weak-keyed cache must not hold `other` strongly: None stands for it
             cached = (None if pattern is other else pattern, at_self, at_other)
             self._unions[other] = cached
-        pattern, at_self, at_other = cached
-        return (other if pattern is None else pattern), at_self, at_other
+        union, at_self, at_other = cached
+        return (other if union is None else union), at_self, at_other
 
     def _compute_union(
         self, other: SparsityPattern

@@ -33,9 +33,11 @@ class _TopologyCache:
     def __init__(self, max_entries: int = 64, max_bytes: int = 2 << 30) -> None:
         self.max_entries = max_entries
         self.max_bytes = max_bytes
-        self._entries: OrderedDict[int, tuple[weakref.ref, tuple, Topology, int]] = OrderedDict()
+        self._entries: OrderedDict[int, tuple[weakref.ref[torch.Tensor], tuple, Topology, int]] = (
+            OrderedDict()
+        )
         self._bytes = 0
-        self._dead: list[tuple[int, weakref.ref]] = []
+        self._dead: list[tuple[int, weakref.ref[torch.Tensor]]] = []
         self._lock = threading.Lock()
 
     def get(self, holder: torch.Tensor, stamp: tuple) -> Topology | None:
@@ -49,7 +51,7 @@ class _TopologyCache:
 
     def put(self, holder: torch.Tensor, stamp: tuple, topo: Topology) -> None:
         key = id(holder)
-        ref = weakref.ref(holder, lambda r, key=key: self._dead.append((key, r)))
+        ref = weakref.ref(holder, lambda r: self._dead.append((key, r)))
         size = topo.nbytes
         with self._lock:
             self._purge()
@@ -110,7 +112,7 @@ def _tensor_stamp(t: torch.Tensor) -> tuple:
     # (np_view = t.numpy(); np_view[0] = 5): a CRC32 of small CPU tensors catches them.
     crc = None
     if t.device.type == "cpu" and t.numel() <= CHECKSUM_MAX_ELEMENTS:
-        crc = zlib.crc32(t.detach().contiguous().numpy())
+        crc = zlib.crc32(t.detach().contiguous().numpy().data)
     return (t._version, t.data_ptr(), tuple(t.shape), t.stride(), t.dtype, t.device, crc)
 
 
