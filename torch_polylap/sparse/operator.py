@@ -132,12 +132,16 @@ class SparseOperator(torch.Tensor):
                 return func(*args, **kwargs)
         raise UnsupportedOperation(_unsupported_message(func))
 
+    # torch types Tensor.__torch_dispatch__ as its disabled default, a plain function, though
+    # subclasses are to define it as a classmethod (as torch's own subclasses do)
     @classmethod
-    def __torch_dispatch__(cls, func, types, args=(), kwargs=None):
+    def __torch_dispatch__(cls, func, types, args=(), kwargs=None):  # type: ignore[override]
         # Only reached by code that bypasses __torch_function__ (e.g. torch internals in C++).
         raise UnsupportedOperation(_unsupported_message(func))
 
-    def __repr__(self, *, tensor_contents: Any = None) -> str:
+    # mypy rejects any annotated override of the unannotated Tensor.__repr__(self, *,
+    # tensor_contents=None), even one with the same parameters
+    def __repr__(self, *, tensor_contents: Any = None) -> str:  # type: ignore[override]
         values = self._vals
         grad = f", grad_fn=<{type(values.grad_fn).__name__}>" if values.grad_fn is not None else ""
         if values.grad_fn is None and values.requires_grad:
@@ -229,7 +233,7 @@ def _check_dense(A: SparseOperator, X: object, what: str) -> torch.Tensor:
     return X
 
 
-def apply(A: SparseOperator, X: torch.Tensor) -> torch.Tensor:
+def apply(A: SparseOperator, X: object) -> torch.Tensor:
     """``A @ X`` with ``X`` of shape ``(m,)``, ``(m, c)`` or ``(..., m, c)`` (batched)."""
     X = _check_dense(A, X, "A @ X")
     n, m = A.pattern.shape
@@ -253,7 +257,7 @@ def _matmul(a: object, b: object, **kwargs: Any) -> torch.Tensor:
     if kwargs.get("out") is not None:
         raise UnsupportedOperation("torch_polylap: out= is not supported with a sparse operator.")
     if isinstance(a, SparseOperator):
-        return apply(a, b)  # type: ignore[arg-type]
+        return apply(a, b)
     assert isinstance(b, SparseOperator)
     return _rmatmul(b, a)
 
@@ -295,14 +299,16 @@ def _is_scalar(s: object) -> bool:
     return isinstance(s, numbers.Number) and not isinstance(s, bool | complex)
 
 
-def _scalar_tensor(A: SparseOperator, s: object) -> torch.Tensor | float:
+# The scalars of _scalar_tensor, _combine, _sub and _rsub are whatever the caller gave torch
+# (a number, a one-element tensor, ...): Any, as float() and unary minus decide at run time.
+def _scalar_tensor(A: SparseOperator, s: Any) -> torch.Tensor | float:
     if isinstance(s, torch.Tensor):
         if s.device != A.device and s.device.type != "cpu":
             raise UnsupportedOperation(
                 f"torch_polylap: scalar on {s.device}, operator on {A.device}."
             )
         return s.reshape(()).to(dtype=A.dtype, device=A.device)
-    return float(s)  # type: ignore[arg-type]
+    return float(s)
 
 
 def _scale(A: SparseOperator, w: object, op: str) -> SparseOperator:
@@ -368,7 +374,7 @@ def _div(
     return _scale(a, b, "div")
 
 
-def _combine(A: SparseOperator, B: SparseOperator, alpha: object) -> SparseOperator:
+def _combine(A: SparseOperator, B: SparseOperator, alpha: Any) -> SparseOperator:
     """``A + alpha B`` on the union of the two patterns (cached per pattern pair)."""
     if B.dtype != A.dtype:
         raise UnsupportedOperation(
@@ -384,10 +390,8 @@ def _combine(A: SparseOperator, B: SparseOperator, alpha: object) -> SparseOpera
     if not (isinstance(alpha, numbers.Number) and alpha == 1):
         b_vals = b_vals * _scalar_tensor(A, alpha)
     pattern, at_a, at_b = A.pattern.union(B.pattern)
-    if at_a is None and at_b is None:
-        values = A._vals + b_vals
-    elif at_a is None:
-        values = A._vals.index_add(0, at_b, b_vals)  # type: ignore[arg-type]
+    if at_a is None:
+        values = A._vals + b_vals if at_b is None else A._vals.index_add(0, at_b, b_vals)
     elif at_b is None:
         values = b_vals.index_add(0, at_a, A._vals)
     else:
@@ -424,11 +428,8 @@ def _is_zero_alpha_one(alpha: object) -> bool:
     return isinstance(alpha, numbers.Number) and alpha == 1
 
 
-def _sub(a: object, b: object, *, alpha: object = 1, **kwargs: Any) -> torch.Tensor:
+def _sub(a: object, b: object, *, alpha: Any = 1, **kwargs: Any) -> torch.Tensor:
     if isinstance(a, SparseOperator) and isinstance(b, SparseOperator):
-        if not isinstance(alpha, numbers.Number):
-            alpha = -alpha  # type: ignore[operator]
-            return _combine(a, b, alpha)
         return _combine(a, b, -alpha)
     if isinstance(a, SparseOperator) and _is_zero(b):
         return a
@@ -440,12 +441,12 @@ def _sub(a: object, b: object, *, alpha: object = 1, **kwargs: Any) -> torch.Ten
     )
 
 
-def _rsub(a: object, b: object, *, alpha: object = 1, **kwargs: Any) -> torch.Tensor:
+def _rsub(a: object, b: object, *, alpha: Any = 1, **kwargs: Any) -> torch.Tensor:
     # torch.rsub(a, b) = b - alpha * a
     if isinstance(a, SparseOperator) and isinstance(b, SparseOperator):
         return _sub(b, a, alpha=alpha)
     if isinstance(a, SparseOperator) and _is_zero(b):
-        return _neg(a) if _is_zero_alpha_one(alpha) else _scale(a, -alpha, "mul")  # type: ignore[operator]
+        return _neg(a) if _is_zero_alpha_one(alpha) else _scale(a, -alpha, "mul")
     raise UnsupportedOperation(
         f"torch_polylap: {_describe(b)} - {_describe(a)} is not supported: it would give a dense "
         "V x V matrix. Subtract sparse operators instead (e.g. torch_polylap.sparse.identity(n))."
@@ -509,7 +510,9 @@ def _cast(dtype: torch.dtype) -> Callable[..., SparseOperator]:
     return cast
 
 
-def _cuda(A: SparseOperator, device: object = None, **kwargs: Any) -> SparseOperator:
+def _cuda(
+    A: SparseOperator, device: torch.device | str | int | None = None, **kwargs: Any
+) -> SparseOperator:
     if isinstance(device, int):
         device = f"cuda:{device}"
     return _to(A, torch.device(device or "cuda"))
@@ -641,15 +644,15 @@ def _build_handlers() -> dict[Callable, Callable]:
 _HANDLERS = _build_handlers()
 
 _PASSTHROUGH = {
-    torch.Tensor.shape.__get__,
-    torch.Tensor.dtype.__get__,
-    torch.Tensor.device.__get__,
-    torch.Tensor.ndim.__get__,
-    torch.Tensor.is_cuda.__get__,
-    torch.Tensor.is_cpu.__get__,
-    torch.Tensor.is_meta.__get__,
-    torch.Tensor.is_quantized.__get__,
-    torch.Tensor.is_nested.__get__,
+    _getter(torch.Tensor.shape),
+    _getter(torch.Tensor.dtype),
+    _getter(torch.Tensor.device),
+    _getter(torch.Tensor.ndim),
+    _getter(torch.Tensor.is_cuda),
+    _getter(torch.Tensor.is_cpu),
+    _getter(torch.Tensor.is_meta),
+    _getter(torch.Tensor.is_quantized),
+    _getter(torch.Tensor.is_nested),
     torch.Tensor.size,
     torch.Tensor.dim,
     torch.Tensor.ndimension,
