@@ -15,7 +15,8 @@ The API has two tiers, in the manner of pytorch3d and kornia:
   and the building blocks :mod:`~torch_polylap.sparse` (the operator type and its algebra),
   :mod:`~torch_polylap.io`, :mod:`~torch_polylap.topology`, :mod:`~torch_polylap.kernels`,
   :mod:`~torch_polylap.dec` (AW11's ``d`` and ``M1``), :mod:`~torch_polylap.checks` and
-  :mod:`~torch_polylap.repair`.
+  :mod:`~torch_polylap.repair`, and :mod:`~torch_polylap.shapes` (generated grids, cube spheres,
+  tori and the Schwarz lantern).
 
 ``__all__`` is derived from the core modules' own ``__all__`` lists plus the subpackage names.
 """
@@ -35,6 +36,7 @@ from . import (
     nn,
     plot,
     repair,
+    shapes,
     sparse,
     topology,
 )
@@ -64,6 +66,7 @@ _SUBPACKAGES = (
     "nn",
     "plot",
     "repair",
+    "shapes",
     "sparse",
     "topology",
 )

@@ -25,6 +25,7 @@ from ..kernels.frames import corner_terms, gather_corners
 from ..linalg import solve
 from ..measures import face_areas
 from ..operators import laplacian
+from ..shapes import schwarz_lantern  # re-exported: the lantern of AW11 Fig. 2
 from ..sparse import eliminate
 from ..topology import Topology, get_topology, half_edge_vertices
 
@@ -111,61 +112,6 @@ def _volume(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
         _, _, a = corner_terms(x)  # vector area, (3, F_k)
         total = total + (x.mean(1) * a).sum() / 3.0
     return total
-
-
-def schwarz_lantern(
-    sides: int = 8,
-    rings: int = 7,
-    radius: float = 1.0,
-    height: float = 1.0,
-    triangulation: str = "quad",
-    dtype: torch.dtype = torch.float64,
-) -> tuple[torch.Tensor, list[list[int]]]:
-    """A Schwarz lantern: rings of ``sides`` points on a cylinder, each ring turned by ``pi/sides``.
-
-    Vertex ``(i, j)`` (ring ``i``, ``0 <= j < sides``) sits at angle ``(2 j + i) pi / sides`` and
-    height ``i * height / (rings - 1)``.  The quad version (AW11 Fig. 2, top left) has the
-    non-planar "diamond" quads ``(i, j), (i+1, j), (i+2, j-1), (i+1, j-1)`` (bottom, right, top,
-    left) and half-diamond triangles along the two boundary rings.  The triangulations split
-    every diamond on the same vertices: ``"horizontal"`` along left-right (the classical Schwarz
-    lantern), ``"vertical"`` along bottom-top, ``"alternating"`` by the parity of ``i + j``.
-
-    Returns:
-        ``verts`` ``((rings * sides), 3)`` and faces as index lists, outward oriented; rotating by
-        ``2 pi / sides`` about ``z`` maps vertex ``(i, j)`` to ``(i, j + 1)``.
-    """
-    if sides < 3 or rings < 3:
-        raise ValueError(f"a lantern needs sides >= 3 and rings >= 3, got {sides}, {rings}.")
-    if triangulation not in ("quad", "horizontal", "vertical", "alternating"):
-        raise ValueError(
-            "triangulation must be 'quad', 'horizontal', 'vertical' or 'alternating', "
-            f"got {triangulation!r}."
-        )
-    i, j = torch.meshgrid(torch.arange(rings), torch.arange(sides), indexing="ij")
-    angle = (2 * j + i).to(dtype) * (torch.pi / sides)
-    z = i.to(dtype) * (height / (rings - 1))
-    verts = torch.stack([radius * angle.cos(), radius * angle.sin(), z], -1).reshape(-1, 3)
-
-    def vid(ring: int, k: int) -> int:
-        return ring * sides + k % sides
-
-    faces: list[list[int]] = []
-    for k in range(sides):  # boundary half-diamonds: (0, k), (0, k+1), (1, k) and the top ones
-        faces.append([vid(0, k), vid(0, k + 1), vid(1, k)])
-        faces.append([vid(rings - 2, k), vid(rings - 1, k), vid(rings - 1, k - 1)])
-    for ring in range(rings - 2):
-        for k in range(sides):
-            b, r, t, l = vid(ring, k), vid(ring + 1, k), vid(ring + 2, k - 1), vid(ring + 1, k - 1)
-            split = triangulation
-            if split == "alternating":
-                split = "horizontal" if (ring + k) % 2 == 0 else "vertical"
-            if split == "quad":
-                faces.append([b, r, t, l])
-            elif split == "horizontal":
-                faces += [[b, r, l], [r, t, l]]
-            else:
-                faces += [[b, r, t], [b, t, l]]
-    return verts, faces
 
 
 def _check_args(verts: torch.Tensor, dt: float, steps: int, normalize: str | None) -> None:
