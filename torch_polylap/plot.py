@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -26,6 +26,7 @@ from .measures import vector_area
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d import Axes3D
 
 __all__ = [
     "face_values",
@@ -102,7 +103,7 @@ def plot_mesh(
     verts: ArrayLike,
     faces: FacesLike,
     values: ArrayLike | None = None,
-    ax: Axes | None = None,
+    ax: Axes3D | None = None,
     path: str | os.PathLike | None = None,
     title: str | None = None,
     cmap: str = "viridis",
@@ -113,7 +114,7 @@ def plot_mesh(
     azim: float = -60.0,
     edges: bool = True,
     up: str = "z",
-) -> Axes:
+) -> Axes3D:
     """Draw a polygon mesh in 3D, faces colored by ``values`` (or gray-shaded without them).
 
     Args:
@@ -144,7 +145,7 @@ def plot_mesh(
         raise ValueError(f"plot_mesh: up must be 'x', 'y' or 'z', got {up!r}.")
     pts = pts[:, _UP[up]]
     if ax is None:
-        ax = new_figure(1, 1, three_d=True)[1][0]
+        ax = cast("Axes3D", new_figure(1, 1, three_d=True)[1][0])  # new_figure types it as Axes
     pf = as_faces(faces)
     polys = _polygons(pts, pf)
     mappable = None
@@ -176,7 +177,7 @@ def plot_mesh(
     if mappable is not None and colorbar:
         ax.figure.colorbar(mappable, ax=ax, shrink=0.6, pad=0.02, label=label)
     if path is not None:
-        save_figure(ax.figure, path)
+        save_figure(ax.figure.figure, path)  # the whole figure, also from a subfigure
     return ax
 
 
@@ -203,24 +204,24 @@ def plot_meshes(
     Returns:
         The figure.
     """
-    panels = [dict(p) for p in panels]
-    ncols = ncols or min(len(panels), 4)
-    nrows = -(-len(panels) // ncols)
+    specs = [dict(p) for p in panels]  # copies: shared_clim adds to them
+    ncols = ncols or min(len(specs), 4)
+    nrows = -(-len(specs) // ncols)
     if shared_clim:
         ranges = [
             (np.nanmin(v), np.nanmax(v))
-            for p in panels
+            for p in specs
             if p.get("values") is not None
             for v in [face_values(p["values"], p["faces"], len(_numpy(p["verts"])))]
         ]
         if ranges:
             clim = (min(r[0] for r in ranges), max(r[1] for r in ranges))
-            for p in panels:
+            for p in specs:
                 p.setdefault("clim", clim)
     fig, axes = new_figure(nrows, ncols, three_d=True, panel_size=panel_size)
-    for ax, panel in zip(axes, panels, strict=False):
+    for ax, panel in zip(axes, specs, strict=False):
         plot_mesh(ax=ax, **panel)
-    for ax in axes[len(panels) :]:
+    for ax in axes[len(specs) :]:
         ax.set_visible(False)
     if suptitle:
         fig.suptitle(suptitle)
@@ -265,10 +266,9 @@ def plot_uv(
         ax = new_figure(1, 1, three_d=False)[1][0]
     pf = as_faces(faces)
     mappable = None
+    rgba: np.ndarray | str = "white"
     if values is not None:
         rgba, mappable = _face_colors(face_values(values, pf, len(pts)), cmap, clim)
-    else:
-        rgba = "white"
     ax.add_collection(
         PolyCollection(
             _polygons(pts, pf), facecolors=rgba, edgecolors=(0.1, 0.1, 0.1, 0.5), linewidths=0.3
@@ -281,7 +281,7 @@ def plot_uv(
     if mappable is not None:
         ax.figure.colorbar(mappable, ax=ax, shrink=0.8, label=label)
     if path is not None:
-        save_figure(ax.figure, path)
+        save_figure(ax.figure.figure, path)  # the whole figure, also from a subfigure
     return ax
 
 
@@ -313,7 +313,7 @@ def plot_lines(
     if len(series) > 1:
         ax.legend()
     if path is not None:
-        save_figure(ax.figure, path)
+        save_figure(ax.figure.figure, path)  # the whole figure, also from a subfigure
     return ax
 
 
