@@ -278,19 +278,25 @@ class PolygonMeshes:
             f"F={sum(self._conn.num_faces)}, dtype={self.dtype}, device={self.device})"
         )
 
+    def _held_verts(self) -> torch.Tensor:
+        """The packed vertices, or else the first mesh's (a batch always holds one of them)."""
+        if self._verts_packed is not None:
+            return self._verts_packed
+        assert self._verts_list is not None
+        return self._verts_list[0]
+
     @property
     def device(self) -> torch.device:
-        v = self._verts_packed if self._verts_packed is not None else self._verts_list[0]
-        return v.device
+        return self._held_verts().device
 
     @property
     def dtype(self) -> torch.dtype:
-        v = self._verts_packed if self._verts_packed is not None else self._verts_list[0]
-        return v.dtype
+        return self._held_verts().dtype
 
     def verts_list(self) -> list[torch.Tensor]:
         """``B`` tensors ``(V_i, 3)`` (views of the packed vertices when built from them)."""
         if self._verts_list is None:
+            assert self._verts_packed is not None  # a batch holds one of the two
             self._verts_list = list(torch.split(self._verts_packed, self._conn.num_verts))
         return self._verts_list
 
@@ -307,6 +313,7 @@ class PolygonMeshes:
         """``(sum V_i, 3)`` all vertices; differentiable in the per-mesh tensors."""
         if self._verts_packed is None:
             vl = self._verts_list
+            assert vl is not None  # a batch holds one of the two
             self._verts_packed = vl[0] if len(vl) == 1 else torch.cat(vl, 0)
         return self._verts_packed
 

@@ -321,6 +321,7 @@ def chamfer_distance(
     loss_normals = sum(
         _reduce(c, lengths, weights, batch_reduction, point_reduction)
         for (_, c), lengths in directions
+        if c is not None  # every direction has them when the forward one has
     )
     return loss, loss_normals
 

@@ -177,7 +177,7 @@ def weld_vertices(
     out = PolygonFaces(torch.from_numpy(new_idx), sizes=pf.sizes)
     face_ids = np.repeat(np.arange(pf.num_faces), pf.sizes.numpy())
     changed = np.unique(face_ids[new_idx != old_idx])
-    notes = ()
+    notes: tuple[str, ...] = ()
     repeats = _faces_repeating_a_vertex(out)
     if repeats.size:
         notes = (

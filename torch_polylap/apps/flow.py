@@ -258,7 +258,7 @@ def mean_curvature_flow(
             *laplacian(X, topo, lam, method=method), float(dt), fixed_mask
         )
         X = step_system.step(X)
-        if target is not None:
+        if normalize and target is not None:  # (target is set exactly when normalize is)
             ratio = target / _measure(X, topo, normalize)
             if not float(ratio) > 0.0:
                 raise ValueError(

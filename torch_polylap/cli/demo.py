@@ -135,6 +135,7 @@ def plate(with_plot: bool, method: str = "aw11") -> Result:
         if lam == 1.0:
             u, seconds = u_lam, time.perf_counter() - t0
         errors[lam] = float(plate_error(verts, topo, u_lam, reference))
+    assert u is not None  # set at lam = 1
     deflected = verts.clone()
     deflected[:, 2] = u
     rows = [

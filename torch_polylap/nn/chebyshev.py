@@ -92,7 +92,7 @@ def chebyshev_filter(x: torch.Tensor, S_hat: torch.Tensor, weight: torch.Tensor)
         ``(V, C_out)``.
     """
     K = weight.shape[0]
-    t_prev, t_cur = x, None
+    t_prev, t_cur = x, x  # T_0 x; t_cur is T_k x from k = 1 on
     out = x @ weight[0]
     for k in range(1, K):
         if k == 1:
