@@ -255,13 +255,13 @@ class HeatGeodesicSolver:
         self.num_components, labels = self.topology.connected_components()
         self.labels = labels.to(verts.device)
 
-    def _heat_system(self, A: SparseOperator) -> SparseOperator:
+    def _heat_system(self, A: torch.Tensor) -> torch.Tensor:
         """``M0 + t L`` with a unit diagonal at isolated vertices (no face: zero mass, an empty
         row), which would make it singular; their heat is then 0, their distance 0 or inf."""
         isolated = (A.diagonal() == 0).detach()
         return A + diag(isolated.to(A.dtype)) if bool(isolated.any()) else A
 
-    def _pin(self, L: SparseOperator) -> SparseOperator:
+    def _pin(self, L: torch.Tensor) -> SparseOperator:
         """``c sum_p e_p e_p^T`` over the first vertex of every connected component."""
         count, labels = self.topology.connected_components()
         first = torch.full((count,), labels.numel(), dtype=torch.int64)

@@ -20,7 +20,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch.utils.data import Dataset
@@ -189,17 +189,21 @@ class MeshBatch:
     def M0(self) -> SparseOperator:
         return diag(self.spectrum.mass)
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None):
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> MeshBatch:
         """The batch on ``device`` with floating tensors in ``dtype``."""
+
+        def moved(A: SparseOperator) -> SparseOperator:
+            # an operator's .to() is an operator; torch's stubs type Tensor.to as a Tensor
+            return cast(SparseOperator, A.to(device=device, dtype=dtype))
+
         return MeshBatch(
             self.meshes.to(device, dtype),
             self.spectrum.to(device, dtype),
-            self.L.to(device=device, dtype=dtype),
+            moved(self.L),
             None if self.labels is None else self.labels.to(device),
-            *(
-                None if g is None else g.to(device=device, dtype=dtype)
-                for g in (self.grad_x, self.grad_y)
-            ),
+            *(None if g is None else moved(g) for g in (self.grad_x, self.grad_y)),
         )
 
 
@@ -219,7 +223,7 @@ def collate_meshes(items: Sequence[dict[str, Any]]) -> MeshBatch:
         meshes.num_verts_per_mesh(),
     )
     L = block_diag([it["L"] for it in items])
-    grads = [None, None]
+    grads: list[SparseOperator | None] = [None, None]
     if all("grad_x" in it and "grad_y" in it for it in items):
         grads = [block_diag([it[key] for it in items]) for key in ("grad_x", "grad_y")]
     labels = [it["label"] for it in items]

@@ -201,8 +201,8 @@ def cached_eigs(
             L, M0 = laplacian(verts.detach(), faces, lam, method=method)
             evals, evecs = eigs(L, M0, k)
         cache.mkdir(parents=True, exist_ok=True)
-        arrays = {"evals": evals.cpu().numpy(), "evecs": evecs.cpu().numpy()}
-        atomic_write(path, lambda f: np.savez(f, **arrays))
+        evals_np, evecs_np = evals.cpu().numpy(), evecs.cpu().numpy()
+        atomic_write(path, lambda f: np.savez(f, evals=evals_np, evecs=evecs_np))
     else:
         evals, evecs = (torch.from_numpy(a) for a in cached)
     return evals.to(verts), evecs.to(verts)

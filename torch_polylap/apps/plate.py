@@ -157,14 +157,16 @@ def navier_deflection(
         >>> round(float(navier_deflection(0.5, 0.5)), 8)
         0.00406235
     """
-    x = torch.as_tensor(x, dtype=torch.float64) if not torch.is_tensor(x) else x
-    y = torch.as_tensor(y, dtype=x.dtype, device=x.device) if not torch.is_tensor(y) else y
-    x, y = torch.broadcast_tensors(x, y)
+    # new names: torch types broadcast_tensors' result as Any, which would widen x back to its
+    # parameter type
+    xt = torch.as_tensor(x, dtype=torch.float64) if not torch.is_tensor(x) else x
+    yt = torch.as_tensor(y, dtype=xt.dtype, device=xt.device) if not torch.is_tensor(y) else y
+    xt, yt = torch.broadcast_tensors(xt, yt)
     terms = _default_terms() if terms is None else terms
     if terms < 1:
         raise ValueError(f"terms must be >= 1, got {terms}.")
-    xs = x.reshape(-1).to(torch.float64)
-    ys = y.reshape(-1).to(torch.float64)
+    xs = xt.reshape(-1).to(torch.float64)
+    ys = yt.reshape(-1).to(torch.float64)
     dx, dy = torch.minimum(xs, 1 - xs), torch.minimum(ys, 1 - ys)
     swap = dx > dy
     xs, ys = torch.where(swap, ys, xs), torch.where(swap, xs, ys)
@@ -185,7 +187,7 @@ def navier_deflection(
             series = torch.sin(m * math.pi * xc) * _levy_correction(m, yc) / m**5
             correction[part] = series.flip(1).sum(1)  # smallest terms first
     w = load * (strip + 4 / math.pi**5 * correction)
-    return w.reshape(x.shape).to(x.dtype)
+    return w.reshape(xt.shape).to(xt.dtype)
 
 
 def plate_error(

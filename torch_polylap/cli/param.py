@@ -6,13 +6,15 @@ import argparse
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
+from ..faces import PolygonFaces
 from ..io import write_mesh
 from ..measures import vector_area
-from ..topology import get_topology
+from ..topology import Topology, get_topology
 from .common import (
     DISK_MESH,
     Output,
@@ -57,7 +59,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run, compute=compute)
 
 
-def corner_faces(faces) -> torch.Tensor:
+def corner_faces(faces: PolygonFaces) -> torch.Tensor:
     """``(N,)`` the face of every packed corner."""
     return torch.repeat_interleave(torch.arange(faces.num_faces), faces.sizes)
 
@@ -119,19 +121,26 @@ def compute(args: argparse.Namespace) -> Result:
     return Result(f"polylap param: {label}", rows, outputs=outputs)
 
 
-def _figure(verts, uv, faces, face_err_deg: torch.Tensor, up: str, png: Path) -> None:
+def _figure(
+    verts: torch.Tensor,
+    uv: torch.Tensor,
+    faces: PolygonFaces,
+    face_err_deg: torch.Tensor,
+    up: str,
+    png: Path,
+) -> None:
     """The mesh and its conformal image, faces colored by their mean angle error."""
     from ..plot import new_figure, plot_mesh, plot_uv, save_figure
 
     fig, (ax3, ax2) = new_figure(1, 2, [True, False], panel_size=4.5)
     hi = float(np.nanmax(face_err_deg.numpy())) or 1.0
-    common = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
+    common: dict[str, Any] = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
     plot_mesh(verts, faces, face_err_deg, ax=ax3, title="input", colorbar=False, up=up, **common)
     plot_uv(uv, faces, face_err_deg, ax=ax2, title="conformal map", **common)
     save_figure(fig, png)
 
 
-def _area(verts: torch.Tensor, topo) -> torch.Tensor:
+def _area(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
     return torch.linalg.vector_norm(vector_area(verts, topo), dim=1).sum()
 
 
