@@ -17,6 +17,7 @@ from __future__ import annotations
 import atexit
 import weakref
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -250,20 +251,22 @@ class _Solve(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(values, B, held, backend, tol, max_iter):
+    def forward(
+        values: torch.Tensor, B: torch.Tensor, held: _Held, backend: str, tol: float, max_iter: int
+    ) -> torch.Tensor:
         # `values` here is the plain tensor even under torch.func, whose wrapped tensors have no
         # storage for the factorization cache to check
         A = held.A.with_values(values, share_cache=True)
         return _solve_values(A, B, backend, tol, max_iter)
 
     @staticmethod
-    def setup_context(ctx, inputs, output):
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
         values, B, held, backend, tol, max_iter = inputs
         ctx.save_for_backward(values, output)
         ctx.A, ctx.options = held.A, (backend, tol, max_iter)
 
     @staticmethod
-    def backward(ctx, G):
+    def backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         values, X = ctx.saved_tensors
         backend = ctx.options[0]
         if not torch.is_grad_enabled() and backend != "cg":
@@ -361,7 +364,7 @@ def dirichlet_solve(
     B: torch.Tensor,
     fixed: torch.Tensor,
     fixed_values: torch.Tensor,
-    **solve_options,
+    **solve_options: Any,
 ) -> torch.Tensor:
     """Solve ``A X = B`` on the free rows with ``X[fixed] = fixed_values`` prescribed.
 
@@ -438,13 +441,21 @@ class _Eigenvalues(torch.autograd.Function):
     """Eigenvalues ``mu`` of ``L phi = mu M phi`` with the first-order perturbation gradient."""
 
     @staticmethod
-    def forward(ctx, l_values, m_values, evals, evecs, held_l, held_m):
+    def forward(
+        ctx: Any,
+        l_values: torch.Tensor,
+        m_values: torch.Tensor,
+        evals: torch.Tensor,
+        evecs: torch.Tensor,
+        held_l: _Held,
+        held_m: _Held,
+    ) -> torch.Tensor:
         ctx.save_for_backward(evals, evecs)
         ctx.operators = (held_l.A, held_m.A)
         return evals.clone()
 
     @staticmethod
-    def backward(ctx, g):
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         if torch.is_grad_enabled():
             raise RuntimeError(_SECOND_ORDER_MESSAGE)
         evals, evecs = ctx.saved_tensors
@@ -563,13 +574,21 @@ class _Eigenvectors(torch.autograd.Function):
     gradient (see :func:`eigs`)."""
 
     @staticmethod
-    def forward(ctx, l_values, m_values, evals, evecs, held_l, held_m):
+    def forward(
+        ctx: Any,
+        l_values: torch.Tensor,
+        m_values: torch.Tensor,
+        evals: torch.Tensor,
+        evecs: torch.Tensor,
+        held_l: _Held,
+        held_m: _Held,
+    ) -> torch.Tensor:
         ctx.save_for_backward(evals, evecs)
         ctx.operators = (held_l.A, held_m.A)
         return evecs.clone()
 
     @staticmethod
-    def backward(ctx, G):
+    def backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         if torch.is_grad_enabled():
             raise RuntimeError(_SECOND_ORDER_MESSAGE)
         need_l, need_m = ctx.needs_input_grad[:2]

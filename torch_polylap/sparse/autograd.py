@@ -15,6 +15,7 @@ penalties, ``create_graph=True``) are exact to any order, each at O(nnz * column
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 import torch
 
@@ -80,17 +81,19 @@ def _transposed_product(
 
 class _Product(torch.autograd.Function):
     @staticmethod
-    def forward(values, X, pattern, symmetric):
+    def forward(
+        values: torch.Tensor, X: torch.Tensor, pattern: SparsityPattern, symmetric: bool
+    ) -> torch.Tensor:
         return torch_csr(pattern, values) @ X
 
     @staticmethod
-    def setup_context(ctx, inputs, output):
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
         values, X, pattern, symmetric = inputs
         ctx.save_for_backward(values, X)
         ctx.pattern, ctx.symmetric = pattern, symmetric
 
     @staticmethod
-    def backward(ctx, G):
+    def backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         values, X = ctx.saved_tensors
         grad_values = grad_X = None
         if ctx.needs_input_grad[0]:
@@ -102,17 +105,17 @@ class _Product(torch.autograd.Function):
 
 class _Sampled(torch.autograd.Function):
     @staticmethod
-    def forward(G, X, pattern):
+    def forward(G: torch.Tensor, X: torch.Tensor, pattern: SparsityPattern) -> torch.Tensor:
         return _sampled(pattern, G, X)
 
     @staticmethod
-    def setup_context(ctx, inputs, output):
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
         G, X, pattern = inputs
         ctx.save_for_backward(G, X)
         ctx.pattern = pattern
 
     @staticmethod
-    def backward(ctx, w):
+    def backward(ctx: Any, w: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         G, X = ctx.saved_tensors
         grad_G = grad_X = None
         if ctx.needs_input_grad[0]:

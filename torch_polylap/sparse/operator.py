@@ -20,8 +20,8 @@ value array; nothing reaches torch's dispatcher with it.
 from __future__ import annotations
 
 import numbers
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, SupportsIndex
 
 import torch
 
@@ -122,7 +122,13 @@ class SparseOperator(torch.Tensor):
         return A
 
     @classmethod
-    def __torch_function__(cls, func, types, args=(), kwargs=None):
+    def __torch_function__(
+        cls,
+        func: Callable[..., Any],
+        types: Iterable[type],
+        args: Sequence[Any] = (),
+        kwargs: dict[str, Any] | None = None,
+    ) -> Any:
         kwargs = kwargs or {}
         handler = _HANDLERS.get(func)
         if handler is not None:
@@ -135,7 +141,13 @@ class SparseOperator(torch.Tensor):
     # torch types Tensor.__torch_dispatch__ as its disabled default, a plain function, though
     # subclasses are to define it as a classmethod (as torch's own subclasses do)
     @classmethod
-    def __torch_dispatch__(cls, func, types, args=(), kwargs=None):  # type: ignore[override]
+    def __torch_dispatch__(  # type: ignore[override]
+        cls,
+        func: Callable[..., Any],
+        types: Iterable[type],
+        args: Sequence[Any] = (),
+        kwargs: dict[str, Any] | None = None,
+    ) -> Any:
         # Only reached by code that bypasses __torch_function__ (e.g. torch internals in C++).
         raise UnsupportedOperation(_unsupported_message(func))
 
@@ -154,7 +166,7 @@ class SparseOperator(torch.Tensor):
             f"layout={self._reported_layout}{grad},\n       values={body})"
         )
 
-    def __reduce_ex__(self, protocol):
+    def __reduce_ex__(self, protocol: SupportsIndex) -> tuple[Any, ...]:
         return (
             _rebuild,
             (
@@ -167,14 +179,23 @@ class SparseOperator(torch.Tensor):
             ),
         )
 
-    def __deepcopy__(self, memo):
+    def __deepcopy__(self, memo: dict[int, Any]) -> SparseOperator:
         return self.with_values(self._vals.clone())
 
 
-def _rebuild(crow, col, shape, values, symmetric, layout) -> SparseOperator:
-    layout = torch.sparse_coo if layout == str(torch.sparse_coo) else torch.sparse_csr
+def _rebuild(
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    shape: tuple[int, int],
+    values: torch.Tensor,
+    symmetric: bool,
+    layout: str,
+) -> SparseOperator:
     return SparseOperator(
-        SparsityPattern(crow, col, shape), values, symmetric=symmetric, layout=layout
+        SparsityPattern(crow, col, shape),
+        values,
+        symmetric=symmetric,
+        layout=torch.sparse_coo if layout == str(torch.sparse_coo) else torch.sparse_csr,
     )
 
 
