@@ -16,7 +16,7 @@ or :meth:`PolygonMeshes.to`, so a training loop with fixed connectivity builds i
 from __future__ import annotations
 
 import operator
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -113,7 +113,7 @@ class _Connectivity:
                 self.packed_cpu = PolygonFaces(indices, sizes=sizes)
         return self.packed_cpu
 
-    def cached(self, name: str, device: torch.device, make) -> Any:
+    def cached(self, name: str, device: torch.device, make: Callable[[], Any]) -> Any:
         key = (name, device)
         if key not in self.per_device:
             self.per_device[key] = make()

@@ -184,7 +184,12 @@ def _default_pins(verts: torch.Tensor, boundary: torch.Tensor) -> torch.Tensor:
     return boundary[torch.tensor([a, b])]
 
 
-def _check_pins(pins, pin_uv, verts: torch.Tensor, boundary: torch.Tensor):
+def _check_pins(
+    pins: torch.Tensor | list[int],
+    pin_uv: torch.Tensor | None,
+    verts: torch.Tensor,
+    boundary: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
     n = verts.shape[0]
     pins = torch.as_tensor(pins, dtype=torch.int64).reshape(-1).cpu()
     if pins.numel() != 2:
@@ -213,7 +218,14 @@ def _check_pins(pins, pin_uv, verts: torch.Tensor, boundary: torch.Tensor):
     return pins, pin_uv
 
 
-def _pinned(verts, topo, lam, pins, pin_uv, method: str = "aw11") -> torch.Tensor:
+def _pinned(
+    verts: torch.Tensor,
+    topo: Topology,
+    lam: float,
+    pins: torch.Tensor,
+    pin_uv: torch.Tensor,
+    method: str = "aw11",
+) -> torch.Tensor:
     n = topo.num_verts
     LC = conformal_matrix(verts, topo, lam, method=method)
     fixed = torch.cat((pins, pins + n)).to(verts.device)
@@ -231,7 +243,9 @@ def _orthonormal_complement_of_ones(m: int) -> np.ndarray:
     return H[:, 1:]
 
 
-def _free_boundary(verts, topo, lam, boundary, method: str = "aw11") -> torch.Tensor:
+def _free_boundary(
+    verts: torch.Tensor, topo: Topology, lam: float, boundary: torch.Tensor, method: str = "aw11"
+) -> torch.Tensor:
     n = topo.num_verts
     L = laplacian(verts.detach(), topo, lam, method=method)[0]
     L = to_scipy(L).astype(np.float64).tocsc()

@@ -41,6 +41,7 @@ import math
 import time
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
@@ -50,7 +51,7 @@ from ..linalg import solve
 from ..measures import face_nonplanarity, planarity_energy
 from ..sparse.operator import SparseOperator
 from ..sparse.pattern import SparsityPattern
-from ..topology import get_topology
+from ..topology import Topology, get_topology
 
 __all__ = ["planarize", "PlanarizeResult"]
 
@@ -96,7 +97,15 @@ def _stats(x: torch.Tensor) -> tuple[float, float]:
     return (float(x.max()), float(x.mean())) if x.numel() else (0.0, 0.0)
 
 
-def _lm_setup(topo, free_mask: torch.Tensor, n: int):
+# per degree group (k > 3): (k, corners (F, k), free dofs (F, 3k) or -1, kept block entries)
+_Parts = list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]]
+# what a method returns: (positions, iterations, energies, objectives, stop reason)
+_Run = tuple[torch.Tensor, int, list[float], list[float], str]
+
+
+def _lm_setup(
+    topo: Topology, free_mask: torch.Tensor, n: int
+) -> tuple[_Parts, torch.Tensor, SparsityPattern, torch.Tensor]:
     """Per degree group (k > 3): corners and the CSR positions of the per-face ``3k x 3k``
     blocks in the free-dof system, computed once (the pattern does not change)."""
     device = free_mask.device
@@ -106,7 +115,8 @@ def _lm_setup(topo, free_mask: torch.Tensor, n: int):
     m = free_dofs.numel()
     dof_map[free_dofs] = torch.arange(m, device=device)
     groups = topo.on(device).groups
-    parts, rows, cols = [], [], []
+    parts: _Parts = []
+    rows, cols = [], []
     for grp in groups:
         if grp.k <= 3:
             continue  # triangles are planar: no residual
@@ -130,7 +140,9 @@ def _lm_setup(topo, free_mask: torch.Tensor, n: int):
     return parts, free_dofs, pattern, inverse
 
 
-def _face_fit(y: torch.Tensor, corners: torch.Tensor):
+def _face_fit(
+    y: torch.Tensor, corners: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Least-squares planes of ``(F, k)`` faces: centered corners, diameters, eigenpairs."""
     x = y[corners]  # (F, k, 3)
     centered = x - x.mean(1, keepdim=True)
@@ -139,7 +151,7 @@ def _face_fit(y: torch.Tensor, corners: torch.Tensor):
     return centered, diameter, evals, evecs
 
 
-def _plane_objective(y: torch.Tensor, parts) -> float:
+def _plane_objective(y: torch.Tensor, parts: _Parts) -> float:
     """``1/2 sum_f sum_i (n_f . (x_i - c_f))^2 / diam_f^2`` with least-squares normals."""
     total = 0.0
     for _, corners, _, _ in parts:
@@ -148,7 +160,9 @@ def _plane_objective(y: torch.Tensor, parts) -> float:
     return total
 
 
-def _gauss_newton_system(y: torch.Tensor, parts, free_dofs: torch.Tensor, m: int):
+def _gauss_newton_system(
+    y: torch.Tensor, parts: _Parts, free_dofs: torch.Tensor, m: int
+) -> tuple[torch.Tensor, list[torch.Tensor]]:
     """Gradient and Gauss-Newton matrix values of the plane objective in the free dofs, with the
     per-face normals as extra unknowns eliminated face by face (Schur complement)."""
     grad = y.new_zeros(3 * y.shape[0])
@@ -326,8 +340,21 @@ def planarize(
 
 
 def _gauss_newton(
-    *, y0, topo, free, free_mask, lam, tol, max_iter, closeness, h, worst, bar, deadline, **_
-):
+    *,
+    y0: torch.Tensor,
+    topo: Topology,
+    free: torch.Tensor,
+    free_mask: torch.Tensor,
+    lam: float,
+    tol: float,
+    max_iter: int,
+    closeness: float,
+    h: float,
+    worst: float,
+    bar: Any,  # a tqdm bar, or None
+    deadline: float | None,
+    **_: Any,
+) -> _Run:
     n = y0.shape[0]
     parts, free_dofs, pattern, inverse = _lm_setup(topo, free_mask, n)
     m = free_dofs.numel()
@@ -381,20 +408,20 @@ def _gauss_newton(
 
 def _lbfgs(
     *,
-    y0,
-    topo,
-    free,
-    lam,
-    tol,
-    max_iter,
-    closeness,
-    worst,
-    bar,
-    deadline,
-    history_size,
-    check_every,
-    **_,
-):
+    y0: torch.Tensor,
+    topo: Topology,
+    free: torch.Tensor,
+    lam: float,
+    tol: float,
+    max_iter: int,
+    closeness: float,
+    worst: float,
+    bar: Any,  # a tqdm bar, or None
+    deadline: float | None,
+    history_size: int,
+    check_every: int,
+    **_: Any,
+) -> _Run:
     param = y0[free].clone().requires_grad_(True)
     wc = closeness * lam
 

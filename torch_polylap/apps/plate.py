@@ -37,7 +37,9 @@ from ..topology import get_topology
 __all__ = ["plate_bending", "navier_deflection", "plate_error"]
 
 
-def _boundary_mask(boundary, num_verts: int, default: torch.Tensor, device) -> torch.Tensor:
+def _boundary_mask(
+    boundary: torch.Tensor | None, num_verts: int, default: torch.Tensor, device: torch.device
+) -> torch.Tensor:
     mask = torch.zeros(num_verts, dtype=torch.bool, device=device)
     index = default if boundary is None else check_index_or_mask(boundary, num_verts, "boundary")
     return mask.index_fill(0, index.to(device), True)

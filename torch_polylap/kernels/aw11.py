@@ -13,6 +13,8 @@ every other degree the general :func:`polygon_entries`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
 from ..topology import DegreeGroup
@@ -62,7 +64,9 @@ def row_sums(off: torch.Tensor, grp: DegreeGroup) -> torch.Tensor:
     return sums.index_add_(0, grp.pair_j, off)
 
 
-def _cross_dot(n, u, v) -> torch.Tensor:
+def _cross_dot(
+    n: Sequence[torch.Tensor], u: Sequence[torch.Tensor], v: Sequence[torch.Tensor]
+) -> torch.Tensor:
     """``n . (u x v)`` for 3-vectors given as tuples of ``(F,)`` rows."""
     cx = torch.addcmul(u[1] * v[2], u[2], v[1], value=-1)
     cy = torch.addcmul(u[2] * v[0], u[0], v[2], value=-1)

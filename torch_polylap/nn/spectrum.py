@@ -149,7 +149,9 @@ class Spectrum:
     def k(self) -> int:
         return int(self.evals.shape[1])
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None):
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> Spectrum:
         """A copy on ``device`` with floating tensors cast to ``dtype``."""
         return Spectrum(
             self.evals.to(device=device, dtype=dtype),
