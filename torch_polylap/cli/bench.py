@@ -21,6 +21,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from ..faces import PolygonFaces
 from ..io import triangulate_faces
 from ..linalg import eigs, solve, spd_splu
 from ..operators import laplacian
@@ -71,7 +72,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 Case = tuple[str, Callable[[], object], str | None, Callable[[], object] | None]
 
 
-def cases(verts: torch.Tensor, faces, args: argparse.Namespace, k: int) -> list[Case]:
+def cases(verts: torch.Tensor, faces: PolygonFaces, args: argparse.Namespace, k: int) -> list[Case]:
     """``(operation, ours, reference name, reference)`` for every timed row."""
     n = verts.shape[0]
     lam, method, h = args.lam, args.method, args.h

@@ -11,12 +11,13 @@ from __future__ import annotations
 import argparse
 import datetime
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
 
 from .. import __version__
+from ..faces import PolygonFaces
 from ..io import write_mesh
 from ..topology import get_topology
 from .common import (
@@ -29,6 +30,9 @@ from .common import (
     read_mesh_quietly,
 )
 from .timing import markdown_table
+
+# (title, AW11 section, command, result, seconds) of one part of the report
+_Section = tuple[str, str, str, Result, float]
 
 PLATE_MESH = DATA_DIR / "grid_voronoi_1.obj"
 
@@ -90,7 +94,7 @@ def compute(args: argparse.Namespace) -> Result:
             lambda: plate(not args.no_plot, args.method),
         )
     )
-    sections = []
+    sections: list[_Section] = []
     start = time.perf_counter()
     for title, section, command, task in tqdm(tasks, desc="demo", disable=args.no_progress):
         t0 = time.perf_counter()
@@ -159,7 +163,9 @@ def plate(with_plot: bool, method: str = "aw11") -> Result:
     return Result("polylap demo: thin-plate bending", rows, outputs=outputs)
 
 
-def _plate_figure(verts, faces, u: torch.Tensor, reference: torch.Tensor, png: Path) -> None:
+def _plate_figure(
+    verts: torch.Tensor, faces: PolygonFaces, u: torch.Tensor, reference: torch.Tensor, png: Path
+) -> None:
     from ..plot import new_figure, plot_mesh, save_figure
 
     fig, (ax1, ax2) = new_figure(1, 2, True, panel_size=4.5)
@@ -188,7 +194,7 @@ def _symmetric(x: torch.Tensor) -> tuple[float, float]:
     return -bound, bound
 
 
-def _markdown(sections, total: float) -> str:
+def _markdown(sections: Sequence[_Section], total: float) -> str:
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
         "# torch_polylap demo",

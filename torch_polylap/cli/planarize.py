@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from ..faces import PolygonFaces
 from ..io import write_mesh
 from ..measures import face_nonplanarity
-from ..topology import get_topology
+from ..topology import Topology, get_topology
 from .common import (
     Output,
     Result,
@@ -23,6 +25,9 @@ from .common import (
     result_name,
     up_axis,
 )
+
+if TYPE_CHECKING:
+    from ..apps.planarize import PlanarizeResult
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -122,7 +127,14 @@ def compute(args: argparse.Namespace) -> Result:
     )
 
 
-def _figure(verts: torch.Tensor, faces, topo, res, up: str, png: Path) -> None:
+def _figure(
+    verts: torch.Tensor,
+    faces: PolygonFaces,
+    topo: Topology,
+    res: PlanarizeResult,
+    up: str,
+    png: Path,
+) -> None:
     """Input and result colored by face non-planarity, and the energy per iteration."""
     from ..plot import new_figure, plot_lines, plot_mesh, save_figure
 

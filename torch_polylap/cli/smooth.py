@@ -10,10 +10,11 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from ..assembly import MeshFaces
 from ..io import write_mesh
 from ..measures import face_areas
 from ..operators import laplacian, strong_laplacian
-from ..topology import get_topology
+from ..topology import Topology, get_topology
 from .common import (
     Output,
     Result,
@@ -80,7 +81,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def scaled_mean_curvature(
-    verts: torch.Tensor, faces, lam: float, method: str = "aw11"
+    verts: torch.Tensor, faces: MeshFaces, lam: float, method: str = "aw11"
 ) -> torch.Tensor:
     """``(V,)`` ``|H| sqrt(A / 4 pi)``: the mean curvature ``|M0^{-1} L X| / 2`` (AW11 sec. 3.2)
     times the radius of the sphere with the mesh's area, so that flows that shrink the mesh
@@ -179,7 +180,7 @@ def compute(args: argparse.Namespace) -> Result:
 
 def _flow_before_singularity(
     verts: torch.Tensor,
-    topo,
+    topo: Topology,
     dt: float,
     normalize: str | None,
     args: argparse.Namespace,

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..faces import PolygonFaces
 from ..linalg import eigs
 from ..operators import laplacian
 from ..sparse import to_scipy
@@ -119,7 +120,15 @@ def run(args: argparse.Namespace) -> int:
     return execute(compute, args)
 
 
-def _figure(verts, faces, evals, evecs, show: int, up: str, png) -> None:
+def _figure(
+    verts: torch.Tensor,
+    faces: PolygonFaces,
+    evals: torch.Tensor,
+    evecs: torch.Tensor,
+    show: int,
+    up: str,
+    png: Path,
+) -> None:
     from ..plot import new_figure, plot_lines, plot_mesh, save_figure
 
     # skip the constant eigenfunction (mu_0 = 0) when there is more than one pair

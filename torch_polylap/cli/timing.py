@@ -95,11 +95,12 @@ def timed(
     if min_sample_s > 0:
         while _sample(fn, number, sync)[0] < min_sample_s and number < 2**20:
             number *= 2
-    times, out = [], None
-    for _ in range(repeat):
+    seconds, out = _sample(fn, number, sync)
+    times = [seconds / number]
+    for _ in range(repeat - 1):
         seconds, out = _sample(fn, number, sync)
         times.append(seconds / number)
-    return statistics.median(times), out  # type: ignore[return-value]
+    return statistics.median(times), out
 
 
 def median_time(
