@@ -38,6 +38,7 @@ setup(
             # build: CI builds the sdist and the wheel from it and installs that (.ci/package)
             "build>=1.0",
             "ruff>=0.4",
+            "mypy>=2.4",  # .ci/run type-checks torch_polylap (config in pyproject.toml)
             "libigl>=2.5",
             "matplotlib>=3.5",
             "cholespy>=2.0",
