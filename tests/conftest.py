@@ -1,35 +1,34 @@
-"""Shared mesh generators and paths for the test suite."""
+"""Fixtures, command-line options and small hand-made meshes shared by the test suite.
+
+Generated meshes (grids, cube spheres, tori, the lantern) come from :mod:`torch_polylap.shapes`;
+the two meshes here are fixed, hand-written inputs with mixed degrees.
+
+* ``--runslow``: also run the tests marked ``slow`` (the examples re-run end to end, the
+  two-process DDP training, the level-5 reference values); the default run skips them.
+* ``device``, ``dtype``: parametrize a test over the CPU and, where one is available, a CUDA
+  device; over float32 and float64.
+* ``one_thread``: torch pinned to one intra-op thread for the test's duration.
+"""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-import numpy as np
-import pytest
-import torch
+# One thread per library unless the environment says otherwise, set before numpy, scipy and
+# torch load their thread pools: the test meshes are tiny, and on a machine whose cores are
+# shared, every multi-threaded kernel waits for descheduled threads (measured: 76 s against
+# 16 s for test_operator_algebra, test_linalg and test_lanczos under a load of 3.5 on 2 cores).
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from torch_polylap.cli.timing import pinned_threads  # noqa: E402
 
 DATA = Path(__file__).resolve().parent / "data"
-
-
-def quad_grid(n: int, m: int | None = None, bump: float = 0.0, seed: int | None = None):
-    """``(n+1) x (m+1)`` vertices on the unit square, quads counter-clockwise seen from +z.
-
-    ``bump`` lifts vertices by a smooth height field (non-planar quads); ``seed`` adds a random
-    in-plane jitter so that the quads are irregular but still convex.
-    """
-    m = n if m is None else m
-    xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, m + 1), indexing="ij")
-    if seed is not None:
-        rng = np.random.default_rng(seed)
-        h = 0.25 / max(n, m)
-        inner = (xs > 0) & (xs < 1) & (ys > 0) & (ys < 1)
-        xs = xs + inner * rng.uniform(-h, h, xs.shape)
-        ys = ys + inner * rng.uniform(-h, h, ys.shape)
-    zs = bump * np.sin(3 * xs + 0.5) * np.cos(2 * ys - 0.3)
-    verts = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], 1)
-    idx = np.arange((n + 1) * (m + 1)).reshape(n + 1, m + 1)
-    faces = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
-    return torch.from_numpy(verts), torch.from_numpy(faces)
 
 
 def mixed_mesh():
@@ -99,7 +98,50 @@ def assert_directional_derivative(f, X: torch.Tensor, rtol: float, seed: int = 3
 def one_thread():
     """Tiny meshes: when another process holds a core, torch's 2-thread CSR product waits
     ~25 ms per call for a descheduled worker thread; one thread takes microseconds."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+    with pinned_threads(1):
+        yield
+
+
+# ---------------------------------------------------------------------------- devices, dtypes
+
+CUDA_SKIP = pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device here (CPU-only torch or no GPU)"
+)
+
+
+@pytest.fixture(params=["cpu", pytest.param("cuda", marks=CUDA_SKIP)])
+def device(request) -> torch.device:
+    """Each device a test should pass on: the CPU, and CUDA (skipped where there is none)."""
+    return torch.device(request.param)
+
+
+@pytest.fixture(params=[torch.float32, torch.float64], ids=["float32", "float64"])
+def dtype(request) -> torch.dtype:
+    """Both floating dtypes, for tests whose claims hold in either."""
+    return request.param
+
+
+def tolerances(dtype: torch.dtype) -> dict[str, float]:
+    """``rtol``/``atol`` for comparing a result in ``dtype`` with a float64 reference."""
+    return {"rtol": 1e-4, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-9, "atol": 1e-11}
+
+
+# ------------------------------------------------------------------------------ slow tests
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--runslow",
+        action="store_true",
+        default=False,
+        help="also run the tests marked slow (the full run, as CI does)",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--runslow") or "slow" in (config.getoption("-m") or ""):
+        return
+    skip = pytest.mark.skip(reason="slow: run with --runslow (the full suite)")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)

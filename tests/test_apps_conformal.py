@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import assert_directional_derivative, hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import assert_directional_derivative, hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
 from torch_polylap.apps.conformal import (
@@ -16,6 +16,7 @@ from torch_polylap.apps.conformal import (
     conformal_matrix,
     conformal_parameterization,
 )
+from torch_polylap.shapes import quad_grid
 from torch_polylap.sparse import to_scipy
 
 

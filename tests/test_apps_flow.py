@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import scipy.spatial
 import torch
-from conftest import DATA, assert_directional_derivative, hex_pent_mesh, quad_grid
+from conftest import DATA, assert_directional_derivative, hex_pent_mesh
 
 import torch_polylap as tp
 from torch_polylap.apps import enclosed_volume, mean_curvature_flow
-from torch_polylap.apps.flow import schwarz_lantern
+from torch_polylap.shapes import quad_grid, schwarz_lantern
 
 
 def unit_sphere(name: str):

@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import DATA, quad_grid
+from conftest import DATA
 
 import torch_polylap as tp
 from torch_polylap.apps.planarize import planarize
+from torch_polylap.shapes import quad_grid
 
 
 def _perturbed_grid(n: int = 8, noise: float = 0.02, seed: int = 0):

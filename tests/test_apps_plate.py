@@ -10,10 +10,11 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
-from conftest import DATA, assert_directional_derivative, quad_grid
+from conftest import DATA, assert_directional_derivative
 
 import torch_polylap as tp
 from torch_polylap.apps import navier_deflection, plate_bending, plate_error
+from torch_polylap.shapes import quad_grid
 
 
 def unit_square_grid(name: str):

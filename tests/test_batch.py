@@ -8,10 +8,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from conftest import hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import hex_pent_mesh, mixed_mesh, tolerances
 
 import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
+from torch_polylap.shapes import quad_grid
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -284,12 +285,24 @@ def test_from_pytorch3d():
     assert torch.equal(m.faces_packed().as_uniform(), meshes.faces_packed())
 
 
-@pytest.mark.skipif(
-    not torch.cuda.is_available(), reason="no CUDA device here (CPU-only torch or no GPU)"
-)
-def test_cuda_batch_follows_device():
+def test_batch_follows_device_and_dtype(device, dtype):
     verts, faces = three_meshes()
-    m = PolygonMeshes(verts, faces).to("cuda")
+    reference = PolygonMeshes(verts, faces)  # float64 on the CPU
+    m = reference.to(device, dtype)
+    assert m.device.type == device.type and m.dtype == dtype
     L, M0 = m.laplacian()
-    assert L.device.type == "cuda" and m.verts_packed_to_mesh_idx().device.type == "cuda"
-    torch.testing.assert_close(dense(L).cpu(), dense(PolygonMeshes(verts, faces).laplacian()[0]))
+    assert L.device.type == device.type and L.dtype == dtype and M0.dtype == dtype
+    assert m.verts_packed_to_mesh_idx().device.type == device.type
+    Ld, m0 = dense(L).cpu().double(), M0.diagonal().cpu().double()
+    tol = tolerances(dtype)
+    # per mesh: symmetric, constants in the kernel, masses summing to the mesh's area
+    torch.testing.assert_close(Ld, Ld.T, **tol)
+    torch.testing.assert_close(Ld.sum(1), torch.zeros_like(m0), rtol=0, atol=tol["atol"] * 10)
+    owner = reference.verts_packed_to_mesh_idx()
+    areas = [float(tp.face_areas(v, f).sum()) for v, f in zip(verts, faces, strict=True)]
+    for i, area in enumerate(areas):
+        assert float(m0[owner == i].sum()) == pytest.approx(area, rel=tol["rtol"])
+    if (device.type, dtype) != ("cpu", torch.float64):
+        ref_L, ref_M0 = reference.laplacian()
+        torch.testing.assert_close(Ld, dense(ref_L), **tol)
+        torch.testing.assert_close(m0, ref_M0.diagonal(), **tol)

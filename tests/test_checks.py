@@ -9,12 +9,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import quad_grid
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torch_polylap as tp
 from torch_polylap import checks
+from torch_polylap.shapes import quad_grid
 
 SETTINGS = settings(max_examples=60, deadline=None)
 

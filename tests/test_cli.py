@@ -79,14 +79,6 @@ def plane_fit_nonplanarity(poly: np.ndarray) -> float:
     return float(np.abs(c @ normal).max() / diameter)
 
 
-@pytest.fixture
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 # ------------------------------------------------------------------------------------------
 # info (the first command; its behaviour is kept)
 # ------------------------------------------------------------------------------------------

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import DATA, hex_pent_mesh, mixed_mesh
 from torch.utils.data import DataLoader
 
 import torch_polylap as tp
 import torch_polylap.nn as tnn
 from torch_polylap.datasets import PolygonMeshDataset, collate_meshes, normalize_mesh
+from torch_polylap.shapes import quad_grid
 
 K = 4
 

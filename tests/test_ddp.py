@@ -11,20 +11,24 @@ import pytest
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
-from conftest import hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import hex_pent_mesh, mixed_mesh
 
 import torch_polylap.nn as tnn
 from torch_polylap.batch import PolygonMeshes
+from torch_polylap.shapes import quad_grid
 
 WORLD = 2
 STEPS = 3
 LR = 0.2
 DEADLINE_S = 90.0  # a hung rendezvous or collective fails the test instead of blocking it
 
-pytestmark = pytest.mark.skipif(
-    not (dist.is_available() and dist.is_gloo_available()),
-    reason="torch.distributed with the gloo backend is not available in this torch build",
-)
+pytestmark = [
+    pytest.mark.slow,  # two spawned processes: ~12 s, most of it their start-up
+    pytest.mark.skipif(
+        not (dist.is_available() and dist.is_gloo_available()),
+        reason="torch.distributed with the gloo backend is not available in this torch build",
+    ),
+]
 
 
 def shard(rank: int):

@@ -11,7 +11,7 @@ import warnings
 
 import pytest
 import torch
-from conftest import DATA, quad_grid
+from conftest import DATA
 
 import torch_polylap as tp
 from torch_polylap.apps import (
@@ -24,6 +24,7 @@ from torch_polylap.apps.conformal import conformal_energy, conformal_matrix
 from torch_polylap.apps.planarize import planarize
 from torch_polylap.fitting import mesh_quality
 from torch_polylap.repair import orient_faces
+from torch_polylap.shapes import quad_grid
 
 pytestmark = pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")
 

@@ -7,10 +7,11 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import DATA, mixed_mesh, quad_grid
+from conftest import DATA, mixed_mesh
 
 import torch_polylap as tp
 from torch_polylap.fitting import chamfer_distance, mesh_quality, nearest_neighbors, sample_points
+from torch_polylap.shapes import quad_grid
 
 
 def _planar_mixed():

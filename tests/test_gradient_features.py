@@ -7,11 +7,12 @@ import pickle
 import numpy as np
 import pytest
 import torch
-from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import DATA, hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
 import torch_polylap.nn as tnn
 from torch_polylap.datasets import PolygonMeshDataset, collate_meshes
+from torch_polylap.shapes import quad_grid
 
 D64 = {"dtype": torch.float64}
 

@@ -15,7 +15,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import DATA, hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes
@@ -28,6 +28,7 @@ from torch_polylap.interop import (
     triangle_faces,
 )
 from torch_polylap.io import read_mesh
+from torch_polylap.shapes import quad_grid
 
 
 def three_meshes():

@@ -103,12 +103,12 @@ def test_read_dtype_and_device(tmp_path, mixed_verts):
     assert faces.device.type == "cpu"
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA is not available on this machine")
-def test_read_to_cuda_keeps_faces_on_cpu(tmp_path, mixed_verts):
+def test_read_to_every_device_and_dtype_keeps_faces_on_cpu(tmp_path, mixed_verts, device, dtype):
     write_mesh(tmp_path / "m.obj", mixed_verts, MIXED_FACES)
-    verts, faces = read_mesh(tmp_path / "m.obj", device="cuda")
-    assert verts.is_cuda
-    assert faces.device.type == "cpu"
+    verts, faces = read_mesh(tmp_path / "m.obj", dtype=dtype, device=device)
+    assert verts.device.type == device.type and verts.dtype == dtype
+    assert torch.equal(verts.cpu(), mixed_verts.to(dtype))  # the written digits round-trip
+    assert faces.device.type == "cpu" and faces.tolist() == MIXED_FACES
 
 
 # --------------------------------------------------------------------------------------------

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
-from conftest import DATA, assert_directional_derivative, hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import DATA, assert_directional_derivative, hex_pent_mesh, mixed_mesh
 from meshes import require_shared
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 from torch_polylap.sparse import operator_from_parts
 
 D64 = {"dtype": torch.float64}

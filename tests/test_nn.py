@@ -6,11 +6,12 @@ import math
 
 import pytest
 import torch
-from conftest import DATA, assert_directional_derivative, mixed_mesh, quad_grid
+from conftest import DATA, assert_directional_derivative, mixed_mesh
 
 import torch_polylap as tp
 import torch_polylap.nn as tnn
 from torch_polylap.batch import PolygonMeshes
+from torch_polylap.shapes import quad_grid
 
 D64 = {"dtype": torch.float64}
 

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
 from torch_polylap.checks import check_lam, check_verts
 from torch_polylap.kernels.aw11 import polygon_entries
 from torch_polylap.kernels.frames import gather_corners
+from torch_polylap.shapes import quad_grid
 
 SCALES = [
     (torch.float64, 1e-150, 1e-10),

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
-from conftest import DATA, hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import DATA, hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 
 D64 = {"dtype": torch.float64}
 

@@ -8,9 +8,10 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import mixed_mesh, quad_grid
+from conftest import mixed_mesh
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 
 pytest.importorskip("matplotlib", reason='matplotlib not installed: pip install -e ".[plot]"')
 

@@ -7,10 +7,11 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import DATA, quad_grid
+from conftest import DATA
 
 import torch_polylap as tp
 from torch_polylap import repair
+from torch_polylap.shapes import quad_grid
 
 
 def _topology(faces, n):

@@ -5,9 +5,10 @@ from __future__ import annotations
 import pytest
 import scipy.linalg
 import torch
-from conftest import DATA, mixed_mesh, quad_grid
+from conftest import DATA, mixed_mesh
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 
 D64 = {"dtype": torch.float64}
 

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import torch
-from conftest import DATA, mixed_mesh, quad_grid
+from conftest import DATA, mixed_mesh
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 
 
 def test_face_forms_agree():
@@ -355,6 +356,7 @@ def _rss_bytes() -> int:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
+@pytest.mark.slow  # thousands of topology builds
 @pytest.mark.skipif(not os.path.exists("/proc/self/statm"), reason="needs Linux /proc for RSS")
 def test_fresh_faces_tensors_do_not_leak():
     """400 calls with new faces tensors of a 4.9k-face mesh grew RSS by 741 MB before (1.9 MB a
