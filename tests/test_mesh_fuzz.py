@@ -112,7 +112,13 @@ def assert_valid(V: torch.Tensor, faces) -> None:
     Ld = L.to_dense().numpy()
     scale = np.abs(Ld).max()
     assert np.isfinite(Ld).all() and np.isfinite(M0.to_dense().numpy()).all()
-    assert (M0.to_dense().diagonal() >= 0).all()
+    # lumped mass: |f| / k to each corner, so the masses add up to the total area and every
+    # vertex of a face with positive area gets a positive mass
+    m = M0.to_dense().diagonal()
+    areas = tp.face_areas(V, topo.faces)
+    assert float(m.sum()) == pytest.approx(float(areas.sum()), rel=1e-12, abs=1e-300)
+    with_area = topo.faces.indices[torch.repeat_interleave(areas > 0, topo.faces.sizes)]
+    assert bool((m[with_area] > 0).all())
     assert np.abs(Ld - Ld.T).max() <= 1e-13 * scale
     assert np.abs(Ld.sum(1)).max() <= 1e-11 * scale
     eig = np.linalg.eigvalsh(Ld / scale)

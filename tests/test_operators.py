@@ -228,15 +228,21 @@ def test_inner_product_definiteness(name, V, F):
     M1 = dense(tp.dec.one_form_inner_product(V, faces, 1.0))
     M1g = dense(tp.dec.one_form_inner_product(V, faces, 0.0))
     start = faces.offsets.tolist()
+    nonplanarity = tp.face_nonplanarity(V, faces)
     for f in range(min(faces.num_faces, 40)):
         a, b = start[f], start[f + 1]
         ev = torch.linalg.eigvalsh(M1[a:b, a:b])
         assert ev[0] > 1e-6 * ev[-1]
         k = b - a
+        # The geometric part is B B^T / |f| with B the edge midpoints about the centroid. They
+        # lie in a plane for triangles, for planar faces and (Varignon's parallelogram) for
+        # every quad: rank 2. Around a non-planar face of degree >= 5 they span space: rank 3.
         rank_geo = int(torch.linalg.matrix_rank(M1g[a:b, a:b], rtol=1e-10))
-        assert rank_geo <= 3
+        if k <= 4 or nonplanarity[f] < 1e-12:
+            assert rank_geo == 2, (f, k, float(nonplanarity[f]))
+        elif nonplanarity[f] > 1e-6:
+            assert rank_geo == 3, (f, k, float(nonplanarity[f]))
         if k > 3:
-            assert rank_geo < k
             # for quads and planar faces G = d^T B has rank 2
             Lg = tp.dec.local_laplacians(V[faces[f]], [list(range(k))], 0.0)[0][1][0]
             if k == 4 or name in ("tetris.obj",):

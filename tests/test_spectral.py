@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import scipy.linalg
 import torch
@@ -63,7 +65,13 @@ def test_wave_kernel_signature_is_mass_normalized(spot):
     _, _, _, M0, evals, evecs = spot
     energies = torch.linspace(0.0, 4.0, 12, **D64)
     wks = tp.wave_kernel_signature(evals, evecs, energies)
-    assert wks.shape == (evecs.shape[0], 12) and (wks >= 0).all()
+    assert wks.shape == (evecs.shape[0], 12)
+    # one column from the definition (Aubry et al.), a loop over the non-constant pairs with
+    # the bandwidth 7 times the energy spacing: sum_k w_k phi_k^2 / sum_k w_k
+    sigma = 7 * float(energies[1] - energies[0])
+    w = [math.exp(-((4.0 - math.log(float(mu))) ** 2) / (2 * sigma**2)) for mu in evals[1:]]
+    column = sum(wk * evecs[:, k + 1] ** 2 for k, wk in enumerate(w)) / sum(w)
+    torch.testing.assert_close(wks[:, -1], column, rtol=1e-12, atol=1e-15)
     mass = M0.to_dense().diagonal()
     assert torch.allclose(mass @ wks, torch.ones(12, **D64), atol=1e-10)
 
