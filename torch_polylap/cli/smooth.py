@@ -98,6 +98,8 @@ def compute(args: argparse.Namespace) -> Result:
     topo = get_topology(faces, verts.shape[0])
     dt = args.dt if args.dt is not None else 0.1 * mean_edge_length(verts, topo.edges) ** 2
     normalize = None if args.normalize == "none" else args.normalize
+    if normalize == "volume":  # checked here: a failing step below means a singularity
+        _require_closed_oriented(topo, "normalize='volume'", "Use --normalize area or none.")
     h_before = scaled_mean_curvature(verts, topo, args.lam, args.method)
     interior = torch.ones(verts.shape[0], dtype=torch.bool)
     interior[topo.boundary_vertices] = False
