@@ -31,6 +31,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import json  # noqa: E402
 import statistics  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -40,22 +41,20 @@ import scipy.linalg  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 import scipy.sparse.linalg as spla  # noqa: E402
 import torch  # noqa: E402
+from common import markdown_table, pinned_threads  # noqa: E402
 
 import torch_polylap as tp  # noqa: E402
 import torch_polylap.linalg as linalg  # noqa: E402
+from torch_polylap.shapes import quad_grid  # noqa: E402
 
 ROUTES = ("dense", "arpack_superlu", "arpack_cholmod", "arpack", "lanczos")
 
 
 def grid_mesh(verts: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """A non-planar ``n x n`` quad grid with about ``verts`` vertices."""
+    """A non-planar ``n x n`` quad grid with about ``verts`` vertices
+    (``torch_polylap.shapes.quad_grid``)."""
     n = max(2, round(verts**0.5) - 1)
-    xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
-    zs = 0.05 * np.sin(7 * xs) * np.cos(5 * ys)
-    V = torch.from_numpy(np.stack([xs.ravel(), ys.ravel(), zs.ravel()], 1))
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
-    return V, torch.from_numpy(quads)
+    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y))
 
 
 def rounds(n: int, repeat: int) -> int:
@@ -151,7 +150,11 @@ def main() -> None:
     )
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    with pinned_threads(1):
+        run(args)
+
+
+def run(args: argparse.Namespace) -> None:
     sizes = args.sizes or (
         [500, 1000, 3000, 10000, 30000, 100000]
         if args.mode == "routes"
@@ -159,40 +162,49 @@ def main() -> None:
     )
     # warm-up: imports, CHOLMOD and ARPACK first calls
     bench_routes(500, 16, 1, 0, 1000) if args.mode == "routes" else bench_precompute(500, 16, 1)
-    print(
-        f"torch {torch.__version__}, 1 thread; medians of {args.repeat} interleaved rounds "
-        "(2 above 10k vertices, 1 above 30k)\n"
-    )
-    results = []
-    if args.mode == "routes":
-        print(
-            "| V | k | dense | ARPACK gen. + SuperLU | ARPACK gen. + CHOLMOD "
-            "| ARPACK std. (ours) | block Lanczos | picked |"
-        )
-        print("| --: | --: | --: | --: | --: | --: | --: | :-- |")
-    else:
-        print("| V | k | ours | robust-laplacian + eigsh | ratio | route |")
-        print("| --: | --: | --: | --: | --: | :-- |")
+    results, rows = [], []
     for size in sizes:
         for k in args.ks:
             if args.mode == "routes":
                 r = bench_routes(size, k, args.repeat, args.dense_max, args.generalized_max)
-                best = min(
-                    ROUTES,
-                    key=lambda name: r.get(name, np.inf),
-                )
+                best = min(ROUTES, key=lambda name: r.get(name, np.inf))
                 cells = [
                     f"**{r[c]:.3f}**" if c == best else f"{r[c]:.3f}" if c in r else "-"
                     for c in ROUTES
                 ]
-                print(f"| {r['verts']:,} | {k} | " + " | ".join(cells) + f" | {r['route']} |")
+                rows.append([f"{r['verts']:,}", k, *cells, r["route"]])
             else:
                 r = bench_precompute(size, k, args.repeat)
-                print(
-                    f"| {r['verts']:,} | {k} | {r['ours']:.3f} s | {r['robust_laplacian']:.3f} s "
-                    f"| {r['ratio']:.2f} | {r['route']} |"
+                rows.append(
+                    [
+                        f"{r['verts']:,}",
+                        k,
+                        f"{r['ours']:.3f} s",
+                        f"{r['robust_laplacian']:.3f} s",
+                        f"{r['ratio']:.2f}",
+                        r["route"],
+                    ]
                 )
+            print(" ".join(str(c) for c in rows[-1]), file=sys.stderr, flush=True)  # progress
             results.append(r)
+    if args.mode == "routes":
+        header = [
+            "V",
+            "k",
+            "dense",
+            "ARPACK gen. + SuperLU",
+            "ARPACK gen. + CHOLMOD",
+            "ARPACK std. (ours)",
+            "block Lanczos",
+            "picked",
+        ]
+    else:
+        header = ["V", "k", "ours", "robust-laplacian + eigsh", "ratio", "route"]
+    print(
+        f"torch {torch.__version__}, 1 thread; medians of {args.repeat} interleaved rounds "
+        "(2 above 10k vertices, 1 above 30k)\n"
+    )
+    print(markdown_table(header, rows))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2))

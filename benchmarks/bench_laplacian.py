@@ -32,7 +32,6 @@ import multiprocessing
 import os
 import platform
 import resource
-import statistics
 import sys
 import time
 import warnings
@@ -44,13 +43,15 @@ from typing import Any
 # Benchmark the checkout this file lives in, installed or not.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import common
 import igl
 import numpy as np
 import scipy
 import torch
-from common import cpu_model, peak_rss_growth
+from common import cpu_model, markdown_table, peak_rss_growth, synchronizer
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 
 DEFAULT_SIZES = (100, 316, 1000)
 # ../shared beside the repository holds the real meshes (see ../shared/data/meshes/README.md)
@@ -107,18 +108,13 @@ class Mesh:
 
 
 def grid_mesh(n: int) -> Mesh:
-    """An ``n x n`` quad grid of the unit square lifted to ``z = 0.05 sin(7x) cos(5y)``.
+    """An ``n x n`` quad grid of the unit square lifted to ``z = 0.05 sin(7x) cos(5y)``
+    (``torch_polylap.shapes.quad_grid``).
 
     The lift makes the quads non-planar, so the AW11 stabilizer is exercised on every face.
     """
-    t = np.linspace(0.0, 1.0, n + 1)
-    x, y = np.meshgrid(t, t, indexing="xy")
-    verts = np.stack((x, y, 0.05 * np.sin(7.0 * x) * np.cos(5.0 * y)), -1).reshape(-1, 3)
-    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="xy")
-    a = (j * (n + 1) + i).reshape(-1)
-    quads = np.stack((a, a + 1, a + n + 2, a + n + 1), 1).astype(np.int64)
-    faces = torch.from_numpy(quads)
-    return Mesh(f"grid {n}x{n}", verts, faces, tp.as_faces(faces))
+    verts, faces = quad_grid(n, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y))
+    return Mesh(f"grid {n}x{n}", verts.numpy(), faces, tp.as_faces(faces))
 
 
 def file_mesh(path: Path) -> Mesh:
@@ -127,33 +123,11 @@ def file_mesh(path: Path) -> Mesh:
     return Mesh(path.name, verts.numpy(), faces, faces)
 
 
-def synchronizer(device: torch.device) -> Callable[[], None]:
-    """A function that waits for queued work on ``device`` (a no-op on the CPU)."""
-    if device.type == "cuda":
-        return lambda: torch.cuda.synchronize(device)
-    return lambda: None
-
-
-def _run(fn: Callable[[], object], number: int, sync: Callable[[], None]) -> float:
-    """Seconds taken by ``number`` back-to-back calls of ``fn``, including the device sync."""
-    start = time.perf_counter()
-    for _ in range(number):
-        fn()
-    sync()
-    return time.perf_counter() - start
-
-
 def median_time(fn: Callable[[], object], repeat: int, sync: Callable[[], None]) -> float:
-    """Median seconds per call of ``fn`` over ``repeat`` samples, after warming up.
-
-    The warm-up is one call; when it is faster than :data:`MIN_SAMPLE_SECONDS`, the number of
-    calls per sample is doubled (these runs are also discarded) until a sample lasts that long,
-    so sub-millisecond operations are timed over many calls. Slower calls are timed one by one.
-    """
-    number = 1
-    while _run(fn, number, sync) < MIN_SAMPLE_SECONDS and number < 2**20:
-        number *= 2
-    return statistics.median(_run(fn, number, sync) / number for _ in range(repeat))
+    """Median seconds per call of ``fn`` over ``repeat`` samples (``common.median_time``): one
+    warm-up call, then calls per sample doubled until a sample lasts :data:`MIN_SAMPLE_SECONDS`,
+    so that sub-millisecond operations are timed over many calls."""
+    return common.median_time(fn, repeat, sync=sync, min_sample_s=MIN_SAMPLE_SECONDS)
 
 
 def forward_backward(verts: torch.Tensor, topo: tp.Topology) -> None:
@@ -327,12 +301,6 @@ def fmt_ratio(value: float, target: float | None) -> str:
 
 def fmt_mb(num_bytes: int | None) -> str:
     return "–" if num_bytes is None else f"{num_bytes / 2**20:,.0f}"
-
-
-def markdown_table(header: list[str], rows: list[list[str]]) -> str:
-    align = ["---"] + ["--:"] * (len(header) - 1)
-    lines = [header, align, *rows]
-    return "\n".join("| " + " | ".join(cells) + " |" for cells in lines)
 
 
 def timing_table(results: list[dict]) -> str:

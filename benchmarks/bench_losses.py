@@ -40,7 +40,6 @@ import gc
 import json
 import multiprocessing
 import platform
-import statistics
 import sys
 import time
 import warnings
@@ -50,13 +49,15 @@ from pathlib import Path
 # Benchmark the checkout this file lives in, installed or not.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import common
 import numpy as np
 import torch
-from common import cpu_model, peak_rss_growth
+from common import cpu_model, markdown_table, peak_rss_growth, pinned_threads
 
 import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes, per_mesh_mean
 from torch_polylap.losses import laplacian_smoothing
+from torch_polylap.shapes import quad_sphere
 
 # the plain-torch baseline builds a torch sparse matrix: silence torch's "beta" notices
 warnings.filterwarnings("ignore", message="Sparse (CSR tensor support|invariant checks)")
@@ -66,41 +67,6 @@ MIN_SAMPLE_SECONDS = 0.05
 
 
 # ----------------------------------------------------------------------------- meshes
-
-
-def quad_sphere(n: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """A cube subdivided into ``6 n^2`` quads, projected to the unit sphere, radially perturbed.
-
-    The per-vertex radial noise (relative amplitude ``noise``) makes every quad non-planar.
-    Returns float64 ``(V, 3)`` positions and ``(F, 4)`` faces oriented outward.
-    """
-    t = np.linspace(-1.0, 1.0, n + 1)
-    a, b = np.meshgrid(t, t, indexing="ij")
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
-    pts, faces = [], []
-    for axis in range(3):
-        for side in (-1.0, 1.0):
-            p = np.empty((a.size, 3))
-            p[:, axis] = side
-            p[:, (axis + 1) % 3] = a.ravel()
-            p[:, (axis + 2) % 3] = b.ravel()
-            # (u, v, w) = (e_{axis+1}, e_{axis+2}, e_axis) is right-handed, so the quads run
-            # counter-clockwise around +e_axis; flip them on the negative side
-            f = quads if side > 0 else quads[:, ::-1]
-            faces.append(f + sum(len(q) for q in pts))
-            pts.append(p)
-    p = np.concatenate(pts)
-    # weld the duplicated vertices along the cube's edges: the coordinates times n are exact
-    # integers in [-n, n], so one int64 key per vertex identifies it
-    q = np.round(p * n).astype(np.int64) + n
-    key = (q[:, 0] * (2 * n + 1) + q[:, 1]) * (2 * n + 1) + q[:, 2]
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    faces = inverse.reshape(-1)[np.concatenate(faces)]
-    p = p[first]
-    rng = np.random.default_rng(seed)
-    radius = 1.0 + noise * rng.standard_normal(len(p))
-    return p / np.linalg.norm(p, axis=1, keepdims=True) * radius[:, None], faces
 
 
 def sphere_resolution(faces: int) -> int:
@@ -113,10 +79,14 @@ def triangulate(quads: np.ndarray) -> np.ndarray:
 
 
 def make_case(name: str, sizes: list[int], noise: float, dtype: torch.dtype) -> dict:
-    meshes = [quad_sphere(sphere_resolution(f), noise, seed) for seed, f in enumerate(sizes)]
-    verts = [torch.tensor(v, dtype=dtype) for v, _ in meshes]
-    quads = [torch.from_numpy(np.ascontiguousarray(f)) for _, f in meshes]
-    tris = [torch.from_numpy(triangulate(f)) for _, f in meshes]
+    # cube spheres of 6 n^2 quads, radially perturbed (every quad non-planar), one seed each
+    meshes = [
+        quad_sphere(sphere_resolution(f), noise=noise, seed=seed, dtype=dtype)
+        for seed, f in enumerate(sizes)
+    ]
+    verts = [v for v, _ in meshes]
+    quads = [f for _, f in meshes]
+    tris = [torch.from_numpy(triangulate(f.numpy())) for _, f in meshes]
     return {"name": name, "verts": verts, "quads": quads, "tris": tris}
 
 
@@ -248,22 +218,9 @@ def build_steps(case: dict, baseline: str) -> dict[str, Callable[[], None]]:
 
 
 def median_time(fn: Callable[[], None], repeat: int) -> float:
-    """Median seconds per call over ``repeat`` samples after a warm-up (fast calls batched)."""
-    number = 1
-    while True:
-        start = time.perf_counter()
-        for _ in range(number):
-            fn()
-        if time.perf_counter() - start >= MIN_SAMPLE_SECONDS or number >= 1024:
-            break
-        number *= 2
-    samples = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        for _ in range(number):
-            fn()
-        samples.append((time.perf_counter() - start) / number)
-    return statistics.median(samples)
+    """Median seconds per call over ``repeat`` samples after a warm-up, calls batched until a
+    sample lasts :data:`MIN_SAMPLE_SECONDS` (``common.median_time``)."""
+    return common.median_time(fn, repeat, min_sample_s=MIN_SAMPLE_SECONDS)
 
 
 def memory_child(
@@ -277,7 +234,7 @@ def memory_child(
     resident memory left by the setup and the warm-up.
     """
     if threads:
-        torch.set_num_threads(threads)
+        torch.set_num_threads(threads)  # a fresh process: its count for good
     case = make_case("memory", sizes, noise, getattr(torch, dtype_name))
     steps = build_steps(case, baseline)
     for step in steps.values():
@@ -301,15 +258,6 @@ def measure_memory(sizes, noise, dtype, baseline, threads) -> dict:
 
 def progress(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
-
-
-def markdown_table(header: list[str], rows: list[list[str]]) -> str:
-    lines = [
-        "| " + " | ".join(header) + " |",
-        "| " + " | ".join(["---"] + ["--:"] * (len(header) - 1)) + " |",
-    ]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines)
 
 
 def check_agreement(case: dict) -> dict:
@@ -440,8 +388,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    with pinned_threads(args.threads or torch.get_num_threads()):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     cpu = cpu_model()
     env = {
         "cpu": cpu,

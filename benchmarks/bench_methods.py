@@ -21,41 +21,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
-import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import cpu_model
+from common import cpu_model, markdown_table, median_time, pinned_threads
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 
 METHODS = ("aw11", "plms", "degoes")
+TITLES = {"aw11": "AW11", "plms": "PLMS", "degoes": "dGBD20"}
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def quad_grid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(n+1)^2`` vertices on the unit square lifted by a smooth bump: ``n^2`` non-planar quads."""
-    s = np.linspace(0.0, 1.0, n + 1)
-    xs, ys = np.meshgrid(s, s, indexing="ij")
-    zs = 0.2 * np.sin(3 * xs + 0.5) * np.cos(2 * ys - 0.3)
-    verts = torch.from_numpy(np.stack([xs.ravel(), ys.ravel(), zs.ravel()], 1))
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    faces = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
-    return verts, torch.from_numpy(faces)
-
-
-def _median(fn, repeat: int) -> float:
-    fn()  # warm-up
-    samples = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        samples.append(time.perf_counter() - t0)
-    return statistics.median(samples)
 
 
 def _fresh(faces: tp.PolygonFaces) -> tp.PolygonFaces:
@@ -71,11 +50,11 @@ def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
     )
     row = {"mesh": name, "verts": int(verts.shape[0]), "faces": int(packed.sizes.numel())}
     for method in METHODS:
-        row[f"{method}_first"] = _median(
+        row[f"{method}_first"] = median_time(
             lambda m=method: tp.laplacian(verts, _fresh(packed), method=m), repeat
         )
         topo = tp.get_topology(packed, verts.shape[0])
-        row[f"{method}_cached"] = _median(
+        row[f"{method}_cached"] = median_time(
             lambda m=method, t=topo: tp.laplacian(verts, t, method=m), repeat
         )
     try:
@@ -84,31 +63,37 @@ def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
         idx = packed.indices.numpy().astype(np.int64)
         off = packed.offsets.numpy().astype(np.int64)
         vn = verts.numpy()
-        row["igl_plms"] = _median(lambda: igl.cotmatrix(vn, idx, off), repeat)
+        row["igl_plms"] = median_time(lambda: igl.cotmatrix(vn, idx, off), repeat)
     except ImportError:
         row["igl_plms"] = None
     return row
 
 
 def table(rows: list[dict]) -> str:
-    head = (
-        "| mesh | faces | AW11 first / cached | PLMS first / cached | dGBD20 first / cached "
-        "| libigl PLMS | libigl / our PLMS first | PLMS / AW11 cached | dGBD20 / AW11 cached |"
-    )
-    out = [head, "|" + "---|" * 9]
+    header = [
+        "mesh",
+        "faces",
+        *(f"{TITLES[m]} first / cached" for m in METHODS),
+        "libigl PLMS",
+        "libigl / our PLMS first",
+        "PLMS / AW11 cached",
+        "dGBD20 / AW11 cached",
+    ]
+    body = []
     for r in rows:
         igl_t = r["igl_plms"]
-        cells = [
-            r["mesh"],
-            f"{r['faces']:,}",
-            *(f"{r[f'{m}_first']:.4g} / {r[f'{m}_cached']:.4g} s" for m in METHODS),
-            f"{igl_t:.4g} s" if igl_t else "-",
-            f"{igl_t / r['plms_first']:.1f}x" if igl_t else "-",
-            f"{r['plms_cached'] / r['aw11_cached']:.2f}",
-            f"{r['degoes_cached'] / r['aw11_cached']:.2f}",
-        ]
-        out.append("| " + " | ".join(cells) + " |")
-    return "\n".join(out)
+        body.append(
+            [
+                r["mesh"],
+                f"{r['faces']:,}",
+                *(f"{r[f'{m}_first']:.4g} / {r[f'{m}_cached']:.4g} s" for m in METHODS),
+                f"{igl_t:.4g} s" if igl_t else "-",
+                f"{igl_t / r['plms_first']:.1f}x" if igl_t else "-",
+                f"{r['plms_cached'] / r['aw11_cached']:.2f}",
+                f"{r['degoes_cached'] / r['aw11_cached']:.2f}",
+            ]
+        )
+    return markdown_table(header, body)
 
 
 def main() -> None:
@@ -118,9 +103,18 @@ def main() -> None:
     parser.add_argument("--real-dir", type=Path, default=ROOT.parent / "shared/data/meshes/real")
     parser.add_argument("--json", type=Path, default=ROOT / "benchmarks/results/methods.json")
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    with pinned_threads(1):
+        rows = run(args)
+    print(f"CPU: {cpu_model()}, torch {torch.__version__}, 1 thread, median of {args.repeat}\n")
+    print(table(rows))
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"cpu": cpu_model(), "torch": torch.__version__, "threads": 1, "repeat": args.repeat}
+    args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+
+
+def run(args: argparse.Namespace) -> list[dict]:
     rows = []
-    verts, faces = quad_grid(args.grid)
+    verts, faces = quad_grid(args.grid, bump=0.2)  # non-planar quads
     print(f"grid {args.grid}x{args.grid}", file=sys.stderr)
     rows.append(bench_mesh(f"quad grid {args.grid}^2", verts, faces, args.repeat))
     if args.real_dir.exists():
@@ -132,11 +126,7 @@ def main() -> None:
                 warnings.simplefilter("ignore")  # skipped OBJ records, Moebius orientation
                 v, f = tp.read_mesh(path)
                 rows.append(bench_mesh(path.name, v, f, args.repeat))
-    print(f"CPU: {cpu_model()}, torch {torch.__version__}, 1 thread, median of {args.repeat}\n")
-    print(table(rows))
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"cpu": cpu_model(), "torch": torch.__version__, "threads": 1, "repeat": args.repeat}
-    args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    return rows
 
 
 if __name__ == "__main__":

@@ -37,25 +37,19 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np
 import torch
-from common import cpu_model, peak_rss_growth
+from common import cpu_model, peak_rss_growth, pinned_threads
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 from torch_polylap.sparse import operator_from_parts, sparse_values
 
 Expr = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
-def quad_grid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n x n`` quads on the unit square, bumped out of plane."""
-    xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
-    z = 0.05 * np.sin(6 * xs) * np.cos(5 * ys)
-    verts = torch.tensor(np.stack([xs.ravel(), ys.ravel(), z.ravel()], 1))
-    i, j = (a.ravel() for a in np.meshgrid(np.arange(n), np.arange(n), indexing="ij"))
-    m = n + 1
-    faces = np.stack([i * m + j, (i + 1) * m + j, (i + 1) * m + j + 1, i * m + j + 1], 1)
-    return verts, torch.from_numpy(faces)
+def grid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n x n`` quads on the unit square, bumped out of plane (``torch_polylap.shapes``)."""
+    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(6 * x) * torch.cos(5 * y))
 
 
 def implicit_by_hand(L: torch.Tensor, M0: torch.Tensor, t: float) -> torch.Tensor:
@@ -143,7 +137,7 @@ def native_attempt(verts: torch.Tensor, topo) -> str:
 
 
 def run_grid(n: int, repeat: int) -> dict:
-    verts, faces = quad_grid(n)
+    verts, faces = grid(n)
     topo = tp.build_topology(faces, verts.shape[0])
     rows = []
     for name, ours, by_hand in EXPRESSIONS:
@@ -209,8 +203,8 @@ def main() -> None:
         "--json", type=Path, default=Path("benchmarks/results/operator_algebra.json")
     )
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    results = [run_grid(n, args.repeat) for n in args.grids]
+    with pinned_threads(args.threads):
+        results = [run_grid(n, args.repeat) for n in args.grids]
     header = (
         f"Operator algebra, forward + backward of one step; {cpu_model()}, {args.threads} "
         f"thread(s), torch {torch.__version__}, float64, median of {args.repeat}"

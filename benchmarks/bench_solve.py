@@ -31,41 +31,35 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
+from common import markdown_table, median_time
 
 import torch_polylap as tp
-from torch_polylap.sparse import csr_tensor, sparse_values
+from torch_polylap.shapes import quad_grid
+from torch_polylap.sparse import operator_from_parts, sparse_values
 
 SWORD = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "real"
 SWORD = SWORD / "sword-quad-dominant.obj"
 
 
 def timed(fn: Callable[[], object], repeat: int) -> float:
-    """Median seconds over ``repeat`` calls after one warm-up call. Callers that time a
-    factorization build a fresh matrix inside ``fn``, so no factorization is reused."""
-    fn()
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    """Median seconds over ``repeat`` calls after one warm-up call (``common.median_time``).
+    Callers that time a factorization build a fresh matrix inside ``fn``, so no factorization
+    is reused."""
+    return median_time(fn, repeat)
 
 
 def grid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
-    zs = 0.05 * np.sin(7 * xs) * np.cos(5 * ys)
-    verts = torch.from_numpy(np.stack([xs.ravel(), ys.ravel(), zs.ravel()], 1))
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
-    return verts, torch.from_numpy(quads)
+    """``n x n`` non-planar quads (``torch_polylap.shapes.quad_grid``)."""
+    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y))
 
 
 def implicit_matrix(L: torch.Tensor, M0: torch.Tensor, h: float) -> torch.Tensor:
     crow, col = L.crow_indices(), L.col_indices()
     row = torch.repeat_interleave(torch.arange(L.shape[0]), crow.diff())
     mass = torch.zeros_like(sparse_values(L)).masked_scatter(row == col, sparse_values(M0))
-    A = csr_tensor(crow, col, mass + h * sparse_values(L), tuple(L.shape))
-    return tp.sparse.mark_symmetric(A)
+    return operator_from_parts(
+        crow, col, mass + h * sparse_values(L), tuple(L.shape), symmetric=True
+    )
 
 
 def bench_solve(n: int, repeat: int) -> dict:
@@ -91,8 +85,8 @@ def bench_solve(n: int, repeat: int) -> dict:
 
     def forward_backward() -> None:
         values = sparse_values(A).detach().clone().requires_grad_(True)
-        Ag = tp.sparse.mark_symmetric(
-            csr_tensor(A.crow_indices(), A.col_indices(), values, tuple(A.shape))
+        Ag = operator_from_parts(
+            A.crow_indices(), A.col_indices(), values, tuple(A.shape), symmetric=True
         )
         X = tp.solve(Ag, B)
         start = time.perf_counter()
@@ -175,37 +169,45 @@ def main() -> None:
         f"median of {args.repeat}.",
         "",
     ]
-    lines += [
-        "### solve, A = M0 + 0.01 L, B (V, 3)",
-        "",
-        "| F | ours: factor + solve | scipy splu (same options) | ratio | scipy splu (default) | "
-        "re-solve (cached) | backward / forward |",
-        "|" + " --: |" * 7,
-    ]
+    rows = []
     for n in args.sizes:
         r = bench_solve(n, args.repeat)
         report["solve"].append(r)
-        lines.append(
-            f"| {r['faces']:,} | {r['ours_factor_solve'] * 1e3:.1f} ms "
-            f"| {r['scipy_splu_solve'] * 1e3:.1f} ms "
-            f"| {r['ours_factor_solve'] / r['scipy_splu_solve']:.2f} "
-            f"| {r['scipy_splu_default'] * 1e3:.1f} ms | {r['ours_resolve'] * 1e3:.1f} ms "
-            f"| {r['ours_backward_only'] / r['ours_factor_solve']:.2f} |"
+        rows.append(
+            [
+                f"{r['faces']:,}",
+                f"{r['ours_factor_solve'] * 1e3:.1f} ms",
+                f"{r['scipy_splu_solve'] * 1e3:.1f} ms",
+                f"{r['ours_factor_solve'] / r['scipy_splu_solve']:.2f}",
+                f"{r['scipy_splu_default'] * 1e3:.1f} ms",
+                f"{r['ours_resolve'] * 1e3:.1f} ms",
+                f"{r['ours_backward_only'] / r['ours_factor_solve']:.2f}",
+            ]
         )
-    lines += [
-        "",
-        f"### eigs, k = {args.k}",
-        "",
-        "| F | ours | scipy eigsh | ratio |",
-        "| --: | --: | --: | --: |",
+    header = [
+        "F",
+        "ours: factor + solve",
+        "scipy splu (same options)",
+        "ratio",
+        "scipy splu (default)",
+        "re-solve (cached)",
+        "backward / forward",
     ]
+    lines += ["### solve, A = M0 + 0.01 L, B (V, 3)", "", markdown_table(header, rows)]
+    rows = []
     for n in args.eig_sizes:
         r = bench_eigs(n, args.k, args.repeat)
         report["eigs"].append(r)
-        lines.append(
-            f"| {r['faces']:,} | {r['ours']:.2f} s | {r['scipy_eigsh']:.2f} s "
-            f"| {r['ours'] / r['scipy_eigsh']:.2f} |"
+        rows.append(
+            [
+                f"{r['faces']:,}",
+                f"{r['ours']:.2f} s",
+                f"{r['scipy_eigsh']:.2f} s",
+                f"{r['ours'] / r['scipy_eigsh']:.2f}",
+            ]
         )
+    header = ["F", "ours", "scipy eigsh", "ratio"]
+    lines += ["", f"### eigs, k = {args.k}", "", markdown_table(header, rows)]
     pre = bench_precompute(args.precompute_k, args.repeat) if args.precompute_k > 0 else None
     report["precompute"] = pre
     if pre is not None:

@@ -13,42 +13,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np
 import torch
+from common import markdown_table, median_time, synchronizer
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 
 
-def quad_grid(n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    xs, ys = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
-    z = 0.05 * np.sin(6 * xs) * np.cos(5 * ys)
-    verts = torch.tensor(np.stack([xs.ravel(), ys.ravel(), z.ravel()], 1), dtype=dtype)
-    i, j = (a.ravel() for a in np.meshgrid(np.arange(n), np.arange(n), indexing="ij"))
-    m = n + 1
-    faces = np.stack([i * m + j, (i + 1) * m + j, (i + 1) * m + j + 1, i * m + j + 1], 1)
-    return verts, torch.from_numpy(faces)
-
-
-def median_time(step: Callable[[], object], device: torch.device, repeat: int) -> float:
-    def once() -> float:
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        start = time.perf_counter()
-        step()
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        return time.perf_counter() - start
-
-    once()
-    return statistics.median(once() for _ in range(repeat))
+def grid(n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n x n`` non-planar quads (``torch_polylap.shapes.quad_grid``)."""
+    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(6 * x) * torch.cos(5 * y), dtype=dtype)
 
 
 def steps(verts: torch.Tensor, faces: torch.Tensor, k: int) -> dict[str, Callable[[], object]]:
@@ -99,13 +79,13 @@ def main() -> None:
     rows = []
     for dtype in (torch.float32, torch.float64):
         for n in sorted({args.grid, args.eigs_grid}):
-            verts, faces = quad_grid(n, dtype)
+            verts, faces = grid(n, dtype)
             per_device = {dev: steps(verts.to(dev), faces, args.k) for dev in (cpu, cuda)}
             for name in per_device[cuda]:
                 if name.startswith("eigs") != (n == args.eigs_grid):
                     continue
-                t_gpu = median_time(per_device[cuda][name], cuda, args.repeat)
-                t_cpu = median_time(per_device[cpu][name], cpu, args.repeat)
+                t_gpu = median_time(per_device[cuda][name], args.repeat, sync=synchronizer(cuda))
+                t_cpu = median_time(per_device[cpu][name], args.repeat)
                 rows.append(
                     {
                         "step": name,
@@ -122,13 +102,19 @@ def main() -> None:
         f"GPU table: {name} vs {torch.get_num_threads()} CPU threads, "
         f"torch {torch.__version__}, median of {args.repeat}\n"
     )
-    print("| step | dtype | quads | CUDA ms | CPU ms | CPU / CUDA |")
-    print("|---|---|--:|--:|--:|--:|")
-    for r in rows:
-        print(
-            f"| {r['step']} | {r['dtype']} | {r['quads']:,} | {r['cuda_ms']:.2f} | "
-            f"{r['cpu_ms']:.2f} | {r['speedup']:.1f} |"
-        )
+    header = ["step", "dtype", "quads", "CUDA ms", "CPU ms", "CPU / CUDA"]
+    body = [
+        [
+            r["step"],
+            r["dtype"],
+            f"{r['quads']:,}",
+            f"{r['cuda_ms']:.2f}",
+            f"{r['cpu_ms']:.2f}",
+            f"{r['speedup']:.1f}",
+        ]
+        for r in rows
+    ]
+    print(markdown_table(header, body))
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=2))
 
