@@ -35,7 +35,7 @@ from .kernels.frames import corner_terms, gather_corners, stable_norm
 from .linalg import solve
 from .measures import vector_area
 from .operators import laplacian
-from .sparse import SparseOperator, diag, from_coo
+from .sparse import SparseOperator, SparsityPattern, diag
 from .topology import DegreeGroup, Topology, get_topology
 
 __all__ = [
@@ -134,17 +134,39 @@ def gradient_operator(verts: torch.Tensor, faces: MeshFaces) -> SparseOperator:
     """The face gradient as a ``(3F, V)`` sparse operator ``G``: row ``3 f + c`` is component
     ``c`` of ``grad_f`` (eq. (1) above), so ``(G @ u).view(F, 3) == face_gradient(verts, faces,
     u)``.  Its values are differentiable in ``verts``, and its algebra (``G @ u``, ``G.T @ X``)
-    keeps O(nnz) gradients."""
+    keeps O(nnz) gradients. The pattern and the order of the entries in it depend only on the
+    faces: they are computed on the first call and kept with the topology, so later calls on
+    the same faces only evaluate the per-corner weights."""
     topo = _topology(verts, faces)
-    empty = torch.zeros(0, dtype=torch.int64, device=verts.device)
-    rows, cols, vals = [empty], [empty], [verts.new_zeros(0)]
-    for grp, w, _ in _corner_gradients(verts, topo):
-        comp = torch.arange(3, device=verts.device)[:, None, None]
-        rows.append((3 * grp.face_ids[None, None, :] + comp).expand_as(w).reshape(-1))
-        cols.append(grp.corners_t[None].expand_as(w).reshape(-1))
-        vals.append(w.reshape(-1))
-    shape = (3 * topo.num_faces, topo.num_verts)
-    return from_coo(torch.cat(rows), torch.cat(cols), torch.cat(vals), shape)
+    parts = list(_corner_gradients(verts, topo))
+    pattern, order = _gradient_layout(topo, [grp for grp, _, _ in parts], verts.device)
+    values = torch.cat([verts.new_zeros(0)] + [w.reshape(-1) for _, w, _ in parts])
+    return SparseOperator(pattern, values.index_select(0, order))
+
+
+def _gradient_layout(
+    topo: Topology, groups: Sequence[DegreeGroup], device: torch.device
+) -> tuple[SparsityPattern, torch.Tensor]:
+    """The CSR pattern of the gradient operator and, for the weights concatenated in the order
+    of :func:`_corner_gradients` (component, corner, face per degree group), the permutation
+    that sorts them into it; cached on the topology per device."""
+    key = ("gradient_operator", torch.device(device))
+    cached = topo.derived.get(key)
+    if cached is None:
+        empty = torch.zeros(0, dtype=torch.int64, device=device)
+        rows, cols = [empty], [empty]
+        for grp in groups:
+            shape = (3, grp.k, grp.face_ids.numel())
+            comp = torch.arange(3, device=device)[:, None, None]
+            rows.append((3 * grp.face_ids[None, None, :] + comp).expand(shape).reshape(-1))
+            cols.append(grp.corners_t[None].expand(shape).reshape(-1))
+        row, col = torch.cat(rows), torch.cat(cols)
+        # a simple polygon visits each vertex once: the (row, col) keys are distinct
+        order = torch.argsort(row * max(topo.num_verts, 1) + col)
+        shape2 = (3 * topo.num_faces, topo.num_verts)
+        cached = (SparsityPattern.from_rows(row[order], col[order], shape2), order)
+        topo.derived[key] = cached
+    return cached
 
 
 def divergence(verts: torch.Tensor, faces: MeshFaces, field: torch.Tensor) -> torch.Tensor:

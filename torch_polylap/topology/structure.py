@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -70,6 +71,10 @@ class Topology:
         self.isolated = isolated
         self.report = report
         self._views: dict[torch.device, TopologyView] = {}
+        # Layouts of other operators that depend only on the faces (the gradient's pattern and
+        # its scatter order), cached here by the modules that build them, keyed by
+        # (name, device): computed once per topology like the Laplacian's pattern.
+        self.derived: dict[tuple[str, torch.device], Any] = {}
         self._row: torch.Tensor | None = None
         self._components: tuple[int, torch.Tensor] | None = None
 
