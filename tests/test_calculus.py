@@ -298,3 +298,24 @@ def test_bad_heat_time_raises():
     verts, faces = quad_grid(2)
     with pytest.raises(ValueError, match="positive heat time"):
         tp.HeatGeodesicSolver(verts, faces, t=0.0)
+
+
+@pytest.mark.parametrize(
+    "name", ["bunny_poly.ply", "mixedFaring.off", "tetris.obj", "dodecahedron_poly.obj"]
+)
+def test_gradient_operator_equals_adobe_lagrange_on_polygons(name):
+    """de Goes et al. 2020's polygon gradient (eq. 8, adobe-lagrange's ``polyddg``) is, on any
+    polygon, the gradient of this package: an independent implementation to compare with, on
+    non-planar and non-convex faces of degree 3 to 10."""
+    lagrange = pytest.importorskip("lagrange", reason="adobe-lagrange not installed")
+    from lagrange import polyddg
+
+    verts, faces = load(DATA / name)
+    mesh = lagrange.SurfaceMesh()
+    mesh.add_vertices(verts.numpy())
+    mesh.add_hybrid(faces.sizes.numpy().astype(np.uint32), faces.indices.numpy().astype(np.uint32))
+    G_peer = polyddg.DifferentialOperators(mesh).gradient().toarray()
+    G = tp.gradient_operator(verts, faces)
+    np.testing.assert_allclose(G.to_dense().numpy(), G_peer, atol=1e-12 * abs(G_peer).max())
+    # the second call reuses the cached pattern and gives the same operator
+    torch.testing.assert_close(tp.gradient_operator(verts, faces).to_dense(), G.to_dense())
