@@ -22,17 +22,19 @@ lambda of ``--lams`` (the lambda study of AW11 sec. 5), and the report ends with
 orders between the last two levels. The definitions follow the reference values of the
 polyLaplace implementation (``../shared/docs/REFERENCE-VALUES.md``). Observed orders are
 ``log(e_prev / e) / log(h_prev / h)`` with ``h = |V|^-1/2``. Writes a Markdown report (default
-``examples/output/convergence.md``).
+``examples/output/convergence.md``) and ``convergence.png`` beside it (AW11's errors against
+``h``, one panel per experiment).
 
-PLMS's ``M0`` here is this package's (fan corner areas, mixed Voronoi, prolonged and summed);
-polyLaplace lumps the fan's Galerkin mass instead (barycentric corner areas), which changes the
-PLMS errors on curved or concave meshes (``tests/test_reference_values.py`` reproduces its
-numbers with that mass).
+The experiments are the ones ``tests/test_reference_values.py`` checks against the numbers
+printed by the polyLaplace research code (that test imports them from here; it keeps its own
+copy of the published numbers and its own definition of ``Y_3^2``). PLMS's ``M0`` is this
+package's, which lumps the fan's Galerkin mass as polyLaplace does.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import time
 import warnings
@@ -52,9 +54,20 @@ TITLES = {"aw11": "AW11", "degoes": "dGBD20", "plms": "PLMS"}
 GRIDS = ("quad", "voronoi", "concave", "str_hex", "comp_hex", "irr_poly", "dia_quad", "triangle")
 
 
-def unit_sphere(path: Path) -> tuple[torch.Tensor, tp.PolygonFaces]:
-    verts, faces = tp.read_mesh(path)
-    return verts / verts.norm(dim=1, keepdim=True), faces
+Mass = Callable[[torch.Tensor, tp.PolygonFaces], torch.Tensor]  # (V,) lumped masses
+
+
+def unit_sphere(verts: torch.Tensor) -> torch.Tensor:
+    """The vertices pushed onto the unit sphere (the sphere experiments' first step)."""
+    return verts / verts.norm(dim=1, keepdim=True)
+
+
+def operators(
+    verts: torch.Tensor, faces, lam: float, method: str, mass: Mass | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``L`` and the lumped masses ``m`` (``M0``'s diagonal, or ``mass(verts, faces)``)."""
+    L, M0 = tp.laplacian(verts, faces, lam, method=method)
+    return L, (M0.diagonal() if mass is None else mass(verts, faces))
 
 
 def y32(p: torch.Tensor) -> torch.Tensor:
@@ -105,44 +118,62 @@ def franke_and_laplacian(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor
     return f, lap
 
 
-def sh_error(path: Path, lam: float, method: str = "aw11") -> float:
-    verts, faces = unit_sphere(path)
-    L, M0 = tp.laplacian(verts, faces, lam, method=method)
+# The experiments. Each takes the mesh as read (spheres are normalized here), lambda, the
+# method of tp.laplacian and optionally a replacement for the lumped masses (tests pass
+# polyLaplace's own PLMS mass), and returns the error.
+
+
+def sh_error(
+    verts: torch.Tensor, faces, lam: float = 1.0, method: str = "aw11", mass: Mass | None = None
+) -> float:
+    """(a) ``e = Y - M0^-1 L Y / 12`` for ``Y = Y_3^2``; ``sqrt(e^T M0 e / |V|)``."""
+    verts = unit_sphere(verts)
+    L, m = operators(verts, faces, lam, method, mass)
     y = y32(verts)
-    e = y - tp.strong_laplacian(L, M0, y) / 12.0
-    m = M0.diagonal()
+    e = y - (L @ y) / m / 12.0  # M0^-1 L approximates -lap, and -lap_S Y = 12 Y
     return float((e * m * e).sum() / y.numel()) ** 0.5
 
 
-def mean_curvature_error(path: Path, lam: float, method: str = "aw11") -> float:
-    verts, faces = unit_sphere(path)
-    L, M0 = tp.laplacian(verts, faces, lam, method=method)
-    c = tp.strong_laplacian(L, M0, verts).norm(dim=1) / 2
+def mean_curvature_error(
+    verts: torch.Tensor, faces, lam: float = 1.0, method: str = "aw11", mass: Mass | None = None
+) -> float:
+    """(b) ``c = |M0^-1 L X| / 2`` per vertex against 1: ``sqrt(mean (c - 1)^2)``."""
+    verts = unit_sphere(verts)
+    L, m = operators(verts, faces, lam, method, mass)
+    c = ((L @ verts) / m[:, None]).norm(dim=1) / 2
     return float(((c - 1) ** 2).mean()) ** 0.5
 
 
-def franke_error(path: Path, lam: float, method: str = "aw11") -> float:
-    verts, faces = tp.read_mesh(path)
-    topo = tp.build_topology(faces, verts.shape[0])
-    L, M0 = tp.laplacian(verts, topo, lam, method=method)
+def franke_error(
+    verts: torch.Tensor, faces, lam: float = 1.0, method: str = "aw11", mass: Mass | None = None
+) -> float:
+    """(c) ``L u = -M0 lap(f)`` inside, ``u = f`` on the boundary vertices: RMS of ``u - f``."""
+    L, m = operators(verts, faces, lam, method, mass)
+    topo = tp.get_topology(faces, verts.shape[0])  # cached with the faces by tp.laplacian
     f, lap = franke_and_laplacian(verts[:, 0], verts[:, 1])
     boundary = topo.boundary_vertices
-    u = tp.dirichlet_solve(L, -(M0 @ lap), boundary, f[boundary])
+    u = tp.dirichlet_solve(L, -(m * lap), boundary, f[boundary])
     return float(((u - f) ** 2).mean()) ** 0.5
 
 
 EXACT_SPECTRUM = torch.tensor([ell * (ell + 1) for ell in range(4) for _ in range(2 * ell + 1)])
 
 
-def spectrum_error(path: Path, lam: float, method: str = "aw11") -> float:
-    verts, faces = unit_sphere(path)
-    L, M0 = tp.laplacian(verts, faces, lam, method=method)
-    evals, _ = tp.eigs(L, M0, 16)
+def spectrum_error(
+    verts: torch.Tensor, faces, lam: float = 1.0, method: str = "aw11", mass: Mass | None = None
+) -> float:
+    """(d) the first 16 eigenvalues of ``L phi = mu M0 phi`` against ``l (l + 1)``: the largest
+    relative error of eigenvalues 1..15."""
+    verts = unit_sphere(verts)
+    L, m = operators(verts, faces, lam, method, mass)
+    evals, _ = tp.eigs(L, tp.sparse.diag(m), 16)
     exact = EXACT_SPECTRUM.to(evals)
     return float(((evals[1:] - exact[1:]).abs() / exact[1:]).max())
 
 
-EXPERIMENTS: dict[str, tuple[str, tuple[str, ...], Callable[[Path, float, str], float]]] = {
+Experiment = Callable[..., float]
+
+EXPERIMENTS: dict[str, tuple[str, tuple[str, ...], Experiment]] = {
     "(a) spherical harmonic Y_3^2": ("sphere", SPHERES, sh_error),
     "(b) mean curvature |H|/2 - 1": ("sphere", SPHERES, mean_curvature_error),
     "(c) Franke Poisson problem": ("grid", GRIDS, franke_error),
@@ -159,6 +190,12 @@ def orders(errors: list[float], sizes: list[int]) -> list[float | None]:
 
 
 Column = tuple[str, str, float]  # (header, method, lambda)
+
+
+@functools.cache
+def read(path: Path) -> tuple[torch.Tensor, tp.PolygonFaces]:
+    """``tp.read_mesh``, once per file (the faces object then carries its cached topology)."""
+    return tp.read_mesh(path)
 
 
 def method_columns(methods: list[str], lam: float) -> list[Column]:
@@ -187,7 +224,7 @@ def _table(
         paths = [shared / folder / f"{family}_{level}.obj" for level in levels]
         if not all(p.is_file() for p in paths):
             continue
-        sizes = [tp.read_mesh(p)[0].shape[0] for p in paths]
+        sizes = [read(p)[0].shape[0] for p in paths]
         table = []
         for column in columns:
             errors = [measure(p, column) for p in paths]
@@ -209,7 +246,10 @@ def run(
     lams: list[float],
     methods: list[str] | None = None,
     lam: float = 1.0,
+    curves: dict[str, dict[str, tuple[list[int], list[float]]]] | None = None,
 ) -> str:
+    """The Markdown report; with ``curves``, also fill ``{experiment: {mesh: (sizes, errors)}}``
+    with AW11's errors at ``lam`` over the levels (for :func:`figure`)."""
     methods = list(METHODS if methods is None else methods)
     results: dict[tuple[str, Path, str, float], float] = {}
     by_method = method_columns(methods, lam)
@@ -226,12 +266,20 @@ def run(
         def measure(path: Path, column: Column, fn=fn, title=title) -> float:
             key = (title, path, column[1], 0.0 if column[1] == "plms" else column[2])
             if key not in results:
-                results[key] = fn(path, column[2], column[1])
+                results[key] = fn(*read(path), column[2], column[1])
             return results[key]
 
         last: dict[tuple[str, str], float | None] = {}
         lines += ["", f"## {title}", "", f"### Laplacians side by side (lambda = {lam:g})", ""]
         lines += _table(folder, families, shared, levels, by_method, measure, last)
+        if curves is not None and "aw11" in methods:
+            curves[title] = {}
+            for family in families:
+                paths = [shared / folder / f"{family}_{level}.obj" for level in levels]
+                if all(p.is_file() for p in paths):
+                    sizes = [read(p)[0].shape[0] for p in paths]
+                    errors = [measure(p, ("", "aw11", lam)) for p in paths]
+                    curves[title][f"{family} {folder}"] = (sizes, errors)
         if lams:
             lines += ["", f"### AW11, lambda in {lams}", ""]
             lines += _table(folder, families, shared, levels, lambda_columns(lams), measure)
@@ -249,6 +297,37 @@ def run(
     if summary:
         lines += ["", f"## Observed orders, levels {levels[-2]} to {levels[-1]}"] + summary
     return "\n".join(lines) + "\n"
+
+
+def figure(curves: dict[str, dict[str, tuple[list[int], list[float]]]], path: Path) -> None:
+    """One log-log panel per experiment: AW11's error against h = |V|^-1/2 for every mesh
+    family, with first- and second-order slopes for reference (matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(curves), figsize=(4.2 * len(curves), 4), squeeze=False)
+    for ax, (title, families) in zip(axes[0], curves.items(), strict=True):
+        h_all = []
+        for family, (sizes, errors) in families.items():
+            h = [v**-0.5 for v in sizes]
+            h_all += h
+            ax.loglog(h, errors, marker="o", ms=3, label=family)
+        if h_all:
+            h0, h1 = min(h_all), max(h_all)
+            ref = min(e for _, errs in families.values() for e in errs)
+            for order, style in ((1, ":"), (2, "--")):
+                ax.loglog([h0, h1], [ref, ref * (h1 / h0) ** order], "k" + style, lw=0.8)
+                ax.annotate(f"order {order}", (h1, ref * (h1 / h0) ** order), fontsize=7)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("h = |V|^-1/2")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=6, loc="lower right")
+    axes[0][0].set_ylabel("error (AW11)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def main() -> None:
@@ -271,11 +350,16 @@ def main() -> None:
     # the shared meshes carry objects and materials the study has no use for
     warnings.simplefilter("ignore", tp.io.SkippedContentWarning)
     start = time.perf_counter()
-    report = run(args.shared, args.levels, args.lams, args.methods, args.lam)
+    curves: dict[str, dict[str, tuple[list[int], list[float]]]] = {}
+    report = run(args.shared, args.levels, args.lams, args.methods, args.lam, curves)
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    png = args.out.with_suffix(".png")
+    if curves:
+        figure(curves, png)
+        report += f"\n![AW11's errors under refinement]({png.name})\n"
     args.out.write_text(report)
     print(report)
-    print(f"wrote {args.out} in {time.perf_counter() - start:.1f} s")
+    print(f"wrote {args.out} and {png} in {time.perf_counter() - start:.1f} s")
 
 
 if __name__ == "__main__":

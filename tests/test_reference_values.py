@@ -1,8 +1,12 @@
 """Reproduce the polyLaplace reference values of ../shared/docs/REFERENCE-VALUES.md.
 
 The table there (SH error, mean-curvature error and Franke error on the level-3 meshes, for
-lambda in {2, 1, 0.5}) was produced by the polyLaplace research code. Every definition below is
-implemented literally as written there:
+lambda in {2, 1, 0.5}) was produced by the polyLaplace research code. The experiments are
+implemented once, in ``examples/convergence_study.py`` (``sh_error``, ``mean_curvature_error``,
+``franke_error``), which this module imports; what stays here is independent of them: the
+published numbers (copied as printed), ``Y_3^2`` from its definition with associated Legendre
+functions, a finite-difference check of Franke's Laplacian and polyLaplace's PLMS mass
+(:func:`meshes.plms_galerkin_mass`). The definitions, as REFERENCE-VALUES.md writes them:
 
 * spheres: vertices normalized to the unit sphere first;
 * SH error: ``y = Y_3^2`` with ``phi = atan2(x, z) + pi``, ``cos(theta) = y / |p|``,
@@ -27,20 +31,19 @@ Run ``PYTHONPATH=. python tests/test_reference_values.py`` to print the full com
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.sparse.linalg as spla
 import torch
+from meshes import DATA_DIR, load, plms_galerkin_mass, shared_path
 from scipy.special import factorial, lpmv
 
 import torch_polylap as tp
 
-try:  # tests/ on sys.path (pytest's default rootdir-less import mode, or running the file)
-    from meshes import DATA_DIR, load, plms_galerkin_mass, shared_path
-except ImportError:  # tests/ imported as a package
-    from tests.meshes import DATA_DIR, load, shared_path
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+import convergence_study as study  # noqa: E402  (the experiments)
 
 LAMBDAS = (2.0, 1.0, 0.5)
 
@@ -94,140 +97,26 @@ def sh_y32(p: np.ndarray) -> np.ndarray:
     return math.sqrt(2.0) * k * np.cos(m * phi) * lpmv(m, deg, cos_theta)
 
 
-def sh_y32_closed_form(p: np.ndarray) -> np.ndarray:
-    """The same function as a polynomial: ``sqrt(2) K 15 y (z^2 - x^2) / r^3``.
-
-    ``P_3^2(t) = 15 t (1 - t^2)``, ``sin^2(theta) = (x^2 + z^2) / r^2`` and
-    ``cos(2 phi) = cos(2 atan2(x, z)) = (z^2 - x^2) / (x^2 + z^2)`` (the ``+ pi`` drops out).
-    """
-    k = math.sqrt(7.0 / (4 * math.pi * 120.0))
-    x, y, z = p.T
-    r = np.linalg.norm(p, axis=1)
-    return math.sqrt(2.0) * k * 15.0 * y * (z * z - x * x) / r**3
-
-
-# Franke's function as sum_i c_i exp(q_i(x, y)) with q_i quadratic (or linear) in x and y, so
-# lap(c exp(q)) = c exp(q) (q_x^2 + q_y^2 + q_xx + q_yy). Terms, exactly as in the reference:
-#   3/4 exp(-((9x-2)^2 + (9y-2)^2) / 4)
-#   3/4 exp(-(9x+1)^2 / 49 - (9y+1) / 10)      <- linear in y: q_y = -9/10, q_yy = 0
-#   1/2 exp(-((9x-7)^2 + (9y-3)^2) / 4)
-#  -1/5 exp(-(9x-4)^2 - (9y-7)^2)
-def _franke_terms(x: np.ndarray, y: np.ndarray):
-    """``(c, q, q_x, q_y, q_xx, q_yy)`` for each of the four terms."""
-    return (
-        (
-            0.75,
-            -((9 * x - 2) ** 2 + (9 * y - 2) ** 2) / 4,
-            -9 * (9 * x - 2) / 2,
-            -9 * (9 * y - 2) / 2,
-            -81 / 2,
-            -81 / 2,
-        ),
-        (
-            0.75,
-            -((9 * x + 1) ** 2) / 49 - (9 * y + 1) / 10,
-            -18 * (9 * x + 1) / 49,
-            np.full_like(y, -9 / 10),
-            -162 / 49,
-            0.0,
-        ),
-        (
-            0.5,
-            -((9 * x - 7) ** 2 + (9 * y - 3) ** 2) / 4,
-            -9 * (9 * x - 7) / 2,
-            -9 * (9 * y - 3) / 2,
-            -81 / 2,
-            -81 / 2,
-        ),
-        (
-            -0.2,
-            -((9 * x - 4) ** 2) - (9 * y - 7) ** 2,
-            -18 * (9 * x - 4),
-            -18 * (9 * y - 7),
-            -162.0,
-            -162.0,
-        ),
-    )
-
-
-def franke(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    return sum(c * np.exp(q) for c, q, *_ in _franke_terms(x, y))
-
-
-def franke_laplacian(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """``f_xx + f_yy`` of :func:`franke`, analytically."""
-    return sum(
-        c * np.exp(q) * (qx * qx + qy * qy + qxx + qyy)
-        for c, q, qx, qy, qxx, qyy in _franke_terms(x, y)
-    )
-
-
 # --------------------------------------------------------------------------------------------
-# The three experiments
+# The three experiments (examples/convergence_study.py)
 # --------------------------------------------------------------------------------------------
 
 
-def _mesh(path: Path, unit_sphere: bool):
-    verts, faces = load(path)
-    if unit_sphere:
-        verts = verts / torch.linalg.vector_norm(verts, dim=1, keepdim=True)
-    return verts, faces
+def polylaplace_mass(verts: torch.Tensor, faces) -> torch.Tensor:
+    """polyLaplace's PLMS lumped mass, computed independently of the package (numpy)."""
+    return torch.from_numpy(plms_galerkin_mass(verts, faces))
 
 
-def _operators(verts: torch.Tensor, faces, lam: float, method: str = "aw11", mass: str = "own"):
-    """``(L, m)``: L as scipy csr (PSD sign), m the lumped masses (diagonal of M0).
-
-    ``mass="own"``: the method's ``M0``; ``"polylaplace"``: for PLMS, polyLaplace's
-    Galerkin-lumped mass (:func:`plms_galerkin_mass`).
-    """
-    L, M0 = tp.laplacian(verts, faces, lam, method=method)
-    if mass == "polylaplace" and method == "plms":
-        return tp.sparse.to_scipy(L), plms_galerkin_mass(verts, faces)
-    return tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0).diagonal()
-
-
-def sh_error(path: Path, lam: float, method: str = "aw11", mass: str = "own") -> float:
-    verts, faces = _mesh(path, unit_sphere=True)
-    L, m = _operators(verts, faces, lam, method, mass)
-    y = sh_y32(verts.numpy())
-    # M0^-1 L y -> -lap_S y = l(l+1) y = 12 y (L is PSD, so M0^-1 L approximates -lap).
-    e = y - (L @ y) / m / 12.0
-    return math.sqrt(e @ (m * e) / y.size)
-
-
-def mean_curvature_error(path: Path, lam: float, method: str = "aw11", mass: str = "own") -> float:
-    verts, faces = _mesh(path, unit_sphere=True)
-    if method == "aw11":
-        H = tp.mean_curvature_normal(verts, faces, lam).numpy()  # M0^-1 L X
-    else:
-        L, m = _operators(verts, faces, lam, method, mass)
-        H = (L @ verts.numpy()) / m[:, None]
-    c = np.linalg.norm(H, axis=1) / 2.0
-    return math.sqrt(np.mean((c - 1.0) ** 2))
-
-
-def franke_error(
-    path: Path, lam: float, method: str = "aw11", mass: str = "own", shift: float = 0.0
-) -> float:
-    """RMS error of the Dirichlet Poisson solve; ``shift`` only for the convention test below."""
-    verts, faces = _mesh(path, unit_sphere=False)
-    L, m = _operators(verts, faces, lam, method, mass)
-    x = verts[:, 0].numpy() + shift
-    y = verts[:, 1].numpy() + shift
-    f = franke(x, y)
-    rhs = -m * franke_laplacian(x, y)  # L u = -M0 lap(f): L is PSD, i.e. L ~ -M0 lap
-    boundary = tp.build_topology(faces, verts.shape[0]).boundary_vertices.numpy()
-    is_boundary = np.zeros(f.size, dtype=bool)
-    is_boundary[boundary] = True
-    interior = np.flatnonzero(~is_boundary)
-    u = f.copy()
-    L_ii = L[interior][:, interior].tocsc()
-    L_ib = L[interior][:, boundary]
-    u[interior] = spla.spsolve(L_ii, rhs[interior] - L_ib @ f[boundary])
-    return math.sqrt(np.mean((u - f) ** 2))
-
-
-EXPERIMENTS = {"sh": sh_error, "mean_curvature": mean_curvature_error, "franke": franke_error}
+def experiment(name: str, path: Path, lam: float, method: str = "aw11", mass: str = "own"):
+    """The error of experiment ``name`` on the mesh at ``path``; ``mass="polylaplace"`` swaps
+    PLMS's lumped mass for :func:`polylaplace_mass` (other methods keep their own)."""
+    fn = {
+        "sh": study.sh_error,
+        "mean_curvature": study.mean_curvature_error,
+        "franke": study.franke_error,
+    }[name]
+    swap = polylaplace_mass if mass == "polylaplace" and method == "plms" else None
+    return fn(*load(path), lam, method, swap)
 
 
 def _half_unit(printed: str) -> float:
@@ -248,8 +137,11 @@ def test_y32_matches_closed_form_is_normalized_and_harmonic():
     rng = np.random.default_rng(0)
     p = rng.normal(size=(1000, 3))
     y = sh_y32(p)
-    # Two independent formulas of the same function: agreement to round-off (values are O(1)).
-    np.testing.assert_allclose(y, sh_y32_closed_form(p), rtol=0, atol=1e-13)
+    # The definition against the experiments' closed form ``sqrt(2) K 15 y (z^2 - x^2) / r^3``
+    # (P_3^2(t) = 15 t (1 - t^2), sin^2(theta) = (x^2 + z^2) / r^2 and cos(2 phi) =
+    # (z^2 - x^2) / (x^2 + z^2); the + pi drops out): agreement to round-off (values are O(1)).
+    closed_form = study.y32(torch.from_numpy(p)).numpy()
+    np.testing.assert_allclose(y, closed_form, rtol=0, atol=1e-13)
 
     # Unit L2 norm on the sphere: Gauss-Legendre in cos(theta) (the integrand is a polynomial
     # of degree 6 in it) times the trapezoid rule in phi (exact for trigonometric polynomials
@@ -280,6 +172,14 @@ def test_y32_matches_closed_form_is_normalized_and_harmonic():
     np.testing.assert_allclose(lap / h**2, 0.0, atol=1e-6)
     # ... and homogeneous of degree 3.
     np.testing.assert_allclose(cubic(2 * q), 8 * cubic(q), rtol=1e-12)
+
+
+def franke(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return study.franke_and_laplacian(torch.from_numpy(x), torch.from_numpy(y))[0].numpy()
+
+
+def franke_laplacian(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return study.franke_and_laplacian(torch.from_numpy(x), torch.from_numpy(y))[1].numpy()
 
 
 def test_franke_laplacian_matches_finite_differences():
@@ -320,9 +220,9 @@ _CASES = [
 ]
 
 
-@pytest.mark.parametrize("experiment, mesh, lam, printed", _CASES)
-def test_reference_value(experiment, mesh, lam, printed):
-    value = EXPERIMENTS[experiment](DATA_DIR / f"{mesh}.obj", lam)
+@pytest.mark.parametrize("name, mesh, lam, printed", _CASES)
+def test_reference_value(name, mesh, lam, printed):
+    value = experiment(name, DATA_DIR / f"{mesh}.obj", lam)
     ref = float(printed)
     # Our value is a deterministic float64 computation (direct solves, no iteration), stable to
     # ~1e-12 relative; the only uncertainty is the reference's rounding. So require our value to
@@ -330,7 +230,7 @@ def test_reference_value(experiment, mesh, lam, printed):
     # <= 0.5% relative for the 3-digit entries and <= 3.3% for the 2-digit ones ("1.5e-2").
     tol = _half_unit(printed) * (1 + 1e-9)
     assert abs(value - ref) <= tol, (
-        f"{experiment} on {mesh}, lam={lam}: computed {value:.6e}, reference {printed} "
+        f"{name} on {mesh}, lam={lam}: computed {value:.6e}, reference {printed} "
         f"(rel. diff {(value - ref) / ref:+.2e}, allowed +-{tol / ref:.1e})"
     )
 
@@ -341,7 +241,9 @@ def test_franke_reference_uses_raw_coordinates(mesh):
     # (no shift)", and the table agrees with that reading only: shifting to [0, 1]^2 moves every
     # value by > 10% (observed 17-33%), far outside the rounding tolerance above.
     for lam, printed in zip(LAMBDAS, REFERENCE[("franke", mesh)], strict=True):
-        shifted = franke_error(DATA_DIR / f"{mesh}.obj", lam, shift=0.5)
+        verts, faces = load(DATA_DIR / f"{mesh}.obj")
+        shift = torch.tensor([0.5, 0.5, 0.0], dtype=verts.dtype)
+        shifted = study.franke_error(verts + shift, faces, lam)
         assert abs(shifted / float(printed) - 1.0) > 0.10
 
 
@@ -366,14 +268,14 @@ _METHOD_CASES = [
 ]
 
 
-@pytest.mark.parametrize("experiment, mesh, method, printed", _METHOD_CASES)
-def test_method_reference_value_level5(experiment, mesh, method, printed):
+@pytest.mark.parametrize("name, mesh, method, printed", _METHOD_CASES)
+def test_method_reference_value_level5(name, mesh, method, printed):
     # Level-5 meshes (up to ~25k vertices): 0.3-2 s per case on the development VM. PLMS is
     # compared with polyLaplace's own (Galerkin-lumped) mass; see the module docstring and
     # test_plms_reference_with_the_package_mass for the package's M0.
     path = shared_path(f"{mesh}.obj")
-    value = EXPERIMENTS[experiment](path, 1.0, method, "polylaplace")
-    _assert_rounds_to(value, printed, f"{experiment} on {mesh}, {method}")
+    value = experiment(name, path, 1.0, method, "polylaplace")
+    _assert_rounds_to(value, printed, f"{name} on {mesh}, {method}")
 
 
 # Where the two PLMS masses differ. With the package's mixed-Voronoi M0 (observed):
@@ -381,16 +283,16 @@ def test_method_reference_value_level5(experiment, mesh, method, printed):
 # concave grid Franke 2.80e-5; on the regular quad grid the masses agree to 1e-14 (right
 # isosceles fan triangles: Voronoi and barycentric corner areas give the same prolonged sums).
 @pytest.mark.parametrize(
-    "experiment, mesh, printed",
+    "name, mesh, printed",
     [
         pytest.param(exp, mesh, row["plms"], id=f"{exp}-{mesh}")
         for (exp, mesh), row in METHOD_REFERENCE.items()
     ],
 )
-def test_plms_reference_with_the_package_mass(experiment, mesh, printed):
+def test_plms_reference_with_the_package_mass(name, mesh, printed):
     # Same L, the package's own M0 (which lumps the fan's Galerkin mass, as polyLaplace does).
-    value = EXPERIMENTS[experiment](shared_path(f"{mesh}.obj"), 1.0, "plms", "own")
-    _assert_rounds_to(value, printed, f"{experiment} on {mesh}, plms with the package's M0")
+    value = experiment(name, shared_path(f"{mesh}.obj"), 1.0, "plms", "own")
+    _assert_rounds_to(value, printed, f"{name} on {mesh}, plms with the package's M0")
 
 
 def test_plms_galerkin_mass_matches_the_package():
@@ -408,12 +310,12 @@ def test_plms_galerkin_mass_matches_the_package():
 # --------------------------------------------------------------------------------------------
 
 
-def _errors_over_levels(family: str, experiment: str, lam: float):
+def _errors_over_levels(family: str, name: str, lam: float):
     hs, errs = [], []
     for level in range(1, 6):
         path = shared_path(f"{family}_{level}.obj")
         hs.append(load(path)[0].shape[0] ** -0.5)  # h ~ 1 / sqrt(V) on a surface
-        errs.append(EXPERIMENTS[experiment](path, lam))
+        errs.append(experiment(name, path, lam))
     log_h, log_e = np.log(hs), np.log(errs)
     steps = np.diff(log_e) / np.diff(log_h)  # observed order between consecutive levels
     slope = np.polyfit(log_h, log_e, 1)[0]  # least-squares order over all levels
@@ -422,11 +324,11 @@ def _errors_over_levels(family: str, experiment: str, lam: float):
 
 @pytest.mark.parametrize("lam", LAMBDAS, ids=lambda v: f"lam{v:g}")
 @pytest.mark.parametrize(
-    "family, experiment",
+    "family, name",
     [("sphere/hex", "sh"), ("sphere/quad", "sh"), ("grid/quad", "franke")],
 )
-def test_second_order_convergence(family, experiment, lam):
-    errs, steps, slope = _errors_over_levels(family, experiment, lam)
+def test_second_order_convergence(family, name, lam):
+    errs, steps, slope = _errors_over_levels(family, name, lam)
     # REFERENCE-VALUES.md: these fall at second order. Observed: every step >= 1.70, slopes
     # 1.92..2.73. 1.5 separates second from first order with margin on both sides; the
     # least-squares slope over the five levels must be close to 2 (>= 1.8) as well.
@@ -449,7 +351,7 @@ if __name__ == "__main__":
     for (exp, mesh), row in METHOD_REFERENCE.items():
         cells = []
         for method, printed in row.items():
-            v = EXPERIMENTS[exp](shared_path(f"{mesh}.obj"), 1.0, method, "polylaplace")
+            v = experiment(exp, shared_path(f"{mesh}.obj"), 1.0, method, "polylaplace")
             cells.append(f"{method} {v:.4e} vs {printed:>7s}")
         print(f"{exp:15s} {mesh:18s} " + "  ".join(cells))
     header = " ".join(f"{'lam=' + format(v, 'g'):>26s}" for v in LAMBDAS)
@@ -457,6 +359,6 @@ if __name__ == "__main__":
     for (exp, mesh), row in REFERENCE.items():
         cells = []
         for lam, printed in zip(LAMBDAS, row, strict=True):
-            v = EXPERIMENTS[exp](DATA_DIR / f"{mesh}.obj", lam)
+            v = experiment(exp, DATA_DIR / f"{mesh}.obj", lam)
             cells.append(f"{v:.4e} vs {printed:>7s} {(v - float(printed)) / float(printed):+.1e}")
         print(f"{exp:15s} {mesh:18s} " + " ".join(f"{c:>26s}" for c in cells))
