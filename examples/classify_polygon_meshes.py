@@ -9,13 +9,14 @@ learned times in each mesh's eigenbasis; logits are mass-weighted means over eac
 the diffused channels (per-vertex tangent gradient operators precomputed by the dataset).
 
 Held-out test set: unseen deformations at unseen resolutions for the training tessellations,
-and an unseen tessellation (brick hexagons) altogether.  Runs on a CPU in under a minute
-(eigenpairs are cached on disk, so a second run is faster).
+and an unseen tessellation (brick hexagons) altogether.  About 75 s on the 2-core development
+VM with other jobs on it (eigenpairs are cached on disk, so a second run is faster).
 
     python examples/classify_polygon_meshes.py [--epochs 100] [--k 48] [--width 32]
         [--lr 5e-3] [--workers 2] [--cache-dir DIR] [--seed 0] [--gradient-features]
 
-Writes examples/output/classify.md.
+Writes examples/output/classify.md and classify.png (the training loss per epoch and the test
+confusion matrix) beside it.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import torch  # noqa: E402
 from torch_polylap.datasets import PolygonMeshDataset, collate_meshes  # noqa: E402
 from torch_polylap.faces import PolygonFaces  # noqa: E402
 from torch_polylap.nn import DiffusionNetLike  # noqa: E402
+from torch_polylap.shapes import quad_cube, torus  # noqa: E402
 
 CLASSES = ["sphere", "ellipsoid", "cube", "cylinder", "torus"]
 OUTPUT = Path(__file__).resolve().parent / "output" / "classify.md"
@@ -47,42 +49,19 @@ OUTPUT = Path(__file__).resolve().parent / "output" / "classify.md"
 
 
 def cube_grid(n: int) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Surface of the cube ``[-1, 1]^3`` with ``n x n`` quads per side.
-
-    Returns the vertices and, per side, an ``(n, n, 4)`` array of quads (counter-clockwise seen
-    from outside), kept per side so that neighbouring quads can be merged into hexagons.
-    """
-    s = np.linspace(-1.0, 1.0, n + 1)
-    u, v = np.meshgrid(s, s, indexing="ij")
-    eye = np.eye(3)
-    points, sides = [], []
-    for axis in range(3):
-        for sign in (1.0, -1.0):
-            a, b = eye[(axis + 1) % 3], eye[(axis + 2) % 3]
-            if sign < 0:
-                a, b = b, a  # keep a x b pointing outwards
-            points.append(sign * eye[axis] + u[..., None] * a + v[..., None] * b)
-    pts = np.concatenate([p.reshape(-1, 3) for p in points])
-    # sides share their boundary points: merge duplicates
-    verts, inverse = np.unique(np.round(pts, 9), axis=0, return_inverse=True)
-    inverse = inverse.reshape(6, n + 1, n + 1)
-    for idx in inverse:
-        sides.append(np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1))
-    return verts, sides
+    """Surface of the cube ``[-1, 1]^3`` with ``n x n`` quads per side
+    (``torch_polylap.shapes.quad_cube``): the vertices and, per side, an ``(n, n, 4)`` array of
+    quads (counter-clockwise seen from outside), kept per side so that neighbouring quads can be
+    merged into hexagons."""
+    verts, faces = quad_cube(n)
+    return verts.numpy(), list(faces.numpy().reshape(6, n, n, 4))
 
 
 def torus_grid(n_u: int, n_v: int, r: float) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Torus with major radius 1 and minor radius ``r``, ``n_u x n_v`` quads (periodic)."""
-    u, v = np.meshgrid(
-        np.arange(n_u) * 2 * np.pi / n_u, np.arange(n_v) * 2 * np.pi / n_v, indexing="ij"
-    )
-    verts = np.stack(
-        [(1 + r * np.cos(v)) * np.cos(u), (1 + r * np.cos(v)) * np.sin(u), r * np.sin(v)], -1
-    ).reshape(-1, 3)
-    idx = np.arange(n_u * n_v).reshape(n_u, n_v)
-    nxt_u, nxt_v = np.roll(idx, -1, 0), np.roll(idx, -1, 1)
-    quads = np.stack([idx, nxt_u, np.roll(nxt_u, -1, 1), nxt_v], -1)
-    return verts, [quads]
+    """Torus with major radius 1 and minor radius ``r``, ``n_u x n_v`` quads (periodic;
+    ``torch_polylap.shapes.torus``)."""
+    verts, faces = torus(n_u, n_v, major=1.0, minor=r)
+    return verts.numpy(), [faces.numpy().reshape(n_u, n_v, 4)]
 
 
 # --------------------------------------------------------------------------- tessellations
@@ -240,15 +219,19 @@ def main() -> None:
     optimizer = torch.optim.Adam(model.parameters(), lr=args.lr)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, args.epochs)
     t1 = time.perf_counter()
+    epoch_losses = []
     for _ in range(args.epochs):
         model.train()
         order = torch.randperm(len(train_data)).tolist()
+        losses = []
         for s in range(0, len(order), 8):
             batch = collate_meshes([train_data[i] for i in order[s : s + 8]])
             loss = torch.nn.functional.cross_entropy(logits(model, batch), batch.labels)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
+            losses.append(loss.item())
+        epoch_losses.append(float(np.mean(losses)))
         scheduler.step()
     t_train = time.perf_counter() - t1
 
@@ -297,6 +280,8 @@ def main() -> None:
     print(setup + "\n\n" + text + "\n" + "\n".join(conf))
     output = Path(args.output)
     output.parent.mkdir(parents=True, exist_ok=True)
+    png = output.with_suffix(".png")
+    figure(epoch_losses, confusion, png)
     output.write_text(
         "# Classifying polygon meshes (examples/classify_polygon_meshes.py)\n\n"
         + setup
@@ -309,8 +294,37 @@ def main() -> None:
         + text
         + "\nTest confusion matrix:\n\n"
         + "\n".join(conf)
-        + "\n"
+        + f"\n\n![training loss and test confusion matrix]({png.name})\n"
     )
+    print(f"wrote {output} and {png}")
+
+
+def figure(epoch_losses: list[float], confusion: torch.Tensor, path: Path) -> None:
+    """The mean training loss per epoch and the test confusion matrix (matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    left.semilogy(range(1, len(epoch_losses) + 1), epoch_losses)
+    left.set_xlabel("epoch")
+    left.set_ylabel("mean training cross-entropy")
+    left.grid(True, which="both", alpha=0.3)
+    image = right.imshow(confusion.numpy(), cmap="Blues")
+    top = int(confusion.max())
+    for (i, j), count in np.ndenumerate(confusion.numpy()):
+        color = "white" if count > top / 2 else "black"
+        right.text(j, i, str(count), ha="center", va="center", fontsize=8, color=color)
+    right.set_xticks(range(len(CLASSES)), CLASSES, rotation=30)
+    right.set_yticks(range(len(CLASSES)), CLASSES)
+    right.set_xlabel("predicted")
+    right.set_ylabel("true")
+    right.set_title("test confusion matrix", fontsize=10)
+    fig.colorbar(image, ax=right, shrink=0.8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -24,28 +24,26 @@ import argparse
 import math
 from pathlib import Path
 
-import numpy as np
 import torch
 
 import torch_polylap as tp
 from torch_polylap.apps import angle_distortion, conformal_energy, conformal_parameterization
 from torch_polylap.plot import new_figure, plot_uv, save_figure
+from torch_polylap.shapes import quad_grid
 
 DATA = Path(tp.__file__).resolve().parent / "data"
 
 
 def saddle_quads(n: int = 10, seed: int = 0) -> tuple[torch.Tensor, tp.PolygonFaces]:
     """An ``n x n`` grid of irregular quads on the saddle ``z = 0.6 (x^2 - y^2)``."""
-    rng = np.random.default_rng(seed)
-    xs, ys = np.meshgrid(np.linspace(-1, 1, n + 1), np.linspace(-1, 1, n + 1), indexing="ij")
-    inner = (np.abs(xs) < 1) & (np.abs(ys) < 1)
-    h = 0.3 / n
-    xs = xs + inner * rng.uniform(-h, h, xs.shape)
-    ys = ys + inner * rng.uniform(-h, h, ys.shape)
-    verts = np.stack([xs.ravel(), ys.ravel(), 0.6 * (xs**2 - ys**2).ravel()], 1)
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
-    return torch.from_numpy(verts), tp.as_faces(torch.from_numpy(quads))
+    verts, quads = quad_grid(
+        n,
+        extent=(-1.0, 1.0, -1.0, 1.0),
+        seed=seed,
+        jitter=0.15,
+        height=lambda x, y: 0.6 * (x**2 - y**2),
+    )
+    return verts, tp.as_faces(quads)
 
 
 def fan(faces: tp.PolygonFaces, start: int) -> torch.Tensor:

@@ -2,10 +2,11 @@
 
     python examples/fit_quad_sphere_to_target.py [--n 12] [--steps 300] [--weight 1e-4]
 
-A cube-sphere quad mesh is deformed by Adam towards a smooth non-convex "blob" (a sphere with a
-radial displacement, given by points sampled from a fine mesh of it). The loss is the Chamfer
-distance between points sampled on the mesh (``torch_polylap.fitting.sample_points``, redrawn
-every step) and the target points, plus ``w`` times the bending energy
+A cube-sphere quad mesh (``torch_polylap.shapes.quad_sphere``) is deformed by Adam towards a
+smooth non-convex "blob" (a sphere with a radial displacement, given by points sampled from a
+fine mesh of it). The loss is the Chamfer distance between points sampled on the mesh
+(``torch_polylap.fitting.sample_points``, redrawn every step) and the target points, plus ``w``
+times the bending energy
 
     E(X) = sum_v m_v |(M0^-1 L X)_v|^2          (the squared mean-curvature vector, AW11 sec. 3.2)
 
@@ -22,7 +23,8 @@ also flows through the Laplacian's weights) or with ``L`` built once on the init
 
 Printed (and written to ``examples/output/mesh_fitting.md``): the fit error against dense
 target samples (symmetric mean distance and the larger of the two one-sided maximal distances,
-a sampled Hausdorff distance) and mesh-quality measures (``torch_polylap.fitting.mesh_quality``).
+a sampled Hausdorff distance) and mesh-quality measures (``torch_polylap.fitting.mesh_quality``);
+``mesh_fitting.png`` beside it shows the quad fits, faces colored by their non-planarity.
 """
 
 from __future__ import annotations
@@ -37,37 +39,9 @@ import torch
 
 import torch_polylap as tp
 from torch_polylap.fitting import chamfer_distance, mesh_quality, nearest_neighbors, sample_points
+from torch_polylap.shapes import quad_sphere
 
 OUTPUT = Path(__file__).resolve().parent / "output"
-
-
-def quad_sphere(n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Equi-angular cube sphere, ``6 n^2`` outward quads: ``(V, 3)`` float64, ``(F, 4)`` int64."""
-    ij = np.stack(np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij"), -1)
-    keys, quads = [], []
-    for axis in range(3):
-        u, w = [a for a in range(3) if a != axis]
-        for sign in (-1, 1):
-            p = np.zeros((n + 1, n + 1, 3), dtype=np.int64)  # integer lattice on the cube [-n, n]^3
-            p[..., axis] = sign * n
-            p[..., u], p[..., w] = 2 * ij[..., 0] - n, 2 * ij[..., 1] - n
-            base = sum(len(k) for k in keys)
-            idx = base + np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-            q = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(
-                -1, 4
-            )
-            # the (u, w, axis) frame is right-handed when w follows u cyclically
-            outward = (sign > 0) == ((w - u) % 3 == 1)
-            quads.append(q if outward else q[:, ::-1])
-            keys.append(p.reshape(-1, 3))
-    lattice, inverse = np.unique(np.concatenate(keys), axis=0, return_inverse=True)
-    faces = inverse.reshape(-1)[np.concatenate(quads)]
-    # equi-angular warp of each cube coordinate, then onto the sphere
-    cube = np.where(np.abs(lattice) == n, np.sign(lattice), np.tan(np.pi / 4 * lattice / n)).astype(
-        np.float64
-    )
-    verts = cube / np.linalg.norm(cube, axis=1, keepdims=True)
-    return torch.from_numpy(verts), torch.from_numpy(np.ascontiguousarray(faces))
 
 
 def triangulate(quads: torch.Tensor) -> torch.Tensor:
@@ -224,9 +198,10 @@ def run(
     target_samples: int = 5000,
     eval_samples: int = 20000,
     methods: tuple[tuple[str, bool, str], ...] = METHODS,
-) -> dict[str, dict[str, float]]:
+) -> dict[str, dict]:
     """The fits of ``methods`` (``(label, triangulated, regularizer)``); returns
-    ``{label: metrics}``, plus ``"initial sphere"`` rows."""
+    ``{label: metrics}``, plus ``"initial sphere"`` rows; each row also holds its mesh
+    (``"verts"``, ``"faces"``)."""
     target_verts, target_faces = blob_target()
     gen = torch.Generator().manual_seed(7)
     target_train = sample_points(target_verts, target_faces, target_samples, generator=gen)
@@ -239,6 +214,8 @@ def run(
         rows[label] = {
             **surface_error(verts0, faces, target_eval, eval_samples),
             **mesh_quality(verts0, faces),
+            "verts": verts0,
+            "faces": faces,
         }
     for label, tri, regularizer in methods:
         faces = triangulate(quads) if tri else quads
@@ -258,11 +235,13 @@ def run(
             "first_loss": result.losses[0],
             "last_loss": float(np.mean(result.losses[-10:])),
             "seconds": result.seconds,
+            "verts": result.verts,
+            "faces": faces,
         }
     return rows
 
 
-def table(rows: dict[str, dict[str, float]]) -> str:
+def table(rows: dict[str, dict]) -> str:
     head = "| fit | " + " | ".join(h for _, h, _ in COLUMNS) + " | loss first -> last | time s |"
     lines = [head, "|---" * (len(COLUMNS) + 3) + "|"]
     for label, r in rows.items():
@@ -273,7 +252,7 @@ def table(rows: dict[str, dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-def findings(rows: dict[str, dict[str, float]]) -> str:
+def findings(rows: dict[str, dict]) -> str:
     """A few sentences read off the table (so they stay true when the settings change)."""
     fits = {k: r for k, r in rows.items() if "first_loss" in r}
     best = min(fits, key=lambda k: fits[k]["mean_dist"])
@@ -290,6 +269,28 @@ def findings(rows: dict[str, dict[str, float]]) -> str:
             f"smallest angle {r['min_angle_deg']:.1f} deg."
         )
     return "\n".join(lines)
+
+
+def figure(rows: dict[str, dict], path: Path) -> None:
+    """The initial quad sphere and the quad fits side by side (tp.plot), faces colored by their
+    non-planarity on a shared scale."""
+    from torch_polylap.plot import plot_meshes
+
+    quads = [k for k, r in rows.items() if r["faces"].shape[1] == 4]
+    panels = [
+        dict(
+            verts=rows[k]["verts"],
+            faces=rows[k]["faces"],
+            values=tp.face_nonplanarity(rows[k]["verts"], rows[k]["faces"]),
+            title=k.replace("quads, ", "").replace("initial sphere, quads", "initial sphere"),
+            colorbar=False,
+            cmap="viridis",
+        )
+        for k in quads
+    ]
+    panels[-1].update(colorbar=True, label="face non-planarity")
+    # one row: tp.plot's saving fails on a grid with empty panels (hidden 3D axes)
+    plot_meshes(panels, path=path, ncols=len(panels), shared_clim=True, panel_size=3.0)
 
 
 NOTES = """\
@@ -329,13 +330,17 @@ def main() -> None:
     print(text)
     print(f"total {time.perf_counter() - start:.0f} s")
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    png = args.out.with_suffix(".png")
+    figure(rows, png)
     quads = 6 * args.n**2
     args.out.write_text(
         f"# Fitting a quad sphere to a target\n\n`python examples/fit_quad_sphere_to_target.py "
         f"--n {args.n} --steps {args.steps} --weight {args.weight} --lr {args.lr}`: "
         f"{quads} quads ({2 * quads} triangles), {args.steps} Adam steps, bending weight "
-        f"{args.weight:g}.\n\n{text}\n\n{findings(rows)}\n\n{NOTES}"
+        f"{args.weight:g}.\n\n{text}\n\n![the quad fits]({png.name})\n\n{findings(rows)}"
+        f"\n\n{NOTES}"
     )
+    print(f"wrote {args.out} and {png}")
 
 
 if __name__ == "__main__":

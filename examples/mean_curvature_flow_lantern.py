@@ -27,7 +27,7 @@ import torch
 
 import torch_polylap as tp
 from torch_polylap.apps import mean_curvature_flow
-from torch_polylap.apps.flow import schwarz_lantern
+from torch_polylap.shapes import schwarz_lantern
 
 ROOT = Path(__file__).resolve().parents[1]
 KINDS = ("quad", "horizontal", "vertical", "alternating")

@@ -1,13 +1,14 @@
 """Quickstart: build L and M0 on a polygon mesh and look at what they say about its geometry.
 
-    python examples/quickstart.py [mesh.obj|.off|.ply]
+    python examples/quickstart.py [mesh.obj|.off|.ply] [--out examples/output]
 
 Without an argument it uses the embedded Spot control cage (quads, triangles and pentagons).
+Writes ``quickstart.png`` to ``--out``: the mesh with its faces colored by mean curvature.
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import torch
@@ -17,7 +18,7 @@ import torch_polylap as tp
 DEFAULT = Path(tp.__file__).resolve().parent / "data" / "spot_control_mesh.obj"
 
 
-def main(path: Path) -> None:
+def main(path: Path, out: Path) -> None:
     verts, faces = tp.read_mesh(path)  # (V, 3) float64 and PolygonFaces, polygons kept
     print(f"{path.name}: {verts.shape[0]} vertices, {faces!r}")
 
@@ -54,7 +55,20 @@ def main(path: Path) -> None:
     S = tp.sparse.to_scipy(L)
     print(f"scipy: {type(S).__name__} {S.shape}, symmetric: {abs(S - S.T).max() == 0}")
 
+    # A figure (matplotlib): faces colored by the mean curvature of their corners
+    from torch_polylap.plot import plot_mesh
+
+    out.mkdir(parents=True, exist_ok=True)
+    png = out / "quickstart.png"
+    label = "mean curvature |H| / 2"
+    plot_mesh(verts, faces, curvature, path=png, title=path.name, label=label, up="y")
+    print(f"wrote {png}")
+
 
 if __name__ == "__main__":
     torch.set_printoptions(precision=4)
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else DEFAULT)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("mesh", nargs="?", type=Path, default=DEFAULT)
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output")
+    args = parser.parse_args()
+    main(args.mesh, args.out)

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import assert_directional_derivative, hex_pent_mesh, mixed_mesh, quad_grid
+from conftest import assert_directional_derivative, hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
+from torch_polylap.shapes import quad_grid
 
 D64 = {"dtype": torch.float64}
 ROOT = Path(__file__).resolve().parents[1]
@@ -161,8 +162,8 @@ def test_second_derivatives_refuse(one_thread):
         torch.autograd.grad(evecs[:, 1].sum(), X, create_graph=True)
 
 
+@pytest.mark.slow  # runs the example in a subprocess
 def test_example_runs_and_its_loss_decreases(tmp_path):
-    out = tmp_path / "fit.txt"
     run = subprocess.run(
         [
             sys.executable,
@@ -171,8 +172,8 @@ def test_example_runs_and_its_loss_decreases(tmp_path):
             "12",
             "--n",
             "6",
-            "--output",
-            str(out),
+            "--out",
+            str(tmp_path),
         ],
         capture_output=True,
         text=True,
@@ -186,4 +187,5 @@ def test_example_runs_and_its_loss_decreases(tmp_path):
         if line.startswith("step")
     ]
     assert len(losses) >= 2 and losses[-1] < 0.5 * losses[0], run.stdout
-    assert out.exists()
+    assert "| 12 |" in (tmp_path / "fit_eigenvectors.md").read_text()  # the last step's row
+    assert (tmp_path / "fit_eigenvectors.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -7,9 +7,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from meshes import require_shared
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+PNG = b"\x89PNG\r\n\x1a\n"  # the first bytes of every PNG file
+
+pytestmark = pytest.mark.slow  # every test runs an example script in a subprocess
 
 
 def run(name: str, *args: str) -> str:
@@ -20,24 +24,29 @@ def run(name: str, *args: str) -> str:
     return result.stdout
 
 
-def test_quickstart():
-    out = run("quickstart.py")
+def test_quickstart(tmp_path):
+    out = run("quickstart.py", "--out", str(tmp_path))
     pattern = r"X\^T L0 X\) = ([\d.]+)\s+vs\s+total area = ([\d.]+)"
     dirichlet, area = re.search(pattern, out).groups()
     assert dirichlet == area  # equal to the printed 6 decimals (Lemma 3)
     assert "symmetric: True" in out
+    assert (tmp_path / "quickstart.png").read_bytes()[:8] == PNG
 
 
-def test_denoising_reduces_radial_error():
-    out = run("denoise_by_gradient_descent.py", "--n", "8", "--steps", "150")
+def test_denoising_reduces_radial_error(tmp_path):
+    out = run(
+        "denoise_by_gradient_descent.py", "--n", "8", "--steps", "150", "--out", str(tmp_path)
+    )
     errors = [float(m) for m in re.findall(r"^\S.*?\s([\d.]+e[-+]\d+)\s+[\d.]+$", out, re.M)]
     noisy, weak, strong = errors
     assert strong < weak < noisy and strong < 0.6 * noisy
+    assert (tmp_path / "denoise.png").read_bytes()[:8] == PNG
 
 
 def test_convergence_study_reproduces_reference_values(tmp_path):
-    """The study's level-3 numbers (via dirichlet_solve, strong_laplacian, eigs) equal the
-    polyLaplace reference values that tests/test_reference_values.py checks by another route."""
+    """The study run end to end: its report's level-3 numbers equal the polyLaplace reference
+    values (tests/test_reference_values.py checks its experiment functions against all of them;
+    here the script's tables and figure are checked as a user gets them)."""
     shared = require_shared()
     out = tmp_path / "convergence.md"
     run(
@@ -62,6 +71,7 @@ def test_convergence_study_reproduces_reference_values(tmp_path):
     for key, values in expected.items():
         for ours, ref in zip(rows[key], values, strict=True):
             assert abs(ours - ref) <= 0.006 * ref, (key, ours, ref)  # printed to 3 digits
+    assert (tmp_path / "convergence.png").read_bytes()[:8] == PNG
 
 
 def test_lantern_flow_does_not_depend_on_a_triangulation(tmp_path):
@@ -82,7 +92,7 @@ def test_lantern_flow_does_not_depend_on_a_triangulation(tmp_path):
     assert defects["quad"] < 1e-10 and defects["alternating"] > 1e-2
     horizontal_vs_vertical = re.search(r"^horizontal\s+[\d.]+\s+[\d.]+\s+([\d.]+)", out, re.M)
     assert float(horizontal_vs_vertical.group(1)) > 1e-2
-    assert (tmp_path / "lantern_flow.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "lantern_flow.png").read_bytes()[:8] == PNG
 
 
 def test_classification_example_learns(tmp_path):
@@ -97,3 +107,4 @@ def test_classification_example_learns(tmp_path):
     )
     overall = float(re.search(r"\| test, all \| \d+ \| ([\d.]+)%", out).group(1))
     assert overall > 60  # five classes: chance is 20%
+    assert (tmp_path / "c.png").read_bytes()[:8] == PNG

@@ -18,38 +18,23 @@ import fit_quad_sphere_to_target as fitting_example  # noqa: E402
 import large_steps_fit  # noqa: E402
 
 import torch_polylap as tp  # noqa: E402
+from torch_polylap.cli.timing import pinned_threads  # noqa: E402
 from torch_polylap.fitting import mesh_quality, sample_points  # noqa: E402
+from torch_polylap.shapes import quad_sphere  # noqa: E402
 
 SMALL = dict(n=6, steps=80, num_samples=1000, target_samples=2000, eval_samples=4000)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Small problems: one thread avoids oversubscription overhead on a shared CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+# the examples' fits, at reduced size (~6 s in all); small problems: one thread avoids
+# oversubscription overhead on a shared CPU
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_thread")]
 
 
 @pytest.fixture(scope="module")
-def fits(one_thread):
+def fits():
     methods = tuple(m for m in fitting_example.METHODS if not m[1])[:3]  # none, live, frozen
-    return fitting_example.run(weight=1e-4, methods=methods, **SMALL)
-
-
-def test_quad_sphere_is_a_closed_outward_quad_mesh():
-    verts, faces = fitting_example.quad_sphere(4)
-    assert faces.shape == (6 * 16, 4) and verts.shape[0] == 6 * 16 + 2  # Euler: V - E + F = 2
-    assert torch.allclose(verts.norm(dim=1), torch.ones(verts.shape[0], dtype=verts.dtype))
-    centroids = verts[faces].mean(1)
-    normals = torch.nn.functional.normalize(
-        torch.linalg.cross(
-            verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]]
-        ),
-        dim=1,
-    )
-    assert bool(((normals * centroids).sum(1) > 0).all())
+    with pinned_threads(1):  # module scope: set up outside the function-scoped one_thread
+        return fitting_example.run(weight=1e-4, methods=methods, **SMALL)
 
 
 def test_every_fit_reduces_loss_and_error(fits):
@@ -78,7 +63,7 @@ def test_polygon_regularizer_protects_mesh_quality(fits):
 
 
 def test_large_steps_keeps_quality_at_comparable_error():
-    verts0, faces = fitting_example.quad_sphere(SMALL["n"])
+    verts0, faces = quad_sphere(SMALL["n"])
     target_verts, target_faces = fitting_example.blob_target(24)
     gen = torch.Generator().manual_seed(7)
     target = sample_points(target_verts, target_faces, SMALL["target_samples"], generator=gen)
@@ -108,7 +93,7 @@ def test_large_steps_keeps_quality_at_comparable_error():
 
 
 def test_large_steps_system_matrix_is_spd_with_the_laplacian_kernel():
-    verts0, faces = fitting_example.quad_sphere(3)
+    verts0, faces = quad_sphere(3)
     A = large_steps_fit.system_matrix(verts0, faces, 20.0).to_dense()
     assert torch.allclose(A, A.T)
     ones = torch.ones(verts0.shape[0], dtype=A.dtype)
@@ -128,7 +113,7 @@ def test_bending_energy_agrees_with_the_losses_module():
     with L frozen at X itself the value is the same (only the gradient differs)."""
     from torch_polylap import losses
 
-    verts, faces = fitting_example.quad_sphere(4)
+    verts, faces = quad_sphere(4)
     X = verts * (1 + 0.2 * verts[:, :1])  # an egg: non-constant curvature
     live = fitting_example.bending_energy(X, faces, None)
     assert torch.allclose(live, 2 * losses.bending_energy((X, faces), reduction="sum"))
