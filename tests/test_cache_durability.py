@@ -69,7 +69,6 @@ def _assert_old_or_new(folder: Path, target: Path, versions: set[bytes]) -> None
     assert list(folder.glob("*" + target.suffix)) == [target]
 
 
-@pytest.mark.slow  # a writer subprocess frozen and killed at random moments: 6-15 s per case
 @pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs POSIX signals (SIGKILL)")
 @pytest.mark.parametrize(("name", "binary", "kills"), [("mesh.obj", "0", 2), ("mesh.ply", "1", 1)])
 def test_killed_writer_leaves_old_or_new_file(tmp_path, name, binary, kills):

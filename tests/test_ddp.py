@@ -23,7 +23,7 @@ LR = 0.2
 DEADLINE_S = 90.0  # a hung rendezvous or collective fails the test instead of blocking it
 
 pytestmark = [
-    pytest.mark.slow,  # two spawned processes: ~12 s, most of it their start-up
+    pytest.mark.slow,  # two spawned processes: 6-12 s, most of it their start-up
     pytest.mark.skipif(
         not (dist.is_available() and dist.is_gloo_available()),
         reason="torch.distributed with the gloo backend is not available in this torch build",

@@ -149,7 +149,6 @@ def _real_and_grid_paths() -> list[Path]:
     return paths
 
 
-@pytest.mark.slow  # every real mesh, through lagrange: ~18 s per beta
 @pytest.mark.parametrize("beta", [1.0, 2.0])
 def test_degoes_matches_lagrange(beta):
     for path in _real_and_grid_paths():

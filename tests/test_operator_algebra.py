@@ -339,7 +339,6 @@ _MEMORY_SCRIPT = textwrap.dedent(
 )
 
 
-@pytest.mark.slow  # a subprocess assembling a 62k-vertex mesh
 def test_every_expression_runs_under_a_4gb_cap_at_62k_vertices():
     """O(nnz) memory: any dense V x V tensor (31 GB) would fail under the 4 GB address-space cap,
     as torch's own sparse autograd does in the same process."""

@@ -356,7 +356,6 @@ def _rss_bytes() -> int:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-@pytest.mark.slow  # thousands of topology builds
 @pytest.mark.skipif(not os.path.exists("/proc/self/statm"), reason="needs Linux /proc for RSS")
 def test_fresh_faces_tensors_do_not_leak():
     """400 calls with new faces tensors of a 4.9k-face mesh grew RSS by 741 MB before (1.9 MB a
