@@ -16,7 +16,8 @@ same order (not triangulated, not reordered, not rotated). Files:
   vertex) in OBJ, OFF, ASCII PLY and binary PLY (``list uchar int``), OFF with comments, OBJ
   with ``v/vt/vn`` corners, with negative indices, with groups and materials between faces,
   with CRLF line endings, and a big-endian PLY with float coordinates, ``list int uint`` and
-  extra properties;
+  extra properties; and six malformed files (an index out of range, an unparsable coordinate,
+  a truncated file), which a reader should reject rather than return a mesh from;
 * ``tests/data/*.{obj,off,ply}`` and the real meshes of ``--real-dir``
   (``../shared/data/meshes/real`` beside the repository; skipped with a message if absent);
 * an ``n x n`` quad grid (``--grid n``, default 1000: 1M quads), written by ``write_mesh`` as
@@ -173,6 +174,9 @@ def openmesh_raw(path: Path):
 
 def openmesh_read(path: Path) -> Mesh:
     mesh = openmesh_raw(path)
+    if mesh.n_faces() == 0:  # what it returns, after a message on stderr, for many broken files
+        empty = np.zeros(0, dtype=np.int64)
+        return np.array(mesh.points(), dtype=np.float64).reshape(-1, 3), empty, empty
     padded = mesh.face_vertex_indices().astype(np.int64)  # (F, max degree), -1 padded
     keep = padded >= 0
     return np.array(mesh.points(), dtype=np.float64), padded[keep], keep.sum(1)
@@ -459,6 +463,62 @@ def big_endian_ply(mesh: Mesh) -> bytes:
     return header + bytes(body)
 
 
+def malformed_cases(folder: Path) -> dict[str, Path]:
+    """Broken files a reader should reject rather than return a wrong mesh from."""
+    square = "0 0 0\n1 0 0\n1 1 0\n0 1 0\n"
+    texts = {
+        "malformed: OFF face index out of range": (
+            "bad_index.off",
+            f"OFF\n4 1 0\n{square}4 0 1 2 7\n",
+        ),
+        "malformed: OFF coordinate 'x'": (
+            "bad_number.off",
+            "OFF\n4 1 0\n0 0 0\n1 0 x\n1 1 0\n0 1 0\n4 0 1 2 3\n",
+        ),
+        "malformed: OFF truncated (1 of 2 faces)": (
+            "truncated.off",
+            f"OFF\n4 2 0\n{square}4 0 1 2 3\n",
+        ),
+        "malformed: OBJ face index out of range": (
+            "bad_index.obj",
+            "".join("v " + line + "\n" for line in square.splitlines()) + "f 1 2 3 9\n",
+        ),
+        "malformed: OBJ coordinate 'x'": ("bad_number.obj", "v 0 0 0\nv 1 x 0\nv 1 1 0\nf 1 2 3\n"),
+    }
+    out = {}
+    for label, (name, text) in texts.items():
+        path = folder / name
+        path.write_bytes(text.encode("ascii"))
+        out[label] = path
+    path = folder / "truncated.ply"
+    ours_write(path, mixed_mesh(), "plyb")
+    path.write_bytes(path.read_bytes()[:-10])
+    out["malformed: binary PLY truncated (10 bytes short)"] = path
+    return out
+
+
+def bench_malformed(label: str, path: Path, libs: list[Library]) -> dict:
+    """Whether ours and each library raise on a broken file (``"raises"``, for whatever reason:
+    the message is kept as ``error``) or return a mesh."""
+
+    def verdict(read: Callable[[Path], Mesh]) -> dict:
+        try:
+            verts, _, sizes = quietly(lambda: read(path))
+        except BaseException as e:  # noqa: BLE001 -- meshio raises SystemExit
+            if isinstance(e, KeyboardInterrupt):
+                raise
+            return {"verdict": "raises", "error": short_error(e, path.parent)}
+        return {"verdict": f"returns a mesh (V={len(verts)}, F={len(sizes)})"}
+
+    row = {"case": label, "file": path.name, "ours": verdict(ours_read), "libs": {}}
+    for lib in libs:
+        if path.suffix.lower() not in lib.reads:
+            row["libs"][lib.name] = {"verdict": "n/a"}
+        else:
+            row["libs"][lib.name] = verdict(lib.read)
+    return row
+
+
 def real_meshes(real_dir: Path) -> dict[str, Path]:
     """``tests/data``'s top-level meshes and those of ``real_dir`` (its copy wins), by name."""
     found = {p.name: p for p in sorted((ROOT / "tests" / "data").iterdir())}
@@ -594,6 +654,12 @@ def report(results: dict, libs: list[Library]) -> str:
         if "libs" in r and r["libs"]
     ]
     out += [markdown_table(["file", *names], rows), ""]
+    out += ["### Malformed files: an exception (for any reason), or a mesh", ""]
+    rows = [
+        [r["case"], r["ours"]["verdict"], *(verdict_cell(r["libs"][n]) for n in names)]
+        for r in results["malformed"]
+    ]
+    out += [markdown_table(["file", "ours", *names], rows), ""]
     for title, key in (("real meshes", "real"), ("the quad grid", "grid_read")):
         out += [f"### Read times on {title}: ours, and each library's time over ours", ""]
         rows = []
@@ -665,6 +731,7 @@ def main(argv: list[str] | None = None) -> None:
         "grid_repeat": args.grid_repeat,
         "versions": {lib.name: lib.version for lib in libs},
         "edge_cases": [],
+        "malformed": [],
         "real": [],
         "grid_read": [],
         "write": [],
@@ -674,6 +741,8 @@ def main(argv: list[str] | None = None) -> None:
         print("edge cases", file=sys.stderr)
         for label, path in edge_cases(folder).items():
             results["edge_cases"].append(bench_read(label, path, libs, args.repeat, False))
+        for label, path in malformed_cases(folder).items():
+            results["malformed"].append(bench_malformed(label, path, libs))
         if not args.no_real:
             print("real meshes", file=sys.stderr)
             meshes = real_meshes(args.real_dir)
