@@ -137,3 +137,12 @@ def test_plot_lines_log_scale(tmp_path):
     assert ax.get_yscale() == "log" and len(ax.get_lines()) == 2
     assert ax.get_legend() is not None and ax.get_xlabel() == "iteration"
     assert np.allclose(ax.get_lines()[0].get_ydata(), [1.0, 1e-2, 1e-4])
+
+
+def test_plot_meshes_saves_a_grid_with_empty_cells(tmp_path):
+    """Three panels in two columns leave one cell empty; the saved figure has three axes."""
+    verts, faces = quad_grid(3)
+    panels = [dict(verts=verts, faces=faces, title=str(i)) for i in range(3)]
+    fig = plot.plot_meshes(panels, path=tmp_path / "grid.png", ncols=2)
+    assert (tmp_path / "grid.png").stat().st_size > 0
+    assert [ax.get_title() for ax in fig.axes] == ["0", "1", "2"]

@@ -222,7 +222,8 @@ def plot_meshes(
     for ax, panel in zip(axes, specs, strict=False):
         plot_mesh(ax=ax, **panel)
     for ax in axes[len(specs) :]:
-        ax.set_visible(False)
+        # removed, not hidden: a hidden 3D axes has no extent, which breaks a tight bounding box
+        ax.remove()
     if suptitle:
         fig.suptitle(suptitle)
     if path is not None:
