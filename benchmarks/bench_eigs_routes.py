@@ -101,8 +101,8 @@ def bench_routes(n_target: int, k: int, repeat: int, dense_max: int, generalized
             Ls, k=k, M=Ms, sigma=shift, which="LM", tol=0
         )
         contenders["arpack_cholmod"] = lambda: arpack_cholmod(Ls, Ms, k, shift)
-    contenders["arpack"] = lambda: linalg._eigs_arpack(Ls, Ms, k, None, scale, 0.0, True)
-    contenders["lanczos"] = lambda: linalg._eigs_block_lanczos(
+    contenders["arpack"] = lambda: linalg.eigenpairs._eigs_arpack(Ls, Ms, k, None, scale, 0.0, True)
+    contenders["lanczos"] = lambda: linalg.eigenpairs._eigs_block_lanczos(
         Ls, Ms.diagonal(), k, shift, 1e-10, torch.device("cpu")
     )
     out = {"verts": n, "k": k, "route": linalg.eigs_route(n, k, True, True)}

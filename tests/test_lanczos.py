@@ -61,9 +61,9 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
     L, M0 = _mesh_operators("mixedFaring.off")
     k = 40
     # the route rule sends this size to ARPACK: force block Lanczos, which must not fall back
-    monkeypatch.setattr(linalg, "eigs_route", lambda *a: "lanczos")
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: "lanczos")
     calls = []
-    monkeypatch.setattr(linalg, "_eigs_arpack", lambda *a: calls.append(a))  # must not be used
+    monkeypatch.setattr(linalg.eigenpairs, "_eigs_arpack", lambda *a: calls.append(a))  # must not be used
     evals, evecs = tp.eigs(L, M0, k)
     assert not calls
     Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
@@ -82,7 +82,7 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
 @pytest.mark.parametrize("route", ["arpack", "lanczos"])
 def test_sparse_eigs_count_components(route, monkeypatch):
     """Three copies of a 2310-vertex mesh: three zero eigenvalues, found by each sparse route."""
-    monkeypatch.setattr(linalg, "eigs_route", lambda *a: route)
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: route)
     V, F = tp.read_mesh(DATA / "mixedFaring.off", dtype=torch.float64)
     n = V.shape[0]
     blocks = [tp.laplacian(V + 10.0 * i, F) for i in range(3)]
@@ -125,17 +125,17 @@ def test_sparse_eigs_are_accurate_to_round_off_on_a_sphere():
         (1_000, 128, True, "arpack"),
         (100_000, 16, True, "arpack"),  # block Lanczos never won for k = 16
         (200_000, 31, True, "arpack"),
-        (linalg._LANCZOS_SIZE[32] + 1, 32, True, "lanczos"),
-        (linalg._LANCZOS_SIZE[64], 64, True, "arpack"),
-        (linalg._LANCZOS_SIZE[64] + 1, 64, True, "lanczos"),
-        (linalg._LANCZOS_SIZE[128] + 1, 128, True, "lanczos"),
-        (linalg._LANCZOS_SIZE[128] + 1, 512, True, "lanczos"),
+        (linalg.eigenpairs._LANCZOS_SIZE[32] + 1, 32, True, "lanczos"),
+        (linalg.eigenpairs._LANCZOS_SIZE[64], 64, True, "arpack"),
+        (linalg.eigenpairs._LANCZOS_SIZE[64] + 1, 64, True, "lanczos"),
+        (linalg.eigenpairs._LANCZOS_SIZE[128] + 1, 128, True, "lanczos"),
+        (linalg.eigenpairs._LANCZOS_SIZE[128] + 1, 512, True, "lanczos"),
         (30_000, 96, True, "lanczos"),
         (100_000, 64, True, "lanczos"),
         (1_000_000, 64, True, "lanczos"),
         (1_000_000, 128, True, "arpack"),  # the Lanczos basis of 6 k vectors: over 4 GiB
-        (linalg._LANCZOS_SIZE[128] + 1, 128, False, "arpack"),  # SuperLU: twice the size
-        (2 * linalg._LANCZOS_SIZE[128] + 1, 128, False, "lanczos"),
+        (linalg.eigenpairs._LANCZOS_SIZE[128] + 1, 128, False, "arpack"),  # SuperLU: twice the size
+        (2 * linalg.eigenpairs._LANCZOS_SIZE[128] + 1, 128, False, "lanczos"),
     ],
 )
 def test_eigs_route_picks_each_route_in_its_range(n, k, cholmod, route):
@@ -160,8 +160,8 @@ def test_every_route_matches_lapack(route, cholmod, monkeypatch):
     L, M0 = _mesh_operators("sphere/quad_3.obj")
     k = 64
     if route == "arpack-generalized":  # a non-diagonal M goes through ARPACK's generalized mode
-        monkeypatch.setattr(linalg, "_is_diagonal", lambda S: False)
-    monkeypatch.setattr(linalg, "eigs_route", lambda *a: route.split("-")[0])
+        monkeypatch.setattr(linalg.eigenpairs, "_is_diagonal", lambda S: False)
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: route.split("-")[0])
     evals, evecs = tp.eigs(L, M0, k)
     Ld, Md = L.to_dense().numpy(), M0.to_dense().numpy()
     ref = scipy.linalg.eigh(Ld, Md, eigvals_only=True, subset_by_index=(0, k - 1))

@@ -1,0 +1,265 @@
+"""Derivatives of generalized eigenpairs ``L phi = mu M phi``: eigenvalues by first-order
+perturbation (``d mu = phi^T (dL - mu dM) phi``), eigenvectors by Nelson's method (one sparse
+solve with ``L - mu M`` per eigenpair, with a rule for clusters of near-repeated eigenvalues).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from ..sparse import (
+    sampled_gradient,
+    to_scipy,
+)
+from .factor import _Held
+
+_SECOND_ORDER_MESSAGE = (
+    "torch_polylap.eigs: second derivatives of eigenvalues and eigenvectors (create_graph=True "
+    "through eigs, Hessian-vector products) are not implemented: their backward factorizes with "
+    "scipy outside autograd. Take first-order gradients only, or detach the eigenpairs in the "
+    "second-order term."
+)
+
+
+class _Eigenvalues(torch.autograd.Function):
+    """Eigenvalues ``mu`` of ``L phi = mu M phi`` with the first-order perturbation gradient."""
+
+    @staticmethod
+    def forward(
+        ctx: Any,
+        l_values: torch.Tensor,
+        m_values: torch.Tensor,
+        evals: torch.Tensor,
+        evecs: torch.Tensor,
+        held_l: _Held,
+        held_m: _Held,
+    ) -> torch.Tensor:
+        ctx.save_for_backward(evals, evecs)
+        ctx.operators = (held_l.A, held_m.A)
+        return evals.clone()
+
+    @staticmethod
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        if torch.is_grad_enabled():
+            raise RuntimeError(_SECOND_ORDER_MESSAGE)
+        evals, evecs = ctx.saved_tensors
+        grads = []
+        for A, weights, needed in (
+            (ctx.operators[0], g, ctx.needs_input_grad[0]),
+            (ctx.operators[1], -g * evals, ctx.needs_input_grad[1]),
+        ):
+            # sum_i w_i phi_i phi_i^T, sampled on the pattern: O(nnz * k)
+            grads.append(sampled_gradient(A, evecs * weights, evecs) if needed else None)
+        return grads[0], grads[1], None, None, None, None
+
+
+# A requested eigenvector has no derivative when another eigenvalue lies within this distance of
+# its own, relative to the spectral scale max_i |mu_i| of the computed eigenvalues.
+EIGENVECTOR_GAP_RTOL = 1e-8
+# Inverse-iteration steps that estimate the gap to the first eigenvalue that was not computed.
+_GAP_ITERATIONS = 4
+
+
+def _cluster_message(
+    index: int, members: list[int], evals: np.ndarray, scale: float, reason: str
+) -> str:
+    values = ", ".join(f"mu_{j} = {evals[j]:.12g}" for j in members)
+    which = f"eigenvalues {members[0]}..{members[-1]}" if len(members) > 1 else "eigenvalue"
+    return (
+        f"torch_polylap.eigs: no gradient through evecs[:, {index}]: its eigenvalue is repeated "
+        f"({which} {values}{reason}; relative gap below {EIGENVECTOR_GAP_RTOL:g} of the spectral "
+        f"scale {scale:.6g}), so each eigenvector of the cluster is any M-orthonormal basis "
+        "vector of the eigenspace and not a differentiable function of L and M (a symmetric "
+        "mesh, e.g. a regular grid, has exact multiplicities). Use a loss that depends on the "
+        "cluster's eigenvectors only through their span, with every eigenpair of the cluster "
+        "computed: the projector Phi_C Phi_C^T M (e.g. sum_i (phi_i^T M u)^2 over the cluster) "
+        "or symmetric functions of its eigenvalues (evals are differentiable); or use "
+        "evecs.detach(), or only columns outside the cluster."
+    )
+
+
+def _clusters(evals: np.ndarray, scale: float) -> list[list[int]]:
+    """Runs of consecutive eigenvalues whose neighbours lie within the gap."""
+    close = np.abs(np.diff(evals)) <= EIGENVECTOR_GAP_RTOL * scale  # mu_j ~ mu_{j+1}
+    runs = [[0]]
+    for j in range(1, evals.size):
+        if close[j - 1]:
+            runs[-1].append(j)
+        else:
+            runs.append([j])
+    return runs
+
+
+def _eigenvector_adjoint(
+    Ls: sp.csr_matrix,
+    Ms: sp.csr_matrix,
+    mu: float,
+    Phi: np.ndarray,
+    g: np.ndarray,
+    check_next: float | None,
+) -> tuple[np.ndarray, float]:
+    """The adjoint ``w`` of one eigenvector whose eigenvalue ``mu`` has the cluster ``Phi``
+    ``(n, m)`` (itself and the eigenvectors of eigenvalues within the gap; ``m = 1`` for a
+    simple one): ``(L - mu M) w = (I - M Phi Phi^T) g`` with ``Phi^T M w = 0``, by Nelson's
+    method.
+
+    ``K = L - mu M`` is singular on ``span(Phi)``. Deleting the rows and columns ``P`` of ``m``
+    well-conditioned rows of ``Phi`` (pivoted QR; for ``m = 1`` the largest entry) leaves a
+    nonsingular matrix (an ``x`` with ``x_P = 0`` and ``K x = e_P c`` has
+    ``0 = Phi^T K x = Phi_P^T c``, so ``x`` is in the kernel and ``0``). Its solution with
+    ``x_P = 0`` satisfies rows ``P`` as well, because the right-hand side is orthogonal to
+    ``Phi``; projecting out ``Phi`` gives ``w``. One sparse LU (SuperLU, partial pivoting: ``K``
+    is indefinite) of the ``(n-m) x (n-m)`` matrix, then freed.
+
+    ``check_next``: the spectral scale, when the cluster holds the last computed eigenpair,
+    whose upper neighbour is unknown: inverse iteration with the same factorization on
+    ``T = (I - Phi Phi^T M) K^+ M``
+    (eigenvalues ``1 / (mu_j - mu)`` for the eigenvalues outside the cluster) bounds the
+    distance to the nearest one from above, ``|mu_j - mu| <= 1 / |T x|_M``. Returns ``w`` and
+    the estimated nearest outside eigenvalue (``nan`` without ``check_next``, or when it is
+    farther than the gap).
+    """
+    n, m = Phi.shape
+    if m == 1:
+        P = np.array([int(np.abs(Phi[:, 0]).argmax())])
+    else:
+        P = scipy.linalg.qr(Phi.T, mode="r", pivoting=True)[1][:m]
+    keep = np.setdiff1d(np.arange(n), P)
+    K = (Ls - mu * Ms).tocsr()
+    lu = spla.splu(sp.csc_matrix(K[keep][:, keep]))
+    MPhi = Ms @ Phi
+
+    def project_solve(r: np.ndarray) -> np.ndarray:
+        x = np.zeros(n)
+        x[keep] = lu.solve(np.ascontiguousarray(r[keep]))
+        # one step of iterative refinement (the shifted matrix is nearly singular)
+        residual = r - K @ x
+        x[keep] += lu.solve(np.ascontiguousarray(residual[keep]))
+        return x - Phi @ (MPhi.T @ x)
+
+    nearest = float("nan")
+    if check_next is not None:
+        x = np.random.default_rng(0).standard_normal((n,))
+        x -= Phi @ (MPhi.T @ x)
+        t = norm = 0.0
+        for _ in range(_GAP_ITERATIONS):
+            x /= np.sqrt(x @ (Ms @ x))
+            y = project_solve(Ms @ x)
+            t = float(x @ (Ms @ y))  # Rayleigh quotient of T: about 1 / (mu_j - mu)
+            norm = float(np.sqrt(y @ (Ms @ y)))
+            x = y
+        if 1.0 <= EIGENVECTOR_GAP_RTOL * check_next * norm:
+            nearest = mu + 1.0 / t if t != 0 else mu
+    return project_solve(g - MPhi @ (Phi.T @ g)), nearest
+
+
+class _Eigenvectors(torch.autograd.Function):
+    """Eigenvectors of ``L phi = mu M phi`` (``M``-orthonormal, sign fixed) with the adjoint
+    gradient (see :func:`eigs`)."""
+
+    @staticmethod
+    def forward(
+        ctx: Any,
+        l_values: torch.Tensor,
+        m_values: torch.Tensor,
+        evals: torch.Tensor,
+        evecs: torch.Tensor,
+        held_l: _Held,
+        held_m: _Held,
+    ) -> torch.Tensor:
+        ctx.save_for_backward(evals, evecs)
+        ctx.operators = (held_l.A, held_m.A)
+        return evecs.clone()
+
+    @staticmethod
+    def backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        if torch.is_grad_enabled():
+            raise RuntimeError(_SECOND_ORDER_MESSAGE)
+        need_l, need_m = ctx.needs_input_grad[:2]
+        if not (need_l or need_m):
+            return None, None, None, None, None, None
+        evals_t, evecs_t = ctx.saved_tensors
+        L, M = ctx.operators
+        evals = evals_t.detach().cpu().double().numpy()
+        Phi = evecs_t.detach().cpu().double().numpy()
+        Gn = G.detach().cpu().double().numpy()
+        k = evals.size
+        active = np.any(Gn != 0, axis=0)
+        scale = max(float(np.abs(evals).max()), np.finfo(float).tiny)
+        # A_ij = phi_i^T g_j on each cluster's diagonal block: the in-cluster coupling
+        A = np.zeros((k, k))
+        runs = [c for c in _clusters(evals, scale) if active[c].any()]
+        for c in runs:
+            block = Phi[:, c].T @ Gn[:, c]
+            if len(c) > 1:
+                # the loss must not change under rotations within the cluster: A symmetric
+                tol = np.sqrt(np.finfo(evecs_t.detach().cpu().numpy().dtype).eps)
+                size = np.linalg.norm(Phi[:, c]) * np.linalg.norm(Gn[:, c])
+                if np.abs(block - block.T).max() > tol * size:
+                    index = c[int(np.flatnonzero(active[c])[0])]
+                    raise RuntimeError(
+                        _cluster_message(
+                            index,
+                            c,
+                            evals,
+                            scale,
+                            "; the loss is not invariant to rotations "
+                            "of the cluster's eigenvectors",
+                        )
+                    )
+                block = 0.5 * (block + block.T)
+            A[np.ix_(c, c)] = block
+        Ls = to_scipy(L).astype(np.float64)
+        Ms = to_scipy(M).astype(np.float64)
+        W = np.zeros_like(Phi)
+        for c in runs:
+            for i in (j for j in c if active[j]):
+                try:
+                    W[:, i], nearest = _eigenvector_adjoint(
+                        Ls,
+                        Ms,
+                        evals[i],
+                        Phi[:, c],
+                        Gn[:, i],
+                        check_next=scale if c[-1] == k - 1 else None,
+                    )
+                except RuntimeError as error:  # SuperLU: exactly singular
+                    raise RuntimeError(
+                        _cluster_message(i, c, evals, scale, f" (SuperLU: {error})")
+                    ) from error
+                if not np.isnan(nearest):
+                    raise RuntimeError(
+                        _cluster_message(
+                            i,
+                            c,
+                            evals,
+                            scale,
+                            f", and the next eigenvalue, which was not "
+                            f"computed, near {nearest:.12g}; compute more eigenpairs",
+                        )
+                    )
+        Wt = torch.from_numpy(W).to(evecs_t)
+        mu = evals_t.detach()
+        Phi_t = evecs_t.detach()
+        grad_l = grad_m = None
+        # symmetrized (the gradient among symmetric matrices): (w phi^T + phi w^T) / 2
+        if need_l:
+            grad_l = -0.5 * sampled_gradient(
+                L, torch.cat([Wt, Phi_t], 1), torch.cat([Phi_t, Wt], 1)
+            )
+        if need_m:
+            # the M-orthonormality of each cluster: -(1/2) sum_ij A_ij phi_i phi_j^T (for a
+            # simple eigenvalue, the normalization term -(phi^T g / 2) phi phi^T)
+            At = torch.from_numpy(A).to(evecs_t)
+            grad_m = 0.5 * sampled_gradient(
+                M,
+                torch.cat([Wt * mu, Phi_t * mu, -(Phi_t @ At)], 1),
+                torch.cat([Phi_t, Wt, Phi_t], 1),
+            )
+        return grad_l, grad_m, None, None, None, None

@@ -1,0 +1,339 @@
+"""``eigs(L, M, k)``: the ``k`` smallest generalized eigenpairs, by the route measured fastest
+(dense LAPACK, ARPACK shift-invert or block Lanczos on a Cholesky factor), differentiable
+through :mod:`.derivatives`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from ..lanczos import block_lanczos
+from ..sparse import (
+    as_operator,
+    sparse_values,
+    to_scipy,
+)
+from .derivatives import _Eigenvalues, _Eigenvectors
+from .factor import CholeskyFactorization, _cholespy_available, _Held, spd_splu
+
+# Route thresholds of eigs, measured by benchmarks/bench_eigs_routes.py (see eigs_route).
+_DENSE_EIGS_SIZE = 200
+_DENSE_EIGS_PER_K = 5
+# Block Lanczos above this many unknowns (log-log interpolation in k; ARPACK below k = 32)
+_LANCZOS_SIZE = {32: 100_000, 64: 4_500, 128: 3_000}
+# Memory the unrestarted block Lanczos basis may take before ARPACK (restarted) is used.
+_LANCZOS_MEMORY = 4 * 2**30
+
+
+def _check_positive_mass(Ms: sp.csr_matrix) -> None:
+    """``M`` must be positive definite: a zero diagonal entry (a vertex that no face references,
+    so its lumped mass is zero) would make the generalized problem singular."""
+    diagonal = Ms.diagonal()
+    bad = np.flatnonzero(~(diagonal > 0))
+    if bad.size:
+        raise ValueError(
+            f"eigs: M is not positive definite: vertex {int(bad[0])} has mass "
+            f"{diagonal[bad[0]]:g} ({bad.size} such vertices), e.g. a vertex that no face "
+            "references. Remove such vertices first with "
+            "torch_polylap.repair.remove_unreferenced_vertices(verts, faces)."
+        )
+
+
+def _is_diagonal(S: sp.csr_matrix) -> bool:
+    coo = S.tocoo()
+    return bool((coo.row == coo.col).all()) and bool((S.diagonal() > 0).all())
+
+
+def eigs_route(n: int, k: int, diagonal_mass: bool, cholmod: bool = True) -> str:
+    """The route :func:`eigs` takes for ``k`` eigenpairs of an ``n x n`` problem: ``"dense"``,
+    ``"arpack"`` or ``"lanczos"`` (``diagonal_mass``: ``M`` is diagonal and the shift negative,
+    so ``L - shift M`` has a Cholesky factorization; ``cholmod``: ``cholespy`` is installed).
+
+    The thresholds were chosen by measurement (``benchmarks/bench_eigs_routes.py routes``;
+    ``benchmarks/README.md`` has the crossover measurements behind each of them):
+
+    - ``"dense"`` (LAPACK ``eigh`` with ``subset_by_index``) for ``n <= max(200, 5 k)``; its
+      cost grows as ``n^3``;
+    - ``"arpack"`` (ARPACK on the standard symmetric problem ``M^{1/2} (L - shift M)^{-1}
+      M^{1/2}``, one CHOLMOD or SuperLU solve per step, which beats scipy's generalized
+      ``eigsh(L, M=M, sigma=shift)``) up to a block Lanczos threshold that falls with ``k``:
+      ``_LANCZOS_SIZE`` holds 100,000 unknowns at ``k = 32``, 4,500 at 64 and 3,000 at 128 and
+      above, interpolated log-log between, and ARPACK at every size below ``k = 32``;
+    - ``"lanczos"`` (block Lanczos with blocks of 8, :mod:`torch_polylap.lanczos`) above it, for
+      a diagonal ``M`` only, and only while its basis of ``6 k`` vectors fits in 4 GiB
+      (``"arpack"`` otherwise). Without ``cholespy`` its block solves are SuperLU's one column
+      at a time, and the threshold is doubled (not measured).
+    """
+    if n <= max(_DENSE_EIGS_SIZE, _DENSE_EIGS_PER_K * k):
+        return "dense"
+    if not diagonal_mass or n * _lanczos_dim(n, k) * 8 > _LANCZOS_MEMORY:
+        return "arpack"
+    ks = sorted(_LANCZOS_SIZE)
+    if k < ks[0]:
+        return "arpack"
+    sizes = [np.log(_LANCZOS_SIZE[key]) for key in ks]
+    threshold = round(float(np.exp(np.interp(np.log(k), np.log(ks), sizes))))
+    if not cholmod:
+        threshold *= 2
+    return "lanczos" if n > threshold else "arpack"
+
+
+def _lanczos_dim(n: int, k: int) -> int:
+    """The largest Krylov basis :func:`eigs` lets block Lanczos build (the bases measured in
+    ``benchmarks/README.md`` stayed well below it)."""
+    return min(n, max(6 * k, k + 200))
+
+
+def spd_block_solver(
+    S: sp.spmatrix, device: torch.device | str = "cpu"
+) -> Callable[[np.ndarray], np.ndarray]:
+    """Factor a sparse SPD matrix once and return ``B (n, b) -> S^{-1} B`` in float64.
+
+    CHOLMOD's supernodal Cholesky (through the optional ``cholespy`` package) when it is
+    installed, on ``device`` (its CUDA solver on a GPU): multi-column solves are several times
+    faster per column than SuperLU's (``benchmarks/README.md``), whose own multi-column solve
+    is slower still than one column at a time (so the fallback loops over columns).
+    """
+    if not _cholespy_available():
+        lu = spd_splu(sp.csc_matrix(S))
+        return lambda B: np.stack([lu.solve(np.ascontiguousarray(b)) for b in B.T], axis=1)
+    factor = CholeskyFactorization(S, torch.device(device))
+    return lambda B: factor.solve(torch.from_numpy(np.ascontiguousarray(B))).cpu().numpy()
+
+
+def _eigs_block_lanczos(
+    Ls: sp.csr_matrix,
+    mass: np.ndarray,
+    k: int,
+    shift: float,
+    tol: float,
+    device: torch.device,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Shift-invert block Lanczos for a diagonal ``M``: the standard symmetric problem
+    ``C = M^{1/2} (L - shift M)^{-1} M^{1/2}``, whose top eigenvalues ``1 / (mu - shift)`` give
+    the smallest ``mu``, with eigenvectors ``phi = M^{-1/2} y``. ``None`` if it did not
+    converge (the caller then uses ARPACK)."""
+    root = np.sqrt(mass)[:, None]
+    solve_shifted = spd_block_solver(Ls - shift * sp.diags(mass), device)
+    theta, Y, converged = block_lanczos(
+        lambda X: solve_shifted(X * root) * root,
+        Ls.shape[0],
+        k,
+        tol=tol,
+        max_dim=_lanczos_dim(Ls.shape[0], k),
+    )
+    if not converged:
+        return None
+    return shift + 1.0 / theta, Y / root
+
+
+def _shifted_vector_solver(
+    S: sp.spmatrix, device: torch.device | str
+) -> Callable[[np.ndarray], np.ndarray]:
+    """``x (n,) -> S^{-1} x`` for a sparse SPD ``S``, one column per call (ARPACK's step):
+    CHOLMOD when ``cholespy`` is installed, SuperLU otherwise."""
+    if not _cholespy_available():
+        lu = spd_splu(sp.csc_matrix(S))
+        return lu.solve
+    factor = CholeskyFactorization(S, torch.device(device)).factor
+
+    def solve(x: np.ndarray) -> np.ndarray:
+        rhs = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64)[:, None]).to(device)
+        out = torch.empty_like(rhs)
+        factor.solve(rhs, out)
+        return out[:, 0].cpu().numpy()
+
+    return solve
+
+
+def _eigs_arpack(
+    Ls: sp.csr_matrix,
+    Ms: sp.csr_matrix,
+    k: int,
+    sigma: float | None,
+    scale: float,
+    tol: float,
+    diagonal_mass: bool = False,
+    device: torch.device | str = "cpu",
+) -> tuple[np.ndarray, np.ndarray]:
+    """ARPACK shift-invert Lanczos, retried with more vectors and larger shifts.
+
+    For a diagonal ``M`` and a negative shift, on the standard symmetric problem
+    ``C = M^{1/2} (L - shift M)^{-1} M^{1/2}`` (as block Lanczos), with one Cholesky solve per
+    step: faster than ARPACK's generalized mode, which also multiplies by ``M`` and
+    ``M``-orthogonalizes each step (``benchmarks/README.md``). Otherwise scipy's generalized
+    shift-invert mode, with SuperLU."""
+    n = Ls.shape[0]
+    shifts = [sigma] if sigma is not None else [-1e-6 * scale, -1e-5 * scale, -1e-3 * scale]
+    for attempt, shift in enumerate(shifts):
+        ncv = min(n, max(2 * k + 1, 20) * (attempt + 1))
+        try:
+            if not (diagonal_mass and shift < 0):
+                return spla.eigsh(Ls, k=k, M=Ms, sigma=shift, which="LM", tol=tol, ncv=ncv)
+            mass = Ms.diagonal()
+            root = np.sqrt(mass)
+            solve = _shifted_vector_solver(Ls - shift * sp.diags(mass), device)
+            op = spla.LinearOperator(
+                Ls.shape,
+                matvec=lambda x, solve=solve, root=root: solve(x.reshape(-1) * root) * root,
+                dtype=np.float64,
+            )
+            theta, Y = spla.eigsh(op, k=k, which="LA", tol=tol, ncv=ncv)
+            return shift + 1.0 / theta, Y / root[:, None]
+        except (spla.ArpackNoConvergence, RuntimeError):
+            continue
+    raise ValueError(
+        f"eigs: ARPACK did not converge for k = {k} with shifts {shifts}; try a different "
+        "sigma or a smaller k."
+    )
+
+
+def eigs(
+    L: torch.Tensor,
+    M: torch.Tensor,
+    k: int,
+    *,
+    sigma: float | None = None,
+    tol: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` smallest eigenpairs of ``L phi = mu M phi`` (``L`` PSD, ``M`` SPD, e.g. ``L, M0``).
+
+    Shift-invert around ``sigma`` (default: slightly below zero, so that ``L - sigma M`` is
+    positive definite even though ``L`` is singular), by one of three routes, picked by
+    :func:`eigs_route` from ``n`` and ``k`` (thresholds measured, see there):
+
+    - small problems (``n <= max(200, 5 k)``): a dense symmetric solver (LAPACK);
+    - ARPACK (scipy's ``eigsh``), retried with more Lanczos vectors and a larger shift: for a
+      diagonal ``M`` and ``sigma < 0`` on ``M^{1/2} (L - sigma M)^{-1} M^{1/2}`` with one
+      Cholesky factorization (CHOLMOD when ``cholespy`` is installed, SuperLU otherwise), else
+      in scipy's generalized shift-invert mode with SuperLU; for ``k < 32`` at every size and
+      for larger ``k`` up to a threshold (4,500 unknowns at ``k = 64``, 3,000 at ``k >= 128``);
+    - above it, for a diagonal ``M`` (the mass matrix ``M0``) and ``sigma < 0``: block Lanczos
+      with blocks of 8 (:mod:`torch_polylap.lanczos`) on the same operator, factored once by
+      CHOLMOD (on the operators' device: its CUDA solver for CUDA tensors; SuperLU without
+      ``cholespy``), while its basis of up to ``6 k`` vectors fits in 4 GiB; ARPACK if it
+      does not converge.
+
+    Eigenvector gradients (adjoint method). Differentiating ``(L - mu M) phi = 0`` and
+    ``phi^T M phi = 1`` gives ``dphi = v - (phi^T dM phi / 2) phi`` with ``phi^T M v = 0`` and
+    ``(L - mu M) v = -(dL - mu dM) phi + dmu M phi``. For an upstream gradient ``g`` of one
+    column, the adjoint ``w`` solves ``(L - mu M) w = (I - M phi phi^T) g`` with
+    ``phi^T M w = 0`` (then ``g^T v = -w^T (dL - mu dM) phi``, the ``dmu`` term vanishing), so
+
+        dLoss/dL = -sym(w phi^T),   dLoss/dM = mu sym(w phi^T) - (phi^T g / 2) phi phi^T,
+
+    sampled on each operator's pattern (``sym(A) = (A + A^T) / 2``: the gradient among symmetric
+    matrices, which is what the symmetric eigensolver sees). The singular, indefinite system is
+    solved by Nelson's method: delete the row and column of ``phi``'s largest entry, factor the
+    rest with SuperLU (partial pivoting; no Cholesky, ``L - mu M`` is indefinite), one step of
+    iterative refinement, project out ``phi``. Cost, per column of ``evecs`` whose gradient is
+    not zero (columns that the loss does not use are skipped): one sparse LU of an
+    ``(n-1) x (n-1)`` matrix with ``L``'s pattern, on the CPU in float64, freed before the next;
+    memory is that factor's fill plus O(nnz + n k) for the gradients. The sign convention is
+    locally constant, so it does not enter the derivative (a column whose largest entries tie in
+    magnitude flips sign under perturbation and has no derivative there).
+
+    Repeated eigenvalues: eigenvalues within ``1e-8 * max |mu|`` of their neighbour
+    (``EIGENVECTOR_GAP_RTOL``, relative to the largest computed eigenvalue) form a cluster ``C``
+    whose eigenvectors are any ``M``-orthonormal basis of the eigenspace, not functions of ``L``
+    and ``M``. A loss that sees them only through their span (the projector
+    ``Phi_C Phi_C^T M``, e.g. ``sum_{i in C} (phi_i^T M u)^2``) still has a gradient: its
+    ``A_ij = phi_i^T g_j`` is symmetric on ``C`` (checked to ``sqrt(eps)``), the rotation terms
+    ``A_ij phi_j^T (dL - mu_i dM) phi_i / (mu_i - mu_j)`` of ``i, j`` and ``j, i`` sum to
+    ``-A_ij phi_i^T dM phi_j`` (finite), and each ``w_i`` solves the system above with the
+    whole cluster projected out (Nelson's method deleting ``|C|`` rows chosen by pivoted QR of
+    ``Phi_C^T``); the ``M`` term becomes ``-(1/2) sum_{ij in C} A_ij phi_i phi_j^T``. Any
+    other loss through a cluster's columns raises a ``RuntimeError`` in the backward that names
+    the cluster (indices and values) and what to use instead; so does a cluster that may go on
+    past the last computed eigenvalue (four inverse-iteration steps with the same factorization
+    bound the distance to the next, uncomputed one: compute more eigenpairs).
+
+    Args:
+        L: ``(n, n)`` sparse symmetric matrix; values may require grad.
+        M: ``(n, n)`` sparse symmetric positive definite matrix; values may require grad.
+        k: number of eigenpairs, ``1 <= k < n``.
+        sigma: shift for shift-invert.
+        tol: relative residual at which a Ritz pair of the shift-inverted operator counts as
+            converged (0: ``1e-10`` for block Lanczos, machine precision for ARPACK).
+
+    Returns:
+        ``evals`` ``(k,)`` ascending and ``evecs`` ``(n, k)``, ``M``-orthonormal
+        (``evecs^T M evecs = I``), each column's sign fixed so that its entry of largest
+        magnitude is positive. ``evals`` is differentiable with respect to the values of ``L``
+        and ``M`` (``d mu = phi^T (dL - mu dM) phi``), which is exact for simple eigenvalues;
+        for a repeated eigenvalue only symmetric functions of the cluster (e.g. its sum) have
+        a well-defined gradient. ``evecs`` is differentiable too (first order; ``create_graph=True``
+        raises): for simple eigenvalues, and for losses that see a repeated one's eigenvectors
+        only through their span (see above).
+
+    Raises:
+        ValueError: ``k`` out of range, or no convergence after the retries.
+        RuntimeError: in the backward pass, for a gradient through the eigenvectors of a
+            repeated eigenvalue by a loss that depends on more than their span, or for a second
+            derivative.
+
+    Examples:
+        >>> import torch
+        >>> import torch_polylap as tp
+        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0.5]],
+        ...                      dtype=torch.float64)
+        >>> L, M0 = tp.laplacian(verts, [[0, 1, 2, 3], [1, 4, 2]])
+        >>> evals, evecs = tp.eigs(L, M0, k=3)
+        >>> abs(float(evals[0])) < 1e-10  # the constants: one connected component
+        True
+        >>> bool((evals[1:] > 0).all())
+        True
+        >>> torch.allclose(evecs.T @ (M0 @ evecs), torch.eye(3, dtype=torch.float64))
+        True
+    """
+    L, M = as_operator(L), as_operator(M)
+    n = L.shape[0]
+    if isinstance(k, bool) or not isinstance(k, int | np.integer):
+        raise TypeError(f"eigs: k must be an integer, got {k!r} ({type(k).__name__}).")
+    k = int(k)
+    if not 1 <= k < n:
+        raise ValueError(f"eigs: k must satisfy 1 <= k < n = {n}, got {k}.")
+    if L.shape != (n, n) or M.shape != (n, n):
+        raise ValueError(
+            f"eigs: L and M must be square and of one size, got {tuple(L.shape)} and "
+            f"{tuple(M.shape)}."
+        )
+    if tol < 0:
+        raise ValueError(f"eigs: tol must be >= 0, got {tol}.")
+    Ls = to_scipy(L).astype(np.float64)
+    Ms = to_scipy(M).astype(np.float64)
+    _check_positive_mass(Ms)
+    scale = float(abs(Ls).max()) / max(float(Ms.diagonal().max()), np.finfo(float).tiny)
+    # -1e-6 of the spectral radius estimate: closer to zero makes L - shift M so ill-conditioned
+    # that the block solves lose digits (eigenvalues off by 1e-9 relative at -1e-8 on a
+    # 1.5k-vertex sphere, 1e-13 at -1e-6 to -1e-2), while convergence is the same
+    shift = sigma if sigma is not None else -1e-6 * scale
+    result = None
+    diagonal = shift < 0 and _is_diagonal(Ms)
+    route = eigs_route(n, k, diagonal, _cholespy_available())
+    if route == "dense":
+        result = scipy.linalg.eigh(Ls.toarray(), Ms.toarray(), subset_by_index=(0, k - 1))
+    elif route == "lanczos":
+        result = _eigs_block_lanczos(Ls, Ms.diagonal(), k, shift, tol or 1e-10, L.device)
+    if result is None:
+        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol, diagonal, L.device)
+    evals, evecs = result
+    order = np.argsort(evals)
+    evals, evecs = evals[order], evecs[:, order]
+    # M-orthonormalize (ARPACK's vectors are, up to round-off) and fix signs for determinism
+    evecs = evecs / np.sqrt(np.einsum("ik,ik->k", evecs, Ms @ evecs))
+    signs = np.sign(evecs[np.abs(evecs).argmax(0), np.arange(k)])
+    evecs = evecs * np.where(signs == 0, 1.0, signs)
+    l_values, m_values = sparse_values(L), sparse_values(M)
+    evals_t = torch.from_numpy(evals).to(l_values)
+    evecs_t = torch.from_numpy(evecs).to(l_values)
+    mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
+    if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
+        evecs_t = _Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
+    return mu, evecs_t

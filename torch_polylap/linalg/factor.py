@@ -1,0 +1,171 @@
+"""Sparse factorizations behind :func:`~torch_polylap.solve`: SuperLU and CHOLMOD, cached on the
+operator, with a singularity check that names the remedy.
+"""
+
+from __future__ import annotations
+
+import atexit
+import weakref
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from ..sparse import (
+    SparseOperator,
+    solver_cache,
+    to_scipy,
+)
+
+
+def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:
+    """SuperLU factorization with settings for symmetric positive definite matrices.
+
+    Symmetric mode without row pivoting keeps ``L`` and ``U^T`` on one pattern, as a Cholesky
+    would. The column ordering is COLAMD, SuperLU's default: minimum degree on ``A + A^T``
+    (``MMD_AT_PLUS_A``) is faster on grid meshes but far slower on some others
+    (``benchmarks/README.md`` has the measurements).
+    """
+    return spla.splu(S, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+
+class Factorization:
+    """A sparse LU factorization (SuperLU, symmetric mode) of a CSR matrix, in float64, on the CPU.
+
+    Built from ``A``'s values at one point in time and cached on ``A`` by
+    :func:`torch_polylap.sparse.solver_cache`, which checks the values' storage and version
+    counter before reusing it.
+    """
+
+    def __init__(self, A: torch.Tensor) -> None:
+        S = sp.csc_matrix(to_scipy(A).astype(np.float64))
+        try:
+            self.lu = spd_splu(S)
+        except RuntimeError as err:
+            raise ValueError(_singular_message(A, str(err))) from None
+        _check_not_singular(A, S, lambda b: self.lu.solve(b))
+
+    def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
+        X = self.lu.solve(
+            np.ascontiguousarray(B.detach().cpu().numpy(), dtype=np.float64),
+            trans="T" if transpose else "N",
+        )
+        return _finite(torch.from_numpy(X)).to(B)
+
+
+# cholespy's solver objects are nanobind instances; one still alive at interpreter shutdown
+# (cached on an operator that a user's tensor keeps reachable through its autograd graph) makes
+# nanobind print a "leaked instances" report. Release them before the interpreter tears down.
+_LIVE_CHOLESKY: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register
+def _release_cholesky_factors() -> None:
+    for factorization in list(_LIVE_CHOLESKY):
+        factorization.factor = None
+
+
+class CholeskyFactorization:
+    """CHOLMOD's supernodal Cholesky of a symmetric positive definite matrix, in float64, on the
+    matrix's device (CPU, or CUDA through cholespy's GPU solver), via the optional ``cholespy``.
+
+    Faster than SuperLU for the SPD systems of this package (``M0 + h L``, Dirichlet blocks of
+    ``L``) and the only direct solver here that runs on a GPU.
+    """
+
+    # cholespy's CUDA solve takes at most this many right-hand sides at once
+    _CUDA_COLUMNS = 128
+
+    def __init__(self, A: torch.Tensor | sp.spmatrix, device: torch.device | None = None) -> None:
+        from cholespy import CholeskySolverD, MatrixType
+
+        device = A.device if isinstance(A, torch.Tensor) else torch.device(device or "cpu")
+        S = sp.coo_matrix((to_scipy(A) if isinstance(A, torch.Tensor) else A).astype(np.float64))
+        try:
+            self.factor = CholeskySolverD(
+                S.shape[0],
+                torch.from_numpy(S.row.astype(np.int32)).to(device),
+                torch.from_numpy(S.col.astype(np.int32)).to(device),
+                torch.from_numpy(S.data).to(device),
+                MatrixType.COO,
+            )
+        except (RuntimeError, ValueError) as err:
+            raise ValueError(_singular_message(A, str(err))) from None
+        self.device = device
+        _LIVE_CHOLESKY.add(self)
+
+        def solve_numpy(b: np.ndarray) -> np.ndarray:
+            rhs = torch.from_numpy(b).to(self.device)[:, None]
+            return self._solve64(rhs)[:, 0].cpu().numpy()
+
+        _check_not_singular(A, S.tocsc(), solve_numpy)
+
+    def _solve64(self, B: torch.Tensor) -> torch.Tensor:
+        X = torch.empty_like(B)
+        step = self._CUDA_COLUMNS if B.device.type == "cuda" else max(B.shape[1], 1)
+        for start in range(0, B.shape[1], step):
+            rhs = B[:, start : start + step].contiguous()
+            out = torch.empty_like(rhs)
+            self.factor.solve(rhs, out)
+            X[:, start : start + step] = out
+        return X
+
+    def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
+        B64 = B.detach().to(device=self.device, dtype=torch.float64).contiguous()
+        return _finite(self._solve64(B64)).to(B)
+
+
+def _check_not_singular(
+    A: torch.Tensor | sp.spmatrix, S: sp.spmatrix, solve: Callable[[np.ndarray], np.ndarray]
+) -> None:
+    """Refuse a numerically singular ``A``.  A singular PSD matrix (a Laplacian without a mass
+    term) factors without complaint, its last pivot being round-off; one solve with a fixed
+    random right-hand side shows it, the growth ``|x| |A| / |b|`` then reaching ``1 / eps``
+    (reading the pivots would need the whole factor to be copied out of the solver)."""
+    n = S.shape[0]
+    b = np.random.default_rng(0).standard_normal(n)
+    growth = np.abs(solve(b)).max() * abs(S).max() / np.abs(b).max() if n else 0.0
+    if not np.isfinite(growth) or growth * n * np.finfo(float).eps >= 1.0:
+        raise ValueError(_singular_message(A, f"solution growth {growth:.1e}"))
+
+
+def _finite(X: torch.Tensor) -> torch.Tensor:
+    if not bool(torch.isfinite(X).all()):
+        raise ValueError(
+            "the solve produced non-finite values: the system matrix is singular or "
+            "numerically singular (a Laplacian without a mass term or Dirichlet values?)."
+        )
+    return X
+
+
+def _cholespy_available() -> bool:
+    try:
+        import cholespy  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _singular_message(A: torch.Tensor | sp.spmatrix, detail: str) -> str:
+    return (
+        f"the {A.shape[0]} x {A.shape[1]} system matrix is singular ({detail}). A Laplacian "
+        "alone has the constants in its kernel: solve with M0 + h L, or fix values at some "
+        "vertices with torch_polylap.dirichlet_solve."
+    )
+
+
+def _factorization(A: SparseOperator, backend: str) -> Factorization | CholeskyFactorization:
+    kind = CholeskyFactorization if backend == "cholesky" else Factorization
+    return solver_cache(A, backend, lambda: kind(A))
+
+
+class _Held:
+    """A sparse operator passed to an autograd.Function as a plain object: autograd and
+    torch.func must see only its value array as the differentiable input."""
+
+    __slots__ = ("A",)
+
+    def __init__(self, A: SparseOperator) -> None:
+        self.A = A
