@@ -63,7 +63,8 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
     # the route rule sends this size to ARPACK: force block Lanczos, which must not fall back
     monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: "lanczos")
     calls = []
-    monkeypatch.setattr(linalg.eigenpairs, "_eigs_arpack", lambda *a: calls.append(a))  # must not be used
+    # ARPACK must not be used
+    monkeypatch.setattr(linalg.eigenpairs, "_eigs_arpack", lambda *a: calls.append(a))
     evals, evecs = tp.eigs(L, M0, k)
     assert not calls
     Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
