@@ -5,8 +5,9 @@
 
 Libraries (each optional; a missing one is reported and skipped): plyfile (PLY), meshio (OBJ,
 OFF, PLY), potpourri3d (``read_polygon_mesh``; ``write_mesh`` writes OBJ), trimesh (reads all
-three, triangulating; not timed as a writer since it cannot write polygons) and openmesh
-(``read_polymesh`` / ``write_mesh``).
+three, triangulating; not timed as a writer since it cannot write polygons), openmesh
+(``read_polymesh`` / ``write_mesh``) and Adobe's lagrange (``lagrange.io.load_mesh`` /
+``save_mesh``, OBJ and PLY; already in the ``test`` extra).
 
 For every file each library's reader is run once and its result compared with
 ``torch_polylap.read_mesh``'s: the same vertex count and coordinates, and the same polygons in the
@@ -41,6 +42,7 @@ import contextlib
 import io
 import itertools
 import json
+import multiprocessing
 import os
 import platform
 import sys
@@ -62,6 +64,7 @@ from torch_polylap.io import SkippedContentWarning
 ROOT = Path(__file__).resolve().parents[1]
 REAL_DIR = ROOT.parent / "shared" / "data" / "meshes" / "real"
 MESH_EXTS = (".obj", ".off", ".ply")
+CHECK_TIMEOUT = 120.0  # seconds a library gets for its first read or write of a file
 
 # (verts (V, 3) float64, indices (sum of degrees,) int64, sizes (F,) int64)
 Mesh = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -79,6 +82,7 @@ meshio = _try_import("meshio")
 pp3d = _try_import("potpourri3d")
 trimesh = _try_import("trimesh")
 om = _try_import("openmesh")
+lagrange = _try_import("lagrange")
 
 
 # ---------------------------------------------------------------- adapters: library -> Mesh
@@ -182,6 +186,21 @@ def openmesh_read(path: Path) -> Mesh:
     return np.array(mesh.points(), dtype=np.float64), padded[keep], keep.sum(1)
 
 
+def lagrange_raw(path: Path):
+    return lagrange.io.load_mesh(str(path), quiet=True)
+
+
+def lagrange_read(path: Path) -> Mesh:
+    mesh = lagrange_raw(path)
+    indices = mesh.attribute(mesh.attr_id_corner_to_vertex).data.astype(np.int64)
+    if mesh.is_hybrid:
+        first = mesh.attribute(mesh.attr_id_facet_to_first_corner).data.astype(np.int64)
+        sizes = np.diff(np.append(first, len(indices)))
+    else:
+        sizes = np.full(mesh.num_facets, mesh.vertex_per_facet, dtype=np.int64)
+    return np.array(mesh.vertices, dtype=np.float64), indices, sizes
+
+
 # ---------------------------------------------------------------- adapters: Mesh -> file
 
 # write formats: "obj", "off", "ply" (ASCII), "plyb" (binary little endian)
@@ -246,6 +265,14 @@ def openmesh_write(path: Path, mesh: Mesh, fmt: str) -> None:
     om.write_mesh(str(path), om.PolyMesh(verts, padded), binary=fmt == "plyb")
 
 
+def lagrange_write(path: Path, mesh: Mesh, fmt: str) -> None:
+    verts, indices, sizes = mesh
+    out = lagrange.SurfaceMesh()
+    out.add_vertices(verts)
+    out.add_hybrid(sizes.astype(np.uint32), indices.astype(np.uint32))
+    lagrange.io.save_mesh(str(path), out, binary=fmt == "plyb")
+
+
 @dataclass
 class Library:
     name: str
@@ -284,6 +311,10 @@ LIBRARIES = [
     Library(
         "openmesh", "openmesh", openmesh_read, openmesh_raw, MESH_EXTS, openmesh_write,
         ("obj", "off", "ply", "plyb"), om is not None,
+    ),
+    Library(
+        "lagrange", "adobe-lagrange", lagrange_read, lagrange_raw, MESH_EXTS, lagrange_write,
+        ("obj", "ply", "plyb"), lagrange is not None,
     ),
 ]  # fmt: skip
 
@@ -337,6 +368,42 @@ def short_error(e: BaseException, folder: Path | None = None) -> str:
     if folder is not None:
         text = text.replace(str(folder) + "/", "")
     return "error: " + (text if len(text) <= 60 else text[:57] + "...")
+
+
+def guarded(check: Callable[[], dict], timeout: float) -> dict:
+    """``check()`` in a forked child: its dict, or ``{"verdict": ...}`` saying that it raised,
+    hung (no answer in ``timeout`` seconds: the child is killed) or crashed."""
+    ctx = multiprocessing.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+
+    def child() -> None:
+        try:
+            out = quietly(check)
+        except BaseException as e:  # noqa: BLE001 -- meshio raises SystemExit
+            out = {"verdict": short_error(e), "error": " ".join(str(e).split())[:500]}
+        send.send(out)
+
+    proc = ctx.Process(target=child, daemon=True)
+    proc.start()
+    send.close()
+    try:
+        if receive.poll(timeout):
+            return receive.recv()
+        if proc.is_alive():
+            return {"verdict": f"hangs (killed after {timeout:g} s)"}
+        return {"verdict": f"crashes (exit code {proc.exitcode})"}
+    except EOFError:
+        proc.join()
+        return {"verdict": f"crashes (exit code {proc.exitcode})"}
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        proc.join()
+        receive.close()
+
+
+def failed(entry: dict) -> bool:
+    return entry["verdict"].startswith(("error", "hangs", "crashes", "read back"))
 
 
 def quietly(fn: Callable[[], object]) -> object:
@@ -502,13 +569,14 @@ def bench_malformed(label: str, path: Path, libs: list[Library]) -> dict:
     the message is kept as ``error``) or return a mesh."""
 
     def verdict(read: Callable[[Path], Mesh]) -> dict:
-        try:
-            verts, _, sizes = quietly(lambda: read(path))
-        except BaseException as e:  # noqa: BLE001 -- meshio raises SystemExit
-            if isinstance(e, KeyboardInterrupt):
-                raise
-            return {"verdict": "raises", "error": short_error(e, path.parent)}
-        return {"verdict": f"returns a mesh (V={len(verts)}, F={len(sizes)})"}
+        def check() -> dict:
+            verts, _, sizes = read(path)
+            return {"verdict": f"returns a mesh (V={len(verts)}, F={len(sizes)})"}
+
+        out = guarded(check, CHECK_TIMEOUT)
+        if out["verdict"].startswith("error"):
+            return {"verdict": "raises", "error": out["error"].replace(str(path.parent) + "/", "")}
+        return out
 
     row = {"case": label, "file": path.name, "ours": verdict(ours_read), "libs": {}}
     for lib in libs:
@@ -558,16 +626,9 @@ def bench_read(
             row["libs"][lib.name] = {"verdict": "n/a"}
             continue
         print(f"  {lib.name} reads {path.name}", file=sys.stderr)
-        try:
-            got = quietly(lambda lib=lib: lib.read(path))
-        except BaseException as e:  # noqa: BLE001 -- meshio raises SystemExit
-            if isinstance(e, KeyboardInterrupt):
-                raise
-            row["libs"][lib.name] = {"verdict": short_error(e)}
-            continue
-        entry = {"verdict": compare(ref, got)}
+        entry = guarded(lambda lib=lib: {"verdict": compare(ref, lib.read(path))}, CHECK_TIMEOUT)
         row["libs"][lib.name] = entry
-        if timing:
+        if timing and not failed(entry):
             try:
                 entry["read_s"] = time_call(lambda lib=lib: lib.read(path), repeat)
                 if raw:
@@ -593,21 +654,21 @@ def bench_write(
             continue
         print(f"  {lib.name} writes {label} as {fmt}", file=sys.stderr)
         path = folder / f"written_{lib.name}{FORMAT_EXT[fmt]}"
-        try:
-            quietly(lambda lib=lib, path=path: lib.write(path, mesh, fmt))
-        except BaseException as e:  # noqa: BLE001
-            if isinstance(e, KeyboardInterrupt):
-                raise
-            row["libs"][lib.name] = {"verdict": short_error(e)}
+
+        def check(lib: Library = lib, path: Path = path) -> dict:
+            lib.write(path, mesh, fmt)
+            try:
+                verdict = compare(mesh, ours_read(path))
+            except Exception as e:
+                verdict = "read back: " + short_error(e, folder)
+            return {"verdict": verdict, "bytes": path.stat().st_size}
+
+        entry = guarded(check, CHECK_TIMEOUT)
+        row["libs"][lib.name] = entry
+        if failed(entry) and not entry["verdict"].startswith("read back"):
             continue
-        try:
-            verdict = compare(mesh, quietly(lambda path=path: ours_read(path)))
-        except Exception as e:
-            verdict = "read back: " + short_error(e, folder)
-        entry = {"verdict": verdict, "bytes": path.stat().st_size}
         entry["write_s"] = time_call(lambda lib=lib, path=path: lib.write(path, mesh, fmt), repeat)
         entry["ratio"] = entry["write_s"] / row["ours"]["write_s"]
-        row["libs"][lib.name] = entry
         path.unlink()
     return row
 
