@@ -18,7 +18,7 @@ from torch_polylap.kernels.plms import _fan_minimizer
 from torch_polylap.shapes import quad_grid
 from torch_polylap.sparse import sparse_values, to_scipy
 
-igl = pytest.importorskip("igl")
+igl = pytest.importorskip("igl", reason="libigl (PLMS reference) missing: pip install libigl")
 
 METHODS = ("aw11", "plms", "degoes")
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "real"

@@ -273,7 +273,7 @@ def test_laplacian_on_irregular_meshes(name, V, F, expect):
     assert int((eig < 1e-9 * eig[-1]).sum()) == n_comp
     assert np.allclose(Ld, _reference_laplacian(V, F), rtol=0, atol=1e-12 * np.abs(Ld).max())
     if all(len(f) == 3 for f in F):
-        igl = pytest.importorskip("igl")
+        igl = pytest.importorskip("igl", reason="libigl not installed (pip install libigl)")
         C = igl.cotmatrix(V.numpy(), np.asarray(F, dtype=np.int64)).toarray()
         assert np.allclose(Ld, -C, rtol=0, atol=1e-12 * np.abs(Ld).max())
     assert float(M0.to_dense().diagonal().sum()) == pytest.approx(
