@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.sparse as sp
 import torch
 from conftest import DATA, assert_directional_derivative, hex_pent_mesh, mixed_mesh
 from meshes import require_shared
@@ -239,3 +240,32 @@ def test_dirichlet_solve_refuses_bad_fixed_rows():
         tp.dirichlet_solve(L, b, torch.tensor([0.5]), torch.zeros(1, **D64))
     with pytest.raises(ValueError, match="do not fit"):
         tp.dirichlet_solve(L, b, torch.tensor([0, 1]), torch.zeros(3, **D64))
+
+
+def test_preconditioned_cg_with_the_exact_inverse_takes_one_step():
+    from torch_polylap.linalg.solves import preconditioned_cg
+
+    A = torch.tensor([[4.0, 1, 0], [1, 3, 1], [0, 1, 2]], dtype=torch.float64)
+    B = torch.tensor([[1.0, 0], [2, 1], [3, -1]], dtype=torch.float64)
+    calls = []
+
+    def exact(R: torch.Tensor) -> torch.Tensor:
+        calls.append(1)
+        return torch.linalg.solve(A, R)
+
+    X, ok = preconditioned_cg(A, B, exact, 1e-12, 10)
+    assert ok and len(calls) == 2  # the initial residual and the one after the exact step
+    assert torch.allclose(X, torch.linalg.solve(A, B), atol=1e-14)
+    _, ok = preconditioned_cg(A, B, lambda R: R, 1e-12, 1)
+    assert not ok  # one unpreconditioned step does not solve a 3 x 3 system
+
+
+def test_factorization_check_can_be_skipped():
+    from torch_polylap.linalg.factor import spd_factorization
+
+    A = tp.sparse.from_scipy(sp.diags([1.0, 1e-17, 2.0]).tocsr())
+    with pytest.raises(ValueError, match="singular"):
+        spd_factorization(A)
+    X = spd_factorization(A, check=False).solve(torch.ones(3, 1, dtype=torch.float64))
+    assert torch.allclose(X[[0, 2], 0], torch.tensor([1.0, 0.5], dtype=torch.float64))
+    assert X[1, 0] > 1e16  # what the check would have refused: the caller asked for it

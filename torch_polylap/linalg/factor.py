@@ -36,16 +36,18 @@ class Factorization:
 
     Built from ``A``'s values at one point in time and cached on ``A`` by
     :func:`torch_polylap.sparse.solver_cache`, which checks the values' storage and version
-    counter before reusing it.
+    counter before reusing it. ``check`` refuses a numerically singular ``A`` (one extra
+    solve); a caller that handles ill-conditioning itself (damped Gauss-Newton) passes False.
     """
 
-    def __init__(self, A: torch.Tensor) -> None:
+    def __init__(self, A: torch.Tensor, check: bool = True) -> None:
         S = sp.csc_matrix(to_scipy(A).astype(np.float64))
         try:
             self.lu = spd_splu(S)
         except RuntimeError as err:
             raise ValueError(_singular_message(A, str(err))) from None
-        _check_not_singular(A, S, lambda b: self.lu.solve(b))
+        if check:
+            _check_not_singular(A, S, lambda b: self.lu.solve(b))
 
     def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
         X = self.lu.solve(
@@ -72,13 +74,19 @@ class CholeskyFactorization:
     matrix's device (CPU, or CUDA through cholespy's GPU solver), via the optional ``cholespy``.
 
     Faster than SuperLU for the SPD systems of this package (``M0 + h L``, Dirichlet blocks of
-    ``L``) and the only direct solver here that runs on a GPU.
+    ``L``) and the only direct solver here that runs on a GPU. ``check`` as for
+    :class:`Factorization`.
     """
 
     # cholespy's CUDA solve takes at most this many right-hand sides at once
     _CUDA_COLUMNS = 128
 
-    def __init__(self, A: torch.Tensor | sp.spmatrix, device: torch.device | None = None) -> None:
+    def __init__(
+        self,
+        A: torch.Tensor | sp.spmatrix,
+        device: torch.device | None = None,
+        check: bool = True,
+    ) -> None:
         from cholespy import CholeskySolverD, MatrixType
 
         device = A.device if isinstance(A, torch.Tensor) else torch.device(device or "cpu")
@@ -95,6 +103,8 @@ class CholeskyFactorization:
             raise ValueError(_singular_message(A, str(err))) from None
         self.device = device
         _LIVE_CHOLESKY.add(self)
+        if not check:
+            return
 
         def solve_numpy(b: np.ndarray) -> np.ndarray:
             rhs = torch.from_numpy(b).to(self.device)[:, None]
@@ -153,6 +163,18 @@ def _singular_message(A: torch.Tensor | sp.spmatrix, detail: str) -> str:
         f"the {A.shape[0]} x {A.shape[1]} system matrix is singular ({detail}). A Laplacian "
         "alone has the constants in its kernel: solve with M0 + h L, or fix values at some "
         "vertices with torch_polylap.dirichlet_solve."
+    )
+
+
+def spd_factorization(
+    A: SparseOperator, check: bool = True
+) -> Factorization | CholeskyFactorization:
+    """An uncached factorization of a symmetric positive definite ``A``: CHOLMOD when cholespy
+    is installed (on ``A``'s device), else SuperLU on the CPU."""
+    return (
+        CholeskyFactorization(A, check=check)
+        if _cholespy_available()
+        else Factorization(A, check=check)
     )
 
 

@@ -10,6 +10,7 @@ backward solve and by later solves with the same values.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -25,33 +26,50 @@ from ..sparse import (
 from .factor import _cholespy_available, _factorization, _Held
 
 
-def _cg(A: torch.Tensor, B: torch.Tensor, tol: float, max_iter: int) -> torch.Tensor:
-    """Jacobi-preconditioned conjugate gradients on every column of ``B`` at once (SPD ``A``)."""
-    Ad = A.detach()
-    diag = Ad.diagonal()
-    if bool((diag <= 0).any()):
-        raise ValueError("conjugate gradients needs a positive diagonal (an SPD matrix).")
-    inv_diag = (1.0 / diag)[:, None]
+def preconditioned_cg(
+    A: torch.Tensor,
+    B: torch.Tensor,
+    precondition: Callable[[torch.Tensor], torch.Tensor],
+    tol: float,
+    max_iter: int,
+) -> tuple[torch.Tensor, bool]:
+    """Preconditioned conjugate gradients on every column of ``(n, c)`` ``B`` at once.
+
+    ``A`` is SPD (anything with ``A @ X``), ``precondition`` applies an SPD approximation of
+    ``A^{-1}`` to an ``(n, c)`` block. Returns ``X`` and whether every column reached the
+    relative residual ``tol`` within ``max_iter`` iterations (no autograd).
+    """
     X = torch.zeros_like(B)
     R = B.clone()
-    Z = inv_diag * R
+    Z = precondition(R)
     P = Z.clone()
     rz = (R * Z).sum(0)
     tiny = torch.finfo(B.dtype).tiny
     target = tol * torch.linalg.vector_norm(B, dim=0)
     for _ in range(max_iter):
         if bool((torch.linalg.vector_norm(R, dim=0) <= target).all()):
-            return X
-        AP = Ad @ P
+            return X, True
+        AP = A @ P
         # converged (or zero) columns have rz = 0: keep them where they are instead of 0 / 0
         alpha = torch.where(rz > 0, rz / (P * AP).sum(0).clamp_min(tiny), 0.0)
         X = X + alpha * P
         R = R - alpha * AP
-        Z = inv_diag * R
+        Z = precondition(R)
         rz_new = (R * Z).sum(0)
         P = Z + torch.where(rz > 0, rz_new / rz.clamp_min(tiny), 0.0) * P
         rz = rz_new
-    if bool((torch.linalg.vector_norm(R, dim=0) <= target).all()):
+    return X, bool((torch.linalg.vector_norm(R, dim=0) <= target).all())
+
+
+def _cg(A: torch.Tensor, B: torch.Tensor, tol: float, max_iter: int) -> torch.Tensor:
+    """Jacobi-preconditioned conjugate gradients (SPD ``A``); raises when it does not converge."""
+    Ad = A.detach()
+    diag = Ad.diagonal()
+    if bool((diag <= 0).any()):
+        raise ValueError("conjugate gradients needs a positive diagonal (an SPD matrix).")
+    inv_diag = (1.0 / diag)[:, None]
+    X, converged = preconditioned_cg(Ad, B, lambda R: inv_diag * R, tol, max_iter)
+    if converged:
         return X
     raise ValueError(
         f"conjugate gradients did not reach a relative residual of {tol:g} in {max_iter} "
