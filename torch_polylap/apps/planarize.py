@@ -8,7 +8,7 @@ the corner centroid ``c_f``, over the face diameter; the quantity the stopping c
 measures), with the unit normals ``n_f`` as unknowns next to the positions. The normals are
 eliminated face by face (a ``2 x 2`` Schur complement per face) and reset to the least-squares
 normals after every step (variable projection), so each iteration is one sparse SPD solve in the
-free vertex coordinates with :func:`torch_polylap.solve` (CHOLMOD when cholespy is installed).
+free vertex coordinates (CHOLMOD when cholespy is installed, else SuperLU).
 It minimizes
 
     Phi(X) = 1/2 sum_f sum_{i in f} r_fi^2 + closeness/2 sum_i |x_i - x0_i|^2 / h^2
@@ -47,7 +47,7 @@ import torch
 
 from ..assembly import MeshFaces
 from ..checks import check_index_or_mask, check_verts
-from ..linalg import solve
+from ..linalg.factor import spd_factorization
 from ..measures import face_nonplanarity, planarity_energy
 from ..sparse.operator import SparseOperator
 from ..sparse.pattern import SparsityPattern
@@ -101,6 +101,9 @@ def _stats(x: torch.Tensor) -> tuple[float, float]:
 _Parts = list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]]
 # what a method returns: (positions, iterations, energies, objectives, stop reason)
 _Run = tuple[torch.Tensor, int, list[float], list[float], str]
+# Levenberg-Marquardt damping, relative to each vertex's stiffness: start, and floor
+_MU_START = 1e-6
+_MU_MIN = 1e-12
 
 
 def _lm_setup(
@@ -161,11 +164,17 @@ def _plane_objective(y: torch.Tensor, parts: _Parts) -> float:
 
 
 def _gauss_newton_system(
-    y: torch.Tensor, parts: _Parts, free_dofs: torch.Tensor, m: int
-) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    y: torch.Tensor, parts: _Parts, free_dofs: torch.Tensor, h: float
+) -> tuple[torch.Tensor, list[torch.Tensor], torch.Tensor]:
     """Gradient and Gauss-Newton matrix values of the plane objective in the free dofs, with the
-    per-face normals as extra unknowns eliminated face by face (Schur complement)."""
+    per-face normals as extra unknowns eliminated face by face (Schur complement), and each free
+    dof's stiffness for the damping: a third of the trace of its vertex's ``3 x 3`` block,
+    ``sum_f (1 - 1/k) / (3 diam_f^2)``, plus ``1 / h^2`` (``h``: the mean edge length) so that
+    vertices of triangles only are damped too. Per vertex, not global: a face much smaller
+    than the others has entries ``1 / diam_f^2`` that a global damping would not reach,
+    leaving the matrix numerically indefinite."""
     grad = y.new_zeros(3 * y.shape[0])
+    stiffness = y.new_full((y.shape[0],), 1.0 / h**2)
     values = []
     for k, corners, _dofs, keep in parts:
         centered, s, evals, evecs = _face_fit(y, corners)
@@ -185,6 +194,9 @@ def _gauss_newton_system(
         hnn = evals[:, 1:] / (s**2)[:, None]  # J_n^T J_n = diag(lambda_2, lambda_3) / s^2
         hnn = hnn + 1e-12 * hnn.sum(1, keepdim=True) + torch.finfo(y.dtype).tiny
         schur = hyy - (hyn / hnn[:, None, :]) @ hyn.transpose(1, 2)
+        stiffness.index_add_(
+            0, corners.reshape(-1), ((1 - 1 / k) / (3 * s**2)).repeat_interleave(k)
+        )
         g = ((pc @ r[:, :, None]) * nrm[:, None, :]) / s[:, None, None]  # (F, k, 3) = J_y^T r
         grad.index_add_(
             0,
@@ -192,7 +204,7 @@ def _gauss_newton_system(
             g.reshape(-1),
         )
         values.append(schur[keep])
-    return grad[free_dofs], values
+    return grad[free_dofs], values, stiffness.repeat_interleave(3)[free_dofs]
 
 
 METHODS = ("gauss-newton", "lbfgs")
@@ -367,9 +379,7 @@ def _gauss_newton(
     phi = total(y)
     energies = [float(planarity_energy(y, topo, lam))]
     objectives = [phi]
-    # damping relative to the typical stiffness 1 / diam^2 of a corner
-    stiff = 1.0 / h**2
-    mu = 1e-6
+    mu = _MU_START
     iterations, reason = 0, "max_iter"
     while worst >= tol and m:
         if iterations >= max_iter:
@@ -381,20 +391,26 @@ def _gauss_newton(
         if mu > 1e6:
             reason = "stalled"
             break
-        grad, blocks = _gauss_newton_system(y, parts, free_dofs, m)
+        grad, blocks, stiffness = _gauss_newton_system(y, parts, free_dofs, h)
         grad = grad + wc * (y - y0).reshape(-1)[free_dofs]
-        diag = torch.full((m,), wc + mu * stiff, dtype=y.dtype, device=y.device)
+        diag = wc + mu * stiffness
         values = y.new_zeros(pattern.nnz)
         values.index_add_(0, inverse, torch.cat([*blocks, diag]))
         A = SparseOperator(pattern, values, symmetric=True)
-        delta = solve(A, -grad)
-        trial = y.clone()
-        trial.view(-1)[free_dofs] += delta
-        phi_trial = total(trial)
+        try:
+            # no singularity check: the damping keeps A positive definite (per vertex), and a
+            # step that still comes out non-finite (ValueError) counts as one that fails to
+            # decrease Phi: more damping
+            delta = spd_factorization(A, check=False).solve(-grad[:, None])[:, 0]
+            trial = y.clone()
+            trial.view(-1)[free_dofs] += delta
+            phi_trial = total(trial)
+        except ValueError:
+            trial, phi_trial = y, math.inf
         iterations += 1
         if phi_trial < phi:
             y, phi = trial, phi_trial
-            mu = max(mu / 10, 1e-12)
+            mu = max(mu / 10, _MU_MIN)
             energies.append(float(planarity_energy(y, topo, lam)))
             objectives.append(phi)
             worst = float(face_nonplanarity(y, topo).max())
