@@ -2,13 +2,17 @@
 vertices triangulated two ways.
 
     python examples/conformal_parameterization.py [--lam 1.0] [--out examples/output]
+        [--families ../shared/data/meshes/grid] [--level 2]
 
 Meshes: the embedded hexagon/pentagon hemisphere cap (``torch_polylap/data/hex_hemisphere.obj``,
 75 slightly non-planar hexagons) and a procedural patch of irregular, non-planar quads on a
-saddle. Each is flattened with the polygon Laplacian and, for comparison, the same vertex set
-triangulated by two different fans (every polygon cut from its corner 0, or from its corner 1);
-on triangles this package's Laplacian is the cotan Laplacian, so those maps are cotan LSCM
-(pinned) and spectral conformal maps (free boundary).
+saddle; and, when the folder ``--families`` exists (the refinement families of the AW11
+literature, not shipped with the package), every polygon family of it at ``--level``, mapped to
+``[-1, 1]^2`` and lifted onto the same saddle, for a second table: free-boundary maps, polygon
+against both fans, one row per family. Each mesh is flattened with the polygon Laplacian and,
+for comparison, the same vertex set triangulated by two different fans (every polygon cut from
+its corner 0, or from its corner 1); on triangles this package's Laplacian is the cotan
+Laplacian, so those maps are cotan LSCM (pinned) and spectral conformal maps (free boundary).
 
 All three maps are scored on the *polygon* mesh: ``E_C`` with the polygon Laplacian, normalized
 by the image area (scale free), and the polygon corner-angle error (corners of the faces'
@@ -32,6 +36,11 @@ from torch_polylap.plot import new_figure, plot_uv, save_figure
 from torch_polylap.shapes import quad_grid
 
 DATA = Path(tp.__file__).resolve().parent / "data"
+FAMILIES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "grid"
+
+
+def saddle(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    return 0.6 * (x**2 - y**2)
 
 
 def saddle_quads(n: int = 10, seed: int = 0) -> tuple[torch.Tensor, tp.PolygonFaces]:
@@ -41,9 +50,46 @@ def saddle_quads(n: int = 10, seed: int = 0) -> tuple[torch.Tensor, tp.PolygonFa
         extent=(-1.0, 1.0, -1.0, 1.0),
         seed=seed,
         jitter=0.15,
-        height=lambda x, y: 0.6 * (x**2 - y**2),
+        height=saddle,
     )
     return verts, tp.as_faces(quads)
+
+
+def lifted_family(path: Path) -> tuple[torch.Tensor, tp.PolygonFaces]:
+    """A planar grid family mesh, scaled to ``[-1, 1]^2`` and lifted onto :func:`saddle`."""
+    verts, faces = tp.read_mesh(path)
+    xy = verts[:, :2].double()
+    lo, hi = xy.amin(0), xy.amax(0)
+    xy = 2 * (xy - lo) / (hi - lo) - 1
+    return torch.cat((xy, saddle(xy[:, 0], xy[:, 1])[:, None]), 1), tp.as_faces(faces)
+
+
+def family_table(folder: Path, level: int, lam: float) -> str:
+    """Free-boundary maps of every polygon family at ``level``: polygon vs. both fans."""
+    lines = [
+        "| family | faces (degrees) | mean angle error (deg): polygons / fan 0 / fan 1 "
+        "| polygons / better fan | E_C/A (polygon L): polygons / fan 0 / fan 1 |",
+        "|---|---|---|---|---|",
+    ]
+    for path in sorted(folder.glob(f"*_{level}.obj")):
+        family = path.stem.rsplit("_", 1)[0]
+        V, F = lifted_family(path)
+        if bool((F.sizes == 3).all()):
+            continue  # a triangle mesh is its own fan: the maps coincide
+        scores = [
+            score(conformal_parameterization(V, t, lam=lam, free_boundary=True), V, F, t, lam)
+            for t in (F, fan(F, 0), fan(F, 1))
+        ]
+        means = [s["mean"] for s in scores]
+        degrees = "/".join(str(k) for k in torch.unique(F.sizes).tolist())
+        lines.append(
+            f"| {family} | {F.num_faces} ({degrees}) | "
+            + " / ".join(f"{m:.3f}" for m in means)
+            + f" | {means[0] / min(means[1:]):.3f} | "
+            + " / ".join(f"{s['ec_poly']:.3e}" for s in scores)
+            + " |"
+        )
+    return "\n".join(lines)
 
 
 def fan(faces: tp.PolygonFaces, start: int) -> torch.Tensor:
@@ -87,6 +133,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--lam", type=float, default=1.0)
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output")
+    ap.add_argument("--families", type=Path, default=FAMILIES)
+    ap.add_argument("--level", type=int, default=2)
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
@@ -132,11 +180,22 @@ def main() -> int:
     save_figure(fig, png)
     table = "\n".join(lines)
     print(table)
-    (args.out / "conformal_parameterization.md").write_text(
+    text = (
         "# Conformal parameterization: polygons vs. triangulations\n\n"
         f"lambda = {args.lam}; E_C/A = conformal energy over image area (scale free); angle "
         "errors on the polygon corners (maximal-projection angles).\n\n" + table + "\n"
     )
+    if args.families.is_dir():
+        families = family_table(args.families, args.level, args.lam)
+        print("\n" + families)
+        text += (
+            f"\n## The grid families at level {args.level} on the saddle, free boundary\n\n"
+            + families
+            + "\n"
+        )
+    else:
+        print(f"\n{args.families} not found: the family table is skipped")
+    (args.out / "conformal_parameterization.md").write_text(text)
     print(f"\nwrote {png} and {args.out / 'conformal_parameterization.md'}")
     return 0
 
