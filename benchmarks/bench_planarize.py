@@ -1,46 +1,63 @@
-"""Planarizing flow (AW11 sec. 5.3) against libigl's Shape-Up quad planarization.
+"""Planarization (AW11 sec. 5.3) against Shape-Up: libigl's and a vectorized one, at equal
+iteration budgets and at equal time.
 
-    python benchmarks/bench_planarize.py [--meshes spot_quadrangulated.obj ...] [--tol 1e-4]
-        [--shapeup-iters 10 50 200] [--igl-python /work/igl241/bin/python] [--json PATH]
+    python benchmarks/bench_planarize.py [--meshes NAME ...] [--tol 1e-4]
+        [--budgets 1 5 10 50 200] [--igl-python /work/igl241/bin/python]
+        [--igl-max-seconds 120] [--igl-max-vertices 10000] [--json PATH]
 
-For every pure-quad mesh: ``torch_polylap.apps.planarize`` with ``method="lbfgs"`` (L-BFGS on
-``E_plan``, lambda = 2, no constraints, stopped when the largest non-planarity is below
-``--tol``) and with its default ``method="gauss-newton"`` (Gauss-Newton on the face-plane
-residuals, a separate table) against
-``igl.planarize_quad_mesh`` (Shape-Up projections, Bouaziz et al. 2012, as in libigl; parameters
-``maxIter`` and ``threshold``; ``threshold`` is set to ``--tol``, libigl's own stopping measure).
-``planarize_quad_mesh`` left libigl's Python bindings after 2.4.1, so it runs in a separate
-interpreter (``--igl-python``, a venv with libigl 2.4.1 and numpy < 2) on ``.npz`` files and is
-timed inside that process. Both run single-threaded (torch threads and OMP_NUM_THREADS = 1): the
-machine is shared and multi-threaded kernels stall under load.
+Meshes: every pure-quad mesh of ``../shared/data/meshes/real`` (found by reading them all) and
+generated architectural quad grids (a hyperbolic paraboloid over its rulings, a freeform roof,
+a perturbed cube-sphere dome); ``--meshes`` picks some by name. Contenders, one thread each:
 
-Every result is measured with the same function, :func:`torch_polylap.face_nonplanarity`
-(largest corner distance from the plane of the face's maximal projection, over the face
-diameter; a second table uses each face's least-squares plane, ``plane="fit"``), and
-displacement is relative to the bounding-box diagonal. Prints a Markdown table;
-``--json`` (default ``benchmarks/results/planarize.json``) writes the numbers.
+* ours: ``torch_polylap.apps.planarize`` with its defaults (Gauss-Newton on the face-plane
+  residuals) and with ``method="lbfgs"`` (the paper's descent of ``E_plan``, 60 s at most);
+* Shape-Up, vectorized (``shapeup.py`` beside this script): the same local projection and
+  prefactored global step as libigl, without its per-face loop; run until it reaches ``tol``,
+  for 100,000 iterations, or for ``max(30 s, 10x ours)`` but at most ``--su-max-seconds``
+  (300);
+* libigl's ``igl.planarize_quad_mesh`` (Shape-Up as in libigl 2.4.1; the function left the
+  Python bindings after 2.4.1, so it runs in a separate interpreter, ``--igl-python``, on
+  ``.npz`` files and is timed inside that process), at each iteration budget with
+  ``threshold = 0``; skipped where its time predicted from the first budget exceeds
+  ``--igl-max-seconds`` (120) and on meshes of more than ``--igl-max-vertices`` (10,000): its
+  iterations cost ``O(V F)`` (a selector matrix of the full width per face). Its output is
+  compared with the vectorized Shape-Up's after the same iterations (positions, after removing
+  the translation of every connected part, which libigl leaves to round-off: its system matrix
+  is singular).
+
+Every result is measured with :func:`torch_polylap.face_nonplanarity` (largest corner distance
+from the plane of the face's maximal projection, over the face diameter). Shape change: the
+displacement over the bounding-box diagonal and the relative change of the total face area
+(:func:`torch_polylap.face_areas`). "At equal time" is the largest non-planarity Shape-Up had
+reached when ours had converged (its setup, the factorization, counted; its non-planarity checks
+not). Prints Markdown tables; ``--json`` (default ``benchmarks/results/planarize.json``) writes
+the numbers.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
 import sys
 import tempfile
 import time
+import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
+from common import cpu_model, markdown_table
+from shapeup import ShapeUp
 
 import torch_polylap as tp
 from torch_polylap.apps import planarize
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "real"
-DEFAULT_MESHES = ["quadknot.obj", "catmark_car.obj", "spot_quadrangulated.obj"]
 SHAPEUP = """
 import sys, time
 import numpy as np, igl
@@ -48,168 +65,295 @@ d = np.load(sys.argv[1])
 V = np.ascontiguousarray(d["V"], dtype=np.float64)
 F = np.ascontiguousarray(d["F"], dtype=np.int64)
 start = time.perf_counter()
-out = igl.planarize_quad_mesh(V, F, int(d["max_iter"]), float(d["threshold"]))
+out = igl.planarize_quad_mesh(V, F, int(d["max_iter"]), 0.0)
 seconds = time.perf_counter() - start
 np.savez(sys.argv[2], V=np.asarray(out, dtype=np.float64), seconds=seconds)
 """
 
 
-def stats(V: torch.Tensor, V0: torch.Tensor, F: torch.Tensor) -> dict:
+def hypar(n: int = 40) -> tuple[torch.Tensor, torch.Tensor]:
+    """``z = x y / 2`` over ``[-1, 1]^2``, the grid along its rulings: every quad is skew."""
+    return tp.shapes.quad_grid(n, extent=(-1.0, 1.0, -1.0, 1.0), height=lambda x, y: 0.5 * x * y)
+
+
+def roof(n: int = 120, m: int = 80) -> tuple[torch.Tensor, torch.Tensor]:
+    """A freeform roof: a jittered grid under a two-wave height field."""
+
+    def height(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return 0.3 * torch.sin(math.pi * x) * torch.cos(0.5 * math.pi * y) + 0.1 * x * y
+
+    return tp.shapes.quad_grid(n, m, extent=(0.0, 3.0, 0.0, 2.0), height=height, seed=1, jitter=0.2)
+
+
+def dome(n: int = 24) -> tuple[torch.Tensor, torch.Tensor]:
+    """The upper half of a cube sphere with radial noise: a closed-ring dome of quads."""
+    V, F = tp.shapes.quad_sphere(n, noise=0.01, seed=2)
+    keep = (V[F][:, :, 2] > -1e-9).all(1)
+    F = F[keep]
+    used = torch.unique(F)
+    remap = torch.full((V.shape[0],), -1, dtype=torch.int64)
+    remap[used] = torch.arange(used.numel())
+    return V[used], remap[F]
+
+
+GENERATED: dict[str, Callable[[], tuple[torch.Tensor, torch.Tensor]]] = {
+    "hypar 40x40": hypar,
+    "roof 120x80": roof,
+    "dome 24": dome,
+    "roof 300x200": lambda: roof(300, 200),
+}
+
+
+Mesh = tuple[str, torch.Tensor, torch.Tensor]
+
+
+def load_meshes(names: list[str] | None, real: Path) -> list[Mesh]:
+    meshes = []
+    if real.exists():
+        for path in sorted(real.iterdir()):
+            if path.suffix not in (".obj", ".off", ".ply") or (names and path.name not in names):
+                continue
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                V, faces = tp.read_mesh(path)
+            F = faces.as_uniform()
+            if F is not None and F.shape[1] == 4:
+                meshes.append((path.name, V.double(), F))
+    else:
+        print(f"{real} missing: real meshes skipped", file=sys.stderr)
+    for name, make in GENERATED.items():
+        if not names or name in names:
+            V, F = make()
+            meshes.append((name, V.double(), F))
+    return meshes
+
+
+def shape(V: torch.Tensor, V0: torch.Tensor, F: torch.Tensor) -> dict:
     n = tp.face_nonplanarity(V, F)
-    fit = tp.face_nonplanarity(V, F, plane="fit")
     diag = float((V0.amax(0) - V0.amin(0)).norm())
     disp = (V - V0).norm(dim=1) / diag
+    area0 = float(tp.face_areas(V0, F).sum())
     return {
         "nonplanarity_max": float(n.max()),
         "nonplanarity_mean": float(n.mean()),
-        "fit_plane_max": float(fit.max()),
-        "fit_plane_mean": float(fit.mean()),
         "displacement_max": float(disp.max()),
         "displacement_mean": float(disp.mean()),
+        "area_change": float(tp.face_areas(V, F).sum()) / area0 - 1.0,
     }
 
 
-def shape_up(python: str, V: torch.Tensor, F: torch.Tensor, max_iter: int, threshold: float):
+def libigl(python: str, V: torch.Tensor, F: torch.Tensor, iters: int) -> tuple[np.ndarray, float]:
     with tempfile.TemporaryDirectory() as tmp:
         src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
-        np.savez(src, V=V.numpy(), F=F.numpy(), max_iter=max_iter, threshold=threshold)
+        np.savez(src, V=V.numpy(), F=F.numpy(), max_iter=iters)
         env = dict(os.environ, OMP_NUM_THREADS="1")
-        subprocess.run([python, "-c", SHAPEUP, str(src), str(dst)], check=True, env=env)
+        subprocess.run(
+            [python, "-c", SHAPEUP, str(src), str(dst)],
+            check=True,
+            env=env,
+            stderr=subprocess.DEVNULL,  # libigl prints one line per iteration
+        )
         out = np.load(dst)
-        return torch.from_numpy(out["V"]), float(out["seconds"])
+        return np.asarray(out["V"]), float(out["seconds"])
+
+
+def part_demeaned(X: np.ndarray, part: np.ndarray) -> np.ndarray:
+    count = np.bincount(part)
+    mean = np.stack([np.bincount(part, X[:, c]) for c in range(3)], axis=1) / count[:, None]
+    return X - mean[part]
+
+
+def run_ours(V: torch.Tensor, F: torch.Tensor, tol: float, **kw: object) -> dict:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # stopping above tol is reported in the table
+        start = time.perf_counter()
+        res = planarize(V, F.clone(), tol=tol, **kw)  # type: ignore[arg-type]
+        seconds = time.perf_counter() - start
+    return shape(res.verts, V, F) | {
+        "seconds": seconds,
+        "iterations": res.iterations,
+        "converged": res.converged,
+    }
+
+
+def at_time(trace_seconds: list[float], trace_np: list[float], before: float, t: float) -> tuple:
+    """Shape-Up's largest non-planarity and iterations done by time ``t``."""
+    done = int(np.searchsorted(np.asarray(trace_seconds), t, side="right"))
+    return (trace_np[done - 1] if done else before), done
+
+
+def bench_mesh(name: str, V: torch.Tensor, F: torch.Tensor, args: argparse.Namespace) -> dict:
+    print(f"{name}: {V.shape[0]} vertices, {F.shape[0]} quads", file=sys.stderr)
+    before = shape(V, V, F)
+    rec: dict = {"mesh": name, "V": V.shape[0], "F": F.shape[0], "before": before}
+    rec["ours"] = gn = run_ours(V, F, args.tol)
+    rec["lbfgs"] = run_ours(V, F, args.tol, method="lbfgs", max_iter=100000, time_limit=60.0)
+
+    su = ShapeUp(V.numpy(), F.numpy())
+    limit = min(max(30.0, 10 * gn["seconds"]), args.su_max_seconds)
+    trace = su.run(args.su_max_iter, tol=args.tol, time_limit=limit, faces=F)
+    reached = trace.nonplanarity[-1] if trace.iterations else before["nonplanarity_max"]
+    rec["shapeup"] = shape(torch.from_numpy(trace.verts), V, F) | {
+        "setup_seconds": trace.setup_seconds,
+        "iterations": trace.iterations,
+        "seconds": trace.seconds[-1] if trace.iterations else trace.setup_seconds,
+        "converged": reached < args.tol,
+    }
+    np_eq, it_eq = at_time(
+        trace.seconds, trace.nonplanarity, before["nonplanarity_max"], gn["seconds"]
+    )
+    rec["equal_time"] = {
+        "seconds": gn["seconds"],
+        "shapeup_iterations": it_eq,
+        "shapeup_nonplanarity_max": np_eq,
+        "ratio": np_eq / gn["nonplanarity_max"],
+    }
+
+    rec["budgets"] = []
+    igl_per_iter = None
+    for b in args.budgets:
+        row: dict = {"budget": b}
+        row["ours"] = (
+            gn if b >= gn["iterations"] else run_ours(V, F, args.tol, max_iter=b, warn=False)
+        )
+        if b <= trace.iterations:
+            row["shapeup"] = {
+                "nonplanarity_max": trace.nonplanarity[b - 1],
+                "seconds": trace.seconds[b - 1],
+            }
+        if (
+            have_igl(args)
+            and V.shape[0] <= args.igl_max_vertices
+            and (igl_per_iter is None or igl_per_iter * b <= args.igl_max_seconds)
+        ):
+            print(f"{name}: libigl Shape-Up, {b} iterations ...", file=sys.stderr)
+            Vi, secs = libigl(args.igl_python, V, F, b)
+            igl_per_iter = secs / b
+            diag = float((V.amax(0) - V.amin(0)).norm())
+            vec = su.run(b).verts
+            row["libigl"] = {
+                "nonplanarity_max": float(tp.face_nonplanarity(torch.from_numpy(Vi), F).max()),
+                "seconds": secs,
+                "vectorized_difference": float(
+                    np.abs(part_demeaned(Vi, su.part) - part_demeaned(vec, su.part)).max() / diag
+                ),
+            }
+        rec["budgets"].append(row)
+    return rec
+
+
+def have_igl(args: argparse.Namespace) -> bool:
+    return Path(args.igl_python).exists()
+
+
+def e(x: float) -> str:
+    return f"{x:.2e}"
+
+
+def report(records: list[dict], tol: float) -> None:
+    print(f"\nTo max non-planarity {tol:g}, one thread each:\n")
+    body = []
+    for r in records:
+        b, o, lb, s = r["before"], r["ours"], r["lbfgs"], r["shapeup"]
+        eq = r["equal_time"]
+        su_time = f"{s['seconds']:.2f}" + ("" if s["converged"] else " (not reached)")
+        body.append(
+            [
+                r["mesh"],
+                r["V"],
+                e(b["nonplanarity_max"]),
+                f"{o['iterations']}, {o['seconds']:.2f}",
+                e(o["nonplanarity_max"]),
+                f"{o['displacement_max']:.2e} / {o['area_change']:+.2%}",
+                f"{lb['iterations']}, {lb['seconds']:.2f}, {e(lb['nonplanarity_max'])}",
+                f"{s['iterations']}, {su_time}, {e(s['nonplanarity_max'])}",
+                f"{s['displacement_max']:.2e} / {s['area_change']:+.2%}",
+                f"{eq['shapeup_iterations']}: {e(eq['shapeup_nonplanarity_max'])}",
+                f"{eq['ratio']:.0f}",
+                f"{s['seconds'] / o['seconds']:.1f}" + ("" if s["converged"] else "+"),
+            ]
+        )
+    print(
+        markdown_table(
+            [
+                "mesh",
+                "V",
+                "max before",
+                "ours: iters, s",
+                "ours: max after",
+                "ours: disp max / area",
+                "L-BFGS: iters, s, max",
+                "Shape-Up (vectorized): iters, s, max",
+                "Shape-Up: disp max / area",
+                "Shape-Up at ours' time: iters: max",
+                "max ratio at equal time (SU/ours)",
+                "time to tol (SU/ours)",
+            ],
+            body,
+        )
+    )
+    print("\nAt equal iteration budgets: largest non-planarity (seconds):\n")
+    body = []
+    for r in records:
+        for row in r["budgets"]:
+            o, s, li = row["ours"], row.get("shapeup"), row.get("libigl")
+            body.append(
+                [
+                    r["mesh"],
+                    row["budget"],
+                    f"{e(o['nonplanarity_max'])} ({o['seconds']:.2f})",
+                    f"{e(s['nonplanarity_max'])} ({s['seconds']:.2f})" if s else "–",
+                    f"{e(li['nonplanarity_max'])} ({li['seconds']:.2f})" if li else "–",
+                    e(li["vectorized_difference"]) if li else "–",
+                ]
+            )
+    print(
+        markdown_table(
+            [
+                "mesh",
+                "iterations",
+                "ours (Gauss-Newton)",
+                "Shape-Up, vectorized",
+                "Shape-Up, libigl",
+                "libigl - vectorized (positions / diag)",
+            ],
+            body,
+        )
+    )
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--meshes", nargs="+", default=DEFAULT_MESHES)
+    ap.add_argument("--meshes", nargs="+", default=None)
     ap.add_argument("--real-dir", type=Path, default=REAL)
     ap.add_argument("--tol", type=float, default=1e-4)
-    ap.add_argument("--max-iter", type=int, default=2000, help="L-BFGS iteration limit")
-    ap.add_argument("--shapeup-iters", type=int, nargs="+", default=[10, 50, 200])
+    ap.add_argument("--budgets", type=int, nargs="+", default=[1, 5, 10, 50, 200])
+    ap.add_argument("--su-max-iter", type=int, default=100000)
+    ap.add_argument("--su-max-seconds", type=float, default=300.0)
     ap.add_argument(
         "--igl-python", default=os.environ.get("IGL241_PYTHON", "/work/igl241/bin/python")
     )
+    ap.add_argument("--igl-max-seconds", type=float, default=120.0)
+    ap.add_argument("--igl-max-vertices", type=int, default=10000)
     ap.add_argument(
         "--json", type=Path, default=Path(__file__).parent / "results" / "planarize.json"
     )
     args = ap.parse_args()
     torch.set_num_threads(1)
-    have_igl = Path(args.igl_python).exists()
-    if not have_igl:
-        print(
-            f"no libigl 2.4.1 interpreter at {args.igl_python}: Shape-Up skipped", file=sys.stderr
-        )
+    os.environ["OMP_NUM_THREADS"] = "1"
+    if not have_igl(args):
+        print(f"no libigl 2.4.1 interpreter at {args.igl_python}: libigl skipped", file=sys.stderr)
+    # warm-up: the first calls pay one-time imports and kernel initialization
+    warm_v, warm_f = hypar(4)
+    run_ours(warm_v, warm_f, 1e-4)
+    ShapeUp(warm_v.numpy(), warm_f.numpy()).run(2)
 
-    # warm-up: the first L-BFGS call pays one-time imports and kernel initialization
-    warm_v = torch.rand(9, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    planarize(
-        warm_v, torch.tensor([[0, 1, 4, 3], [1, 2, 5, 4], [3, 4, 7, 6], [4, 5, 8, 7]]), max_iter=3
-    )
-    rows, records, gn_rows = [], [], []
-    for name in args.meshes:
-        path = args.real_dir / name
-        if not path.exists():
-            print(f"{path} missing, skipped", file=sys.stderr)
-            continue
-        V, faces = tp.read_mesh(path)
-        F = faces.as_uniform()
-        if F is None or F.shape[1] != 4:
-            print(f"{name} is not a pure quad mesh, skipped", file=sys.stderr)
-            continue
-        V = V.double()
-        before = stats(V, V, F)
-        print(f"{name}: planarize (ours) ...", file=sys.stderr)
-        start = time.perf_counter()
-        res = planarize(V, F.clone(), lam=2.0, tol=args.tol, max_iter=args.max_iter, method="lbfgs")
-        ours_time = time.perf_counter() - start
-        ours = stats(res.verts, V, F) | {"seconds": ours_time, "iterations": res.iterations}
-        print(f"{name}: planarize (ours, Gauss-Newton) ...", file=sys.stderr)
-        start = time.perf_counter()
-        res_gn = planarize(V, F.clone(), tol=args.tol, method="gauss-newton")
-        gn = stats(res_gn.verts, V, F) | {
-            "seconds": time.perf_counter() - start,
-            "iterations": res_gn.iterations,
-        }
-        gn_rows.append((name, V.shape[0], before, ours, gn))
-        rec = {"mesh": name, "V": V.shape[0], "F": F.shape[0], "before": before, "ours": ours}
-        rec["gauss_newton"] = gn
-        rec["shape_up"] = []
-        for it in args.shapeup_iters if have_igl else []:
-            print(f"{name}: Shape-Up maxIter={it} ...", file=sys.stderr)
-            Vs, secs = shape_up(args.igl_python, V, F, it, args.tol)
-            s = stats(Vs, V, F) | {"seconds": secs, "max_iter": it}
-            s["max_ratio"] = s["nonplanarity_max"] / ours["nonplanarity_max"]
-            s["time_ratio"] = secs / ours_time
-            s["target_met"] = bool(s["max_ratio"] >= 10 and s["time_ratio"] >= 10)
-            rec["shape_up"].append(s)
-            rows.append((name, V.shape[0], before, ours, s))
-        if not rec["shape_up"]:
-            rows.append((name, V.shape[0], before, ours, None))
-        records.append(rec)
-
-    print(
-        f"\nPlanarization, tol = {args.tol:g} (ours: L-BFGS on E_plan, lambda = 2; "
-        "Shape-Up: igl.planarize_quad_mesh, threshold = tol); one thread each.\n"
-    )
-    print(
-        "| mesh | V | max / mean before | ours: max / mean after | ours: disp max / mean "
-        "| ours: iters, s | Shape-Up maxIter | Shape-Up: max / mean after | Shape-Up: disp "
-        "max / mean | Shape-Up s | max ratio (SU/ours) | time ratio (SU/ours) | 10x/10x met |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, nv, b, o, s in rows:
-        left = (
-            f"| {name} | {nv} | {b['nonplanarity_max']:.2e} / {b['nonplanarity_mean']:.2e} "
-            f"| {o['nonplanarity_max']:.2e} / {o['nonplanarity_mean']:.2e} "
-            f"| {o['displacement_max']:.2e} / {o['displacement_mean']:.2e} "
-            f"| {o['iterations']}, {o['seconds']:.2f} "
-        )
-        if s is None:
-            print(left + "| – | – | – | – | – | – | – |")
-            continue
-        print(
-            left
-            + f"| {s['max_iter']} | {s['nonplanarity_max']:.2e} / {s['nonplanarity_mean']:.2e} "
-            f"| {s['displacement_max']:.2e} / {s['displacement_mean']:.2e} | {s['seconds']:.2f} "
-            f"| {s['max_ratio']:.1f} | {s['time_ratio']:.2f} | {('no', 'yes')[s['target_met']]} |"
-        )
-    print(
-        "\nOur two optimizers (L-BFGS on E_plan, the old default; Gauss-Newton on the face-plane "
-        "residuals, the default), to the same tol:\n"
-    )
-    print(
-        "| mesh | V | max before | method | iterations | s | max / mean after | disp max / mean |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    for name, nv, b, o, g in gn_rows:
-        for label, r in (("L-BFGS", o), ("Gauss-Newton", g)):
-            print(
-                f"| {name} | {nv} | {b['nonplanarity_max']:.2e} | {label} | {r['iterations']} "
-                f"| {r['seconds']:.2f} | {r['nonplanarity_max']:.2e} / "
-                f"{r['nonplanarity_mean']:.2e} | {r['displacement_max']:.2e} / "
-                f"{r['displacement_mean']:.2e} |"
-            )
-    print(
-        "\nThe same results measured against each face's least-squares plane "
-        '(`face_nonplanarity(..., plane="fit")`), max / mean:\n'
-    )
-    print("| mesh | before | ours | Shape-Up maxIter | Shape-Up | max ratio (SU/ours) |")
-    print("|---|---|---|---|---|---|")
-    for name, _, b, o, s in rows:
-        su = (
-            f"| {s['max_iter']} | {s['fit_plane_max']:.2e} / {s['fit_plane_mean']:.2e} "
-            f"| {s['fit_plane_max'] / o['fit_plane_max']:.1f} |"
-            if s is not None
-            else "| – | – | – |"
-        )
-        print(
-            f"| {name} | {b['fit_plane_max']:.2e} / {b['fit_plane_mean']:.2e} "
-            f"| {o['fit_plane_max']:.2e} / {o['fit_plane_mean']:.2e} " + su
-        )
+    records = [bench_mesh(n, V, F, args) for n, V, F in load_meshes(args.meshes, args.real_dir)]
+    report(records, args.tol)
     env = {
         "python": platform.python_version(),
         "torch": torch.__version__,
-        "machine": platform.machine(),
+        "cpu": cpu_model(),
         "cpus": os.cpu_count(),
         "threads": 1,
     }
