@@ -223,6 +223,63 @@ def test_pinned_is_differentiable_in_verts():
     assert_directional_derivative(f, V, rtol=1e-5)
 
 
+def test_free_boundary_is_differentiable_in_verts():
+    V, F = quad_grid(3, bump=0.3, seed=0)
+
+    def f(X):
+        uv = conformal_parameterization(X, F, free_boundary=True)
+        return (uv * torch.tensor([0.3, -0.7], dtype=X.dtype)).sum() + uv[:, 0].pow(3).sum()
+
+    assert_directional_derivative(f, V, rtol=1e-5)
+    assert torch.autograd.gradcheck(
+        lambda X: conformal_parameterization(X, F, free_boundary=True), V.clone().requires_grad_()
+    )
+
+
+def test_top_eigenpair_gradient_with_a_repeated_lower_eigenvalue():
+    """Symmetric meshes have exactly repeated eigenvalues below the top one, where
+    torch.linalg.eigh's backward divides zero by zero; the top gap is all that is needed."""
+    from torch_polylap.linalg.derivatives import top_eigenpair
+
+    M = torch.diag(torch.tensor([1.0, 1.0, 3.0], dtype=torch.float64)).requires_grad_(True)
+    evals, V = torch.linalg.eigh(M)
+    (nan_grad,) = torch.autograd.grad(evals[-1] + V[2, -1] ** 2, M)
+    assert torch.isnan(nan_grad).all()  # what this function avoids
+    nu, x = top_eigenpair(M)
+    (grad,) = torch.autograd.grad(nu + x[2] ** 2, M)
+    expected = torch.zeros(3, 3, dtype=torch.float64)
+    expected[2, 2] = 1.0  # d nu / d M = x x^T; |x_2| = 1 stays 1 to first order
+    torch.testing.assert_close(grad, expected)
+
+
+def test_top_eigenpair_matches_eigh_gradient():
+    from torch_polylap.linalg.derivatives import top_eigenpair
+
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(6, 6, dtype=torch.complex128, generator=g)
+    A = (A + A.mH) / 2
+    w = torch.randn(6, dtype=torch.float64, generator=g)
+
+    def loss(nu, x):  # invariant under the eigenvector's phase
+        return nu + (x.abs().square() * w).sum()
+
+    grads = []
+    for top in (lambda M: top_eigenpair(M), lambda M: _eigh_top(M)):
+        M = A.clone().requires_grad_(True)
+        (grad,) = torch.autograd.grad(loss(*top((M + M.mH) / 2)), M)
+        grads.append(grad)
+    torch.testing.assert_close(grads[0], grads[1], atol=1e-12, rtol=1e-10)
+    R = torch.diag(torch.tensor([1.0, 2.0, 2.0], dtype=torch.float64)).requires_grad_(True)
+    nu, x = top_eigenpair(R)
+    with pytest.raises(ValueError, match="repeated"):
+        torch.autograd.grad((x[0] ** 2) + nu, R)
+
+
+def _eigh_top(M):
+    evals, V = torch.linalg.eigh(M)
+    return evals[-1], V[:, -1]
+
+
 def test_float32_matches_float64():
     V, F = quad_grid(4, bump=0.3, seed=3)
     uv64 = conformal_parameterization(V, F)

@@ -27,20 +27,19 @@ and spectral conformal parameterization.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-import numpy as np
-import scipy.linalg
-import scipy.sparse.linalg as spla
 import torch
 
 from ..assembly import MeshFaces
 from ..checks import check_verts
 from ..kernels import check_method
-from ..linalg import dirichlet_solve
+from ..linalg import dirichlet_solve, solve
+from ..linalg.derivatives import top_eigenpair
 from ..measures import face_normals, vector_area
 from ..operators import laplacian
-from ..sparse import block_diag, from_coo, to_scipy
+from ..sparse import SparseOperator, block_diag, from_coo, submatrix
 from ..topology import Topology, get_topology, half_edge_vertices
 
 __all__ = [
@@ -234,71 +233,85 @@ def _pinned(
     return torch.stack((z[:n], z[n:]), 1)
 
 
-def _orthonormal_complement_of_ones(m: int) -> np.ndarray:
+def _orthonormal_complement_of_ones(
+    m: int, dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
     """``(m, m-1)`` orthonormal basis of the vectors summing to zero (a Householder reflection)."""
-    w = np.full(m, 1.0 / np.sqrt(m))
+    w = torch.full((m,), 1.0 / math.sqrt(m), dtype=dtype, device=device)
     w[0] -= 1.0
-    w /= np.linalg.norm(w)
-    H = np.eye(m) - 2.0 * np.outer(w, w)  # maps e_0 to the unit constant vector
+    w = w / torch.linalg.vector_norm(w)
+    H = torch.eye(m, dtype=dtype, device=device) - 2.0 * torch.outer(w, w)  # e_0 -> constant
     return H[:, 1:]
+
+
+def _dense(A: SparseOperator) -> torch.Tensor:
+    """The dense matrix of a sparse operator, differentiable in its values."""
+    dense = A.values().new_zeros(A.shape)
+    return dense.index_put((A.pattern.row, A.pattern.col), A.values(), accumulate=True)
 
 
 def _free_boundary(
     verts: torch.Tensor, topo: Topology, lam: float, boundary: torch.Tensor, method: str = "aw11"
 ) -> torch.Tensor:
+    """AW11 eq. 13-15, in float64 and differentiable in ``verts``: the Schur complement by a
+    sparse solve with the interior block, then the top eigenpair of the area form over the
+    Dirichlet form on zero-mean boundary positions, as a Hermitian problem in ``z = u + i v``
+    (the real ``2m`` problem has every eigenvalue twice: rotating ``z`` by ``i`` keeps both
+    forms, so its eigenvectors have no derivative; the complex one's top eigenvalue is simple)."""
     n = topo.num_verts
-    L = laplacian(verts.detach(), topo, lam, method=method)[0]
-    L = to_scipy(L).astype(np.float64).tocsc()
-    b = boundary.numpy()
-    interior = np.setdiff1d(np.arange(n), b)
-    L_BB = L[b][:, b].toarray()
-    if interior.size:
-        L_II = L[interior][:, interior].tocsc()
-        L_IB = L[interior][:, b].toarray()
-        lu = spla.splu(L_II, permc_spec="COLAMD")
-        harmonic = lu.solve(L_IB)  # L_II^{-1} L_IB, (I, B)
-        L_schur = L_BB - L_IB.T @ harmonic  # AW11 eq. 15
-    else:
-        L_schur = L_BB
+    x = verts.to(torch.float64)
+    device = x.device
+    L = laplacian(x, topo, lam, method=method)[0]
+    b = torch.sort(boundary.to(device)).values
+    m = b.numel()
+    on_boundary = torch.zeros(n, dtype=torch.bool, device=device)
+    on_boundary[b] = True
+    interior = torch.nonzero(~on_boundary).reshape(-1)
+    L_schur = _dense(submatrix(L, b, b))
+    harmonic = None
+    if interior.numel():
+        L_IB = _dense(submatrix(L, interior, b))
+        harmonic = solve(submatrix(L, interior, interior), L_IB)  # L_II^{-1} L_IB, (I, m)
+        L_schur = L_schur - L_IB.T @ harmonic  # AW11 eq. 15
     L_schur = 0.5 * (L_schur + L_schur.T)
-    m = b.size
-    index = np.full(n, -1)
-    index[b] = np.arange(m)
-    s, t = (index[x.numpy()] for x in _boundary_half_edges(topo))
-    # area form on the boundary: A(Y_B) = 1/2 z_B^T Q z_B, z_B = [u_B; v_B]
-    Q = np.zeros((2 * m, 2 * m))
-    np.add.at(Q, (s, m + t), 0.5)
-    np.add.at(Q, (t, m + s), -0.5)
-    Q = Q + Q.T
-    # translations lie in the kernel of both forms: restrict to zero-mean u and v
-    N = _orthonormal_complement_of_ones(m)
-    N2 = scipy.linalg.block_diag(N, N)
-    K = N2.T @ scipy.linalg.block_diag(L_schur, L_schur) @ N2
-    A = N2.T @ Q @ N2
-    # minimize E_D - A subject to A = 1  <=>  maximize A / E_D: the top eigenpair of (A, K).
-    # Its eigenvalue nu relates to AW11 eq. 14 by mu = 1/nu - 1.
-    nu, vec = scipy.linalg.eigh(A, K, subset_by_index=[2 * (m - 1) - 1, 2 * (m - 1) - 1])
-    if not nu[0] > 0:
+    index = torch.full((n,), -1, dtype=torch.int64, device=device)
+    index[b] = torch.arange(m, device=device)
+    s, t = (index[e.to(device)] for e in _boundary_half_edges(topo))
+    # area form A(z) = z^H (-i S / 2) z on z = u + i v (S[s, t] = 1/2, S[t, s] = -1/2)
+    S = torch.zeros(m, m, dtype=torch.float64, device=device)
+    S.index_put_((s, t), torch.full_like(s, 1, dtype=torch.float64), accumulate=True)
+    S.index_put_((t, s), torch.full_like(s, -1, dtype=torch.float64), accumulate=True)
+    # translations lie in the kernel of both forms: restrict to zero-mean boundary positions
+    N = _orthonormal_complement_of_ones(m, torch.float64, device)
+    K = N.T @ L_schur @ N
+    C = torch.linalg.cholesky(0.5 * (K + K.T)).to(torch.complex128)
+    H = (N.T @ S @ N).to(torch.complex128) * -0.5j
+    # maximize A / E_D: the top eigenpair of C^-1 H C^-H. Its eigenvalue nu relates to AW11
+    # eq. 14 by mu = 1/nu - 1
+    CiH = torch.linalg.solve_triangular(C, H, upper=False)
+    M = torch.linalg.solve_triangular(C, CiH.mH, upper=False)
+    nu, w = top_eigenpair(0.5 * (M + M.mH))
+    ratio = float(nu.detach())
+    if not ratio > 0:
         raise ValueError(
             "free-boundary parameterization found no orientation-preserving solution "
-            f"(largest area / Dirichlet ratio {nu[0]:.3g}); check the face orientation."
+            f"(largest area / Dirichlet ratio {ratio:.3g}); check the face orientation."
         )
-    zb = N2 @ vec[:, 0]
-    yb = np.stack((zb[:m], zb[m:]), 1)
-    y = np.zeros((n, 2))
-    y[b] = yb
-    if interior.size:
-        y[interior] = -harmonic @ yb
+    z = N.to(torch.complex128) @ torch.linalg.solve_triangular(C.mH, w[:, None], upper=True)[:, 0]
+    yb = torch.stack((z.real, z.imag), 1)
+    y = x.new_zeros(n, 2).index_put((b,), yb)
+    if harmonic is not None:
+        y = y.index_put((interior,), -harmonic @ yb)
     # scale so that the image has the source's total area (vector areas of the faces)
-    area = 0.5 * float(np.sum(yb[s, 0] * yb[t, 1] - yb[t, 0] * yb[s, 1]))  # > 0 since nu > 0
-    total = float(torch.linalg.vector_norm(vector_area(verts.detach(), topo), dim=1).sum())
-    y *= np.sqrt(total / area)
-    y -= y.mean(0)
-    # the eigenvector's rotation is arbitrary: fix it so that the default pins lie along +u
-    a, b = _default_pins(verts, boundary).tolist()
-    c = complex(*(y[b] - y[a]))
-    y = y @ (np.array([[c.real, -c.imag], [c.imag, c.real]]) / abs(c))
-    return torch.from_numpy(y).to(dtype=verts.dtype, device=verts.device)
+    area = 0.5 * (yb[s, 0] * yb[t, 1] - yb[t, 0] * yb[s, 1]).sum()  # > 0 since nu > 0
+    total = torch.linalg.vector_norm(vector_area(x, topo), dim=1).sum()
+    y = y * torch.sqrt(total / area)
+    y = y - y.mean(0)
+    # the eigenvector's phase (the image's rotation) is arbitrary: turn the default pins to +u
+    p, q = _default_pins(verts, boundary).tolist()
+    c = y[q] - y[p]
+    rotation = torch.stack((torch.stack((c[0], -c[1])), torch.stack((c[1], c[0])))) / c.norm()
+    return (y @ rotation).to(verts.dtype)
 
 
 def conformal_parameterization(
@@ -330,9 +343,11 @@ def conformal_parameterization(
             ``"degoes"`` (see :func:`torch_polylap.laplacian`).
 
     Returns:
-        ``uv``: ``(V, 2)``, dtype and device of ``verts``. The pinned result is differentiable
-        in ``verts`` and ``pin_uv`` (sparse solve with adjoint backward); the free-boundary
-        result is detached (dense eigensolver on the CPU).
+        ``uv``: ``(V, 2)``, dtype and device of ``verts``, differentiable in ``verts`` (and
+        ``pin_uv``): the pinned map by a sparse solve with adjoint backward, the free-boundary
+        map through the Schur complement's sparse solve and the top eigenpair of a dense
+        ``(m-1) x (m-1)`` Hermitian matrix (``m`` boundary vertices; its backward needs that
+        eigenvalue to be simple, and raises if it is not).
 
     Raises:
         ValueError: a non-manifold edge or vertex, faces not consistently oriented or a

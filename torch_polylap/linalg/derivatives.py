@@ -263,3 +263,51 @@ class _Eigenvectors(torch.autograd.Function):
                 torch.cat([Phi_t, Wt, Phi_t], 1),
             )
         return grad_l, grad_m, None, None, None, None
+
+
+# The top eigenvalue of top_eigenpair has a derivative only when it is simple to this relative
+# gap (of the largest eigenvalue magnitude).
+TOP_GAP_RTOL = 1e-10
+
+
+class _TopEigenpair(torch.autograd.Function):
+    """Largest eigenvalue and a unit eigenvector of a dense Hermitian matrix.
+
+    The backward is the top column of ``torch.linalg.eigh``'s:
+    ``gM = g_nu x x^H + sum_{j != top} v_j (v_j^H g_x) / (nu - mu_j) x^H``, which divides only by
+    the gaps to the top eigenvalue. ``eigh``'s own backward divides by every gap and turns a
+    repeated eigenvalue elsewhere in the spectrum (symmetric meshes have them) into NaN.
+    """
+
+    @staticmethod
+    def forward(ctx: Any, M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        evals, V = torch.linalg.eigh(M)
+        ctx.save_for_backward(evals, V)
+        return evals[-1].clone(), V[:, -1].clone()
+
+    @staticmethod
+    def backward(ctx: Any, g_nu: torch.Tensor, g_x: torch.Tensor) -> torch.Tensor:
+        evals, V = ctx.saved_tensors
+        x, rest = V[:, -1], V[:, :-1]
+        gap = evals[-1] - evals[:-1]
+        scale = float(evals.abs().max()) if evals.numel() else 0.0
+        if gap.numel() and float(gap.min()) <= TOP_GAP_RTOL * scale:
+            raise ValueError(
+                "top_eigenpair: the largest eigenvalue is repeated (gap "
+                f"{float(gap.min()):.3g} of {scale:.3g}), so its eigenvector is any vector of "
+                "the eigenspace and has no derivative."
+            )
+        w = rest @ ((rest.mH @ g_x) / gap.to(V.dtype)) if g_x is not None else torch.zeros_like(x)
+        gM = torch.outer(w, x.conj())
+        if g_nu is not None:
+            gM = gM + g_nu.to(V.dtype) * torch.outer(x, x.conj())
+        return gM
+
+
+def top_eigenpair(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Largest eigenvalue ``nu`` and a unit eigenvector ``x`` of a dense Hermitian ``(n, n)``
+    ``M`` (real symmetric or complex), differentiable when ``nu`` is simple and the loss does
+    not depend on the eigenvector's sign or phase. Returns ``nu`` (real, ``()``) and ``x``
+    (``(n,)``)."""
+    nu, x = _TopEigenpair.apply(M)
+    return nu, x
