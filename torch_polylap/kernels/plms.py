@@ -29,52 +29,80 @@ from __future__ import annotations
 
 import torch
 
-from .frames import corner_terms, face_frame
+from .frames import face_frame
 
 __all__ = ["virtual_vertex_weights", "plms_entries"]
 
 
-def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Cross products along the leading axis of two ``(3, ...)`` tensors."""
+# A vector field over corners or faces as its three coordinate rows: ``(k, F)`` or ``(F,)``
+# each. Component arithmetic fuses what stacked ``(3, k, F)`` arithmetic does in several passes
+# (products, sums over the coordinate axis, stacks), and the kernel is memory bound.
+Vec = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def _dot(a: Vec, b: Vec) -> torch.Tensor:
+    return torch.addcmul(torch.addcmul(a[0] * b[0], a[1], b[1]), a[2], b[2])
+
+
+def _cross(a: Vec, b: Vec) -> Vec:
     ax, ay, az = a
     bx, by, bz = b
-    return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx))
+    return (
+        torch.addcmul(ay * bz, az, by, value=-1),
+        torch.addcmul(az * bx, ax, bz, value=-1),
+        torch.addcmul(ax * by, ay, bx, value=-1),
+    )
+
+
+def _sub(a: Vec, b: Vec) -> Vec:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+def _next(a: Vec, shift: int = -1) -> Vec:
+    """Each corner's successor: row ``i`` holds corner ``i + 1`` (cyclically); ``shift=1``:
+    its predecessor."""
+    return (torch.roll(a[0], shift, 0), torch.roll(a[1], shift, 0), torch.roll(a[2], shift, 0))
 
 
 def _fan_minimizer(y: torch.Tensor) -> torch.Tensor:
     """``(3, F)`` point ``z`` minimizing ``sum_i |(y_i - z) x (y_{i+1} - z)|^2`` (PLMS sec. 3).
 
-    ``(y_i - z) x (y_{i+1} - z) = y_i x y_{i+1} - z x e_i`` is affine in ``z``, so the minimizer
-    solves ``A z = b`` with ``A = sum_i (|e_i|^2 I - e_i e_i^T)`` (positive definite unless every
-    edge is parallel) and ``b = sum_i e_i x (y_i x y_{i+1})``; solved by the adjugate.
-
     Args:
         y: ``(3, k, F)`` corners in the face's centered, scaled frame.
     """
-    e = torch.roll(y, -1, dims=1) - y
-    c = _cross(y, torch.roll(y, -1, dims=1))
-    b = _cross(e, c).sum(1)  # (3, F)
-    ee = torch.einsum("akf,bkf->abf", e, e)  # (3, 3, F) sum_i e_i e_i^T
-    a = torch.eye(3, dtype=y.dtype, device=y.device)[:, :, None] * (ee[0, 0] + ee[1, 1] + ee[2, 2])
-    a = a - ee
+    Y = (y[0], y[1], y[2])
+    Q = _next(Y)
+    return torch.stack(_fan_point(Y, _sub(Q, Y), _cross(Y, Q)))
+
+
+def _fan_point(Y: Vec, E: Vec, C: Vec) -> Vec:
+    """:func:`_fan_minimizer` from the corners ``Y``, the edges ``E = y_{i+1} - y_i`` and the
+    cross products ``C = y_i x y_{i+1}``.
+
+    ``(y_i - z) x (y_{i+1} - z) = y_i x y_{i+1} - z x e_i`` is affine in ``z``, so the minimizer
+    solves ``A z = b`` with ``A = sum_i (|e_i|^2 I - e_i e_i^T)`` (positive definite unless every
+    edge is parallel) and ``b = sum_i e_i x (y_i x y_{i+1})``; solved by the adjugate.
+    """
+    bx, by, bz = (c.sum(0) for c in _cross(E, C))
+    ex, ey, ez = E
+    sxx, syy, szz = (ex * ex).sum(0), (ey * ey).sum(0), (ez * ez).sum(0)
+    sxy, sxz, syz = (ex * ey).sum(0), (ex * ez).sum(0), (ey * ez).sum(0)
+    # A = tr(ee^T) I - ee^T, symmetric
+    a00, a11, a22 = syy + szz, sxx + szz, sxx + syy
+    a01, a02, a12 = -sxy, -sxz, -syz
     # adjugate of the symmetric 3 x 3 matrix: z = adj(A) b / det(A)
-    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[1, 2]
-    c01 = a[0, 2] * a[1, 2] - a[0, 1] * a[2, 2]
-    c02 = a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]
-    c11 = a[0, 0] * a[2, 2] - a[0, 2] * a[0, 2]
-    c12 = a[0, 1] * a[0, 2] - a[0, 0] * a[1, 2]
-    c22 = a[0, 0] * a[1, 1] - a[0, 1] * a[0, 1]
-    det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
-    inv_det = 1.0 / det.clamp_min(torch.finfo(y.dtype).tiny)
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    inv_det = 1.0 / det.clamp_min(torch.finfo(det.dtype).tiny)
     return (
-        torch.stack(
-            (
-                c00 * b[0] + c01 * b[1] + c02 * b[2],
-                c01 * b[0] + c11 * b[1] + c12 * b[2],
-                c02 * b[0] + c12 * b[1] + c22 * b[2],
-            )
-        )
-        * inv_det
+        (c00 * bx + c01 * by + c02 * bz) * inv_det,
+        (c01 * bx + c11 * by + c12 * bz) * inv_det,
+        (c02 * bx + c12 * by + c22 * bz) * inv_det,
     )
 
 
@@ -93,29 +121,34 @@ def virtual_vertex_weights(y: torch.Tensor, z: torch.Tensor, normal: torch.Tenso
         y: ``(3, k, F)`` centered, scaled corners; ``z``: ``(3, F)`` the virtual vertex;
         normal: ``(3, F)`` unit normals of the faces' maximal projections.
     """
-    k = y.shape[1]
-    t1, t2 = face_frame(normal)
+    return _weights((y[0], y[1], y[2]), (z[0], z[1], z[2]), (normal[0], normal[1], normal[2]))
+
+
+def _weights(Y: Vec, z: Vec, n: Vec) -> torch.Tensor:
+    """:func:`virtual_vertex_weights` on components."""
+    k = Y[0].shape[0]
+    t1, t2 = face_frame(torch.stack(n))
+    T1, T2 = (t1[0], t1[1], t1[2]), (t2[0], t2[1], t2[2])
     # Re-centered: the centroid's round-off leaves a constant offset of order eps in the
     # heights of a planar face, which the min-norm solve would read as a genuine height.
-    u1, u2, h = (((y * t[:, None]).sum(0)) for t in (t1, t2, normal))  # (k, F) each
-    u1, u2, h = (c - c.mean(0) for c in (u1, u2, h))
+    u1, u2, h = (c - c.mean(0) for c in (_dot(Y, T1), _dot(Y, T2), _dot(Y, n)))
     g11, g12, g22 = (u1 * u1).sum(0), (u1 * u2).sum(0), (u2 * u2).sum(0)
-    inv_det = 1.0 / (g11 * g22 - g12 * g12).clamp_min(torch.finfo(y.dtype).tiny)
+    inv_det = 1.0 / (g11 * g22 - g12 * g12).clamp_min(torch.finfo(u1.dtype).tiny)
 
     def in_plane(r1: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
         """``U G^-1 r`` for a right-hand side ``r = (r1, r2)`` of shape ``(F,)`` each."""
         a1 = (g22 * r1 - g12 * r2) * inv_det
         a2 = (g11 * r2 - g12 * r1) * inv_det
-        return u1 * a1 + u2 * a2
+        return torch.addcmul(u1 * a1, u2, a2)
 
-    v = in_plane((z * t1).sum(0), (z * t2).sum(0))
+    v = in_plane(_dot(z, T1), _dot(z, T2))
     h_out = h - in_plane((u1 * h).sum(0), (u2 * h).sum(0))
     hh = (h_out * h_out).sum(0)
-    q = (z * normal).sum(0) - (h * v).sum(0)
+    q = _dot(z, n) - (h * v).sum(0)
     # Heights below ~k eps of the (unit-order) in-plane spread are round-off of a planar face.
-    planar = hh <= (k * torch.finfo(y.dtype).eps) ** 2 * (g11 + g22)
+    planar = hh <= (k * torch.finfo(u1.dtype).eps) ** 2 * (g11 + g22)
     factor = torch.where(planar, torch.zeros_like(q), q / torch.where(planar, 1.0, hh))
-    return (1.0 / k) + v + factor * h_out
+    return torch.addcmul(v + 1.0 / k, factor, h_out)
 
 
 def plms_entries(
@@ -141,21 +174,30 @@ def plms_entries(
     """
     k = x.shape[1]
     tiny = torch.finfo(x.dtype).tiny
-    _, g, _ = corner_terms(x)
-    size2 = (g * g).sum((0, 1))
-    y = (x - x.mean(1, keepdim=True)) * torch.rsqrt(size2.clamp_min(tiny))
-    _, _, a = corner_terms(y)
-    area_scaled = torch.sqrt((a * a).sum(0).clamp_min(tiny))
-    z = _fan_minimizer(y)
-    w = virtual_vertex_weights(y, z, a / area_scaled)
+    X = (x[0], x[1], x[2])
+    # s^2 = sum_i |g_i|^2 with g_i = (x_{i+1} - x_{i-1}) / 2
+    G = _sub(_next(X), _next(X, 1))
+    size2 = 0.25 * _dot(G, G).sum(0)
+    inv_s = torch.rsqrt(size2.clamp_min(tiny))
+    yx, yy, yz = ((c - c.mean(0)) * inv_s for c in X)
+    Y = (yx, yy, yz)
+    Q = _next(Y)
+    E = _sub(Q, Y)
+    C = _cross(Y, Q)
+    # vector area 1/2 sum_i y_i x y_{i+1} (AW11 eq. 8): exact enough on the centered, scaled
+    # corners (the fan from a corner is for faces far from the origin)
+    a = (0.5 * C[0].sum(0), 0.5 * C[1].sum(0), 0.5 * C[2].sum(0))
+    area_scaled = torch.sqrt(_dot(a, a).clamp_min(tiny))
+    z = _fan_point(Y, E, C)
+    w = _weights(Y, z, (a[0] / area_scaled, a[1] / area_scaled, a[2] / area_scaled))
 
     # fan triangle i: p = y_i, q = y_{i+1}, z; cotangents by dot / |cross|
-    q = torch.roll(y, -1, dims=1)
-    zp, zq, e = y - z[:, None], q - z[:, None], q - y
-    dbl = torch.sqrt((_cross(zp, zq) ** 2).sum(0).clamp_min(tiny))  # twice the areas, (k, F)
-    cot_z = (zp * zq).sum(0) / dbl
-    cot_q = (e * zq).sum(0) / dbl
-    cot_p = -(e * zp).sum(0) / dbl
+    zp, zq = _sub(Y, z), _sub(Q, z)
+    cr = _cross(zp, zq)
+    dbl = torch.sqrt(_dot(cr, cr).clamp_min(tiny))  # twice the areas, (k, F)
+    cot_z = _dot(zp, zq) / dbl
+    cot_q = _dot(E, zq) / dbl
+    cot_p = -_dot(E, zp) / dbl
     ell = -0.5 * (cot_q + torch.roll(cot_p, 1, dims=0))  # (L_fan)_{i f}
     l_ff = -ell.sum(0)
 
@@ -164,9 +206,10 @@ def plms_entries(
     edge = torch.where(step == 1, pair_i, pair_j)
     on_cycle = ((step == 1) | (step == k - 1)).to(x.dtype)
     off = (-0.5 * on_cycle)[:, None] * cot_z.index_select(0, edge)
-    wi, wj = w.index_select(0, pair_i), w.index_select(0, pair_j)
-    off = off + ell.index_select(0, pair_i) * wj + wi * ell.index_select(0, pair_j)
-    off = off + l_ff * wi * wj
+    # l_i w_j + w_i l_j + l_ff w_i w_j = r_i w_j + w_i r_j with r = l + l_ff w / 2
+    r = torch.addcmul(ell, 0.5 * l_ff, w)
+    off = torch.addcmul(off, r.index_select(0, pair_i), w.index_select(0, pair_j))
+    off = torch.addcmul(off, w.index_select(0, pair_i), r.index_select(0, pair_j))
 
     # lumped Galerkin fan mass: a third of fan triangle i's area at y_i, y_{i+1} and z
     third = dbl / 6.0
