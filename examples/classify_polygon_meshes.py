@@ -3,7 +3,8 @@
 Five shape classes (sphere, ellipsoid, rounded cube, cylinder, torus) under random smooth
 non-rigid deformations, tessellated with quads, quads mixed with triangles, or "brick"
 hexagons mixed with quads, at several resolutions.  The network sees only intrinsic inputs
-(normalized heat kernel signatures of the Alexa-Wardetzky Laplacian) and diffuses them with
+(normalized heat kernel signatures of the Alexa-Wardetzky Laplacian, or of the one ``--method``
+names) and diffuses them with
 learned times in each mesh's eigenbasis; logits are mass-weighted means over each mesh.  With
 ``--gradient-features`` every block also computes DiffusionNet's spatial gradient features of
 the diffused channels (per-vertex tangent gradient operators precomputed by the dataset).
@@ -14,6 +15,7 @@ VM with other jobs on it (eigenpairs are cached on disk, so a second run is fast
 
     python examples/classify_polygon_meshes.py [--epochs 100] [--k 48] [--width 32]
         [--lr 5e-3] [--workers 2] [--cache-dir DIR] [--seed 0] [--gradient-features]
+        [--method aw11|plms|degoes]
 
 Writes examples/output/classify.md and classify.png (the training loss per epoch and the test
 confusion matrix) beside it.
@@ -181,6 +183,12 @@ def main() -> None:
         action="store_true",
         help="DiffusionNet's spatial gradient features in every block",
     )
+    parser.add_argument(
+        "--method",
+        default="aw11",
+        choices=("aw11", "plms", "degoes"),
+        help="the polygon Laplacian of the eigenpairs (torch_polylap.laplacian's method=)",
+    )
     parser.add_argument("--output", default=str(OUTPUT), help="where to write the report")
     parser.add_argument(
         "--cache-dir",
@@ -194,7 +202,7 @@ def main() -> None:
     test_items, test_labels, test_tags = make_split(
         ["quad", "tri-quad", "hex"], [5, 7], 6, seed0=100_000
     )
-    grads = {"gradient_operators": args.gradient_features}
+    grads = {"gradient_operators": args.gradient_features, "method": args.method}
     train = PolygonMeshDataset(
         train_items, train_labels, k=args.k, cache_dir=args.cache_dir, **grads
     )
@@ -268,7 +276,8 @@ def main() -> None:
     num_verts = [it[0].shape[0] for it in train_items + test_items]
     setup = (
         f"{len(train)} training and {len(test)} test meshes ({min(num_verts)}-{max(num_verts)} "
-        f"vertices), k = {args.k} eigenpairs, DiffusionNetLike(width {args.width}, 3 blocks, "
+        f"vertices), k = {args.k} eigenpairs of the {args.method} Laplacian, "
+        f"DiffusionNetLike(width {args.width}, 3 blocks, "
         f"16 HKS inputs, spectral diffusion"
         f"{', spatial gradient features' if args.gradient_features else ''}), "
         f"{args.epochs} epochs of Adam (lr {args.lr:g}, cosine schedule), batches of 8 meshes, "
