@@ -39,7 +39,7 @@ from ..linalg import dirichlet_solve, solve
 from ..linalg.derivatives import top_eigenpair
 from ..measures import face_normals, vector_area
 from ..operators import laplacian
-from ..sparse import SparseOperator, block_diag, from_coo, submatrix
+from ..sparse import block_diag, from_coo, submatrix
 from ..topology import Topology, get_topology, half_edge_vertices
 
 __all__ = [
@@ -244,12 +244,6 @@ def _orthonormal_complement_of_ones(
     return H[:, 1:]
 
 
-def _dense(A: SparseOperator) -> torch.Tensor:
-    """The dense matrix of a sparse operator, differentiable in its values."""
-    dense = A.values().new_zeros(A.shape)
-    return dense.index_put((A.pattern.row, A.pattern.col), A.values(), accumulate=True)
-
-
 def _free_boundary(
     verts: torch.Tensor, topo: Topology, lam: float, boundary: torch.Tensor, method: str = "aw11"
 ) -> torch.Tensor:
@@ -267,10 +261,10 @@ def _free_boundary(
     on_boundary = torch.zeros(n, dtype=torch.bool, device=device)
     on_boundary[b] = True
     interior = torch.nonzero(~on_boundary).reshape(-1)
-    L_schur = _dense(submatrix(L, b, b))
+    L_schur = submatrix(L, b, b).to_dense()
     harmonic = None
     if interior.numel():
-        L_IB = _dense(submatrix(L, interior, b))
+        L_IB = submatrix(L, interior, b).to_dense()
         harmonic = solve(submatrix(L, interior, interior), L_IB)  # L_II^{-1} L_IB, (I, m)
         L_schur = L_schur - L_IB.T @ harmonic  # AW11 eq. 15
     L_schur = 0.5 * (L_schur + L_schur.T)
