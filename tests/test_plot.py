@@ -54,10 +54,14 @@ def test_plot_mesh_draws_every_polygon_with_its_color(tmp_path):
     # the face colors (matplotlib depth-sorts the faces, so compare as sorted rows)
     expected = colormaps["viridis"](values / 6.0)
     assert np.allclose(rows(collection.get_facecolor()), rows(expected))
-    # each polygon keeps its corners (no triangulation)
+    # each polygon keeps its corners (no triangulation); shorter ones repeat their last corner
+    # up to the largest degree (matplotlib pads ragged lists with uninitialized memory)
     polys = plot._polygons(verts.numpy(), tp.as_faces(faces))
-    assert [len(p) for p in polys] == [len(f) for f in faces]
-    assert all(np.array_equal(p, verts.numpy()[f]) for p, f in zip(polys, faces, strict=True))
+    k_max = max(len(f) for f in faces)
+    assert polys.shape == (len(faces), k_max, 3)
+    for p, f in zip(polys, faces, strict=True):
+        assert np.array_equal(p[: len(f)], verts.numpy()[f])
+        assert (p[len(f) :] == verts.numpy()[f[-1]]).all()
     # equal aspect: a cube of limits around the mesh, and one colorbar
     spans = [np.diff(lim)[0] for lim in (ax.get_xlim(), ax.get_ylim(), ax.get_zlim())]
     assert spans == pytest.approx([3.5] * 3)  # the largest extent: x from 0 to 3.5

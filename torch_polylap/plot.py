@@ -77,11 +77,17 @@ def face_values(values: ArrayLike, faces: FacesLike, num_verts: int) -> np.ndarr
     return sums / pf.sizes.cpu().numpy()
 
 
-def _polygons(points: np.ndarray, faces: FacesLike) -> list[np.ndarray]:
-    """One ``(k_f, d)`` corner array per face, the list matplotlib's collections take."""
+def _polygons(points: np.ndarray, faces: FacesLike) -> np.ndarray:
+    """``(F, k_max, d)`` corners of every face, a face of fewer corners padded by repeating its
+    last one (the same polygon drawn). matplotlib pads ragged polygon lists with uninitialized
+    memory and projects it in 3D, which overflows on some runs (matplotlib issue #32272)."""
     pf = as_faces(faces)
-    corners = points[pf.indices.cpu().numpy()]
-    return np.split(corners, pf.offsets.cpu().numpy()[1:-1])
+    offsets = pf.offsets.cpu().numpy()
+    sizes = np.diff(offsets)
+    if sizes.size == 0:
+        return np.zeros((0, 3, points.shape[1]))
+    local = np.minimum(np.arange(sizes.max())[None, :], sizes[:, None] - 1)  # (F, k_max)
+    return points[pf.indices.cpu().numpy()[offsets[:-1, None] + local]]
 
 
 def _face_colors(
@@ -272,7 +278,10 @@ def plot_uv(
         rgba, mappable = _face_colors(face_values(values, pf, len(pts)), cmap, clim)
     ax.add_collection(
         PolyCollection(
-            _polygons(pts, pf), facecolors=rgba, edgecolors=(0.1, 0.1, 0.1, 0.5), linewidths=0.3
+            list(_polygons(pts, pf)),
+            facecolors=rgba,
+            edgecolors=(0.1, 0.1, 0.1, 0.5),
+            linewidths=0.3,
         )
     )
     ax.autoscale_view()
