@@ -106,7 +106,7 @@ def _fan_point(Y: Vec, E: Vec, C: Vec) -> Vec:
     )
 
 
-def virtual_vertex_weights(y: torch.Tensor, z: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+def virtual_vertex_weights(Y: Vec, z: Vec, n: Vec) -> torch.Tensor:
     """``(k, F)`` minimum-norm affine weights ``w`` with ``sum_i w_i y_i = z`` (PLMS sec. 3).
 
     With centered corners (``sum_i y_i = 0``), ``w = 1/k + v`` where ``v`` is the minimum-norm
@@ -118,14 +118,10 @@ def virtual_vertex_weights(y: torch.Tensor, z: torch.Tensor, normal: torch.Tenso
     in the plane (the rank decision libigl's complete orthogonal decomposition makes).
 
     Args:
-        y: ``(3, k, F)`` centered, scaled corners; ``z``: ``(3, F)`` the virtual vertex;
-        normal: ``(3, F)`` unit normals of the faces' maximal projections.
+        Y: coordinate rows ``(k, F)`` of the centered, scaled corners.
+        z: coordinate rows ``(F,)`` of the virtual vertex.
+        n: coordinate rows ``(F,)`` of the unit normals of the faces' maximal projections.
     """
-    return _weights((y[0], y[1], y[2]), (z[0], z[1], z[2]), (normal[0], normal[1], normal[2]))
-
-
-def _weights(Y: Vec, z: Vec, n: Vec) -> torch.Tensor:
-    """:func:`virtual_vertex_weights` on components."""
     k = Y[0].shape[0]
     t1, t2 = face_frame(torch.stack(n))
     T1, T2 = (t1[0], t1[1], t1[2]), (t2[0], t2[1], t2[2])
@@ -189,7 +185,7 @@ def plms_entries(
     a = (0.5 * C[0].sum(0), 0.5 * C[1].sum(0), 0.5 * C[2].sum(0))
     area_scaled = torch.sqrt(_dot(a, a).clamp_min(tiny))
     z = _fan_point(Y, E, C)
-    w = _weights(Y, z, (a[0] / area_scaled, a[1] / area_scaled, a[2] / area_scaled))
+    w = virtual_vertex_weights(Y, z, (a[0] / area_scaled, a[1] / area_scaled, a[2] / area_scaled))
 
     # fan triangle i: p = y_i, q = y_{i+1}, z; cotangents by dot / |cross|
     zp, zq = _sub(Y, z), _sub(Q, z)
