@@ -23,7 +23,10 @@ from ..sparse import (
     sparse_values,
     submatrix,
 )
+from ..sparse.construct import csr_indices
+from ..tracing import tracing
 from .factor import _cholespy_available, _factorization, _Held
+from .solve_op import solve_op
 
 
 def preconditioned_cg(
@@ -90,6 +93,9 @@ def _solve(
     A: SparseOperator, B: torch.Tensor, backend: str, tol: float, max_iter: int
 ) -> torch.Tensor:
     values = sparse_values(A)
+    if tracing():
+        crow, col = csr_indices(A)
+        return solve_op(values, crow, col, B, A.symmetric, backend, tol, max_iter)
     if not (torch.is_grad_enabled() and (values.requires_grad or B.requires_grad)):
         return _solve_values(A, B, backend, tol, max_iter)
     return _Solve.apply(values, B, _Held(A), backend, tol, max_iter)

@@ -2,39 +2,536 @@
 
 torch's own autograd for ``sparse @ dense`` returns a *dense* ``n x m`` gradient for the sparse
 operand: at 62k vertices that is 31 GB.  Here a matrix is its pattern plus a value array, and
-the two products below are each other's backward:
+three products are each other's derivatives:
 
-    product:  Y = A X,                 dvalues = sampled(G, X),  dX = A^T G
-    sampled:  s_k = (G X^T)_{r_k c_k}, dG = A(w) X,              dX = A(w)^T G
+    product     Y = A X          dvalues = sampled(G, X),   dX = A^T G
+    transposed  Z = A^T G        dvalues = sampled(G, H),   dG = A H
+    sampled     s = (G X^T)|_A   dG = A(w) X,               dX = A(w)^T G
 
-(``A(w)`` is the matrix on the same pattern with values ``w``.)  The backward passes are written
-with the same two functions, so gradients of gradients (Hessian-vector products, gradient
-penalties, ``create_graph=True``) are exact to any order, each at O(nnz * columns).
+(``A(w)`` is the matrix on the same pattern with values ``w``; ``(G X^T)|_A`` the entries of
+``G X^T`` at the pattern's positions.)  Gradients of gradients (Hessian-vector products,
+``create_graph=True``) are therefore exact to any order, each at O(nnz * columns).
+
+The three products are ``torch.library`` custom operators (``torch_polylap::spmm``,
+``torch_polylap::spmm_t``, ``torch_polylap::sampled``) with fake kernels, so torch.compile,
+``torch.export`` and ``FakeTensorMode`` see them as single graph nodes of known output shape;
+with vmap rules (a batch of value arrays is a block-diagonal operator; a batch of right-hand
+sides is folded into the columns) and autocast rules (they run in float32 under mixed
+precision: half precision cannot hold the Laplacian's entries, and torch has no half-precision
+sparse kernels).  Their reverse-mode derivatives are registered on the operators.  Eagerly, the
+products go through :class:`_Product`, an ``autograd.Function`` with the same backward and a
+forward-mode rule as well, because custom operators have no forward-mode derivative and
+``torch.func.jvp`` would silently return a zero tangent through them; torch.compile cannot trace
+an ``autograd.Function`` with a forward-mode rule, so traced code calls the operators directly.
 """
 
 from __future__ import annotations
 
 import warnings
-from typing import Any
+import weakref
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import torch
 
+from ..tracing import in_functorch, tracing
 from .pattern import SparsityPattern
 
-__all__ = ["csr_product", "sampled_product", "torch_csr"]
+__all__ = ["csr_product", "sampled_product", "spmm", "spmm_t", "sampled", "torch_csr"]
+
+
+def _csr(crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor, m: int) -> torch.Tensor:
+    # the package builds its patterns itself and knows them valid: skip torch's invariant
+    # checks and its one-time "CSR support is in beta" warning
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        return torch.sparse_csr_tensor(
+            crow, col, values, (crow.numel() - 1, m), check_invariants=False
+        )
 
 
 def torch_csr(pattern: SparsityPattern, values: torch.Tensor) -> torch.Tensor:
-    """A plain torch sparse CSR tensor on ``pattern`` (for torch's kernels; no autograd meaning).
-
-    Skips torch's invariant checks and its one-time "CSR support is in beta" warning: the
-    package builds its patterns itself and knows them valid.
-    """
+    """A plain torch sparse CSR tensor on ``pattern`` (for torch's kernels; no autograd meaning)."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
         return torch.sparse_csr_tensor(
             pattern.crow, pattern.col, values, pattern.shape, check_invariants=False
         )
+
+
+# --------------------------------------------------------------------------------------------
+# the kernels: torch's CSR products, and the transposed pattern cached per index tensor
+# --------------------------------------------------------------------------------------------
+
+# col tensor id -> (weak reference to it, transposed crow, transposed col, permutation):
+# A^T G through torch's CSR kernel needs the transposed pattern; an argsort per product would
+# cost more than the product, so it is computed once per pattern (index tensors are immutable
+# here) and dropped with the pattern.
+_TRANSPOSES: dict[int, tuple[weakref.ref, torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+
+def _transposed_pattern(
+    crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor, m: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(crow_t (m + 1,), col_t (nnz,), perm (nnz,))`` with ``values(A^T) = values[perm]``."""
+    key = id(col)
+    hit = _TRANSPOSES.get(key)
+    if hit is not None and hit[0]() is col:
+        return hit[1], hit[2], hit[3]
+    perm = torch.argsort(col * max(crow.numel() - 1, 1) + row, stable=True)
+    counts = torch.zeros(m + 1, dtype=torch.int64, device=col.device)
+    counts.index_add_(0, col + 1, torch.ones_like(col))
+    crow_t = counts.cumsum(0)
+    col_t = row[perm]
+    _TRANSPOSES[key] = (weakref.ref(col, lambda _: _TRANSPOSES.pop(key, None)), crow_t, col_t, perm)
+    return crow_t, col_t, perm
+
+
+@torch.library.custom_op("torch_polylap::spmm", mutates_args=())
+def spmm_op(
+    values: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+    X: torch.Tensor,
+    symmetric: bool,
+) -> torch.Tensor:
+    """``A X``: ``A`` ``(n, m)`` on CSR indices ``crow (n + 1,)``, ``col``/``row (nnz,)``,
+    values ``(nnz,)``; ``X`` ``(m, c)``; returns ``(n, c)``.  ``symmetric`` (``A = A^T``) only
+    informs the backward."""
+    return _csr(crow, col, values, X.shape[0]) @ X
+
+
+@spmm_op.register_fake
+def _spmm_fake(
+    values: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+    X: torch.Tensor,
+    symmetric: bool,
+) -> torch.Tensor:
+    return X.new_empty((crow.shape[0] - 1, X.shape[1]))
+
+
+@torch.library.custom_op("torch_polylap::spmm_t", mutates_args=())
+def spmm_t_op(
+    values: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+    G: torch.Tensor,
+    m: int,
+) -> torch.Tensor:
+    """``A^T G`` for ``A`` ``(n, m)`` as in :func:`spmm_op` and ``G`` ``(n, c)``: ``(m, c)``."""
+    crow_t, col_t, perm = _transposed_pattern(crow, col, row, m)
+    return _csr(crow_t, col_t, values[perm], G.shape[0]) @ G
+
+
+@spmm_t_op.register_fake
+def _spmm_t_fake(
+    values: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+    G: torch.Tensor,
+    m: int,
+) -> torch.Tensor:
+    return G.new_empty((m, G.shape[1]))
+
+
+@torch.library.custom_op("torch_polylap::sampled", mutates_args=())
+def sampled_op(
+    G: torch.Tensor, X: torch.Tensor, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor
+) -> torch.Tensor:
+    """``(nnz,)`` entries ``s_k = sum_c G[row_k, c] X[col_k, c]`` of ``G X^T`` on the pattern."""
+    zeros = G.new_zeros(col.shape[0])
+    return torch.sparse.sampled_addmm(
+        _csr(crow, col, zeros, X.shape[0]), G.contiguous(), X.t().contiguous(), beta=0.0
+    ).values()
+
+
+@sampled_op.register_fake
+def _sampled_fake(
+    G: torch.Tensor, X: torch.Tensor, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor
+) -> torch.Tensor:
+    return G.new_empty(col.shape)
+
+
+# --------------------------------------------------------------------------------------------
+# reverse mode: one set of formulas, written with whichever products the caller's mode needs
+# --------------------------------------------------------------------------------------------
+
+
+class _Products(NamedTuple):
+    """The three products with the signatures of the operators above."""
+
+    spmm: Callable[..., torch.Tensor]
+    spmm_t: Callable[..., torch.Tensor]
+    sampled: Callable[..., torch.Tensor]
+
+
+def _spmm_grads(
+    ops: _Products, ctx: Any, G: torch.Tensor, needs: Sequence[bool]
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """``(dvalues, dX)`` of ``Y = A X`` for ``G = dY``."""
+    values, crow, col, row, X = ctx.saved_tensors
+    grad_values = ops.sampled(G, X, crow, col, row) if needs[0] else None
+    grad_X = None
+    if needs[1]:
+        grad_X = (
+            ops.spmm(values, crow, col, row, G, True)
+            if ctx.symmetric
+            else ops.spmm_t(values, crow, col, row, G, X.shape[0])
+        )
+    return grad_values, grad_X
+
+
+def _spmm_t_grads(
+    ops: _Products, ctx: Any, H: torch.Tensor, needs: Sequence[bool]
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """``(dvalues, dG)`` of ``Z = A^T G`` for ``H = dZ``."""
+    values, crow, col, row, G = ctx.saved_tensors
+    grad_values = ops.sampled(G, H, crow, col, row) if needs[0] else None
+    grad_G = ops.spmm(values, crow, col, row, H, False) if needs[1] else None
+    return grad_values, grad_G
+
+
+def _sampled_grads(
+    ops: _Products, ctx: Any, w: torch.Tensor, needs: Sequence[bool]
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """``(dG, dX)`` of ``s = (G X^T)|_A`` for ``w = ds``."""
+    G, X, crow, col, row = ctx.saved_tensors
+    grad_G = ops.spmm(w, crow, col, row, X, False) if needs[0] else None
+    grad_X = ops.spmm_t(w, crow, col, row, G, X.shape[0]) if needs[1] else None
+    return grad_G, grad_X
+
+
+def _spmm_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+    values, crow, col, row, X, symmetric = inputs
+    ctx.save_for_backward(values, crow, col, row, X)
+    ctx.symmetric = symmetric
+
+
+def _spmm_t_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+    values, crow, col, row, G, m = inputs
+    ctx.save_for_backward(values, crow, col, row, G)
+
+
+def _sampled_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+    ctx.save_for_backward(*inputs)
+
+
+_OPS = _Products(spmm_op, spmm_t_op, sampled_op)
+
+
+def _spmm_backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+    dv, dX = _spmm_grads(_OPS, ctx, G, (ctx.needs_input_grad[0], ctx.needs_input_grad[4]))
+    return dv, None, None, None, dX, None
+
+
+def _spmm_t_backward(ctx: Any, H: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+    dv, dG = _spmm_t_grads(_OPS, ctx, H, (ctx.needs_input_grad[0], ctx.needs_input_grad[4]))
+    return dv, None, None, None, dG, None
+
+
+def _sampled_backward(ctx: Any, w: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+    dG, dX = _sampled_grads(_OPS, ctx, w, ctx.needs_input_grad[:2])
+    return dG, dX, None, None, None
+
+
+spmm_op.register_autograd(_spmm_backward, setup_context=_spmm_setup)
+spmm_t_op.register_autograd(_spmm_t_backward, setup_context=_spmm_t_setup)
+sampled_op.register_autograd(_sampled_backward, setup_context=_sampled_setup)
+
+
+# --------------------------------------------------------------------------------------------
+# vmap: a batch of value arrays on one pattern is one block-diagonal operator
+# --------------------------------------------------------------------------------------------
+
+
+def _block_pattern(
+    crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor, batch: int, n: int, m: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """CSR indices of ``blockdiag(A, ..., A)`` (``batch`` copies of an ``(n, m)`` pattern)."""
+    nnz = col.shape[0]
+    shift = torch.arange(batch, device=col.device)[:, None]
+    crow_b = torch.cat(
+        ((crow[:-1][None] + shift * nnz).reshape(-1), crow.new_full((1,), batch * nnz))
+    )
+    return crow_b, (col[None] + shift * m).reshape(-1), (row[None] + shift * n).reshape(-1)
+
+
+def _batched(x: torch.Tensor, dim: int | None, batch: int) -> torch.Tensor:
+    """``x`` with its batch dimension first, expanded to ``batch`` if it has none."""
+    return x.movedim(dim, 0) if dim is not None else x.expand(batch, *x.shape)
+
+
+def _refuse_batched_indices(in_dims: tuple[int | None, ...], what: str) -> None:
+    if any(d is not None for d in in_dims):
+        raise NotImplementedError(
+            f"torch_polylap: vmap over the sparsity pattern of {what} is not supported; batch "
+            "the values (one pattern, several value arrays) or the dense operand instead."
+        )
+
+
+def _spmm_vmap(
+    info: Any,
+    in_dims: tuple[int | None, ...],
+    values: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+    X: torch.Tensor,
+    symmetric: bool,
+) -> tuple[torch.Tensor, int]:
+    _refuse_batched_indices(in_dims[1:4], "a sparse product")
+    v_dim, x_dim = in_dims[0], in_dims[4]
+    n, B = crow.shape[0] - 1, info.batch_size
+    if v_dim is None:
+        # one operator, B right-hand sides: fold the batch into the columns
+        assert x_dim is not None
+        Xb = X.movedim(x_dim, 1)  # (m, B, c)
+        Y = spmm_op(values, crow, col, row, Xb.reshape(Xb.shape[0], -1), symmetric)
+        return Y.reshape(n, B, -1), 1
+    m = X.shape[-2]
+    Xb = _batched(X, x_dim, B).reshape(B * m, -1)
+    crow_b, col_b, row_b = _block_pattern(crow, col, row, B, n, m)
+    Y = spmm_op(values.movedim(v_dim, 0).reshape(-1), crow_b, col_b, row_b, Xb, symmetric)
+    return Y.reshape(B, n, -1), 0
+
+
+def _spmm_t_vmap(
+    info: Any,
+    in_dims: tuple[int | None, ...],
+    values: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+    G: torch.Tensor,
+    m: int,
+) -> tuple[torch.Tensor, int]:
+    _refuse_batched_indices(in_dims[1:4], "a transposed sparse product")
+    v_dim, g_dim = in_dims[0], in_dims[4]
+    n, B = crow.shape[0] - 1, info.batch_size
+    if v_dim is None:
+        assert g_dim is not None
+        Gb = G.movedim(g_dim, 1)  # (n, B, c)
+        Z = spmm_t_op(values, crow, col, row, Gb.reshape(n, -1), m)
+        return Z.reshape(m, B, -1), 1
+    Gb = _batched(G, g_dim, B).reshape(B * n, -1)
+    crow_b, col_b, row_b = _block_pattern(crow, col, row, B, n, m)
+    Z = spmm_t_op(values.movedim(v_dim, 0).reshape(-1), crow_b, col_b, row_b, Gb, B * m)
+    return Z.reshape(B, m, -1), 0
+
+
+def _sampled_vmap(
+    info: Any,
+    in_dims: tuple[int | None, ...],
+    G: torch.Tensor,
+    X: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+) -> tuple[torch.Tensor, int]:
+    _refuse_batched_indices(in_dims[2:], "a sampled product")
+    B, n, m = info.batch_size, crow.shape[0] - 1, X.shape[-2]
+    Gb = _batched(G, in_dims[0], B).reshape(B * n, -1)
+    Xb = _batched(X, in_dims[1], B).reshape(B * m, -1)
+    crow_b, col_b, row_b = _block_pattern(crow, col, row, B, n, m)
+    return sampled_op(Gb, Xb, crow_b, col_b, row_b).reshape(B, -1), 0
+
+
+spmm_op.register_vmap(_spmm_vmap)
+spmm_t_op.register_vmap(_spmm_t_vmap)
+sampled_op.register_vmap(_sampled_vmap)
+
+for _op in ("torch_polylap::spmm", "torch_polylap::spmm_t", "torch_polylap::sampled"):
+    for _device in ("cpu", "cuda"):
+        torch.library.register_autocast(_op, _device, torch.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# eager entry: the same derivatives, plus forward mode, usable under torch.func transforms
+# --------------------------------------------------------------------------------------------
+# Custom operators' registered derivatives are not usable under torch.func (their generated
+# autograd.Function has no setup_context) and have no forward mode (torch.func.jvp silently
+# returns a zero tangent through them). Eagerly, the products therefore go through the
+# autograd.Functions below, which call the operators for the arithmetic; traced code, which
+# cannot hold an autograd.Function with a forward-mode rule, calls the operators directly.
+
+
+class _Product(torch.autograd.Function):
+    """``A X`` (eager): reverse mode as the operator's, forward mode, vmap through its rule."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(
+        values: torch.Tensor,
+        crow: torch.Tensor,
+        col: torch.Tensor,
+        row: torch.Tensor,
+        X: torch.Tensor,
+        symmetric: bool,
+    ) -> torch.Tensor:
+        return spmm_op(values, crow, col, row, X, symmetric)
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+        _spmm_setup(ctx, inputs, output)
+        ctx.save_for_forward(inputs[0], inputs[4])
+        ctx.parts = inputs[1:4]
+
+    @staticmethod
+    def backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        dv, dX = _spmm_grads(_EAGER, ctx, G, (ctx.needs_input_grad[0], ctx.needs_input_grad[4]))
+        return dv, None, None, None, dX, None
+
+    @staticmethod
+    def jvp(ctx: Any, dv: torch.Tensor | None, *tangents: Any) -> torch.Tensor:
+        values, X = ctx.saved_tensors
+        crow, col, row = ctx.parts
+        dX = tangents[3]
+        terms = []
+        if dv is not None:
+            terms.append(spmm(dv, crow, col, row, X, False))
+        if dX is not None:
+            terms.append(spmm(values, crow, col, row, dX, ctx.symmetric))
+        return _sum(terms)
+
+
+class _TransposedProduct(torch.autograd.Function):
+    """``A^T G`` (eager), as :class:`_Product`."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(
+        values: torch.Tensor,
+        crow: torch.Tensor,
+        col: torch.Tensor,
+        row: torch.Tensor,
+        G: torch.Tensor,
+        m: int,
+    ) -> torch.Tensor:
+        return spmm_t_op(values, crow, col, row, G, m)
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+        _spmm_t_setup(ctx, inputs, output)
+        ctx.save_for_forward(inputs[0], inputs[4])
+        ctx.parts, ctx.m = inputs[1:4], inputs[5]
+
+    @staticmethod
+    def backward(ctx: Any, H: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        dv, dG = _spmm_t_grads(_EAGER, ctx, H, (ctx.needs_input_grad[0], ctx.needs_input_grad[4]))
+        return dv, None, None, None, dG, None
+
+    @staticmethod
+    def jvp(ctx: Any, dv: torch.Tensor | None, *tangents: Any) -> torch.Tensor:
+        values, G = ctx.saved_tensors
+        crow, col, row = ctx.parts
+        dG = tangents[3]
+        terms = []
+        if dv is not None:
+            terms.append(spmm_t(dv, crow, col, row, G, ctx.m))
+        if dG is not None:
+            terms.append(spmm_t(values, crow, col, row, dG, ctx.m))
+        return _sum(terms)
+
+
+class _Sampled(torch.autograd.Function):
+    """``(G X^T)|_A`` (eager), as :class:`_Product`."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(
+        G: torch.Tensor, X: torch.Tensor, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor
+    ) -> torch.Tensor:
+        return sampled_op(G, X, crow, col, row)
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+        _sampled_setup(ctx, inputs, output)
+        ctx.save_for_forward(inputs[0], inputs[1])
+        ctx.parts = inputs[2:5]
+
+    @staticmethod
+    def backward(ctx: Any, w: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        dG, dX = _sampled_grads(_EAGER, ctx, w, ctx.needs_input_grad[:2])
+        return dG, dX, None, None, None
+
+    @staticmethod
+    def jvp(ctx: Any, dG: torch.Tensor | None, dX: torch.Tensor | None, *_: Any) -> torch.Tensor:
+        G, X = ctx.saved_tensors
+        terms = []
+        if dG is not None:
+            terms.append(sampled(dG, X, *ctx.parts))
+        if dX is not None:
+            terms.append(sampled(G, dX, *ctx.parts))
+        return _sum(terms)
+
+
+def _sum(terms: list[torch.Tensor]) -> torch.Tensor:
+    out = terms[0]
+    for t in terms[1:]:
+        out = out + t
+    return out
+
+
+def _differentiated(*tensors: torch.Tensor) -> bool:
+    """Whether an autograd graph, a forward-mode tangent or a torch.func transform may need
+    the derivatives of a product of these tensors."""
+    return (
+        any(t.requires_grad for t in tensors)
+        or in_functorch()
+        or torch.autograd.forward_ad._current_level >= 0
+    )
+
+
+def spmm(
+    values: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+    X: torch.Tensor,
+    symmetric: bool,
+) -> torch.Tensor:
+    """``A X`` from CSR parts (``X`` ``(m, c)``), differentiable to any order in every mode."""
+    if tracing() or not _differentiated(values, X):
+        return spmm_op(values, crow, col, row, X, symmetric)
+    out: torch.Tensor = _Product.apply(values, crow, col, row, X, symmetric)
+    return out
+
+
+def spmm_t(
+    values: torch.Tensor,
+    crow: torch.Tensor,
+    col: torch.Tensor,
+    row: torch.Tensor,
+    G: torch.Tensor,
+    m: int,
+) -> torch.Tensor:
+    """``A^T G`` from CSR parts (``G`` ``(n, c)``), differentiable to any order in every mode."""
+    if tracing() or not _differentiated(values, G):
+        return spmm_t_op(values, crow, col, row, G, m)
+    out: torch.Tensor = _TransposedProduct.apply(values, crow, col, row, G, m)
+    return out
+
+
+def sampled(
+    G: torch.Tensor, X: torch.Tensor, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor
+) -> torch.Tensor:
+    """``(nnz,)`` entries of ``G X^T`` on the pattern, differentiable in every mode."""
+    if tracing() or not _differentiated(G, X):
+        return sampled_op(G, X, crow, col, row)
+    out: torch.Tensor = _Sampled.apply(G, X, crow, col, row)
+    return out
+
+
+_EAGER = _Products(spmm, spmm_t, sampled)
 
 
 def csr_product(
@@ -43,12 +540,9 @@ def csr_product(
     """``A X`` for ``A`` = (``pattern``, ``values``) ``(n, m)`` and dense ``X`` ``(m, c)``.
 
     Differentiable in ``values`` and ``X`` to any order; ``symmetric`` (``A = A^T``) lets the
-    backward multiply by ``A`` itself instead of transposing the pattern.
+    backward multiply by ``A`` itself instead of its transpose.
     """
-    if not (torch.is_grad_enabled() and (values.requires_grad or X.requires_grad)):
-        # nothing to differentiate: the autograd.Function's fixed cost dominates small products
-        return torch_csr(pattern, values.detach()) @ X
-    return _Product.apply(values, X, pattern, symmetric)
+    return spmm(values, pattern.crow, pattern.col, pattern.row, X, symmetric)
 
 
 def sampled_product(pattern: SparsityPattern, G: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
@@ -57,69 +551,4 @@ def sampled_product(pattern: SparsityPattern, G: torch.Tensor, X: torch.Tensor) 
     The gradient of ``loss(A X)`` with respect to ``A``'s values, for ``G = dloss / d(A X)``.
     ``G`` ``(n, c)``, ``X`` ``(m, c)``.  Differentiable in both to any order.
     """
-    if not (torch.is_grad_enabled() and (G.requires_grad or X.requires_grad)):
-        return _sampled(pattern, G.detach(), X.detach())
-    return _Sampled.apply(G, X, pattern)
-
-
-def _sampled(pattern: SparsityPattern, G: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
-    zeros = G.new_zeros(pattern.nnz)
-    return torch.sparse.sampled_addmm(
-        torch_csr(pattern, zeros), G.contiguous(), X.t().contiguous(), beta=0.0
-    ).values()
-
-
-def _transposed_product(
-    pattern: SparsityPattern, values: torch.Tensor, G: torch.Tensor, symmetric: bool
-) -> torch.Tensor:
-    """``A^T G``."""
-    if symmetric:
-        return csr_product(pattern, values, G, True)
-    transposed, perm = pattern.transpose()
-    return csr_product(transposed, values[perm], G, False)
-
-
-class _Product(torch.autograd.Function):
-    @staticmethod
-    def forward(
-        values: torch.Tensor, X: torch.Tensor, pattern: SparsityPattern, symmetric: bool
-    ) -> torch.Tensor:
-        return torch_csr(pattern, values) @ X
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-        values, X, pattern, symmetric = inputs
-        ctx.save_for_backward(values, X)
-        ctx.pattern, ctx.symmetric = pattern, symmetric
-
-    @staticmethod
-    def backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        values, X = ctx.saved_tensors
-        grad_values = grad_X = None
-        if ctx.needs_input_grad[0]:
-            grad_values = sampled_product(ctx.pattern, G, X)
-        if ctx.needs_input_grad[1]:
-            grad_X = _transposed_product(ctx.pattern, values, G, ctx.symmetric)
-        return grad_values, grad_X, None, None
-
-
-class _Sampled(torch.autograd.Function):
-    @staticmethod
-    def forward(G: torch.Tensor, X: torch.Tensor, pattern: SparsityPattern) -> torch.Tensor:
-        return _sampled(pattern, G, X)
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-        G, X, pattern = inputs
-        ctx.save_for_backward(G, X)
-        ctx.pattern = pattern
-
-    @staticmethod
-    def backward(ctx: Any, w: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        G, X = ctx.saved_tensors
-        grad_G = grad_X = None
-        if ctx.needs_input_grad[0]:
-            grad_G = csr_product(ctx.pattern, w, X, False)
-        if ctx.needs_input_grad[1]:
-            grad_X = _transposed_product(ctx.pattern, w, G, False)
-        return grad_G, grad_X, None
+    return sampled(G, X, pattern.crow, pattern.col, pattern.row)

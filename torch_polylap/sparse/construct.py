@@ -14,8 +14,9 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from ..tracing import run_eagerly
 from .autograd import sampled_product
-from .operator import SparseOperator, apply
+from .operator import SparseOperator, apply, operator_on
 from .pattern import SparsityPattern
 
 __all__ = [
@@ -57,7 +58,7 @@ def operator_from_parts(
     which shares the pattern and its cached transposes and unions.
     """
     pattern = SparsityPattern(crow, col, shape)
-    return SparseOperator(pattern, values, symmetric=symmetric, layout=layout)
+    return operator_on(pattern, values, symmetric=symmetric, layout=layout)
 
 
 def from_coo(
@@ -76,7 +77,7 @@ def from_coo(
     summed = values.new_zeros(unique.numel()).index_add(0, inverse, values)
     urow = torch.div(unique, m, rounding_mode="floor")
     pattern = SparsityPattern.from_rows(urow, unique - urow * m, (n, m))
-    return SparseOperator(pattern, summed, symmetric=symmetric)
+    return operator_on(pattern, summed, symmetric=symmetric)
 
 
 def pattern_of(A: SparseOperator) -> SparsityPattern:
@@ -115,7 +116,7 @@ def as_operator(A: Any) -> SparseOperator:
                 raise TypeError(_native_grad_message())
             row, col = A.indices()
             pattern = SparsityPattern.from_rows(row, col, _shape2(A))
-            return SparseOperator(pattern, values, layout=torch.sparse_coo)
+            return operator_on(pattern, values, layout=torch.sparse_coo)
         raise TypeError(
             "torch_polylap: expected a sparse matrix (an operator from torch_polylap, a torch "
             f"sparse CSR/COO tensor or a scipy sparse matrix), got a dense tensor of shape "
@@ -140,6 +141,12 @@ def _native_grad_message() -> str:
         "that torch_polylap returns (they stay sparse under +, *, @, .T, .to), or build one from "
         "a differentiable value array with torch_polylap.sparse.operator_from_parts."
     )
+
+
+def csr_indices(A: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(crow, col)`` of an operator, as tensors (what an operator built in traced code has)."""
+    A = as_operator(A)
+    return A._crow, A._col
 
 
 def sparse_values(A: Any) -> torch.Tensor:
@@ -194,15 +201,19 @@ def diag(d: torch.Tensor, *, layout: torch.layout = torch.sparse_csr) -> SparseO
     """The ``n x n`` diagonal operator with diagonal ``d`` ``(n,)`` (differentiable)."""
     if d.dim() != 1:
         raise ValueError(f"diag: expected a 1-D tensor, got shape {tuple(d.shape)}.")
-    pattern = _diagonal_pattern(d.numel(), d.device)
-    return SparseOperator(pattern, d, symmetric=True, layout=layout)
+    # int(): under torch.compile with dynamic shapes the size is specialized (the pattern is
+    # one per size anyway)
+    pattern = run_eagerly(diagonal_pattern, int(d.shape[0]), d.device)
+    return operator_on(pattern, d, symmetric=True, layout=layout)
 
 
 _DIAGONALS: dict[tuple[int, torch.device], SparsityPattern] = {}
 
 
-def _diagonal_pattern(n: int, device: torch.device) -> SparsityPattern:
-    # one pattern per size and device, so that M0 + t L finds its cached union every step
+def diagonal_pattern(n: int, device: torch.device) -> SparsityPattern:
+    """The shared pattern of ``n x n`` diagonal operators on ``device``."""
+    # one pattern per size and device, so that M0 + t L finds its cached union every step;
+    # under torch.compile it is looked up at trace time and enters the graph as a constant
     key = (n, torch.device(device))
     pattern = _DIAGONALS.get(key)
     if pattern is None:
@@ -235,7 +246,7 @@ def block_diag(operators: Sequence[Any]) -> SparseOperator:
         rows, cols_off, nnz = rows + p.shape[0], cols_off + p.shape[1], nnz + p.nnz
     crows.append(torch.tensor([nnz], device=ops[0].device))
     pattern = SparsityPattern(torch.cat(crows), torch.cat(cols), (rows, cols_off))
-    return SparseOperator(pattern, torch.cat(vals), symmetric=all(A.symmetric for A in ops))
+    return operator_on(pattern, torch.cat(vals), symmetric=all(A.symmetric for A in ops))
 
 
 def submatrix(A: Any, rows: torch.Tensor, cols: torch.Tensor) -> SparseOperator:
@@ -243,7 +254,7 @@ def submatrix(A: Any, rows: torch.Tensor, cols: torch.Tensor) -> SparseOperator:
     A = as_operator(A)
     pattern, keep = A.pattern.select(rows.to(A.device), cols.to(A.device))
     same = rows.shape == cols.shape and bool((rows == cols).all())
-    return SparseOperator(pattern, A._vals[keep], symmetric=A.symmetric and same)
+    return operator_on(pattern, A._vals[keep], symmetric=A.symmetric and same)
 
 
 def eliminate(
@@ -310,7 +321,7 @@ def from_scipy(
         torch.from_numpy(S.indices.astype(np.int64)).to(values.device),
         S.shape,
     )
-    return SparseOperator(pattern, values, symmetric=symmetric)
+    return operator_on(pattern, values, symmetric=symmetric)
 
 
 def to_torch_sparse(A: Any, layout: torch.layout = torch.sparse_csr) -> torch.Tensor:

@@ -25,10 +25,12 @@ from typing import Any, SupportsIndex
 
 import torch
 
-from .autograd import csr_product
+from ..tracing import run_eagerly, tracing
+from .autograd import spmm as csr_product_parts
+from .index_ops import diagonal_indices, positions_in, transpose_indices, union_indices
 from .pattern import SparsityPattern
 
-__all__ = ["SparseOperator", "UnsupportedOperation", "is_operator"]
+__all__ = ["SparseOperator", "UnsupportedOperation", "is_operator", "operator_on"]
 
 _LAYOUTS = (torch.sparse_csr, torch.sparse_coo)
 
@@ -67,39 +69,54 @@ class SparseOperator(torch.Tensor):
     Everything else raises :class:`UnsupportedOperation`, which says what to use instead.
     """
 
-    pattern: SparsityPattern
     symmetric: bool
     _vals: torch.Tensor
+    _crow: torch.Tensor
+    _col: torch.Tensor
+    _row: torch.Tensor
     _reported_layout: torch.layout
+    _pattern_key: int
     _solver_cache: dict[str, Any]
 
+    # Built from tensors and constants only (not from a SparsityPattern object): code that
+    # torch.compile traces constructs operators by calling this class, and its tracer accepts
+    # only such arguments. operator_on(pattern, values) is the constructor for library code.
     @staticmethod
     def __new__(
         cls,
-        pattern: SparsityPattern,
         values: torch.Tensor,
-        *,
+        crow: torch.Tensor,
+        col: torch.Tensor,
+        row: torch.Tensor,
+        shape: tuple[int, int],
         symmetric: bool = False,
         layout: torch.layout = torch.sparse_csr,
+        pattern_key: int = -1,
     ) -> SparseOperator:
-        if values.dim() != 1 or values.numel() != pattern.nnz:
+        if values.dim() != 1 or values.shape[0] != col.shape[0]:
             raise ValueError(
                 f"a sparse operator needs one value per stored entry: the pattern has "
-                f"{pattern.nnz}, the values have shape {tuple(values.shape)}."
+                f"{col.shape[0]}, the values have shape {tuple(values.shape)}."
             )
-        if values.device != pattern.device:
-            pattern = pattern.to(values.device)
         if layout not in _LAYOUTS:
             raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
         A = torch.Tensor._make_wrapper_subclass(
-            cls, pattern.shape, dtype=values.dtype, device=values.device, requires_grad=False
+            cls, shape, dtype=values.dtype, device=values.device, requires_grad=False
         )
-        A.pattern = pattern
         A._vals = values
-        A.symmetric = bool(symmetric and pattern.shape[0] == pattern.shape[1])
+        A._crow, A._col, A._row = crow, col, row
+        A.symmetric = bool(symmetric and shape[0] == shape[1])
         A._reported_layout = layout
+        A._pattern_key = pattern_key
         A._solver_cache = {}
         return A
+
+    @property
+    def pattern(self) -> SparsityPattern:
+        """The :class:`SparsityPattern` (the index structure and its cached derived indices)."""
+        return pattern_of_indices(
+            self._pattern_key, self._crow, self._col, self._row, _shape2(self)
+        )
 
     def with_values(
         self, values: torch.Tensor, symmetric: bool | None = None, *, share_cache: bool = False
@@ -112,10 +129,14 @@ class SparseOperator(torch.Tensor):
         a write through ``.data`` does not change: keep it off for values that may be such.
         """
         A = SparseOperator(
-            self.pattern,
             values,
-            symmetric=self.symmetric if symmetric is None else symmetric,
-            layout=self._reported_layout,
+            self._crow,
+            self._col,
+            self._row,
+            _shape2(self),
+            self.symmetric if symmetric is None else symmetric,
+            self._reported_layout,
+            self._pattern_key,
         )
         if share_cache:
             A._solver_cache = self._solver_cache
@@ -133,7 +154,9 @@ class SparseOperator(torch.Tensor):
         handler = _HANDLERS.get(func)
         if handler is not None:
             return handler(*args, **kwargs)
-        if func in _PASSTHROUGH:
+        # torch.compile's tracer inspects the operator like any tensor (strides, storage
+        # offset); what reaches torch's dispatcher from there is refused by __torch_dispatch__
+        if func in _PASSTHROUGH or tracing():
             with torch._C.DisableTorchFunctionSubclass():
                 return func(*args, **kwargs)
         raise UnsupportedOperation(_unsupported_message(func))
@@ -161,7 +184,7 @@ class SparseOperator(torch.Tensor):
         with torch._C.DisableTorchFunctionSubclass():
             body = repr(values.detach()).replace("\n", "\n" + " " * 7)
         return (
-            f"SparseOperator(shape={self.pattern.shape}, nnz={self.pattern.nnz}, "
+            f"SparseOperator(shape={_shape2(self)}, nnz={self._col.shape[0]}, "
             f"dtype={values.dtype}, device={values.device}, symmetric={self.symmetric}, "
             f"layout={self._reported_layout}{grad},\n       values={body})"
         )
@@ -170,9 +193,9 @@ class SparseOperator(torch.Tensor):
         return (
             _rebuild,
             (
-                self.pattern.crow,
-                self.pattern.col,
-                self.pattern.shape,
+                self._crow,
+                self._col,
+                _shape2(self),
                 self._vals,
                 self.symmetric,
                 str(self._reported_layout),
@@ -181,6 +204,22 @@ class SparseOperator(torch.Tensor):
 
     def __deepcopy__(self, memo: dict[int, Any]) -> SparseOperator:
         return self.with_values(self._vals.clone())
+
+    # torch.compile traces code that builds and uses operators through __torch_function__; the
+    # flatten protocol tells its tracer what an operator holds: the value array and the index
+    # tensors, with the flags as constant metadata.
+    def __tensor_flatten__(self) -> tuple[list[str], tuple[Any, ...]]:
+        meta = (self.symmetric, self._reported_layout, self._pattern_key)
+        return ["_vals", "_crow", "_col", "_row"], meta
+
+    @staticmethod
+    def __tensor_unflatten__(
+        inner: dict[str, torch.Tensor], meta: tuple[Any, ...], outer_size: Any, outer_stride: Any
+    ) -> SparseOperator:
+        symmetric, layout, key = meta
+        shape = (int(outer_size[0]), int(outer_size[1]))
+        parts = (inner["_crow"], inner["_col"], inner["_row"])
+        return SparseOperator(inner["_vals"], *parts, shape, symmetric, layout, key)
 
 
 def _rebuild(
@@ -191,12 +230,64 @@ def _rebuild(
     symmetric: bool,
     layout: str,
 ) -> SparseOperator:
-    return SparseOperator(
+    return operator_on(
         SparsityPattern(crow, col, shape),
         values,
         symmetric=symmetric,
         layout=torch.sparse_coo if layout == str(torch.sparse_coo) else torch.sparse_csr,
     )
+
+
+# torch.load(weights_only=True), torch's default, unpickles only allow-listed globals: an
+# operator (a state dict's buffer, a module's attribute) is rebuilt by _rebuild from tensors,
+# a tuple, a bool and a string, all of which that unpickler accepts.
+torch.serialization.add_safe_globals([_rebuild])
+
+
+def _shape2(A: torch.Tensor) -> tuple[int, int]:
+    with torch._C.DisableTorchFunctionSubclass():
+        n, m = A.shape
+    return int(n), int(m)
+
+
+def operator_on(
+    pattern: SparsityPattern,
+    values: torch.Tensor,
+    *,
+    symmetric: bool = False,
+    layout: torch.layout = torch.sparse_csr,
+) -> SparseOperator:
+    """The operator with ``values`` ``(nnz,)`` on ``pattern`` (moved to the values' device)."""
+    if values.device != pattern.device:
+        pattern = pattern.to(values.device)
+    parts = (pattern.crow, pattern.col, pattern.row)
+    return SparseOperator(values, *parts, pattern.shape, symmetric, layout, pattern.key)
+
+
+def pattern_of_indices(
+    key: int, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor, shape: tuple[int, int]
+) -> SparsityPattern:
+    """The pattern numbered ``key`` (with its caches) while it lives, else one built anew on
+    the index tensors."""
+    if key >= 0:
+        if tracing():
+            return run_eagerly(_live_pattern, key)
+        pattern = SparsityPattern.registered(key)
+        if pattern is not None:
+            return pattern
+    pattern = SparsityPattern(crow, col, shape)
+    pattern._row = row
+    return pattern
+
+
+def _live_pattern(key: int) -> SparsityPattern:
+    pattern = SparsityPattern.registered(key)
+    if pattern is None:
+        raise RuntimeError(
+            "torch_polylap: an operator's sparsity pattern was freed while torch.compile traced "
+            "code using it; keep the mesh's topology alive (e.g. in the module) while compiling."
+        )
+    return pattern
 
 
 def is_operator(x: object) -> bool:
@@ -257,20 +348,21 @@ def _check_dense(A: SparseOperator, X: object, what: str) -> torch.Tensor:
 def apply(A: SparseOperator, X: object) -> torch.Tensor:
     """``A @ X`` with ``X`` of shape ``(m,)``, ``(m, c)`` or ``(..., m, c)`` (batched)."""
     X = _check_dense(A, X, "A @ X")
-    n, m = A.pattern.shape
+    n, m = _shape2(A)
     if X.dim() == 0 or X.shape[-2 if X.dim() > 1 else 0] != m:
         raise ValueError(
             f"torch_polylap: cannot multiply an operator of shape {(n, m)} with a tensor of shape "
             f"{tuple(X.shape)}."
         )
+    parts = (A._crow, A._col, A._row)
     if X.dim() == 1:
-        return csr_product(A.pattern, A._vals, X[:, None], A.symmetric)[:, 0]
+        return csr_product_parts(A._vals, *parts, X[:, None], A.symmetric)[:, 0]
     if X.dim() == 2:
-        return csr_product(A.pattern, A._vals, X, A.symmetric)
+        return csr_product_parts(A._vals, *parts, X, A.symmetric)
     # (..., m, c): one product with the batch folded into the columns
     batch, c = X.shape[:-2], X.shape[-1]
     flat = X.movedim(-2, 0).reshape(m, -1)
-    Y = csr_product(A.pattern, A._vals, flat, A.symmetric)
+    Y = csr_product_parts(A._vals, *parts, flat, A.symmetric)
     return Y.reshape(n, *batch, c).movedim(0, -2)
 
 
@@ -342,12 +434,12 @@ def _scale(A: SparseOperator, w: object, op: str) -> SparseOperator:
         and w.layout == torch.strided
         and not isinstance(w, SparseOperator)
     ):
-        n, m = A.pattern.shape
+        n, m = _shape2(A)
         w = _check_dense(A, w, f"A {'*' if op == 'mul' else '/'} w")
         if w.shape == (n, 1):
-            factor = w[:, 0][A.pattern.row]
+            factor = w[:, 0][A._row]
         elif w.shape in ((m,), (1, m)):
-            factor = w.reshape(-1)[A.pattern.col]
+            factor = w.reshape(-1)[A._col]
         else:
             factor = None
         if factor is not None:
@@ -410,6 +502,9 @@ def _combine(A: SparseOperator, B: SparseOperator, alpha: Any) -> SparseOperator
     b_vals = B._vals
     if not (isinstance(alpha, numbers.Number) and alpha == 1):
         b_vals = b_vals * _scalar_tensor(A, alpha)
+    symmetric = A.symmetric and B.symmetric
+    if tracing():
+        return _combine_traced(A, B, b_vals, symmetric)
     pattern, at_a, at_b = A.pattern.union(B.pattern)
     if at_a is None:
         values = A._vals + b_vals if at_b is None else A._vals.index_add(0, at_b, b_vals)
@@ -418,9 +513,50 @@ def _combine(A: SparseOperator, B: SparseOperator, alpha: Any) -> SparseOperator
     else:
         values = A._vals.new_zeros(pattern.nnz).index_add(0, at_a, A._vals)
         values = values.index_add(0, at_b, b_vals)
-    return SparseOperator(
-        pattern, values, symmetric=A.symmetric and B.symmetric, layout=A._reported_layout
-    )
+    return operator_on(pattern, values, symmetric=symmetric, layout=A._reported_layout)
+
+
+def _nesting(A: SparseOperator, B: SparseOperator) -> int:
+    """1 if ``B``'s pattern is contained in ``A``'s, -1 if the converse, 0 if neither or
+    unknown: a question about the two patterns' index tensors, answered on the real ones (kept
+    by the pattern registry) whatever tensors the tracer is propagating."""
+    pa = SparsityPattern.registered(A._pattern_key) if A._pattern_key >= 0 else None
+    pb = SparsityPattern.registered(B._pattern_key) if B._pattern_key >= 0 else None
+    if pa is None or pb is None:
+        return 0
+    with torch.utils._python_dispatch._disable_current_modes():
+        return 1 if pa.contains(pb) else (-1 if pb.contains(pa) else 0)
+
+
+def _combine_traced(
+    A: SparseOperator, B: SparseOperator, b_vals: torch.Tensor, symmetric: bool
+) -> SparseOperator:
+    """``A + B`` in traced code: on ``A``'s or ``B``'s pattern when one contains the other
+    (``M0 + t L``: the diagonal is in ``L``'s pattern), else on a union of data-dependent size."""
+    if A._pattern_key >= 0 and A._pattern_key == B._pattern_key:
+        return A.with_values(A._vals + b_vals, symmetric)
+    n, m = _shape2(A)
+    nesting = _nesting(A, B)
+    if nesting == 1:
+        at_b = positions_in(A._crow, A._col, B._crow, B._col, m)
+        return A.with_values(A._vals.index_add(0, at_b, b_vals), symmetric)
+    if nesting == -1:
+        at_a = positions_in(B._crow, B._col, A._crow, A._col, m)
+        values = b_vals.index_add(0, at_a, A._vals)
+        parts = (B._crow, B._col, B._row)
+        return SparseOperator(values, *parts, (n, m), symmetric, A._reported_layout, B._pattern_key)
+    if not torch._dynamo.config.capture_dynamic_output_shape_ops:
+        raise UnsupportedOperation(
+            "torch_polylap: inside torch.compile, A + B of operators whose patterns do not "
+            "contain one another (a mesh's M0 + t L does; a mesh with isolated vertices does "
+            "not) has a size that depends on the data. Set "
+            "torch._dynamo.config.capture_dynamic_output_shape_ops = True, remove the isolated "
+            "vertices (torch_polylap.repair.remove_unreferenced_vertices), or add the operators "
+            "outside the compiled code."
+        )
+    crow, col, row, at_a, at_b = union_indices(A._crow, A._col, B._crow, B._col, m)
+    values = A._vals.new_zeros(col.shape[0]).index_add(0, at_a, A._vals).index_add(0, at_b, b_vals)
+    return SparseOperator(values, crow, col, row, (n, m), symmetric, A._reported_layout)
 
 
 def _is_zero(x: object) -> bool:
@@ -490,8 +626,12 @@ def _transpose(A: SparseOperator, *args: Any) -> SparseOperator:
         )
     if A.symmetric:
         return A
+    if tracing():
+        n, m = _shape2(A)
+        crow, col, row, perm_t = transpose_indices(A._crow, A._col, m)
+        return SparseOperator(A._vals[perm_t], crow, col, row, (m, n), False, A._reported_layout)
     transposed, perm = A.pattern.transpose()
-    return SparseOperator(transposed, A._vals[perm], layout=A._reported_layout)
+    return operator_on(transposed, A._vals[perm], layout=A._reported_layout)
 
 
 def _to(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
@@ -521,7 +661,11 @@ def _to(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
             "supported."
         )
     values = A._vals.to(device=device, dtype=dtype, copy=bool(kwargs.get("copy", False)))
-    return A if values is A._vals else A.with_values(values)
+    if values is A._vals:
+        return A
+    if values.device == A._col.device:
+        return A.with_values(values)
+    return operator_on(A.pattern, values, symmetric=A.symmetric, layout=A._reported_layout)
 
 
 def _cast(dtype: torch.dtype) -> Callable[..., SparseOperator]:
@@ -541,14 +685,14 @@ def _cuda(
 
 def _layout_as(layout: torch.layout) -> Callable[..., SparseOperator]:
     def convert(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
-        return SparseOperator(A.pattern, A._vals, symmetric=A.symmetric, layout=layout)
+        return SparseOperator(A._vals, A._crow, A._col, A._row, _shape2(A), A.symmetric, layout)
 
     return convert
 
 
 def _to_dense(A: SparseOperator, *args: Any, **kwargs: Any) -> torch.Tensor:
-    dense = A._vals.new_zeros(A.pattern.shape)
-    return dense.index_put((A.pattern.row, A.pattern.col), A._vals)
+    dense = A._vals.new_zeros(_shape2(A))
+    return dense.index_put((A._row, A._col), A._vals)
 
 
 def _diagonal(A: SparseOperator, offset: int = 0, dim1: int = 0, dim2: int = 1) -> torch.Tensor:
@@ -556,7 +700,10 @@ def _diagonal(A: SparseOperator, offset: int = 0, dim1: int = 0, dim2: int = 1) 
         raise UnsupportedOperation(
             "torch_polylap: only the main diagonal of a sparse operator is supported."
         )
-    pos = A.pattern.diagonal_positions()
+    if tracing():
+        pos = diagonal_indices(A._crow, A._col, min(_shape2(A)))
+    else:
+        pos = A.pattern.diagonal_positions()
     stored = pos >= 0
     gathered = A._vals[pos.clamp_min(0)]
     return torch.where(stored, gathered, torch.zeros_like(gathered))
@@ -572,9 +719,38 @@ def _sum(
     if dim is None:
         return A._vals.sum()
     dim = dim % 2
-    index = A.pattern.row if dim == 1 else A.pattern.col
-    out = A._vals.new_zeros(A.pattern.shape[1 - dim]).index_add(0, index, A._vals)
+    index = A._row if dim == 1 else A._col
+    out = A._vals.new_zeros(_shape2(A)[1 - dim]).index_add(0, index, A._vals)
     return out.unsqueeze(dim) if keepdim else out
+
+
+def _copy(A: SparseOperator, src: object, non_blocking: bool = False) -> SparseOperator:
+    """``A.copy_(B)`` for an operator ``B`` on the same pattern: ``A``'s values become ``B``'s.
+
+    What ``load_state_dict`` does with a buffer: a checkpoint of the same mesh loads in place.
+    """
+    same = (
+        isinstance(src, SparseOperator)
+        and _shape2(src) == _shape2(A)
+        and src._col.shape == A._col.shape
+        and (
+            A._pattern_key >= 0
+            and src._pattern_key == A._pattern_key
+            or bool(torch.equal(src._crow.to(A._crow.device), A._crow))
+            and bool(torch.equal(src._col.to(A._col.device), A._col))
+        )
+    )
+    if not same:
+        raise UnsupportedOperation(
+            f"torch_polylap: copying {_describe(src)} into a sparse operator needs an operator "
+            "with the same sparsity pattern (a checkpoint of the same mesh). To load a state "
+            "dict whose operators belong to other meshes, call "
+            "model.load_state_dict(state_dict, assign=True), which takes them as they are."
+        )
+    assert isinstance(src, SparseOperator)
+    with torch.no_grad():
+        A._vals.copy_(src._vals, non_blocking=non_blocking)
+    return A
 
 
 def _refuse_grad(A: SparseOperator, requires_grad: bool = True) -> SparseOperator:
@@ -591,6 +767,10 @@ def _refuse_grad(A: SparseOperator, requires_grad: bool = True) -> SparseOperato
 
 def _metadata(name: str) -> Callable[..., Any]:
     def get(A: SparseOperator, *args: Any) -> Any:
+        if tracing() and name in ("layout", "is_sparse", "is_sparse_csr"):
+            # torch.compile's tracer refuses tensors that report a sparse layout; it sees the
+            # operator as what it is to torch, a strided wrapper around its tensors
+            return {"layout": torch.strided, "is_sparse": False, "is_sparse_csr": False}[name]
         return {
             "layout": A._reported_layout,
             "is_sparse": A._reported_layout == torch.sparse_coo,
@@ -645,16 +825,17 @@ def _build_handlers() -> dict[Callable, Callable]:
     add([T.detach], lambda A: A.with_values(A._vals.detach(), share_cache=True))
     add([T.clone], lambda A, **k: A.with_values(A._vals.clone()))
     add([T.requires_grad_], _refuse_grad)
+    add([T.copy_], _copy)
     add([T.to_sparse_csr], _layout_as(torch.sparse_csr))
     add([T.to_sparse_coo, T.to_sparse], _layout_as(torch.sparse_coo))
     add([T.coalesce], lambda A: A)
     add([T.is_coalesced], lambda A: True)
     add([T.to_dense], _to_dense)
     add([T.values, T._values], lambda A: A._vals)
-    add([T.crow_indices], lambda A: A.pattern.crow)
-    add([T.col_indices], lambda A: A.pattern.col)
-    add([T.indices, T._indices], lambda A: torch.stack((A.pattern.row, A.pattern.col)))
-    add([T._nnz], lambda A: A.pattern.nnz)
+    add([T.crow_indices], lambda A: A._crow)
+    add([T.col_indices], lambda A: A._col)
+    add([T.indices, T._indices], lambda A: torch.stack((A._row, A._col)))
+    add([T._nnz], lambda A: A._col.shape[0])
     add([T.diagonal, torch.diagonal], _diagonal)
     add([T.sum, torch.sum], _sum)
     for name in ("layout", "is_sparse", "is_sparse_csr", "requires_grad", "grad_fn", "is_leaf"):

@@ -11,10 +11,14 @@ patterns once, not every step.
 
 from __future__ import annotations
 
+import itertools
 import weakref
+from typing import Any
 
 import numpy as np
 import torch
+
+from ..tracing import run_eagerly, tracing
 
 __all__ = ["SparsityPattern"]
 
@@ -27,9 +31,10 @@ def _stable_argsort(key: torch.Tensor) -> torch.Tensor:
 
 
 def _crow_from_rows(row: torch.Tensor, n_rows: int) -> torch.Tensor:
-    crow = torch.zeros(n_rows + 1, dtype=torch.int64, device=row.device)
-    torch.cumsum(torch.bincount(row, minlength=n_rows), 0, out=crow[1:])
-    return crow
+    # counts by index_add, not bincount: its output size does not depend on the data, so the
+    # same code traces under torch.compile
+    counts = torch.zeros(n_rows + 1, dtype=torch.int64, device=row.device)
+    return counts.index_add_(0, row + 1, torch.ones_like(row)).cumsum(0)
 
 
 class SparsityPattern:
@@ -49,6 +54,9 @@ class SparsityPattern:
         "_diag_pos",
         "_unions",
         "_devices",
+        "_eager",
+        "_contains",
+        "key",
         "__weakref__",
     )
 
@@ -59,12 +67,45 @@ class SparsityPattern:
         self._row: torch.Tensor | None = None
         self._transpose: tuple[SparsityPattern, torch.Tensor] | None = None
         self._diag_pos: torch.Tensor | None = None
-        # other pattern -> (union, or None where it is the other pattern itself; index maps)
-        self._unions: weakref.WeakKeyDictionary[
-            SparsityPattern,
-            tuple[SparsityPattern | None, torch.Tensor | None, torch.Tensor | None],
-        ] = weakref.WeakKeyDictionary()
+        # id(other pattern) -> (weak reference to it; union, or None where it is the other
+        # pattern itself; index maps).  A plain dict keyed by id, not a WeakKeyDictionary: the
+        # weak reference only checks that the key still names the same pattern, and the dict
+        # stays readable by torch.compile's tracer.
+        self._unions: dict[
+            int,
+            tuple[
+                weakref.ref,
+                SparsityPattern | None,
+                torch.Tensor | None,
+                torch.Tensor | None,
+            ],
+        ] = {}
         self._devices: dict[torch.device, SparsityPattern] = {}
+        self._contains: dict[int, bool] = {}
+        # built on real index tensors (not inside a torch.compile trace): its caches can be
+        # filled at trace time and enter compiled graphs as constants
+        self._eager = not tracing()
+        # operators refer to their pattern by this number (a constant that torch.compile's
+        # tracer carries through), -1 for patterns built inside traced code
+        self.key = _register(self) if self._eager else -1
+
+    @staticmethod
+    def registered(key: int) -> SparsityPattern | None:
+        """The live pattern numbered ``key``, if any.
+
+        Operators hold their index tensors and this number, not the pattern object (so that
+        torch.compile can trace them); this finds the pattern, with its caches, again.
+        """
+        ref = _PATTERNS.get(key)
+        return None if ref is None else ref()
+
+    # Caches are derived data: a pickled pattern (in a checkpoint, a DataLoader worker's
+    # batch) carries its indices only and rebuilds the rest on first use.
+    def __getstate__(self) -> dict[str, Any]:
+        return {"crow": self.crow, "col": self.col, "shape": self.shape}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["crow"], state["col"], state["shape"])  # type: ignore[misc]
 
     @classmethod
     def from_rows(
@@ -95,17 +136,24 @@ class SparsityPattern:
     @property
     def row(self) -> torch.Tensor:
         """``(nnz,)`` row index of every stored entry."""
-        if self._row is None:
-            self._row = torch.repeat_interleave(
-                torch.arange(self.shape[0], device=self.device), self.crow.diff()
-            )
-        return self._row
+        if self._row is not None:
+            return self._row
+        row = torch.repeat_interleave(
+            torch.arange(self.shape[0], device=self.device), self.crow.diff(), output_size=self.nnz
+        )
+        if not tracing():
+            self._row = row
+        return row
 
     def to(self, device: torch.device | str) -> SparsityPattern:
         """This pattern on ``device``, copied once and cached (with its own caches)."""
         device = torch.device(device)
         if device == self.device or (device.index is None and device.type == self.device.type):
             return self
+        if tracing():
+            if self._eager:
+                return run_eagerly(SparsityPattern.to, self, device)
+            return SparsityPattern(self.crow.to(device), self.col.to(device), self.shape)
         if device not in self._devices:
             self._devices[device] = SparsityPattern(
                 self.crow.to(device), self.col.to(device), self.shape
@@ -114,23 +162,34 @@ class SparsityPattern:
 
     def transpose(self) -> tuple[SparsityPattern, torch.Tensor]:
         """The pattern of ``A^T`` and ``perm`` with ``values(A^T) = values(A)[perm]``."""
+        if tracing():
+            if self._eager:
+                return run_eagerly(SparsityPattern.transpose, self)
+            return _transposed(
+                self, torch.argsort(self.col * self.shape[0] + self.row, stable=True)
+            )
         if self._transpose is None:
-            n, m = self.shape
-            perm = _stable_argsort(self.col * n + self.row)
-            transposed = SparsityPattern.from_rows(self.col[perm], self.row[perm], (m, n))
+            n = self.shape[0]
+            transposed, perm = _transposed(self, _stable_argsort(self.col * n + self.row))
             transposed._transpose = (self, torch.argsort(perm))
             self._transpose = (transposed, perm)
         return self._transpose
 
     def diagonal_positions(self) -> torch.Tensor:
         """``(min(n, m),)`` position of entry ``(i, i)`` in the values, ``-1`` where not stored."""
-        if self._diag_pos is None:
-            k = min(self.shape)
-            pos = torch.full((k,), -1, dtype=torch.int64, device=self.device)
-            on_diag = torch.nonzero(self.row == self.col).reshape(-1)
-            pos[self.col[on_diag]] = on_diag
+        if self._diag_pos is not None:
+            return self._diag_pos
+        if tracing() and self._eager:
+            return run_eagerly(SparsityPattern.diagonal_positions, self)
+        # the largest position on the diagonal of each row (the only one): a scatter of fixed
+        # size rather than a nonzero(), so that it traces
+        on_diag = torch.where(self.row == self.col, torch.arange(self.nnz, device=self.device), -1)
+        k = min(self.shape)
+        pos = torch.full((k,), -1, dtype=torch.int64, device=self.device)
+        pos = pos.scatter_reduce(0, self.row.clamp_max(max(k - 1, 0)), on_diag, "amax")
+        if not tracing():
             self._diag_pos = pos
-        return self._diag_pos
+        return pos
 
     def union(
         self, other: SparsityPattern
@@ -145,13 +204,17 @@ class SparsityPattern:
             return self, None, None
         if other.shape != self.shape:
             raise ValueError(f"cannot add matrices of shapes {self.shape} and {other.shape}.")
-        cached = self._unions.get(other)
-        if cached is None:
-            pattern, at_self, at_other = self._compute_union(other)
-            # the weak-keyed cache must not hold `other` strongly: None stands for it
-            cached = (None if pattern is other else pattern, at_self, at_other)
-            self._unions[other] = cached
-        union, at_self, at_other = cached
+        if tracing():
+            if not (self._eager and other._eager):
+                raise NotImplementedError(
+                    "torch_polylap: inside torch.compile, operators can be added only when "
+                    "their sparsity patterns exist outside the compiled code (those of a mesh's "
+                    "operators do); the union of patterns built inside it has a size that "
+                    "depends on the data. Build such operators outside the compiled function."
+                )
+            union, at_self, at_other = run_eagerly(_cache_union, self, other)
+        else:
+            union, at_self, at_other = _cache_union(self, other)
         return (other if union is None else union), at_self, at_other
 
     def _compute_union(
@@ -167,6 +230,18 @@ class SparsityPattern:
             return other, at_self, None
         row = torch.div(unique, m, rounding_mode="floor")
         return SparsityPattern.from_rows(row, unique - row * m, self.shape), at_self, at_other
+
+    def contains(self, other: SparsityPattern) -> bool:
+        """Whether every entry of ``other`` (same shape) is an entry of this pattern."""
+        if other is self:
+            return True
+        known = self._contains.get(other.key) if other.key >= 0 else None
+        if known is None:
+            union, _, _ = _cache_union(self, other)
+            known = union is self
+            if other.key >= 0:
+                self._contains[other.key] = known
+        return known
 
     def select(
         self, rows: torch.Tensor, cols: torch.Tensor
@@ -187,3 +262,37 @@ class SparsityPattern:
 
     def __repr__(self) -> str:
         return f"SparsityPattern(shape={self.shape}, nnz={self.nnz}, device={self.device})"
+
+
+def _transposed(
+    pattern: SparsityPattern, perm: torch.Tensor
+) -> tuple[SparsityPattern, torch.Tensor]:
+    """The pattern of ``A^T`` from the permutation that sorts ``A``'s entries by column."""
+    n, m = pattern.shape
+    return SparsityPattern.from_rows(pattern.col[perm], pattern.row[perm], (m, n)), perm
+
+
+def _cache_union(
+    pattern: SparsityPattern, other: SparsityPattern
+) -> tuple[SparsityPattern | None, torch.Tensor | None, torch.Tensor | None]:
+    """``(union or None where it is other, at_pattern, at_other)``, computed once per pair."""
+    key = id(other)
+    cached = pattern._unions.get(key)
+    if cached is None or cached[0]() is not other:
+        union, at_self, at_other = pattern._compute_union(other)
+        # the cache must not hold `other` strongly: None stands for it
+        ref = weakref.ref(other, lambda _: pattern._unions.pop(key, None))
+        cached = (ref, None if union is other else union, at_self, at_other)
+        pattern._unions[key] = cached
+    return cached[1], cached[2], cached[3]
+
+
+# key -> the pattern; weak, so that patterns die with their topology
+_PATTERNS: dict[int, weakref.ref[SparsityPattern]] = {}
+_keys = itertools.count()
+
+
+def _register(pattern: SparsityPattern) -> int:
+    key = next(_keys)
+    _PATTERNS[key] = weakref.ref(pattern, lambda _: _PATTERNS.pop(key, None))
+    return key
