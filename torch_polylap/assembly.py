@@ -20,6 +20,7 @@ from .kernels import BlockKernel
 from .kernels.aw11 import aw11_entries, row_sums
 from .kernels.frames import gather_corners
 from .topology import DegreeGroup, Topology, TopologyView, get_topology
+from .tracing import functional, require
 
 __all__ = ["MeshFaces", "assemble", "face_groups", "raise_bad_input"]
 
@@ -44,6 +45,8 @@ def assemble(
     Returns:
         ``values`` ``(nnz,)`` on ``view``'s pattern and ``masses`` ``(V,)`` (or ``None``).
     """
+    if functional():
+        return _assemble_functional(verts, view, topo, kernel, want_mass, validate)
     verts_t = verts.t().contiguous()
     values = verts.new_zeros(topo.nnz)
     masses = verts.new_zeros(topo.num_verts) if want_mass else None
@@ -61,12 +64,61 @@ def assemble(
             if validate:
                 degenerate.append((area <= eps * size2).any())
     if validate:
-        ok = torch.isfinite(verts).all()
-        if degenerate:
-            ok = ok & ~torch.stack(degenerate).any()
-        if not bool(ok):
-            raise_bad_input(verts, topo)
+        _validate(verts, topo, degenerate)
     return values, masses
+
+
+def _assemble_functional(
+    verts: torch.Tensor,
+    view: TopologyView,
+    topo: Topology,
+    kernel: BlockKernel,
+    want_mass: bool,
+    validate: bool,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`assemble` for traced and transformed code: out of place, one pass per group.
+
+    In place updates of a value array from batched blocks fail under vmap, and a loop over
+    chunks would unroll into the traced graph (thousands of nodes at a million faces, which
+    the C++ compiler behind inductor then fails on); torch.compile fuses the whole group
+    instead, so the chunking that keeps eager temporaries small is not needed there.
+    """
+    verts_t = verts.t().contiguous()
+    values = verts.new_zeros(topo.nnz)
+    masses = verts.new_zeros(topo.num_verts) if want_mass else None
+    eps = torch.finfo(verts.dtype).eps
+    degenerate = []
+    for i, grp in enumerate(view.groups):
+        whole = view.whole(i)
+        off, corner_mass, area, size2 = kernel(verts_t, grp, whole.corners_t)
+        flat = off.reshape(-1)
+        positions = torch.cat((whole.pos_upper, whole.pos_lower, whole.pos_diag))
+        entries = torch.cat((flat, flat, -row_sums(off, grp).reshape(-1)))
+        values = values.index_add(0, positions, entries)
+        if masses is not None:
+            masses = masses.index_add(0, whole.corners_t.reshape(-1), corner_mass.reshape(-1))
+        if validate:
+            degenerate.append((area <= eps * size2).any())
+    if validate:
+        _validate(verts, topo, degenerate)
+    return values, masses
+
+
+_BAD_INPUT = (
+    "torch_polylap: non-finite vertex coordinates or a zero-area face. Inside torch.compile "
+    "or torch.func.vmap the offending element cannot be named: call torch_polylap.laplacian "
+    "eagerly on these vertices to find it, or pass validate=False to accept huge entries."
+)
+
+
+def _validate(verts: torch.Tensor, topo: Topology, degenerate: list[torch.Tensor]) -> None:
+    """Raise on non-finite coordinates or a zero-area face (one device sync eagerly; an
+    in-graph assertion when traced; a check of every batch entry under vmap)."""
+    ok = torch.isfinite(verts).all()
+    if degenerate:
+        ok = ok & ~torch.stack(degenerate).any()
+    if not require(ok, _BAD_INPUT):
+        raise_bad_input(verts, topo)
 
 
 def raise_bad_input(verts: torch.Tensor, topo: Topology) -> None:

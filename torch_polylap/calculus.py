@@ -35,7 +35,7 @@ from .kernels.frames import corner_terms, gather_corners, stable_norm
 from .linalg import solve
 from .measures import vector_area
 from .operators import laplacian
-from .sparse import SparseOperator, SparsityPattern, diag
+from .sparse import SparseOperator, SparsityPattern, diag, operator_on
 from .topology import DegreeGroup, Topology, get_topology
 
 __all__ = [
@@ -141,7 +141,7 @@ def gradient_operator(verts: torch.Tensor, faces: MeshFaces) -> SparseOperator:
     parts = list(_corner_gradients(verts, topo))
     pattern, order = _gradient_layout(topo, [grp for grp, _, _ in parts], verts.device)
     values = torch.cat([verts.new_zeros(0)] + [w.reshape(-1) for _, w, _ in parts])
-    return SparseOperator(pattern, values.index_select(0, order))
+    return operator_on(pattern, values.index_select(0, order))
 
 
 def _gradient_layout(

@@ -15,6 +15,7 @@ deep inside an assembly loop.
 
 from __future__ import annotations
 
+import math
 import numbers
 import os
 import sys
@@ -28,6 +29,7 @@ __all__ = [
     "check_verts",
     "check_verts_array",
     "check_lam",
+    "check_lam_tensor_shape",
     "check_index_or_mask",
     "check_positive_int",
     "check_finite",
@@ -128,22 +130,27 @@ def check_lam(lam: object, name: str = "lam") -> Lam:
         ValueError: NaN, infinite or negative.
     """
     if isinstance(lam, torch.Tensor):
-        if lam.numel() != 1 or not lam.is_floating_point():
-            raise TypeError(
-                f"{name} must be a real number or a 0-dim floating tensor, got a tensor of "
-                f"shape {tuple(lam.shape)} and dtype {lam.dtype}."
-            )
+        check_lam_tensor_shape(lam, name)
         value = float(lam.detach())
     elif isinstance(lam, numbers.Real) and not isinstance(lam, (bool, np.bool_)):
         value = float(lam)
     else:
         raise TypeError(f"{name} must be a real number, got {type(lam).__name__} {lam!r}.")
-    if not np.isfinite(value) or value < 0:
+    if not math.isfinite(value) or value < 0:
         raise ValueError(
             f"{name} must be a finite number >= 0, got {value}; the stabilizer weight lambda of "
             "AW11 eq. 9 is usually between 1 and 3 (0 keeps only the geometric part)."
         )
     return lam if isinstance(lam, torch.Tensor) else value
+
+
+def check_lam_tensor_shape(lam: torch.Tensor, name: str = "lam") -> None:
+    """A tensor ``lam`` must hold one floating value (checked without reading it)."""
+    if lam.numel() != 1 or not lam.is_floating_point():
+        raise TypeError(
+            f"{name} must be a real number or a 0-dim floating tensor, got a tensor of "
+            f"shape {tuple(lam.shape)} and dtype {lam.dtype}."
+        )
 
 
 def check_positive_int(k: object, name: str) -> int:

@@ -25,10 +25,11 @@ import torch
 from torch import nn
 
 from .assembly import MeshFaces, assemble
-from .checks import Lam, check_lam, check_verts
+from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts
 from .kernels import block_kernel, check_method
-from .sparse import SparseOperator, diag
+from .sparse import SparseOperator, operator_on
 from .topology import Topology, TopologyView, get_topology
+from .tracing import functional, require
 
 __all__ = [
     "laplacian",
@@ -40,8 +41,17 @@ __all__ = [
 
 
 def _checked_lam(lam: Lam, validate: bool = True) -> Lam:
-    """``lam`` checked finite and >= 0; a tensor only with ``validate`` (reading it syncs)."""
+    """``lam`` checked finite and >= 0; a tensor only with ``validate`` (reading it syncs;
+    traced or vmapped, the check of its value is an in-graph assertion instead)."""
+    if isinstance(lam, torch.Tensor) and functional():
+        if validate:
+            check_lam_tensor_shape(lam)
+            require(torch.isfinite(lam) & (lam >= 0), _BAD_LAM)
+        return lam
     return check_lam(lam) if validate or not isinstance(lam, torch.Tensor) else lam
+
+
+_BAD_LAM = "torch_polylap: lam must be a finite number >= 0."
 
 
 def _check_layout(layout: torch.layout) -> None:
@@ -52,7 +62,7 @@ def _check_layout(layout: torch.layout) -> None:
 def _operator(view: TopologyView, values: torch.Tensor, layout: torch.layout) -> SparseOperator:
     """The symmetric ``V x V`` operator with ``values`` on the view's cached pattern."""
     _check_layout(layout)
-    return SparseOperator(view.pattern, values, symmetric=True, layout=layout)
+    return operator_on(view.pattern, values, symmetric=True, layout=layout)
 
 
 def laplacian(
@@ -115,7 +125,8 @@ def laplacian(
     view = topo.on(verts.device)
     values, masses = assemble(verts, view, topo, block_kernel(method, lam), True, validate)
     assert masses is not None
-    return _operator(view, values, layout), diag(masses, layout=layout)
+    M0 = operator_on(view.diagonal, masses, symmetric=True, layout=layout)
+    return _operator(view, values, layout), M0
 
 
 def planarity_laplacian(

@@ -49,7 +49,7 @@ from ..assembly import MeshFaces
 from ..checks import check_index_or_mask, check_verts
 from ..linalg.factor import spd_factorization
 from ..measures import face_nonplanarity, planarity_energy
-from ..sparse.operator import SparseOperator
+from ..sparse.operator import operator_on
 from ..sparse.pattern import SparsityPattern
 from ..topology import Topology, get_topology
 
@@ -396,7 +396,7 @@ def _gauss_newton(
         diag = wc + mu * stiffness
         values = y.new_zeros(pattern.nnz)
         values.index_add_(0, inverse, torch.cat([*blocks, diag]))
-        A = SparseOperator(pattern, values, symmetric=True)
+        A = operator_on(pattern, values, symmetric=True)
         try:
             # no singularity check: the damping keeps A positive definite (per vertex), and a
             # step that still comes out non-finite (ValueError) counts as one that fails to

@@ -59,8 +59,8 @@ def row_sums(off: torch.Tensor, grp: DegreeGroup) -> torch.Tensor:
     ``L_f 1 = 0`` makes the diagonal their negative. Accumulated row by row (a small BLAS
     matmul would cost milliseconds of threading overhead per call on small meshes).
     """
-    sums = off.new_zeros(grp.k, off.shape[1])
-    sums.index_add_(0, grp.pair_i, off)
+    # the first sum out of place: under vmap `off` is batched and the zeros are not
+    sums = off.new_zeros(grp.k, off.shape[1]).index_add(0, grp.pair_i, off)
     return sums.index_add_(0, grp.pair_j, off)
 
 

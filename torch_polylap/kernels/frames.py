@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import torch
 
+from ..tracing import in_vmap
+
 __all__ = [
     "gather_corners",
     "gather_coordinates",
@@ -151,6 +153,9 @@ def gather_coordinates(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Corner coordinates of a degree group as three ``(k, F)`` tensors ``(X, Y, Z)``.
 
-    One ``take`` per coordinate row is about twice as fast as a 2-D ``index_select`` on the CPU.
+    One ``take`` per coordinate row is about twice as fast as a 2-D ``index_select`` on the CPU;
+    under vmap, which has no batching rule for ``take``, plain indexing.
     """
+    if in_vmap():
+        return verts_t[0][corners_t], verts_t[1][corners_t], verts_t[2][corners_t]
     return verts_t[0].take(corners_t), verts_t[1].take(corners_t), verts_t[2].take(corners_t)

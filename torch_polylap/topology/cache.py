@@ -10,6 +10,7 @@ from collections import OrderedDict
 import torch
 
 from ..faces import FacesLike, PolygonFaces
+from ..tracing import require, run_eagerly, tracing
 from .build import build_topology
 from .structure import Topology
 
@@ -135,6 +136,27 @@ def get_topology(faces: FacesLike | Topology, num_verts: int) -> Topology:
                 f"but verts has {num_verts} rows."
             )
         return faces
+    if tracing():
+        topo = run_eagerly(_lookup, faces, int(num_verts))
+        _require_traced_faces(faces, topo)
+        return topo
+    return _lookup(faces, num_verts)
+
+
+def _lookup(faces: FacesLike, num_verts: int) -> Topology:
+    if isinstance(faces, torch.Tensor):
+        faces = _unwrapped(faces)
+    elif isinstance(faces, PolygonFaces):
+        indices, offsets = _unwrapped(faces.indices), _unwrapped(faces.offsets)
+        if indices is not faces.indices or offsets is not faces.offsets:
+            with torch._C._DisableFuncTorch():
+                faces = PolygonFaces(indices, offsets=offsets)
+    # the plain tensors are read on the host (stamp, build) with torch.func's layers paused
+    with torch._C._DisableFuncTorch():
+        return _lookup_plain(faces, num_verts)
+
+
+def _lookup_plain(faces: FacesLike, num_verts: int) -> Topology:
     holder = faces.indices if isinstance(faces, PolygonFaces) else faces
     if not isinstance(holder, torch.Tensor):
         return build_topology(faces, num_verts)
@@ -144,3 +166,47 @@ def get_topology(faces: FacesLike | Topology, num_verts: int) -> Topology:
         topo = build_topology(faces, num_verts)
         _CACHE.put(holder, stamp, topo)
     return topo
+
+
+def _unwrapped(t: torch.Tensor) -> torch.Tensor:
+    """The plain tensor under torch.func's wrappers: inside a transform, tensor arguments are
+    wrapped (without storage), but connectivity is never differentiated, so its content is
+    that of the plain tensor."""
+    while torch._C._functorch.is_functorch_wrapped_tensor(t):
+        if torch._C._functorch.is_batchedtensor(t):
+            raise ValueError(
+                "torch_polylap: the faces are batched by torch.func.vmap; one mesh's operators "
+                "need one connectivity. vmap over the vertices with the faces passed unbatched "
+                "(in_dims=None), or loop over meshes of different connectivity."
+            )
+        t = torch._C._functorch.get_unwrapped(t)
+    return t
+
+
+# Under torch.compile the faces' content is not known while the graph is traced, but the
+# topology -- degree groups, pattern, scatter maps -- decides the graph's shape. So the lookup
+# runs once at trace time on the real faces (run_eagerly), the topology enters the graph as a
+# constant, and the graph checks on every call that it is given the same faces.
+
+_CHANGED_FACES = (
+    "torch_polylap: the faces passed to this compiled function differ from those it was traced "
+    "with; torch.compile builds the mesh's topology into the graph. For connectivity that "
+    "changes between calls, build the topology outside the compiled function "
+    "(topo = torch_polylap.get_topology(faces, num_verts)) and pass it in place of the faces: "
+    "torch.compile then guards on it."
+)
+
+
+def _require_traced_faces(faces: FacesLike, topo: Topology) -> None:
+    """Insert into the traced graph a check that ``faces`` is what ``topo`` was built from."""
+    if isinstance(faces, PolygonFaces):
+        pairs = [(faces.indices, topo.faces.indices), (faces.offsets, topo.faces.offsets)]
+    elif isinstance(faces, torch.Tensor):
+        pairs = [(faces.reshape(-1), topo.faces.indices)]
+    else:
+        return  # lists and arrays are constants of the graph: torch.compile guards on them
+    for given, built in pairs:
+        if given.numel() != built.numel():
+            raise ValueError(_CHANGED_FACES)
+        expected = topo.on(given.device).face_indices if built is topo.faces.indices else built
+        require((given.to(torch.int64) == expected.to(given.device)).all(), _CHANGED_FACES)

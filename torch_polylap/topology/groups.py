@@ -168,3 +168,23 @@ def _chunks(
             )
         )
     return tuple(out)
+
+
+def whole_group(grp: DegreeGroup) -> GroupChunk:
+    """The group as a single :class:`GroupChunk` (its chunks' scatter maps joined)."""
+    if len(grp.chunks) == 1:
+        return grp.chunks[0]
+    P, k = grp.pair_i.numel(), grp.k
+
+    def joined(name: str, rows: int) -> torch.Tensor:
+        parts = [getattr(c, name).reshape(rows, -1) for c in grp.chunks]
+        return torch.cat(parts, 1).reshape(-1)
+
+    return GroupChunk(
+        0,
+        grp.face_ids.numel(),
+        grp.corners_t,
+        joined("pos_upper", P),
+        joined("pos_lower", P),
+        joined("pos_diag", k),
+    )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -12,8 +12,10 @@ from scipy.sparse.csgraph import connected_components, depth_first_order
 
 from ..faces import PolygonFaces
 from ..sparse import SparsityPattern
+from ..sparse.construct import diagonal_pattern
+from ..tracing import run_eagerly, tracing
 from .analysis import _twins, half_edge_vertices
-from .groups import DegreeGroup
+from .groups import DegreeGroup, GroupChunk, whole_group
 from .report import TopologyReport, _first
 
 
@@ -26,12 +28,32 @@ class TopologyView:
         crow, col: the CSR pattern of ``L`` on that device.
         pattern: the :class:`~torch_polylap.sparse.SparsityPattern` that every operator
             assembled on this topology and device shares.
+        face_indices: the packed face indices on that device (what a compiled graph checks
+            its faces against).
+        diagonal: the pattern of ``M0`` (``V x V`` diagonal), shared with
+            :func:`torch_polylap.sparse.diag` of that size.
     """
 
     groups: list[DegreeGroup]
     crow: torch.Tensor
     col: torch.Tensor
     pattern: SparsityPattern
+    face_indices: torch.Tensor
+    diagonal: SparsityPattern
+    _wholes: dict[int, GroupChunk] = field(default_factory=dict, repr=False, compare=False)
+
+    def whole(self, i: int) -> GroupChunk:
+        """Group ``i`` as one chunk (traced and vmapped assembly: one pass, no loop)."""
+        if tracing():
+            return run_eagerly(_whole_chunk, self, i)
+        chunk = self._wholes.get(i)
+        return _whole_chunk(self, i) if chunk is None else chunk
+
+
+def _whole_chunk(view: TopologyView, i: int) -> GroupChunk:
+    if i not in view._wholes:
+        view._wholes[i] = whole_group(view.groups[i])
+    return view._wholes[i]
 
 
 class Topology:
@@ -239,17 +261,16 @@ class Topology:
         so the operators of every step share its cached transposes and unions (``M0 + t * L``
         computes the union of patterns once). Take it once per call and pass it down."""
         device = torch.device(device)
+        if tracing():
+            return run_eagerly(_make_view, self, device)
         view = self._views.get(device)
-        if view is None:
-            if device.type == "cpu":
-                groups, crow, col = self._groups_cpu, self.crow, self.col
-            else:
-                groups = [g.to(device) for g in self._groups_cpu]
-                crow, col = self.crow.to(device), self.col.to(device)
-            shape = (self.num_verts, self.num_verts)
-            view = TopologyView(groups, crow, col, SparsityPattern(crow, col, shape))
-            self._views[device] = view
-        return view
+        return _make_view(self, device) if view is None else view
+
+    def __getstate__(self) -> dict[str, Any]:
+        # device views and derived layouts are caches, rebuilt on first use after unpickling
+        state = self.__dict__.copy()
+        state["_views"], state["derived"] = {}, {}
+        return state
 
     def __repr__(self) -> str:
         degs = ", ".join(f"{g.k}:{g.face_ids.numel()}" for g in self._groups_cpu)
@@ -259,3 +280,29 @@ class Topology:
             f"boundary_edges={int((self.edge_faces == 1).sum())}, degrees={{{degs}}}, "
             f"nnz={self.nnz}{flags})"
         )
+
+
+def _make_view(topo: Topology, device: torch.device) -> TopologyView:
+    """Build and keep ``topo``'s view on ``device`` (eagerly, also at torch.compile trace time).
+
+    The view's pattern gets its row indices and diagonal positions at once, so operators built
+    in traced code find every index they need already computed.
+    """
+    view = topo._views.get(device)
+    if view is None:
+        if device.type == "cpu":
+            groups, crow, col = topo._groups_cpu, topo.crow, topo.col
+            indices = topo.faces.indices
+        else:
+            groups = [g.to(device) for g in topo._groups_cpu]
+            crow, col = topo.crow.to(device), topo.col.to(device)
+            indices = topo.faces.indices.to(device)
+        shape = (topo.num_verts, topo.num_verts)
+        pattern = SparsityPattern(crow, col, shape)
+        pattern.row  # noqa: B018  (fills the cache)
+        pattern.diagonal_positions()
+        diagonal = diagonal_pattern(topo.num_verts, device)
+        pattern.contains(diagonal)  # M0 + t L: known while tracing whether it needs a union
+        view = TopologyView(groups, crow, col, pattern, indices, diagonal)
+        topo._views[device] = view
+    return view
