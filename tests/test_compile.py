@@ -1,0 +1,260 @@
+"""torch.compile of code that builds and uses the operators: one graph, equal to eager.
+
+The tracing tests use the ``aot_eager`` backend (dynamo + AOTAutograd over fake tensors, no
+C++ compiler), which exercises everything a device-generic compiled graph needs: the custom
+operators' fake kernels, their registered derivatives, the traced topology lookup and the
+in-graph checks. Inductor itself runs in the slow tests, in a fresh process (cold topology
+cache, as a training script's first step).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+from conftest import mixed_mesh
+
+import torch_polylap as tp
+from torch_polylap.sparse.autograd import sampled_op, spmm_op, spmm_t_op
+from torch_polylap.sparse.index_ops import diagonal_indices, transpose_indices, union_indices
+
+
+@pytest.fixture(autouse=True)
+def _fresh_dynamo():
+    # trace_autograd_ops: torch's own switch for tracing torch.autograd.grad and .backward()
+    # into the graph (a whole training step in one graph), off by default in torch 2.13
+    torch._dynamo.reset()
+    with torch._dynamo.config.patch(trace_autograd_ops=True):
+        yield
+    torch._dynamo.reset()
+
+
+def _loss(L: torch.Tensor, M0: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    Y = L @ X
+    A = M0 + 0.1 * L
+    return (Y * (M0 @ Y)).sum() + (A @ X).square().sum() + (L.T @ X).abs().sum()
+
+
+def _grid(n: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+    verts, faces = tp.shapes.quad_grid(n, n + 1)
+    g = torch.Generator().manual_seed(0)
+    return verts.double() + 0.03 * torch.randn(verts.shape, generator=g, dtype=torch.float64), (
+        torch.as_tensor(faces)
+    )
+
+
+def test_forward_is_one_graph_without_breaks():
+    verts, faces = _grid()
+    lap = tp.PolygonLaplacian()
+
+    def step(X: torch.Tensor) -> torch.Tensor:
+        L, M0 = lap(X, faces)
+        return _loss(L, M0, X)
+
+    explained = torch._dynamo.explain(step)(verts)
+    assert explained.graph_count == 1, explained.break_reasons
+    assert explained.graph_break_count == 0
+
+
+@pytest.mark.parametrize("faces_kind", ["tensor", "list", "polygonfaces", "topology"])
+def test_fullgraph_forward_backward_equals_eager(faces_kind):
+    if faces_kind == "tensor":
+        verts, faces = _grid()
+    else:
+        verts, faces = mixed_mesh()
+        faces = {
+            "list": faces,
+            "polygonfaces": tp.as_faces(faces),
+            "topology": tp.build_topology(faces, verts.shape[0]),
+        }[faces_kind]
+
+    def step(X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        L, M0 = tp.laplacian(X, faces)
+        loss = _loss(L, M0, X)
+        (g,) = torch.autograd.grad(loss, X)
+        return loss.detach(), g
+
+    X = verts.clone().requires_grad_(True)
+    want = step(X)
+    got = torch.compile(step, backend="aot_eager", fullgraph=True)(X)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_compiled_step_checks_that_the_faces_are_unchanged():
+    verts, faces = _grid()
+
+    def energy(X: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+        L, M0 = tp.laplacian(X, faces)
+        return _loss(L, M0, X)
+
+    compiled = torch.compile(energy, backend="aot_eager", fullgraph=True)
+    compiled(verts, faces)
+    # same content in a new tensor: the graph is reused and right
+    torch.testing.assert_close(compiled(verts, faces.clone()), energy(verts, faces))
+    other = faces.flip(1).contiguous()  # same shape, other connectivity
+    with pytest.raises(RuntimeError, match="get_topology"):
+        compiled(verts, other)
+
+
+def test_topologies_as_arguments_recompile_per_structure():
+    def energy(X: torch.Tensor, topo: tp.Topology) -> torch.Tensor:
+        L, M0 = tp.laplacian(X, topo)
+        return _loss(L, M0, X)
+
+    compiled = torch.compile(energy, backend="aot_eager", fullgraph=True)
+    for n in (3, 4):
+        verts, faces = _grid(n)
+        topo = tp.build_topology(faces, verts.shape[0])
+        torch.testing.assert_close(compiled(verts, topo), energy(verts, topo))
+    verts, faces = mixed_mesh()
+    topo = tp.build_topology(faces, verts.shape[0])
+    torch.testing.assert_close(compiled(verts, topo), energy(verts, topo))
+
+
+def test_compiled_validation_refuses_non_finite_vertices():
+    verts, faces = _grid()
+    compiled = torch.compile(
+        lambda X: tp.laplacian(X, faces)[0] @ X, backend="aot_eager", fullgraph=True
+    )
+    compiled(verts)
+    bad = verts.clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(RuntimeError, match="non-finite"):
+        compiled(bad)
+
+
+@pytest.mark.parametrize("method", ["aw11", "plms", "degoes"])
+def test_methods_compile(method):
+    verts, faces = mixed_mesh()
+    faces = tp.as_faces(faces)
+
+    def energy(X: torch.Tensor) -> torch.Tensor:
+        L, M0 = tp.laplacian(X, faces, method=method)
+        return _loss(L, M0, X)
+
+    compiled = torch.compile(energy, backend="aot_eager", fullgraph=True)
+    torch.testing.assert_close(compiled(verts), energy(verts), rtol=1e-12, atol=1e-12)
+
+
+def test_custom_operators_pass_opcheck():
+    """torch.library.opcheck: schema, fake kernel, registered derivative, AOT dispatch."""
+    verts, faces = mixed_mesh()
+    L, M0 = tp.laplacian(verts, faces)
+    n = verts.shape[0]
+    parts = (L._crow, L._col, L._row)
+    vals = L.values().detach().clone().requires_grad_(True)
+    X = torch.randn(n, 2, dtype=torch.float64, requires_grad=True)
+    G = torch.randn(n, 2, dtype=torch.float64, requires_grad=True)
+    torch.library.opcheck(spmm_op, (vals, *parts, X, True))
+    torch.library.opcheck(spmm_op, (vals, *parts, X, False))
+    torch.library.opcheck(spmm_t_op, (vals, *parts, G, n))
+    torch.library.opcheck(sampled_op, (G, X, *parts))
+    structure = ("test_schema", "test_faketensor")
+    torch.library.opcheck(
+        union_indices, (L._crow, L._col, M0._crow, M0._col, n), test_utils=structure
+    )
+    torch.library.opcheck(transpose_indices, (L._crow, L._col, n), test_utils=structure)
+    torch.library.opcheck(diagonal_indices, (L._crow, L._col, n), test_utils=structure)
+
+
+def test_custom_operators_on_the_meta_device():
+    """Shapes without data: what a device-generic graph needs from each operator."""
+    verts, faces = mixed_mesh()
+    L, _ = tp.laplacian(verts, faces)
+    n = verts.shape[0]
+    meta = [t.to("meta") for t in (L.values().detach(), L._crow, L._col, L._row)]
+    X = torch.empty(n, 5, dtype=torch.float64, device="meta")
+    assert spmm_op(*meta, X, True).shape == (n, 5)
+    assert spmm_t_op(*meta, X, n).shape == (n, 5)
+    assert sampled_op(X, X, *meta[1:]).shape == (L._nnz(),)
+
+
+def test_compiled_union_of_operators_equals_eager():
+    verts, faces = mixed_mesh()
+
+    def combo(X: torch.Tensor) -> torch.Tensor:
+        L, M0 = tp.laplacian(X, faces)
+        A = (M0 - 0.25 * L) * torch.arange(1.0, X.shape[0] + 1, dtype=X.dtype)[:, None]
+        return A.T @ X + A.diagonal()[:, None]
+
+    got = torch.compile(combo, backend="aot_eager", fullgraph=True)(verts)
+    torch.testing.assert_close(got, combo(verts))
+
+
+@pytest.mark.parametrize("mode", ["implicit", "spectral"])
+def test_learned_diffusion_is_one_graph(mode):
+    verts, faces = _grid()
+    L, M0 = tp.laplacian(verts, faces)
+    evals, evecs = tp.eigs(L, M0, k=8)
+    spectrum = tp.nn.Spectrum.from_meshes([(evals, evecs, M0)])
+    layer = tp.nn.LearnedDiffusion(3, mode=mode).double()
+    x = torch.randn(
+        verts.shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1)
+    )
+
+    def f(x: torch.Tensor) -> torch.Tensor:
+        y = layer(x, spectrum=spectrum) if mode == "spectral" else layer(x, L=L, M0=M0)
+        return y.square().sum()
+
+    explained = torch._dynamo.explain(f)(x)
+    assert explained.graph_count == 1 and explained.graph_break_count == 0
+    torch._dynamo.reset()
+
+    def value_and_grad(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loss = f(x)
+        (g,) = torch.autograd.grad(loss, layer.raw_times)
+        return loss.detach(), g
+
+    want = value_and_grad(x)
+    got = torch.compile(value_and_grad, backend="aot_eager", fullgraph=True)(x)
+    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+_INDUCTOR_STEP = textwrap.dedent(
+    """
+    import torch, torch_polylap as tp
+    torch._dynamo.config.trace_autograd_ops = True
+    verts, faces = tp.shapes.quad_grid(5, 6)
+    g = torch.Generator().manual_seed(0)
+    verts = verts.double() + 0.03 * torch.randn(verts.shape, generator=g, dtype=torch.float64)
+    faces = torch.as_tensor(faces)
+
+    def make():
+        X = torch.nn.Parameter(verts.clone())
+        opt = torch.optim.SGD([X], lr=1e-3)
+        lap = tp.PolygonLaplacian()
+
+        def forward_backward():
+            L, M0 = lap(X, faces)
+            Y = L @ X
+            loss = (Y * (M0 @ Y)).sum() + ((M0 + 0.1 * L) @ X).square().sum()
+            loss.backward()
+            return loss.detach()
+
+        return X, opt, forward_backward
+
+    Xe, opt_e, eager = make()
+    Xc, opt_c, compiled = make()
+    compiled = torch.compile(compiled, fullgraph=True)
+    for _ in range(3):
+        Xe.grad = Xc.grad = None
+        le, lc = eager(), compiled()
+        opt_e.step(); opt_c.step()
+        assert torch.allclose(le, lc, rtol=1e-12, atol=0), (le, lc)
+        assert torch.allclose(Xe, Xc, rtol=0, atol=1e-14)
+    print("OK")
+    """
+)
+
+
+@pytest.mark.slow
+def test_inductor_training_step_in_a_fresh_process():
+    """Cold topology cache, inductor, fullgraph forward + loss + backward, three SGD steps."""
+    out = subprocess.run(
+        [sys.executable, "-c", _INDUCTOR_STEP], capture_output=True, text=True, timeout=900
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip().endswith("OK")

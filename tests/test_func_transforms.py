@@ -1,0 +1,150 @@
+"""torch.func transforms through the operators: grad, jacrev, jvp, vmap, hessian-vector products.
+
+References: torch.autograd on the same functions (reverse mode, which the operator algebra's
+tests check against finite differences), central finite differences for the forward mode, and
+a Python loop over the batch for vmap.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import hex_pent_mesh, mixed_mesh
+from torch.func import grad, jacrev, jvp, vmap
+
+import torch_polylap as tp
+
+
+def _meshes():
+    verts, faces = mixed_mesh()
+    yield "tensor-quads", *tp.shapes.quad_grid(3, 4)
+    yield "list-mixed", verts, faces
+    hv, hf = hex_pent_mesh()
+    yield "polygonfaces", hv, tp.as_faces(hf)
+
+
+MESHES = list(_meshes())
+
+
+def _energy(X: torch.Tensor, faces) -> torch.Tensor:
+    L, M0 = tp.laplacian(X, faces)
+    Y = L @ X
+    return (Y * (M0 @ Y)).sum() + ((M0 + 0.3 * L) @ X).square().sum()
+
+
+def _perturbed(verts: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return verts.double() + 0.03 * torch.randn(verts.shape, generator=g, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("name,verts,faces", MESHES, ids=[m[0] for m in MESHES])
+def test_grad_equals_autograd(name, verts, faces):
+    X = _perturbed(verts)
+    got = grad(_energy)(X, faces)
+    Xr = X.clone().requires_grad_(True)
+    (want,) = torch.autograd.grad(_energy(Xr, faces), Xr)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("name,verts,faces", MESHES, ids=[m[0] for m in MESHES])
+def test_jacrev_equals_autograd_jacobian(name, verts, faces):
+    X = _perturbed(verts, 1)
+
+    def f(X):
+        L, M0 = tp.laplacian(X, faces)
+        return (L @ X)[:, 0] + M0.diagonal()
+
+    got = jacrev(f)(X)
+    want = torch.autograd.functional.jacobian(f, X)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("name,verts,faces", MESHES, ids=[m[0] for m in MESHES])
+def test_jvp_equals_finite_differences(name, verts, faces):
+    X = _perturbed(verts, 2)
+    T = torch.randn(X.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+
+    def f(X):
+        L, M0 = tp.laplacian(X, faces)
+        return L @ X + M0 @ X.square()
+
+    _, tangent = jvp(f, (X,), (T,))
+    h = 1e-6
+    fd = (f(X + h * T) - f(X - h * T)) / (2 * h)
+    assert tangent.abs().max() > 1e-3  # a zero tangent (what custom ops alone give) fails
+    torch.testing.assert_close(tangent, fd, rtol=1e-6, atol=1e-7)
+
+
+def test_jvp_of_a_product_with_fixed_operator():
+    verts, faces = tp.shapes.quad_grid(3, 3)
+    L, _ = tp.laplacian(verts.double(), faces)
+    X = torch.randn(verts.shape[0], 2, dtype=torch.float64)
+    T = torch.randn_like(X)
+    _, tangent = jvp(lambda X: L @ X, (X,), (T,))
+    torch.testing.assert_close(tangent, L @ T)
+
+
+def test_hessian_vector_product_by_forward_over_reverse():
+    verts, faces = tp.shapes.quad_grid(3, 3)
+    X = _perturbed(verts, 4)
+    v = torch.randn(X.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    _, hvp = jvp(grad(lambda X: _energy(X, faces)), (X,), (v,))
+    Xr = X.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(_energy(Xr, faces), Xr, create_graph=True)
+    (want,) = torch.autograd.grad(g, Xr, v)
+    torch.testing.assert_close(hvp, want, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("name,verts,faces", MESHES, ids=[m[0] for m in MESHES])
+def test_vmap_over_vertex_sets(name, verts, faces):
+    Xs = torch.stack([_perturbed(verts, s) for s in range(4)])
+    got = vmap(_energy, in_dims=(0, None))(Xs, faces)
+    want = torch.stack([_energy(X, faces) for X in Xs])
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_vmap_of_grad_over_vertex_sets():
+    verts, faces = tp.shapes.quad_grid(3, 3)
+    Xs = torch.stack([_perturbed(verts, s) for s in range(3)])
+    got = vmap(grad(_energy), in_dims=(0, None))(Xs, faces)
+    want = torch.stack([grad(_energy)(X, faces) for X in Xs])
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_vmap_of_products_with_one_operator():
+    verts, faces = tp.shapes.quad_grid(3, 3)
+    L, M0 = tp.laplacian(verts.double(), faces)
+    Ys = torch.randn(5, verts.shape[0], 3, dtype=torch.float64)
+    torch.testing.assert_close(vmap(lambda Y: L @ Y)(Ys), torch.stack([L @ Y for Y in Ys]))
+    torch.testing.assert_close(vmap(lambda Y: Y.T @ L)(Ys), torch.stack([Y.T @ L for Y in Ys]))
+    A = (M0 + 0.2 * L) * torch.linspace(1, 2, verts.shape[0], dtype=torch.float64)[:, None]
+    torch.testing.assert_close(vmap(lambda Y: A.T @ Y)(Ys), torch.stack([A.T @ Y for Y in Ys]))
+
+
+def test_vmap_refuses_bad_vertices_in_any_batch_entry():
+    verts, faces = tp.shapes.quad_grid(3, 3)
+    Xs = torch.stack([_perturbed(verts, s) for s in range(3)])
+    Xs[1, 4, 2] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        vmap(_energy, in_dims=(0, None))(Xs, faces)
+
+
+def test_grad_through_module_losses_and_solve():
+    verts, faces = tp.shapes.quad_grid(4, 3)
+    faces = torch.as_tensor(faces)
+    lap = tp.PolygonLaplacian()
+    X = _perturbed(verts, 6)
+
+    def f(X):
+        L, M0 = lap(X, faces)
+        smoothed = tp.solve(M0 + 0.1 * L, M0 @ X)
+        loss = tp.losses.laplacian_smoothing((X, faces), method="polygon")
+        loss = (
+            loss + tp.losses.dirichlet_energy((X, faces), X) + tp.losses.bending_energy((X, faces))
+        )
+        return loss + (smoothed - X).square().sum()
+
+    got = grad(f)(X)
+    Xr = X.clone().requires_grad_(True)
+    (want,) = torch.autograd.grad(f(Xr), Xr)
+    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
