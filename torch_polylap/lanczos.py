@@ -97,8 +97,9 @@ def block_lanczos(
         T[m + block : m + 2 * block, m : m + block] = R
         R_prev = R
         m += block
-        # Ritz values are only worth computing once the basis can hold the wanted ones
-        if (m >= 2 * k + block and (m // block) % 2 == 0) or m >= max_dim:
+        # Ritz values are only worth computing once the basis can hold the wanted ones; the
+        # last block that fits max_dim (which need not be a multiple of block) is the last one
+        if (m >= 2 * k + block and (m // block) % 2 == 0) or m + block > max_dim:
             Tm = T[:m, :m]
             theta, S = np.linalg.eigh(0.5 * (Tm + Tm.T))
             theta, S = theta[::-1][:k], S[:, ::-1][:, :k]
