@@ -256,7 +256,8 @@ def solve(
             gradients on ``A``'s device), or ``"auto"``: ``"cholesky"`` for a symmetric ``A``
             when cholespy is installed, else ``"splu"`` on the CPU and ``"cg"`` on CUDA.
             Factorizations are cached on ``A`` and reused by the backward solve.
-        tol: relative residual at which ``"cg"`` stops.
+        tol: relative residual ``|B - A X| / |B|`` (the true one, per column) at which
+            ``"cg"`` stops.
         max_iter: iteration limit of ``"cg"``.
 
     Returns:
@@ -264,8 +265,14 @@ def solve(
         cast back.
 
     Raises:
-        ValueError: ``A`` singular (e.g. ``L`` without a mass term or Dirichlet values), shapes
-            or dtypes that do not match, or CG that does not converge.
+        ValueError: ``A`` singular (e.g. ``L`` without a mass term or Dirichlet values), or
+            not positive definite for ``"cholesky"`` and ``"cg"`` (the message says whether it
+            is singular or indefinite; ``"splu"`` solves a non-singular indefinite ``A``,
+            with partial pivoting where needed), shapes or dtypes that do not match.
+        ConvergenceError: (a ``ValueError``, :class:`torch_polylap.linalg.ConvergenceError`)
+            ``"cg"`` did not reach ``tol`` (a singular ``A`` with ``B`` outside its range,
+            bad conditioning, or ``max_iter`` too small); it carries ``residual`` and
+            ``iterations``.
 
     Examples:
         One implicit smoothing step ``(M0 + h L) X = M0 X0`` on a square and a triangle:
