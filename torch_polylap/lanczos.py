@@ -47,8 +47,11 @@ def block_lanczos(
         n: size of ``C``.
         k: number of eigenpairs, ``k + block <= max_dim <= n``.
         block: block size ``b``. Blocks of 8 needed fewer vectors than 16 or 32 on Laplacian
-            spectra, and cover eigenvalue multiplicities up to 8 at once (larger ones are still
-            found, the round-off in the reorthogonalization brings in their other directions).
+            spectra. A block Krylov space holds at most ``b`` directions of one eigenspace in
+            exact arithmetic: directions of an eigenvalue repeated more than ``b`` times come
+            in only through round-off, and some may be missing when every wanted Ritz pair has
+            converged (32 of 40 on 40 disjoint copies of a mesh). :func:`torch_polylap.eigs`
+            checks for that by an inertia count.
         tol: a Ritz pair has converged when ``|C y - theta y| <= tol |theta|``.
         max_dim: the largest basis to build before giving up.
         seed: seed of the random starting block (results are deterministic).
