@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
-from .checks import Lam
+from .checks import Lam, check_verts
 from .faces import FacesLike
 from .kernels import METHODS, check_method
 from .measures import face_planarity_energy, vector_area
@@ -259,7 +259,9 @@ def planarity_loss(
     """
     _check_reduction(reduction)
     m = _as_meshes(meshes)
-    per_face = face_planarity_energy(m.verts_packed(), m.topology(), lam)
+    # refused like the losses that assemble L: a NaN would otherwise become a NaN loss
+    verts = check_verts(m.verts_packed(), "verts_packed()")
+    per_face = face_planarity_energy(verts, m.topology(), lam, validate=False)
     per_mesh = per_mesh_sum(per_face, m.faces_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
 

@@ -27,9 +27,13 @@ __all__ = [
 ]
 
 
-def mass(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
-    """``(V,)`` lumped masses ``m_p = sum_{f ni p} |f| / k_f`` (AW11 eq. 10), diagonal of ``M0``."""
-    check_verts(verts, finite=False)
+def mass(verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True) -> torch.Tensor:
+    """``(V,)`` lumped masses ``m_p = sum_{f ni p} |f| / k_f`` (AW11 eq. 10), diagonal of ``M0``.
+
+    ``validate``: refuse non-finite coordinates (a ValueError naming the first such vertex; one
+    device sync), as :func:`~torch_polylap.laplacian` does; ``False`` skips the test.
+    """
+    check_verts(verts, finite=validate)
     topo = get_topology(faces, verts.shape[0])
     verts_t = verts.t().contiguous()
     m = verts.new_zeros(topo.num_verts)
@@ -40,17 +44,19 @@ def mass(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     return m
 
 
-def vector_area(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
+def vector_area(verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True) -> torch.Tensor:
     """``(F, 3)`` vector area ``a_f = 1/2 sum_i x_i x x_{i+1}`` of every face (AW11 Lemma 1, eq. 8).
 
     Its norm is the area of the maximal projection and its direction that projection's normal;
     it depends only on the boundary loop, so it is well defined for non-planar faces.
+    ``validate`` as for :func:`mass`.
 
     >>> import torch, torch_polylap as tp
     >>> tilted = torch.tensor([[0.0, 0, 0], [2, 0, 0], [2, 1, 1], [0, 1, 1]])
     >>> tp.vector_area(tilted, [[0, 1, 2, 3]]).tolist()  # 2 x sqrt(2) rectangle, tilted 45 deg
     [[0.0, -2.0, 2.0]]
     """
+    check_verts(verts, finite=validate)
     out = None
     for topo, grp, x in face_groups(verts, faces):
         if out is None:
@@ -60,19 +66,21 @@ def vector_area(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
     return out if out is not None else verts.new_zeros(0, 3)
 
 
-def face_areas(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
-    """``(F,)`` face areas ``|f| = |a_f|`` (area of the maximal projection)."""
-    return stable_norm(vector_area(verts, faces), 1)
+def face_areas(verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True) -> torch.Tensor:
+    """``(F,)`` face areas ``|f| = |a_f|`` (area of the maximal projection); ``validate`` as
+    for :func:`mass`."""
+    return stable_norm(vector_area(verts, faces, validate=validate), 1)
 
 
-def face_normals(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
-    """``(F, 3)`` unit normals of the faces' maximal projections, ``a_f / |a_f|``."""
-    a = vector_area(verts, faces)
+def face_normals(verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True) -> torch.Tensor:
+    """``(F, 3)`` unit normals of the faces' maximal projections, ``a_f / |a_f|``; ``validate``
+    as for :func:`mass`."""
+    a = vector_area(verts, faces, validate=validate)
     return a / stable_norm(a, 1, keepdim=True)
 
 
 def face_nonplanarity(
-    verts: torch.Tensor, faces: MeshFaces, plane: str = "projection"
+    verts: torch.Tensor, faces: MeshFaces, plane: str = "projection", *, validate: bool = True
 ) -> torch.Tensor:
     """``(F,)`` non-planarity of every face: the largest distance of a corner from a plane through
     the corners' centroid, over the face diameter. Zero for planar faces and for triangles; scale
@@ -87,7 +95,9 @@ def face_nonplanarity(
             measure in planarization papers. ``"fit"`` is a measure, not a loss: it is computed
             without gradient (an eigenvector's derivative is unstable where the two smallest
             eigenvalues meet); use ``planarity_energy`` as a loss.
+        validate: as for :func:`mass`.
     """
+    check_verts(verts, finite=validate)
     if plane not in ("projection", "fit"):
         raise ValueError(f'face_nonplanarity: plane must be "projection" or "fit", got {plane!r}.')
     out = verts.new_zeros(0)
@@ -108,7 +118,9 @@ def face_nonplanarity(
     return out
 
 
-def face_planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
+def face_planarity_energy(
+    verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0, *, validate: bool = True
+) -> torch.Tensor:
     """``(F,)`` per-face planarity energy ``lambda/2 |Pi E|_F^2`` (AW11 sec. 5.3).
 
     ``E`` is the face's ``k x 3`` edge matrix and ``Pi E`` its part outside the column space of
@@ -116,7 +128,9 @@ def face_planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0)
     Summed over faces it is ``E_plan = 1/2 sum_c X_c^T Lplan X_c``; evaluated face by face
     without building ``Lplan``.  On a mesh of triangles only it is zero, and still connected to
     ``verts`` (a zero gradient, so a loss built on it can always call ``backward()``).
+    ``validate`` as for :func:`mass`.
     """
+    check_verts(verts, finite=validate)
     lam = check_lam(lam)
     out = verts.new_zeros(0)
     for topo, grp, x in face_groups(verts, faces):
@@ -134,7 +148,9 @@ def face_planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0)
     return out
 
 
-def planarity_energy(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0) -> torch.Tensor:
+def planarity_energy(
+    verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0, *, validate: bool = True
+) -> torch.Tensor:
     """``E_plan = 1/2 sum_c X_c^T Lplan X_c`` (AW11 sec. 5.3), a differentiable scalar: the sum
-    of :func:`face_planarity_energy`."""
-    return face_planarity_energy(verts, faces, lam).sum()
+    of :func:`face_planarity_energy` (``validate`` as for :func:`mass`)."""
+    return face_planarity_energy(verts, faces, lam, validate=validate).sum()

@@ -10,6 +10,7 @@ from .eigenpairs import eigs_route as eigs_route
 from .factor import CholeskyFactorization as CholeskyFactorization
 from .factor import Factorization as Factorization
 from .factor import spd_splu as spd_splu
+from .solves import ConvergenceError as ConvergenceError
 from .solves import dirichlet_solve, solve
 
 __all__ = ["solve", "dirichlet_solve", "eigs"]

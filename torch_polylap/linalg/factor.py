@@ -32,8 +32,11 @@ def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:
 
 
 class Factorization:
-    """A sparse LU factorization (SuperLU, symmetric mode) of a CSR matrix, in float64, on the CPU.
+    """A sparse LU factorization (SuperLU) of a CSR matrix, in float64, on the CPU.
 
+    Symmetric mode without pivoting first (the fast path for the SPD systems of this package);
+    where that breaks down or is inaccurate (a zero or tiny pivot of an indefinite or
+    non-symmetric matrix), SuperLU with partial pivoting, which solves any non-singular matrix.
     Built from ``A``'s values at one point in time and cached on ``A`` by
     :func:`torch_polylap.sparse.solver_cache`, which checks the values' storage and version
     counter before reusing it. ``check`` refuses a numerically singular ``A`` (one extra
@@ -44,10 +47,18 @@ class Factorization:
         S = sp.csc_matrix(to_scipy(A).astype(np.float64))
         try:
             self.lu = spd_splu(S)
+            problem = _solution_problem(S, self.lu.solve) if check else None
+        except RuntimeError as err:
+            problem = str(err)
+        if problem is None:
+            return
+        try:
+            self.lu = spla.splu(S, permc_spec="COLAMD")
         except RuntimeError as err:
             raise ValueError(_singular_message(A, str(err))) from None
-        if check:
-            _check_not_singular(A, S, lambda b: self.lu.solve(b))
+        problem = _solution_problem(S, self.lu.solve) if check else None
+        if problem is not None:
+            raise ValueError(_singular_message(A, problem))
 
     def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
         X = self.lu.solve(
@@ -100,7 +111,7 @@ class CholeskyFactorization:
                 MatrixType.COO,
             )
         except (RuntimeError, ValueError) as err:
-            raise ValueError(_singular_message(A, str(err))) from None
+            raise ValueError(_not_positive_definite_message(A, str(err))) from None
         self.device = device
         _LIVE_CHOLESKY.add(self)
         if not check:
@@ -110,7 +121,9 @@ class CholeskyFactorization:
             rhs = torch.from_numpy(b).to(self.device)[:, None]
             return self._solve64(rhs)[:, 0].cpu().numpy()
 
-        _check_not_singular(A, S.tocsc(), solve_numpy)
+        problem = _solution_problem(S.tocsc(), solve_numpy)
+        if problem is not None:
+            raise ValueError(_not_positive_definite_message(A, problem))
 
     def _solve64(self, B: torch.Tensor) -> torch.Tensor:
         X = torch.empty_like(B)
@@ -127,18 +140,31 @@ class CholeskyFactorization:
         return _finite(self._solve64(B64)).to(B)
 
 
-def _check_not_singular(
-    A: torch.Tensor | sp.spmatrix, S: sp.spmatrix, solve: Callable[[np.ndarray], np.ndarray]
-) -> None:
-    """Refuse a numerically singular ``A``.  A singular PSD matrix (a Laplacian without a mass
-    term) factors without complaint, its last pivot being round-off; one solve with a fixed
-    random right-hand side shows it, the growth ``|x| |A| / |b|`` then reaching ``1 / eps``
-    (reading the pivots would need the whole factor to be copied out of the solver)."""
+# An LU of a well-posed system solves it to a backward error of a few eps; a larger one means
+# tiny pivots (an indefinite matrix factored without pivoting) or near-singularity.
+_BACKWARD_ERROR = 1e-10
+
+
+def _solution_problem(S: sp.spmatrix, solve: Callable[[np.ndarray], np.ndarray]) -> str | None:
+    """What is wrong with a factorization of ``S``, or ``None``: one solve with a fixed random
+    right-hand side. A singular PSD matrix (a Laplacian without a mass term) factors without
+    complaint, its last pivot being round-off, and shows as a growth ``|x| |S| / |b|`` of
+    ``1 / eps`` (reading the pivots would need the whole factor to be copied out of the
+    solver); an unstable factorization (tiny pivots of an indefinite matrix factored without
+    pivoting) as a backward error ``|S x - b| / (|S| |x| + |b|)`` far above round-off."""
     n = S.shape[0]
+    if not n:
+        return None
     b = np.random.default_rng(0).standard_normal(n)
-    growth = np.abs(solve(b)).max() * abs(S).max() / np.abs(b).max() if n else 0.0
+    x = solve(b)
+    norm = abs(S).max()
+    growth = np.abs(x).max() * norm / np.abs(b).max()
     if not np.isfinite(growth) or growth * n * np.finfo(float).eps >= 1.0:
-        raise ValueError(_singular_message(A, f"solution growth {growth:.1e}"))
+        return f"solution growth {growth:.1e}"
+    backward = np.abs(S @ x - b).max() / (norm * np.abs(x).max() + np.abs(b).max())
+    if backward > _BACKWARD_ERROR:
+        return f"backward error {backward:.1e} of the factorization"
+    return None
 
 
 def _finite(X: torch.Tensor) -> torch.Tensor:
@@ -163,6 +189,25 @@ def _singular_message(A: torch.Tensor | sp.spmatrix, detail: str) -> str:
         f"the {A.shape[0]} x {A.shape[1]} system matrix is singular ({detail}). A Laplacian "
         "alone has the constants in its kernel: solve with M0 + h L, or fix values at some "
         "vertices with torch_polylap.dirichlet_solve."
+    )
+
+
+def _not_positive_definite_message(A: torch.Tensor | sp.spmatrix, detail: str) -> str:
+    """Why CHOLMOD refused ``A``: singular, or indefinite but non-singular (then SuperLU with
+    partial pivoting solves it: the error path may afford that diagnosis)."""
+    S = sp.csc_matrix((to_scipy(A) if isinstance(A, torch.Tensor) else A).astype(np.float64))
+    try:
+        problem = _solution_problem(S, spla.splu(S, permc_spec="COLAMD").solve)
+    except RuntimeError as err:
+        problem = str(err)
+    if problem is not None:
+        return _singular_message(A, problem)
+    return (
+        f"the {A.shape[0]} x {A.shape[1]} system matrix is not positive definite ({detail}) "
+        "but non-singular: it is indefinite (e.g. L - s M0 with s > 0), and Cholesky "
+        "factorizations and conjugate gradients need a positive definite matrix. Solve it "
+        "with backend='splu' (SuperLU, which pivots), or check the sign of the terms that "
+        "built it (M0 + h L needs h >= 0)."
     )
 
 
