@@ -22,6 +22,8 @@ setup(
     license="MIT",
     python_requires=">=3.10",
     packages=find_packages(include=["torch_polylap", "torch_polylap.*"]),
+    # the console script's entry: it catches Ctrl-C during the package's imports too
+    py_modules=["_polylap_launcher"],
     package_data={"torch_polylap": ["data/*.obj", "data/*.md", "py.typed"]},
     # tqdm: progress bars on the iterative applications (flow, planarization); pure Python, tiny
     install_requires=["torch>=2.1", "numpy>=1.22", "scipy>=1.9", "trimesh>=3.20", "tqdm>=4.60"],
@@ -61,7 +63,7 @@ setup(
             "potpourri3d",
         ],
     },
-    entry_points={"console_scripts": ["polylap=torch_polylap.cli:main"]},
+    entry_points={"console_scripts": ["polylap=_polylap_launcher:main"]},
     classifiers=[
         "Programming Language :: Python :: 3",
         "Topic :: Scientific/Engineering :: Mathematics",

@@ -16,7 +16,9 @@ dtype and device of their inputs.
 
 from __future__ import annotations
 
+import errno
 import hashlib
+import os
 import warnings
 import zipfile
 import zlib
@@ -38,6 +40,7 @@ __all__ = [
     "spectral_heat_diffusion",
     "implicit_heat_diffusion",
     "cached_eigs",
+    "CacheWriteWarning",
 ]
 
 
@@ -188,6 +191,11 @@ def cached_eigs(
     (:func:`~torch_polylap.io.common.atomic_write`), so concurrent processes computing the same
     key never see or leave half a file.
 
+    A cache that cannot be written (no permission, a read-only file system, a full disk, a path
+    through a regular file or a symbolic link loop: any :class:`OSError`) never loses the
+    computed eigenpairs: they are returned, and one :class:`CacheWriteWarning` per folder and
+    process names the folder and the reason (every call then recomputes).
+
     Raises:
         ValueError: ``cache_dir`` exists but is not a directory (checked before any work).
     """
@@ -195,17 +203,63 @@ def cached_eigs(
     cache = Path(cache_dir)
     check_cache_dir(cache)
     path = cache / f"eigs-{_mesh_key(verts, faces, k, lam, method)}.npz"
-    cached = _load_eigs(path, k, verts.shape[0]) if path.exists() else None
+    # is_file: False also where the path cannot be reached (a symbolic link loop, say)
+    cached = _load_eigs(path, k, verts.shape[0]) if path.is_file() else None
     if cached is None:
         with torch.no_grad():
             L, M0 = laplacian(verts.detach(), faces, lam, method=method)
             evals, evecs = eigs(L, M0, k)
-        cache.mkdir(parents=True, exist_ok=True)
-        evals_np, evecs_np = evals.cpu().numpy(), evecs.cpu().numpy()
-        atomic_write(path, lambda f: np.savez(f, evals=evals_np, evecs=evecs_np))
+        _store_eigs(path, evals.cpu().numpy(), evecs.cpu().numpy())
     else:
         evals, evecs = (torch.from_numpy(a) for a in cached)
     return evals.to(verts), evecs.to(verts)
+
+
+class CacheWriteWarning(UserWarning):
+    """An on-disk cache could not be written; the computed result was returned all the same.
+
+    Issued once per cache folder and process (:func:`cached_eigs`)."""
+
+
+# cache folders already reported as unwritable in this process: one warning each
+_UNWRITABLE_REPORTED: set[str] = set()
+
+
+def _store_eigs(path: Path, evals: np.ndarray, evecs: np.ndarray) -> None:
+    """Write the cache file; on an :class:`OSError` warn (once per folder) instead of raising,
+    so that the caller still gets the eigenpairs it computed."""
+    folder = path.parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda f: np.savez(f, evals=evals, evecs=evecs))
+    except OSError as err:
+        key = os.path.abspath(folder)
+        if key in _UNWRITABLE_REPORTED:
+            return
+        _UNWRITABLE_REPORTED.add(key)
+        warnings.warn(
+            f"eigenpair cache folder {folder} cannot be written ({_write_failure(folder, err)}); "
+            "the eigenpairs were computed and are returned, but not stored, so every call "
+            "recomputes them. Pass a writable cache_dir. (Reported once per folder.)",
+            CacheWriteWarning,
+            stacklevel=3,
+        )
+
+
+def _write_failure(folder: Path, err: OSError) -> str:
+    """The reason a cache write failed, in words. ``mkdir`` reports a symbolic link loop or a
+    dangling link as "File exists": ask ``stat`` for the real reason then."""
+    if isinstance(err, FileExistsError):
+        try:
+            os.stat(folder)
+        except OSError as real:
+            err = real
+        else:
+            return f"{folder} exists and is not a folder"
+    reason = err.strerror or str(err) or type(err).__name__
+    code = errno.errorcode.get(err.errno, "") if err.errno is not None else ""
+    where = f" at {err.filename}" if err.filename is not None else ""
+    return f"{type(err).__name__}{f' {code}' if code else ''}: {reason}{where}"
 
 
 def check_cache_dir(cache_dir: Path) -> None:

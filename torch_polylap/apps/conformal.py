@@ -81,9 +81,12 @@ def _check_mesh(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
         )
     boundary = topo.boundary_vertices
     if boundary.numel() == 0:
+        chi = topo.euler_characteristic()
+        genus = f", genus {(2 - chi) // 2}" if chi % 2 == 0 else ""
         raise ValueError(
-            "the mesh has no boundary: a conformal map to the plane needs a disk-like mesh. "
-            "Cut the surface open (e.g. remove a face or cut along a seam) first."
+            f"the mesh has no boundary (closed, Euler characteristic {chi}{genus}): a conformal "
+            "map to the plane needs a mesh with boundary. Cut the surface open (e.g. remove a "
+            "face or cut along a seam) first."
         )
     n_comp, _ = topo.connected_components()  # no isolated vertex: components of the faces
     if n_comp > 1:
@@ -91,6 +94,29 @@ def _check_mesh(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
             f"the mesh has {n_comp} connected components; parameterize each component separately."
         )
     return boundary
+
+
+def _require_disk(topo: Topology) -> None:
+    """Refuse a mesh that is not a topological disk (one boundary loop, Euler characteristic
+    ``V - E + F = 1``) for the free-boundary map.
+
+    Its area form sums over all boundary loops, and with holes or handles the top eigenpair of
+    area over Dirichlet energy (AW11 eq. 14) need not be an embedding: a torus with one hole
+    and a cube sphere with five holes were folded over (corner angle errors of 250-285
+    degrees).
+    Call after :func:`_check_mesh` (one component, manifold, oriented, with boundary)."""
+    loops = len(topo.boundary_loops())
+    chi = topo.euler_characteristic()
+    if loops == 1 and chi == 1:
+        return
+    genus = (2 - loops - chi) // 2  # chi = 2 - 2 genus - loops on a connected orientable surface
+    raise ValueError(
+        "free_boundary=True needs a topological disk (one boundary loop, Euler characteristic 1), "
+        f"but the mesh has {loops} boundary loop{'s' if loops > 1 else ''} and Euler "
+        f"characteristic {chi} (genus {genus}). Cut it into a disk first: along seams that join "
+        "the boundary loops and through each handle. (The pinned map, free_boundary=False, "
+        "accepts holes, but can fold over on curved meshes: check its angle_distortion.)"
+    )
 
 
 def conformal_matrix(
@@ -322,8 +348,10 @@ def conformal_parameterization(
 
     Args:
         verts: ``(V, 3)`` positions, float32 or float64.
-        faces: polygon faces of one connected, consistently oriented mesh with boundary (any
-            number of boundary loops; the area form sums over all of them).
+        faces: polygon faces of one connected, consistently oriented mesh with boundary. The
+            pinned map takes any number of boundary loops (the area form sums over all of
+            them); ``free_boundary=True`` needs a topological disk (one loop, Euler
+            characteristic 1).
         pins: two boundary vertex indices to prescribe (pinned mode). Default: two far-apart
             boundary vertices (a deterministic double farthest-point sweep).
         pin_uv: ``(2, 2)`` their target positions. Default: ``(0, 0)`` and ``(d, 0)`` with
@@ -348,7 +376,9 @@ def conformal_parameterization(
             non-orientable mesh (the message names the first offending edges and the repair,
             e.g. ``verts, faces, rep = torch_polylap.repair.orient_faces(verts, faces)``), no
             boundary, several connected components, unreferenced vertices, pins that are not
-            two distinct boundary vertices, ``pins`` with ``free_boundary``.
+            two distinct boundary vertices, ``pins`` with ``free_boundary``, a mesh that is not
+            a topological disk with ``free_boundary`` (the message gives its boundary loops,
+            Euler characteristic and genus).
     """
     check_verts(verts)
     check_method(method)
@@ -357,6 +387,7 @@ def conformal_parameterization(
     if free_boundary:
         if pins is not None or pin_uv is not None:
             raise ValueError("free_boundary=True places the whole boundary; do not pass pins.")
+        _require_disk(topo)
         return _free_boundary(verts, topo, lam, boundary, method)
     if pins is None:
         if pin_uv is not None:

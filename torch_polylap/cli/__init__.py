@@ -8,7 +8,13 @@ and takes ``-o DIR``: ``smooth``, ``param``, ``planarize``, ``spectrum`` and ``d
 there (default ``./polylap_out``), ``info`` and ``bench`` write their report as JSON there
 when given ``-o DIR`` (or ``--json``, to ``./polylap_out``). Bad files and arguments end the
 command with one ``polylap: error: ...`` line on stderr and exit status 2; set
-``POLYLAP_DEBUG=1`` to see the traceback of an unexpected error instead.
+``POLYLAP_DEBUG=1`` to see the traceback of an unexpected error instead. Ctrl-C ends it with
+``polylap: interrupted`` and status 130, SIGTERM and SIGHUP with ``polylap: terminated
+(SIGTERM)`` and ``128 + signal`` (:mod:`.interrupts`); every file is written atomically
+(:class:`.common.Output`), so an interrupted command leaves the previous file and no temporary.
+
+Every command runs with torch pinned to ``--threads N`` intra-op threads, 1 by default (``0``:
+torch's own default, see :func:`.timing.pinned_threads`).
 
 The command protocol: every command module has
 
@@ -19,8 +25,7 @@ The command protocol: every command module has
 - ``run(args) -> int``: ``execute(compute, args)`` (:func:`.common.execute`), which checks the
   output directory first, then computes, writes the files and prints the summary.
 
-``demo`` composes the other commands through their ``compute``. Timings (``info``, ``bench``)
-pin torch to ``--threads N`` threads, 1 by default (:mod:`.timing`).
+``demo`` composes the other commands through their ``compute``.
 """
 
 from __future__ import annotations
@@ -31,11 +36,11 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
-import torch
-
 from .. import __version__
 from . import bench, demo, info, param, planarize, smooth, spectrum
 from .common import DEFAULT_MESH
+from .interrupts import Terminated, ignore_signals, signals_as_exceptions
+from .timing import DEFAULT_THREADS, pinned_threads
 
 __all__ = ["main", "build_parser", "DEFAULT_MESH"]
 
@@ -49,6 +54,27 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+THREADS_HELP = (
+    "torch CPU threads for the whole command (default {default}; 0: torch's own default, "
+    "OMP_NUM_THREADS or the number of cores). The sparse kernels of these commands gain little "
+    "from more threads, and on a busy machine every parallel kernel waits for its descheduled "
+    "threads"
+)
+
+
+def thread_count(text: str) -> int:
+    """``--threads N``: a whole number, 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number of threads (0 for torch's default), got {text!r}"
+        )
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="polylap",
@@ -56,42 +82,52 @@ def build_parser() -> argparse.ArgumentParser:
         "run the applications of the paper on your own meshes.",
         epilog="Run 'polylap COMMAND --help' for the options of a command. Without a command, "
         "'polylap' runs 'info' on the embedded mesh. Files go to ./polylap_out unless -o DIR "
-        "(info and bench write a JSON report only with -o DIR or --json).",
+        "(info and bench write a JSON report only with -o DIR or --json); each is written "
+        "whole or not at all. Ctrl-C ends a command with exit status 130 and leaves every "
+        "file as it was.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    parser.add_argument(
-        "--threads",
-        type=int,
-        metavar="N",
-        help="torch CPU threads (default: torch's choice, except for the timings of info and "
-        "bench, which run on 1 unless N is given). On a busy machine small meshes run much "
-        "faster with 1: every tiny parallel kernel otherwise waits for descheduled threads",
-    )
+    threads_help = THREADS_HELP.format(default=DEFAULT_THREADS)
+    parser.add_argument("--threads", type=thread_count, metavar="N", help=threads_help)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in COMMANDS:
         module.add_parser(sub)
+    for command in sub.choices.values():
+        # SUPPRESS: given after the command it overrides the one before; absent it leaves it
+        command.add_argument(
+            "--threads",
+            type=thread_count,
+            metavar="N",
+            default=argparse.SUPPRESS,
+            help=threads_help,
+        )
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    """Run ``polylap`` with ``argv`` (default ``sys.argv[1:]``); the exit status."""
+    with signals_as_exceptions():
+        try:
+            return _run(list(sys.argv[1:] if argv is None else argv))
+        except KeyboardInterrupt:
+            return _end("interrupted", 130)
+        except Terminated as ended:
+            return _end(f"terminated ({ended.name})", 128 + ended.signum)
+
+
+def _run(argv: list[str]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args([*argv, "info"])
     try:
-        if args.threads is not None:
-            if args.threads < 1:
-                raise ValueError(f"--threads must be at least 1, got {args.threads}.")
-            torch.set_num_threads(args.threads)
-        return args.func(args)
+        with pinned_threads(args.threads):
+            return int(args.func(args))
     except (ValueError, OSError) as err:
-        # bad input: a file that is missing or malformed, a mesh the operators reject
+        # bad input: a file that is missing or malformed, a mesh the operators reject, an output
+        # folder that cannot be written
         print(f"polylap: error: {_one_line(err)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("polylap: interrupted", file=sys.stderr)
-        return 130
     except Exception as err:
         if os.environ.get("POLYLAP_DEBUG"):
             raise
@@ -101,6 +137,30 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 1
+
+
+def _end(message: str, status: int) -> int:
+    """One line for a command ended by a signal (its files were left as they were)."""
+    ignore_signals()
+    _close_progress_bars()
+    try:
+        print(f"polylap: {message}", file=sys.stderr)
+    except OSError:  # SIGHUP: the terminal may be gone
+        pass
+    return status
+
+
+def _close_progress_bars() -> None:
+    """Close the progress bars an interruption left open (they close on their own only when
+    garbage collected, after the message, which would land at the end of the bar's line)."""
+    tqdm = sys.modules.get("tqdm")
+    if tqdm is None:
+        return
+    for bar in list(getattr(tqdm.tqdm, "_instances", ())):
+        try:
+            bar.close()
+        except Exception:  # a bar half torn down by the interruption: the message matters more
+            pass
 
 
 def _one_line(err: BaseException) -> str:

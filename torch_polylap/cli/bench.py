@@ -1,7 +1,7 @@
 """``polylap bench [MESH]``: quick side-by-side timings of the operators on one mesh.
 
 Each time is the median of ``--repeat`` calls after a warm-up call, with torch pinned to one
-thread unless ``polylap --threads N bench`` asks for more (:mod:`.timing`). The operations run
+thread unless ``polylap bench --threads N`` asks for more (:mod:`.timing`). The operations run
 through the library (``laplacian``, ``M0 + h * L``, :func:`torch_polylap.solve`,
 :func:`torch_polylap.eigs`); the references are libigl's triangle ``cotmatrix`` and
 ``massmatrix`` on the library's triangulation of the same mesh
@@ -54,7 +54,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Time topology, assembly, re-assembly, forward+backward, spmm, solve and "
         "eigs on one mesh, side by side with scipy (and libigl's cotmatrix on the triangulated "
         "mesh when libigl is installed); ratio = torch_polylap / reference. torch runs on one "
-        "thread unless 'polylap --threads N bench': on a busy machine tiny multi-threaded "
+        "thread unless --threads N says otherwise: on a busy machine tiny multi-threaded "
         "kernels wait for descheduled threads.",
     )
     add_mesh_argument(p)
@@ -144,7 +144,9 @@ def compute(args: argparse.Namespace) -> Result:
             )
     plural = "s" if threads > 1 else ""
     pinned = (
-        "" if getattr(args, "threads", None) else " (pinned; polylap --threads N bench to change)"
+        " (pinned; polylap bench --threads N to change)"
+        if getattr(args, "threads", None) is None
+        else ""
     )
     title = (
         f"polylap bench: {label}, {n} vertices, {faces.num_faces} faces, {method_label(args)}, "

@@ -11,13 +11,17 @@ import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 import torch
 
 from ..faces import PolygonFaces
-from ..io import SkippedContentWarning, read_mesh
+from ..io import SkippedContentWarning, read_mesh, write_mesh
+from ..io.common import atomic_write
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 DEFAULT_MESH = DATA_DIR / "spot_control_mesh.obj"
@@ -29,12 +33,58 @@ DEFAULT_OUTPUT = "polylap_out"
 Rows = list[tuple[str, str]]
 
 
+# resolution of the figures (that of torch_polylap.plot.save_figure)
+FIGURE_DPI = 110
+
+
 @dataclass
 class Output:
-    """A file a command writes: its name in the output directory and the function writing it."""
+    """A file a command writes: its name in the output directory and its content, either
+    ``fill`` or ``mesh``.
+
+    Every output is written atomically (:func:`~torch_polylap.io.common.atomic_write`): into a
+    temporary next to the target, fsynced, then moved onto it, so that an error, Ctrl-C or
+    ``kill`` mid-write leaves the previous file and no temporary.
+
+    Attributes:
+        name: the file name in the output directory.
+        fill: writes the content into an open binary file (the temporary).
+        mesh: ``(verts, faces)`` for :func:`~torch_polylap.io.write_mesh`, which writes the
+            format of the name's extension atomically itself.
+    """
 
     name: str
-    write: Callable[[Path], object]
+    fill: Callable[[BinaryIO], object] | None = None
+    mesh: tuple[torch.Tensor, PolygonFaces] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.fill is None) == (self.mesh is None):
+            raise TypeError(f"Output {self.name!r}: give exactly one of fill and mesh.")
+
+    def write(self, path: Path) -> None:
+        """Replace ``path`` by this output, all or nothing."""
+        if self.mesh is not None:
+            write_mesh(path, *self.mesh)
+        else:
+            assert self.fill is not None  # __post_init__
+            atomic_write(path, self.fill)
+
+
+def mesh_output(name: str, verts: torch.Tensor, faces: PolygonFaces) -> Output:
+    """An :class:`Output` writing a mesh (format from the extension of ``name``)."""
+    return Output(name, mesh=(verts, faces))
+
+
+def figure_output(name: str, draw: Callable[[], Figure]) -> Output:
+    """An :class:`Output` writing the figure ``draw()`` returns (format from the extension of
+    ``name``, drawn only when the file is written)."""
+    fmt = Path(name).suffix.lstrip(".") or "png"
+    return Output(name, fill=lambda f: draw().savefig(f, format=fmt, dpi=FIGURE_DPI))
+
+
+def text_output(name: str, text: Callable[[], str]) -> Output:
+    """An :class:`Output` writing the UTF-8 text ``text()`` returns when the file is written."""
+    return Output(name, fill=lambda f: f.write(text().encode("utf-8")))
 
 
 @dataclass
@@ -96,7 +146,7 @@ def execute(compute: Callable[[argparse.Namespace], Result], args: argparse.Name
 
 def json_output(name: str, data: dict[str, Any]) -> Output:
     """An :class:`Output` writing ``data`` as indented JSON."""
-    return Output(name, lambda path: path.write_text(json.dumps(data, indent=2) + "\n"))
+    return text_output(name, lambda: json.dumps(data, indent=2) + "\n")
 
 
 def mean_edge_length(verts: torch.Tensor, edges: torch.Tensor) -> float:

@@ -12,24 +12,28 @@ import argparse
 import datetime
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from .. import __version__
 from ..faces import PolygonFaces
-from ..io import write_mesh
 from ..topology import get_topology
 from .common import (
     DATA_DIR,
     DEFAULT_OUTPUT,
-    Output,
     Result,
     add_method_argument,
     execute,
+    figure_output,
+    mesh_output,
     read_mesh_quietly,
+    text_output,
 )
 from .timing import markdown_table
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 # (title, AW11 section, command, result, seconds) of one part of the report
 _Section = tuple[str, str, str, Result, float]
@@ -101,15 +105,14 @@ def compute(args: argparse.Namespace) -> Result:
         result = task()
         sections.append((title, section, command, result, time.perf_counter() - t0))
 
-    def write_report(path: Path) -> None:
+    def report() -> str:
         # written after the parts' meshes and figures: the total includes them
-        total = time.perf_counter() - start
-        path.write_text(_markdown(sections, total), encoding="utf-8")
+        return _markdown(sections, time.perf_counter() - start)
 
     return Result(
         "polylap demo: the applications of AW11 sec. 5.1-5.4 on embedded meshes",
         parts=[result for _, _, _, result, _ in sections],
-        outputs=[Output("report.md", write_report)],
+        outputs=[text_output("report.md", report)],
     )
 
 
@@ -153,20 +156,18 @@ def plate(with_plot: bool, method: str = "aw11") -> Result:
         ),
         ("time (lambda = 1)", f"{seconds * 1e3:.1f} ms"),
     ]
-    outputs = [Output("plate_deflection.obj", lambda obj: write_mesh(obj, deflected, faces))]
+    outputs = [mesh_output("plate_deflection.obj", deflected, faces)]
     if with_plot:
         outputs.append(
-            Output(
-                "plate_deflection.png", lambda png: _plate_figure(verts, faces, u, reference, png)
-            )
+            figure_output("plate_deflection.png", lambda: _plate_figure(verts, faces, u, reference))
         )
     return Result("polylap demo: thin-plate bending", rows, outputs=outputs)
 
 
 def _plate_figure(
-    verts: torch.Tensor, faces: PolygonFaces, u: torch.Tensor, reference: torch.Tensor, png: Path
-) -> None:
-    from ..plot import new_figure, plot_mesh, save_figure
+    verts: torch.Tensor, faces: PolygonFaces, u: torch.Tensor, reference: torch.Tensor
+) -> Figure:
+    from ..plot import new_figure, plot_mesh
 
     fig, (ax1, ax2) = new_figure(1, 2, True, panel_size=4.5)
     # exaggerate the deflection so that the shape is visible next to the unit square
@@ -186,7 +187,7 @@ def _plate_figure(
         azim=-90,
         label="error",
     )
-    save_figure(fig, png)
+    return fig
 
 
 def _symmetric(x: torch.Tensor) -> tuple[float, float]:

@@ -5,30 +5,32 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from ..faces import PolygonFaces
-from ..io import write_mesh
 from ..measures import vector_area
 from ..topology import Topology, get_topology
 from .common import (
     DISK_MESH,
-    Output,
     Result,
     add_mesh_argument,
     add_method_argument,
     add_output_arguments,
     execute,
+    figure_output,
     load_mesh,
+    mesh_output,
     method_label,
     positive_float,
     result_name,
     up_axis,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -109,13 +111,13 @@ def compute(args: argparse.Namespace) -> Result:
         ),
         ("flipped faces", str(flipped)),
     ]
-    outputs = [Output(result_name(path, "param", ".obj"), lambda obj: write_mesh(obj, flat, faces))]
+    outputs = [mesh_output(result_name(path, "param", ".obj"), flat, faces)]
     if not args.no_plot:
         up = up_axis(args, verts)
         outputs.append(
-            Output(
+            figure_output(
                 result_name(path, "param", ".png"),
-                lambda png: _figure(verts, uv, faces, face_err_deg, up, png),
+                lambda: _figure(verts, uv, faces, face_err_deg, up),
             )
         )
     return Result(f"polylap param: {label}", rows, outputs=outputs)
@@ -127,17 +129,16 @@ def _figure(
     faces: PolygonFaces,
     face_err_deg: torch.Tensor,
     up: str,
-    png: Path,
-) -> None:
+) -> Figure:
     """The mesh and its conformal image, faces colored by their mean angle error."""
-    from ..plot import new_figure, plot_mesh, plot_uv, save_figure
+    from ..plot import new_figure, plot_mesh, plot_uv
 
     fig, (ax3, ax2) = new_figure(1, 2, [True, False], panel_size=4.5)
     hi = float(np.nanmax(face_err_deg.numpy())) or 1.0
     common: dict[str, Any] = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
     plot_mesh(verts, faces, face_err_deg, ax=ax3, title="input", colorbar=False, up=up, **common)
     plot_uv(uv, faces, face_err_deg, ax=ax2, title="conformal map", **common)
-    save_figure(fig, png)
+    return fig
 
 
 def _area(verts: torch.Tensor, topo: Topology) -> torch.Tensor:

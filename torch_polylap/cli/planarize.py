@@ -3,28 +3,30 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from ..faces import PolygonFaces
-from ..io import write_mesh
 from ..measures import face_nonplanarity
 from ..topology import Topology, get_topology
 from .common import (
-    Output,
     Result,
     add_mesh_argument,
     add_output_arguments,
     execute,
+    figure_output,
     load_mesh,
+    mesh_output,
     positive_float,
     positive_int,
     result_name,
     up_axis,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 if TYPE_CHECKING:
     from ..apps.planarize import PlanarizeResult
@@ -110,13 +112,12 @@ def compute(args: argparse.Namespace) -> Result:
         ("iterations / time", f"{res.iterations} / {res.seconds:.2f} s"),
         ("converged", "yes" if res.converged else f"no: {res.message}"),
     ]
-    outputs = [Output(result_name(path, "planar"), lambda mesh: write_mesh(mesh, res.verts, faces))]
+    outputs = [mesh_output(result_name(path, "planar"), res.verts, faces)]
     if not args.no_plot:
         up = up_axis(args, verts)
         outputs.append(
-            Output(
-                result_name(path, "planar", ".png"),
-                lambda png: _figure(verts, faces, topo, res, up, png),
+            figure_output(
+                result_name(path, "planar", ".png"), lambda: _figure(verts, faces, topo, res, up)
             )
         )
     return Result(
@@ -133,10 +134,9 @@ def _figure(
     topo: Topology,
     res: PlanarizeResult,
     up: str,
-    png: Path,
-) -> None:
+) -> Figure:
     """Input and result colored by face non-planarity, and the energy per iteration."""
-    from ..plot import new_figure, plot_lines, plot_mesh, save_figure
+    from ..plot import new_figure, plot_lines, plot_mesh
 
     before = face_nonplanarity(verts, topo)
     after = face_nonplanarity(res.verts, topo)
@@ -167,7 +167,7 @@ def _figure(
             logy=True,
             marker="",
         )
-    save_figure(fig, png)
+    return fig
 
 
 def run(args: argparse.Namespace) -> int:

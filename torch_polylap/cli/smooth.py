@@ -5,31 +5,34 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from tqdm import tqdm
 
 from ..assembly import MeshFaces
-from ..io import write_mesh
 from ..measures import face_areas
 from ..operators import laplacian, strong_laplacian
 from ..topology import Topology, get_topology
 from .common import (
-    Output,
     Result,
     add_mesh_argument,
     add_method_argument,
     add_output_arguments,
     execute,
+    figure_output,
     load_mesh,
     mean_edge_length,
+    mesh_output,
     method_label,
     positive_float,
     positive_int,
     result_name,
     up_axis,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 # Mean-curvature flow develops singularities in finite time where a thin part of the surface
 # pinches off (a cylinder of radius r at t = r^2 / 2): on a coarse mesh with thin ears that is
@@ -150,7 +153,7 @@ def compute(args: argparse.Namespace) -> Result:
         ),
         ("largest vertex move / bbox diagonal", f"{float(shift / diag):.3g}"),
     ]
-    outputs = [Output(result_name(path, "smooth"), lambda mesh: write_mesh(mesh, smoothed, faces))]
+    outputs = [mesh_output(result_name(path, "smooth"), smoothed, faces)]
     if not args.no_plot:
         # boundary vertices carry a boundary term, not curvature: leave them out of the color
         # (painted with the interior mean)
@@ -168,9 +171,7 @@ def compute(args: argparse.Namespace) -> Result:
                 **panel,
             ),
         ]
-        outputs.append(
-            Output(result_name(path, "smooth", ".png"), lambda png: _figure(panels, png))
-        )
+        outputs.append(figure_output(result_name(path, "smooth", ".png"), lambda: _figure(panels)))
     return Result(
         f"polylap smooth: {label}",
         rows,
@@ -254,10 +255,10 @@ def _flow_before_singularity(
     return current, taken, dt, ""
 
 
-def _figure(panels: list[dict], png: Path) -> None:
+def _figure(panels: list[dict]) -> Figure:
     from ..plot import plot_meshes
 
-    plot_meshes(panels, path=png)
+    return plot_meshes(panels)
 
 
 def run(args: argparse.Namespace) -> int:

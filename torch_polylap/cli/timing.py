@@ -17,9 +17,16 @@ from typing import TypeVar
 
 import torch
 
+from ..assembly import MeshFaces
+from ..operators import laplacian
+from ..topology import Topology, build_topology
+
 __all__ = [
     "DEFAULT_THREADS",
+    "TORCH_DEFAULT_THREADS",
+    "FIRST_ASSEMBLY",
     "pinned_threads",
+    "first_assembly",
     "synchronizer",
     "median_time",
     "timed",
@@ -29,19 +36,25 @@ __all__ = [
 
 T = TypeVar("T")
 
-# torch threads for timings when none are asked for: small kernels time reliably with one
+# torch threads of the polylap commands and of timings when none are asked for: small sparse
+# kernels run (and time) reliably with one
 DEFAULT_THREADS = 1
+# torch's own thread count, as the process started (OMP_NUM_THREADS or the number of cores)
+TORCH_DEFAULT_THREADS = torch.get_num_threads()
 
 
 @contextmanager
 def pinned_threads(threads: int | None = DEFAULT_THREADS) -> Iterator[int]:
     """Run the block with ``torch.set_num_threads(threads)`` and restore the previous count.
 
-    ``None`` means :data:`DEFAULT_THREADS`. Yields the thread count in effect.
+    ``None`` means :data:`DEFAULT_THREADS`, ``0`` torch's own default
+    (:data:`TORCH_DEFAULT_THREADS`). Yields the thread count in effect.
     """
     threads = DEFAULT_THREADS if threads is None else int(threads)
+    if threads == 0:
+        threads = TORCH_DEFAULT_THREADS
     if threads < 1:
-        raise ValueError(f"the thread count must be at least 1, got {threads}.")
+        raise ValueError(f"the thread count must be at least 0, got {threads}.")
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -113,6 +126,46 @@ def median_time(
 ) -> float:
     """Median seconds per call of ``fn`` (:func:`timed` without the result; warm-up on)."""
     return timed(fn, repeat, warmup=warmup, sync=sync, min_sample_s=min_sample_s)[0]
+
+
+# what first_assembly measures, as the commands label it
+FIRST_ASSEMBLY = "first assembly (topology + values)"
+
+
+def first_assembly(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    lam: float,
+    method: str,
+    *,
+    warn: bool = True,
+    sync: Callable[[], None] | None = None,
+) -> tuple[float, Topology, tuple[torch.Tensor, torch.Tensor]]:
+    """Seconds of assembling ``(L, M0)`` from scratch, the topology and the operators.
+
+    The quantity that ``polylap info`` and ``polylap spectrum`` both report as
+    :data:`FIRST_ASSEMBLY`: :func:`~torch_polylap.topology.build_topology` of ``faces`` (never
+    the topology cache) plus the first :func:`~torch_polylap.laplacian` on it, one sample each,
+    at the thread count in effect. In a fresh process it includes first-call costs (lazy
+    imports, allocator warm-up); the re-assembly on a cached topology is much cheaper (``info``
+    reports both).
+
+    Args:
+        verts: ``(V, 3)`` positions.
+        faces: the faces (a ``Topology`` is rebuilt from its faces).
+        lam: stabilizer weight.
+        method: the Laplacian.
+        warn: let :func:`build_topology` warn about topology defects.
+        sync: see :func:`timed` (CUDA).
+
+    Returns:
+        ``(seconds, topology, (L, M0))``.
+    """
+    if isinstance(faces, Topology):
+        faces = faces.faces
+    t_topo, topo = timed(lambda: build_topology(faces, verts.shape[0], warn=warn), 1, sync=sync)
+    t_values, operators = timed(lambda: laplacian(verts, topo, lam, method=method), 1, sync=sync)
+    return t_topo + t_values, topo, operators
 
 
 def fmt_time(seconds: float) -> str:
