@@ -334,8 +334,8 @@ class PolygonMeshes:
 
         Each ``Data`` needs ``pos`` ``(V, 3)`` and faces: ``polygons`` (any form accepted by
         :func:`torch_polylap.as_faces`), else ``polygon_index`` ``(N,)`` with ``polygon_sizes``
-        ``(F,)``, else ``face`` ``(k, F)`` (torch_geometric's column-wise convention: triangles
-        ``(3, F)``, quads ``(4, F)``). A ``Batch`` is split with its ``to_data_list()``. See
+        ``(F,)``, else ``face`` ``(3, F)`` (torch_geometric's column-wise triangles). A
+        ``Batch`` is split with its ``to_data_list()``. See
         :func:`torch_polylap.interop.from_pyg`.
         """
         from .interop import _pyg_meshes
@@ -349,11 +349,11 @@ class PolygonMeshes:
 
         return to_pytorch3d(self)
 
-    def to_pyg(self, *, triangulate: bool = False) -> Any:
+    def to_pyg(self, *, triangulate: bool = False, laplacian: bool = False) -> Any:
         """torch_geometric ``Batch`` of the meshes (:func:`torch_polylap.interop.to_pyg`)."""
         from .interop import to_pyg
 
-        return to_pyg(self, triangulate=triangulate)
+        return to_pyg(self, triangulate=triangulate, laplacian=laplacian)
 
     # ----------------------------------------------------------------- accessors
 

@@ -12,25 +12,35 @@ pytorch3d
     batch (the polygons a ``Meshes`` came from are not recoverable from it).
 
 PyTorch Geometric (``torch_geometric.data.Data``)
-    ``pos`` is ``(V, 3)``. torch_geometric stores triangles column-wise as ``face`` ``(3, F)``
-    and offsets it by the nodes before it when it batches graphs. For polygon meshes:
+    ``pos`` is ``(V, 3)`` and ``edge_index`` ``(2, 2E)`` the mesh's ``E`` undirected edges in
+    both directions, sorted by source then target (what ``torch_geometric.utils.to_undirected``
+    returns). torch_geometric's ``face`` is ``(3, F)`` triangles (its ``FaceToEdge`` reads a
+    ``(4, F)`` ``face`` as tetrahedra), so:
 
-    * every face of degree ``k`` (a uniform mesh, quads included): ``face`` is ``(k, F)``;
-    * faces of mixed degree: no ``face``; ``polygon_index`` ``(N,)`` holds the corners of all
-      faces concatenated, each face in its cyclic order, and ``polygon_sizes`` ``(F,)`` the
-      degree of every face (:class:`~torch_polylap.PolygonFaces`' ``indices`` and ``sizes``).
-      The ``_index`` suffix makes ``Batch.from_data_list`` offset it by the nodes before it,
-      the same as ``face``, and ``Batch.to_data_list`` undo that;
-    * ``triangulate=True``: ``face`` is the ``(3, T)`` triangulation (what torch_geometric's
-      face-based transforms, ``FaceToEdge``, ``GenerateMeshNormals``, ``SamplePoints``, expect;
-      they read any ``(k, F)`` ``face`` as triangles), and unless every face is a triangle the
-      polygons are kept in ``polygon_index``/``polygon_sizes``.
+    * a mesh (or batch) of triangles only: ``face`` ``(3, F)``, as torch_geometric stores it;
+    * any other mesh: no ``face``; ``polygon_index`` ``(N,)`` holds the corners of all faces
+      concatenated, each face in its cyclic order, and ``polygon_sizes`` ``(F,)`` the degree of
+      every face (:class:`~torch_polylap.PolygonFaces`' ``indices`` and ``sizes``). The
+      ``_index`` suffix makes ``Batch.from_data_list`` offset it by the nodes before it, the
+      same as ``face`` and ``edge_index``, and ``Batch.to_data_list`` undo that. No ``face``
+      can carry polygons through torch_geometric's ``FaceToEdge``: it reads ``(3, F)`` as
+      triangles and ``(4, F)`` as tetrahedra, so any ``face`` adds diagonals (20 edges instead
+      of 12 on a 2 x 2 quad grid). ``edge_index`` holds the edges already: leave
+      ``FaceToEdge`` out for polygon meshes (torch_geometric 2.8's raises an
+      ``AssertionError`` on a graph without ``face``);
+    * ``triangulate=True``: ``face`` is the ``(3, T)`` triangulation (for ``SamplePoints``,
+      ``GenerateMeshNormals`` and other transforms that need triangles), and unless every face
+      is a triangle the polygons are kept in ``polygon_index``/``polygon_sizes``. ``FaceToEdge``
+      then replaces ``edge_index`` by the triangulation's edges, diagonals included;
+    * ``laplacian=True``: ``edge_index`` is the off-diagonal pattern of ``L`` and
+      ``edge_weight`` the entries ``-L_pq`` (see :func:`to_pyg`), so that
+      ``torch_geometric.utils.get_laplacian(edge_index, edge_weight)`` is ``L``.
 
     A batch (:class:`~torch_polylap.PolygonMeshes`) is converted mesh by mesh with one
-    representation for all (``face (k, F)`` only when every mesh has the same uniform degree
-    ``k``) and returned as a ``Batch``. :func:`from_pyg` reads, in this order of precedence,
-    ``polygons`` (anything :func:`~torch_polylap.as_faces` accepts), ``polygon_index`` with
-    ``polygon_sizes``, or ``face`` ``(k, F)``.
+    representation for all (``face`` only when every mesh is all triangles) and returned as a
+    ``Batch``. :func:`from_pyg` reads, in this order of precedence, ``polygons`` (anything
+    :func:`~torch_polylap.as_faces` accepts), ``polygon_index`` with ``polygon_sizes``, or
+    ``face`` ``(3, F)``.
 
 trimesh
     :func:`from_trimesh` and :func:`to_trimesh` (from :mod:`torch_polylap.io`, re-exported).
@@ -49,6 +59,9 @@ import torch
 from .batch import PolygonMeshes
 from .faces import FacesLike, PolygonFaces
 from .io import from_trimesh, to_trimesh, triangulate_faces
+from .operators import laplacian as mesh_laplacian
+from .sparse import as_operator, sparse_values
+from .topology import get_topology
 
 __all__ = [
     "from_pyg",
@@ -156,30 +169,49 @@ def from_pytorch3d(meshes: Any) -> PolygonMeshes:
     return PolygonMeshes.from_pytorch3d(meshes)
 
 
+def _undirected_edges(faces: PolygonFaces, num_verts: int) -> torch.Tensor:
+    """``(2, 2E)`` int64: every edge of the mesh in both directions, sorted by source, then
+    target (torch_geometric's coalesced order)."""
+    edges = get_topology(faces, num_verts).edges  # (E, 2)
+    both = torch.cat((edges, edges.flip(1))).t()
+    return both[:, torch.argsort(both[0] * num_verts + both[1])]
+
+
+def _laplacian_edges(verts: torch.Tensor, faces: PolygonFaces) -> dict[str, torch.Tensor]:
+    """``edge_index`` ``(2, nnz - V)``, the off-diagonal pattern of ``L`` (CSR order: sorted by
+    row, then column), and ``edge_weight`` the entries ``-L_pq`` (differentiable)."""
+    L, _ = mesh_laplacian(verts, faces)
+    A = as_operator(L)
+    pattern, values = A.pattern, sparse_values(A)
+    off = pattern.row != pattern.col
+    return {
+        "edge_index": torch.stack((pattern.row[off], pattern.col[off])),
+        "edge_weight": -values[off],
+    }
+
+
 def _pyg_attributes(
-    verts: torch.Tensor, faces: PolygonFaces, degree: int | None, triangulate: bool
+    verts: torch.Tensor,
+    faces: PolygonFaces,
+    triangles: bool,
+    triangulate: bool,
+    with_laplacian: bool,
 ) -> dict[str, torch.Tensor]:
+    """The attributes of one mesh's ``Data`` (see the module docstring)."""
     dev = verts.device
-    if triangulate:
-        out = {"face": torch.from_numpy(triangulate_faces(verts, faces)).t().contiguous()}
-        if degree == 3:
-            return {"face": out["face"].to(dev)}
-    elif degree is not None:
-        return {"face": faces.indices.view(-1, degree).t().contiguous().to(dev)}
+    out: dict[str, torch.Tensor] = {}
+    if with_laplacian:
+        out.update(_laplacian_edges(verts, faces))
     else:
-        out = {}
-    out["polygon_index"] = faces.indices
-    out["polygon_sizes"] = faces.sizes
-    return {key: value.to(dev) for key, value in out.items()}
-
-
-def _uniform_degree(faces_list: list[PolygonFaces]) -> int | None:
-    """The degree ``k`` every face of every mesh has, else ``None``."""
-    sizes = torch.cat([f.sizes.cpu() for f in faces_list])
-    if sizes.numel() == 0:
-        return 3
-    k = int(sizes[0])
-    return k if bool((sizes == k).all()) else None
+        out["edge_index"] = _undirected_edges(faces, verts.shape[0])
+    if triangles:
+        out["face"] = faces.indices.view(-1, 3).t()
+    else:
+        if triangulate:
+            out["face"] = torch.from_numpy(triangulate_faces(verts, faces)).t()
+        out["polygon_index"] = faces.indices
+        out["polygon_sizes"] = faces.sizes
+    return {key: value.contiguous().to(dev) for key, value in out.items()}
 
 
 def to_pyg(
@@ -187,35 +219,68 @@ def to_pyg(
     faces: FacesLike | None = None,
     *,
     triangulate: bool = False,
+    laplacian: bool = False,
 ) -> Any:
     """A torch_geometric ``Data`` (one mesh) or ``Batch`` (a :class:`PolygonMeshes`).
+
+    ``edge_index`` holds the mesh's edges, in both directions and coalesced (12 undirected
+    edges on a 2 x 2 quad grid; torch_geometric's ``to_undirected`` and ``coalesce`` leave it
+    as it is). Triangle meshes also get ``face`` ``(3, F)``, from which ``FaceToEdge`` rebuilds
+    the same ``edge_index``; other meshes get no ``face`` (torch_geometric's ``face`` holds
+    triangles or tetrahedra), so leave ``FaceToEdge`` out for them: ``edge_index`` is there.
 
     Args:
         meshes: a :class:`~torch_polylap.PolygonMeshes`, or the ``(V, 3)`` vertices of one mesh.
         faces: the faces of that one mesh.
-        triangulate: ``face`` holds the ``(3, T)`` triangulation (:func:`triangle_faces`), and
-            the polygons move to ``polygon_index``/``polygon_sizes`` (unless all are triangles).
+        triangulate: for meshes that are not all triangles, put the ``(3, T)`` triangulation
+            (:func:`triangle_faces`) in ``face`` for torch_geometric's triangle transforms
+            (``SamplePoints``, ``GenerateMeshNormals``); the polygons stay in
+            ``polygon_index``/``polygon_sizes``. ``FaceToEdge`` then gives the triangulation's
+            edges, diagonals included.
+        laplacian: ``edge_index`` is the off-diagonal pattern of the AW11 ``L``
+            (:func:`torch_polylap.laplacian` with its defaults) and ``edge_weight``, one entry
+            per column, holds ``-L_pq``: torch_geometric's sign for edge weights, so that
+            ``get_laplacian(edge_index, edge_weight)`` (``normalization=None``) builds
+            ``D - W = L`` (``L`` has zero row sums). On triangles ``-L_pq`` is the cotangent
+            weight ``(cot a + cot b) / 2``, positive on Delaunay edges and negative where the
+            opposite angles add up to more than pi; on polygons it can be negative too. In
+            faces of more than three corners ``L`` couples every pair of corners, so
+            ``edge_index`` then holds the mesh's edges and these diagonals. ``edge_weight`` is
+            differentiable in the vertices.
 
     Returns:
-        ``Data(pos=verts, face=...)``: ``face`` ``(k, F)`` when every face has degree ``k``;
-        for mixed degrees ``polygon_index`` ``(N,)`` and ``polygon_sizes`` ``(F,)`` instead
-        (see the module docstring). ``pos`` is the vertex tensor itself (gradients flow back);
-        the index tensors are int64 on its device. A batch gives
-        ``Batch.from_data_list([...])``, whose ``face``/``polygon_index`` carry global indices
-        like :meth:`PolygonMeshes.faces_packed` and whose ``batch`` equals
+        ``Data(pos=verts, edge_index=..., face=... | polygon_index=..., polygon_sizes=...)`` as
+        the module docstring describes: ``face`` ``(3, F)`` when every face is a triangle, else
+        ``polygon_index`` ``(N,)`` and ``polygon_sizes`` ``(F,)``. ``pos`` is the vertex tensor
+        itself (gradients flow back); index tensors are int64 on its device. A batch gives
+        ``Batch.from_data_list([...])``, whose ``face``/``polygon_index``/``edge_index`` carry
+        global indices like :meth:`PolygonMeshes.faces_packed` and whose ``batch`` equals
         :meth:`PolygonMeshes.verts_packed_to_mesh_idx`.
 
     Raises:
         ImportError: torch_geometric is not installed.
+
+    Examples:
+        >>> import torch
+        >>> from torch_geometric.transforms import FaceToEdge
+        >>> import torch_polylap as tp
+        >>> verts, faces = tp.shapes.quad_grid(2)
+        >>> data = tp.to_pyg(verts, faces)
+        >>> data.edge_index.shape[1] // 2, "face" in data  # the 12 edges of the 2 x 2 grid
+        (12, False)
+        >>> square = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+        >>> tri = tp.to_pyg(square, [[0, 1, 2], [0, 2, 3]])  # triangles: `face` (3, F) too
+        >>> torch.equal(FaceToEdge()(tri.clone()).edge_index, tri.edge_index)
+        True
     """
     verts_list, faces_list, batch = _mesh_lists(meshes, faces, "to_pyg")
     try:
         from torch_geometric.data import Batch, Data
     except ImportError as err:
         raise ImportError(_PYG_INSTALL) from err
-    degree = _uniform_degree(faces_list)
+    triangles = all(bool((f.sizes == 3).all()) for f in faces_list)
     data = [
-        Data(pos=v, **_pyg_attributes(v, f, degree, triangulate))
+        Data(pos=v, **_pyg_attributes(v, f, triangles, triangulate, laplacian))
         for v, f in zip(verts_list, faces_list, strict=True)
     ]
     return data[0] if batch is None else Batch.from_data_list(data)
@@ -237,15 +302,17 @@ def _pyg_faces(d: Any, i: int) -> FacesLike:
     face = getattr(d, "face", None)
     if face is None:
         raise ValueError(
-            f"graph {i} has no faces: a mesh needs `face` (k, F), or `polygon_index` with "
+            f"graph {i} has no faces: a mesh needs `face` (3, F), or `polygon_index` with "
             "`polygon_sizes`, or `polygons`."
         )
-    if not isinstance(face, torch.Tensor) or face.dim() != 2 or face.shape[0] < 3:
+    if not isinstance(face, torch.Tensor) or face.dim() != 2 or face.shape[0] != 3:
         shape = tuple(face.shape) if hasattr(face, "shape") else type(face).__name__
         raise ValueError(
-            f"graph {i}: `face` must have shape (3, F) for triangles, or (k, F) for faces of "
-            f"k >= 3 corners (torch_geometric stores faces column-wise), got {shape}; for "
-            "faces of mixed degree use `polygon_index` and `polygon_sizes`."
+            f"graph {i}: `face` must have shape (3, F), triangles stored column-wise as "
+            f"torch_geometric stores them, got {shape} (torch_geometric reads a (4, F) `face` "
+            "as tetrahedra). For polygons set `polygon_index` (the corners of all faces, face "
+            "after face) and `polygon_sizes` (each face's degree): for quads in a (4, F) "
+            "tensor `q`, polygon_index=q.t().reshape(-1) and polygon_sizes=torch.full((F,), 4)."
         )
     return face.t().cpu()
 
@@ -277,15 +344,16 @@ def from_pyg(data: Any) -> tuple[torch.Tensor, PolygonFaces] | PolygonMeshes:
         data: one ``Data``, a list of them, or a ``Batch`` (split with ``to_data_list()``).
             Each needs ``pos`` ``(V, 3)`` and faces: ``polygons`` (anything
             :func:`~torch_polylap.as_faces` accepts), else ``polygon_index`` ``(N,)`` with
-            ``polygon_sizes`` ``(F,)``, else ``face`` ``(k, F)`` (triangles ``(3, F)``, quads
-            ``(4, F)``, ...). Only these attributes are read; torch_geometric is not imported.
+            ``polygon_sizes`` ``(F,)``, else ``face`` ``(3, F)`` triangles. ``edge_index`` is
+            not read. Only these attributes are read; torch_geometric is not imported.
 
     Returns:
         For one ``Data``, ``(verts, faces)``: ``pos`` itself and :class:`PolygonFaces` on the
         CPU; for a list or a ``Batch``, a :class:`~torch_polylap.PolygonMeshes`.
 
     Raises:
-        ValueError: no ``pos``, no faces, a ``face`` that is not ``(k >= 3, F)``, or a face
+        ValueError: no ``pos``, no faces, a ``face`` that is not ``(3, F)`` (torch_geometric
+            reads ``(4, F)`` as tetrahedra; the message says how to pass quads), or a face
             index out of range (naming the graph).
     """
     single = hasattr(data, "pos") and not hasattr(data, "to_data_list")
