@@ -1,7 +1,9 @@
-"""Conversions to and from the mesh types of pytorch3d, PyTorch Geometric and trimesh.
+"""Conversions to and from the mesh types of pytorch3d, PyTorch Geometric and trimesh, and
+DiffusionNet's operators of a polygon mesh.
 
-Every adapter keeps the vertex tensor as it is (same dtype and device, autograd graph intact),
-so a loss computed on the converted mesh back-propagates to the polygon mesh's vertices.
+Every mesh adapter keeps the vertex tensor as it is (same dtype and device, autograd graph
+intact), so a loss computed on the converted mesh back-propagates to the polygon mesh's
+vertices. DiffusionNet's operators are precomputed and carry no gradient, as DiffusionNet's own.
 
 pytorch3d
     ``Meshes`` holds triangles only. :func:`to_pytorch3d` triangulates every polygon with
@@ -42,6 +44,11 @@ PyTorch Geometric (``torch_geometric.data.Data``)
     :func:`~torch_polylap.as_faces` accepts), ``polygon_index`` with ``polygon_sizes``, or
     ``face`` ``(3, F)``.
 
+DiffusionNet
+    :func:`to_diffusionnet` returns the seven operators of DiffusionNet's
+    ``geometry.get_operators`` (frames, mass, ``L``, eigenpairs, ``gradX``, ``gradY``) in its
+    format, built from this package's polygon operators.
+
 trimesh
     :func:`from_trimesh` and :func:`to_trimesh` (from :mod:`torch_polylap.io`, re-exported).
 
@@ -52,21 +59,32 @@ scipy
 
 from __future__ import annotations
 
+import warnings
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
+from .assembly import MeshFaces
 from .batch import PolygonMeshes
-from .faces import FacesLike, PolygonFaces
+from .checks import check_verts
+from .faces import FacesLike, PolygonFaces, as_faces
 from .io import from_trimesh, to_trimesh, triangulate_faces
+from .io.common import atomic_write
+from .kernels import check_method
+from .linalg import eigs
+from .nn.gradient_features import vertex_gradient_operators, vertex_tangent_frames
 from .operators import laplacian as mesh_laplacian
-from .sparse import as_operator, sparse_values
-from .topology import get_topology
+from .sparse import as_operator, sparse_values, to_torch_sparse
+from .spectral import _load_eigs, _mesh_key, check_cache_dir
+from .topology import Topology, get_topology
 
 __all__ = [
     "from_pyg",
     "from_pytorch3d",
     "from_trimesh",
+    "to_diffusionnet",
     "to_pyg",
     "to_pytorch3d",
     "to_trimesh",
@@ -359,3 +377,150 @@ def from_pyg(data: Any) -> tuple[torch.Tensor, PolygonFaces] | PolygonMeshes:
     single = hasattr(data, "pos") and not hasattr(data, "to_data_list")
     meshes = _pyg_meshes(data)
     return meshes[0] if single else meshes
+
+
+# ------------------------------------------------------------------------------- DiffusionNet
+
+
+def to_diffusionnet(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    k_eig: int = 128,
+    cache_dir: str | Path | None = None,
+    *,
+    lam: float = 1.0,
+    method: str = "aw11",
+) -> tuple[torch.Tensor, ...]:
+    """DiffusionNet's operators of a polygon mesh, in the format of its ``get_operators``.
+
+    ``frames, mass, L, evals, evecs, gradX, gradY = to_diffusionnet(verts, faces)`` go into the
+    official ``DiffusionNet.forward(x, mass, L, evals, evecs, gradX, gradY)`` as the output of
+    ``diffusion_net.geometry.get_operators`` would; DiffusionNet itself is not imported.
+
+    What each is, and how it compares with DiffusionNet's own (triangle meshes):
+
+    - ``L``: this package's weak Laplacian (``method``: ``"aw11"``, ``"plms"``, ``"degoes"``;
+      see :func:`torch_polylap.laplacian`), positive semi-definite like DiffusionNet's. On
+      triangles AW11 is the cotangent Laplacian DiffusionNet builds.
+    - ``mass``: the diagonal of the lumped mass ``M0``; on triangles a third of the areas of
+      the triangles around each vertex, DiffusionNet's vertex areas (it adds ``1e-8`` times
+      their mean; this does not).
+    - ``evals``, ``evecs``: the ``k_eig`` smallest eigenpairs of ``L phi = mu M0 phi``
+      (:func:`torch_polylap.eigs`), ascending, ``M0``-orthonormal, eigenvalues clipped at zero
+      as DiffusionNet clips them.
+    - ``frames``: ``(e_x, e_y, n)`` per vertex, DiffusionNet's order (``frames[:, 2]`` is the
+      normal), from :func:`~torch_polylap.nn.vertex_tangent_frames` (area-weighted normals; the
+      tangent axis is chosen otherwise than DiffusionNet's, which its gradient features do not
+      see: they are invariant to the choice).
+    - ``gradX``, ``gradY``: the tangent gradient in the frames,
+      :func:`~torch_polylap.nn.vertex_gradient_operators` (the area-weighted mean of the face
+      gradients around a vertex, exact for linear functions; DiffusionNet fits a gradient to
+      the edges by least squares).
+
+    Args:
+        verts: ``(V, 3)`` vertex positions, float32 or float64, any device.
+        faces: polygon faces in any form :func:`~torch_polylap.as_faces` accepts, or a
+            :class:`~torch_polylap.Topology`.
+        k_eig: number of eigenpairs, ``0 <= k_eig < V`` (``0``: empty ``evals`` and
+            ``evecs``, as DiffusionNet gives for ``diffusion_method="implicit_dense"``).
+        cache_dir: folder of an eigenpair cache (created when missing), as DiffusionNet's
+            ``op_cache_dir``; entries are keyed by a hash of the positions, the faces,
+            ``k_eig``, ``method`` and ``lam`` and shared with :func:`torch_polylap.cached_eigs`
+            (and so with :class:`torch_polylap.datasets.PolygonMeshDataset`). The other
+            operators are recomputed on every call (one assembly each, no eigensolve). A cache
+            that cannot be written (read-only, a path through a file) gives a warning and the
+            uncached result; an unreadable entry gives a warning and is recomputed.
+        lam: the AW11 parameter ``lambda`` (see :func:`torch_polylap.laplacian`).
+        method: ``"aw11"``, ``"plms"`` or ``"degoes"``.
+
+    Returns:
+        ``(frames, mass, L, evals, evecs, gradX, gradY)``, all on ``verts``' device in its
+        dtype (computed in float64 on the CPU, as DiffusionNet computes them, then cast):
+        ``frames`` ``(V, 3, 3)``, ``mass`` ``(V,)``, ``evals`` ``(k_eig,)``, ``evecs``
+        ``(V, k_eig)`` dense; ``L``, ``gradX``, ``gradY`` ``(V, V)`` coalesced torch sparse COO
+        tensors with int64 indices. None carries a gradient (precomputed operators, as in
+        DiffusionNet); for differentiable ones use :func:`torch_polylap.laplacian`,
+        :func:`torch_polylap.eigs` and :func:`~torch_polylap.nn.vertex_gradient_operators`.
+
+    Raises:
+        ValueError: no faces (DiffusionNet's point-cloud operators are not built here), an
+            invalid mesh, ``k_eig`` out of range, or a ``cache_dir`` that names a file.
+    """
+    check_verts(verts)
+    check_method(method)
+    if isinstance(k_eig, bool) or not isinstance(k_eig, int | np.integer):
+        raise TypeError(f"to_diffusionnet: k_eig must be an integer, got {k_eig!r}.")
+    n = verts.shape[0]
+    if not 0 <= k_eig < n:
+        raise ValueError(
+            f"to_diffusionnet: k_eig={k_eig} eigenpairs of a mesh with {n} vertices; pass "
+            f"0 <= k_eig < {n} (0 for DiffusionNet's implicit_dense diffusion)."
+        )
+    cache = None if cache_dir is None else Path(cache_dir)
+    if cache is not None:
+        check_cache_dir(cache)  # before any work
+    given = faces.faces if isinstance(faces, Topology) else as_faces(faces)
+    if given.num_faces == 0:
+        raise ValueError(
+            "to_diffusionnet needs a mesh with faces; for a point cloud use DiffusionNet's own "
+            "diffusion_net.geometry.get_operators."
+        )
+    topo = get_topology(faces, n)  # cached on a faces tensor across calls
+    v64 = verts.detach().to(device="cpu", dtype=torch.float64)
+    with torch.no_grad():
+        L, M0 = mesh_laplacian(v64, topo, lam, method=method)
+        normal, e_x, e_y = vertex_tangent_frames(v64, topo)
+        grad_x, grad_y = vertex_gradient_operators(v64, topo, frames=(e_x, e_y))
+        evals, evecs = _diffusionnet_eigs(v64, topo, L, M0, int(k_eig), cache, lam, method)
+
+    def cast(t: torch.Tensor) -> torch.Tensor:
+        return t.to(device=verts.device, dtype=verts.dtype)
+
+    def coo(A: torch.Tensor) -> torch.Tensor:
+        return cast(to_torch_sparse(A, layout=torch.sparse_coo)).coalesce()
+
+    frames = torch.stack((e_x, e_y, normal), dim=1)  # frames[v, i] is axis i of vertex v
+    return (
+        cast(frames),
+        cast(M0.diagonal()),
+        coo(L),
+        cast(evals.clamp_min(0)),
+        cast(evecs),
+        coo(grad_x),
+        coo(grad_y),
+    )
+
+
+def _diffusionnet_eigs(
+    verts: torch.Tensor,
+    topo: Topology,
+    L: torch.Tensor,
+    M0: torch.Tensor,
+    k: int,
+    cache: Path | None,
+    lam: float,
+    method: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``eigs(L, M0, k)`` through the eigenpair cache of :func:`~torch_polylap.cached_eigs`
+    (same file name and content), warning instead of failing when it cannot be written."""
+    if k == 0:
+        return verts.new_zeros(0), verts.new_zeros(verts.shape[0], 0)
+    if cache is None:
+        return eigs(L, M0, k)
+    path = cache / f"eigs-{_mesh_key(verts, topo, k, lam, method)}.npz"
+    hit = _load_eigs(path, k, verts.shape[0]) if path.exists() else None
+    if hit is not None:
+        return torch.from_numpy(hit[0]), torch.from_numpy(hit[1])
+    evals, evecs = eigs(L, M0, k)
+    evals_np, evecs_np = evals.numpy(), evecs.numpy()
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda f: np.savez(f, evals=evals_np, evecs=evecs_np))
+    except OSError as err:
+        warnings.warn(
+            f"to_diffusionnet: the eigenpair cache {path} cannot be written ({err}); returning "
+            "the operators without caching them. Pass a writable cache_dir, or None.",
+            UserWarning,
+            stacklevel=3,
+        )
+    return evals, evecs
