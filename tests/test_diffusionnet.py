@@ -15,7 +15,9 @@
   features), written out here, run and agree with this package's own functions and with
   scipy; the real ``DiffusionNet`` where ``diffusion_net`` is importable;
 - the eigenpair cache: a hit returns identical tensors without an eigensolve, shares entries
-  with ``tp.cached_eigs``, and a cache that cannot be written warns and still returns.
+  with ``tp.cached_eigs``, and a cache that cannot be written warns and still returns;
+- an operation DiffusionNet applies to ``L`` (``unsqueeze``) on the package's own operator
+  raises an error that names the conversion that works.
 """
 
 from __future__ import annotations
@@ -313,3 +315,14 @@ def test_bad_arguments_say_what_to_do(tmp_path):
     (tmp_path / "file").write_text("")
     with pytest.raises(ValueError, match="not a directory"):
         to_diffusionnet(v, f, k_eig=2, cache_dir=tmp_path / "file")
+
+
+def test_unsupported_operations_name_the_conversion_that_works():
+    v, f = quad_grid(2)
+    L, _ = tp.laplacian(v, f)
+    with pytest.raises(tp.sparse.UnsupportedOperation, match="to_torch_sparse") as info:
+        L.unsqueeze(0)
+    assert "layout=torch.sparse_coo" in str(info.value)
+    # and that conversion does what DiffusionNet does with L
+    coo = tp.sparse.to_torch_sparse(L, layout=torch.sparse_coo)
+    assert coo.unsqueeze(0)[0].to_dense().equal(L.to_dense())
