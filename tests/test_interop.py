@@ -13,6 +13,7 @@ import types
 import warnings
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 from conftest import DATA, hex_pent_mesh, mixed_mesh
@@ -137,62 +138,162 @@ def test_collate_offsets_polygon_faces_like_pyg(tmp_path):
 # --------------------------------------------------------------------------- torch_geometric
 
 
-def test_to_pyg_face_layouts():
+def _mesh_edge_set(faces) -> set[tuple[int, int]]:
+    """The undirected edges of a polygon mesh, from its faces' cycles (independent of the
+    package's topology)."""
+    edges = set()
+    for f in tp.as_faces(faces).tolist():
+        for a, b in zip(f, f[1:] + f[:1], strict=True):
+            edges.add((min(a, b), max(a, b)))
+    return edges
+
+
+def _directed(edges: set[tuple[int, int]]) -> torch.Tensor:
+    both = sorted(edges | {(b, a) for a, b in edges})
+    return torch.tensor(both, dtype=torch.int64).t()
+
+
+def test_to_pyg_quad_grid_has_the_mesh_edges_and_no_tetrahedra():
     tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    from torch_geometric.transforms import FaceToEdge
+    from torch_geometric.utils import coalesce, is_undirected, to_undirected
+
     v, f = quad_grid(2)
-    quads = to_pyg(v, f)
-    assert isinstance(quads, tg.data.Data) and quads.pos is v
-    assert torch.equal(quads.face, f.t()) and "polygon_index" not in quads
-    tri = torch.tensor([[0, 1, 2], [0, 2, 3]])
-    assert torch.equal(to_pyg(v[:4], tri).face, tri.t())
+    data = to_pyg(v, f)
+    assert isinstance(data, tg.data.Data) and data.pos is v
+    # 2 x 2 quads: 2 * 3 * 3 = 12 edges; a (4, F) `face` is read as tetrahedra (20 edges)
+    assert "face" not in data and data.edge_index.shape == (2, 24)
+    assert torch.equal(data.edge_index, _directed(_mesh_edge_set(f)))
+    assert is_undirected(data.edge_index)
+    assert torch.equal(to_undirected(data.edge_index, num_nodes=9), data.edge_index)
+    assert torch.equal(coalesce(data.edge_index, num_nodes=9), data.edge_index)
+    assert torch.equal(data.polygon_index, f.reshape(-1))
+    assert data.polygon_sizes.tolist() == [4] * 4
+    # what the old layout handed FaceToEdge: the tetrahedra's 6 edges per quad, 20 in all
+    tets = FaceToEdge()(tg.data.Data(pos=v, face=f.t().contiguous()))
+    assert tets.edge_index.shape[1] // 2 == 20
+    # torch_geometric's FaceToEdge reads triangles and tetrahedra only; on a graph without
+    # `face` it asserts (2.8) or, in a version that skips such graphs, must keep our edges
+    try:
+        kept = FaceToEdge()(data.clone())
+    except AssertionError:
+        pass
+    else:
+        assert torch.equal(kept.edge_index, data.edge_index)
+
+
+def test_to_pyg_triangles_match_face_to_edge():
+    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    from torch_geometric.transforms import FaceToEdge
+
+    v, q = quad_grid(3, bump=0.2, seed=1)
+    tris = torch.cat([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+    data = to_pyg(v, tris)
+    assert torch.equal(data.face, tris.t()) and "polygon_index" not in data
+    # torch_geometric's own FaceToEdge, from `face`, rebuilds exactly our edge_index
+    rebuilt = FaceToEdge(remove_faces=False)(tg.data.Data(pos=v, face=data.face))
+    assert torch.equal(rebuilt.edge_index, data.edge_index)
+    assert torch.equal(data.edge_index, _directed(_mesh_edge_set(tris)))
+
+
+def test_to_pyg_mixed_degrees_and_triangulate():
+    pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
     vm, fm = mixed_mesh()
     mixed = to_pyg(vm, fm)
-    assert "face" not in mixed
     pf = tp.as_faces(fm)
+    assert "face" not in mixed
     assert torch.equal(mixed.polygon_index, pf.indices)
     assert torch.equal(mixed.polygon_sizes, pf.sizes)
+    assert torch.equal(mixed.edge_index, _directed(_mesh_edge_set(fm)))
     both = to_pyg(vm, fm, triangulate=True)
     assert both.face.shape == (3, int((pf.sizes - 2).sum()))
     assert torch.equal(both.face.t(), triangle_faces(vm, fm))
     assert torch.equal(both.polygon_index, pf.indices)
-    assert "polygon_index" not in to_pyg(v[:4], tri, triangulate=True)
+    assert torch.equal(both.edge_index, mixed.edge_index)  # the mesh's, not the triangulation's
+    tri = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    assert "polygon_index" not in to_pyg(vm[:4], tri, triangulate=True)
+
+
+@pytest.mark.parametrize("mesh", ["mixed", "hexpent", "triangles"])
+def test_to_pyg_laplacian_is_what_get_laplacian_rebuilds(mesh):
+    pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    from torch_geometric.utils import get_laplacian, is_undirected, to_scipy_sparse_matrix
+
+    if mesh == "triangles":
+        v, q = quad_grid(3, bump=0.3, seed=2)
+        f = torch.cat([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+    else:
+        v, f = mixed_mesh() if mesh == "mixed" else hex_pent_mesh()
+    v = v.clone().requires_grad_(True)
+    data = to_pyg(v, f, laplacian=True)
+    n = v.shape[0]
+    assert is_undirected(data.edge_index, data.edge_weight)
+    assert bool((data.edge_index[0] != data.edge_index[1]).all())  # off-diagonal only
+    index, weight = get_laplacian(data.edge_index, data.edge_weight, num_nodes=n)
+    rebuilt = to_scipy_sparse_matrix(index, weight.detach(), num_nodes=n).toarray()
+    L, _ = tp.laplacian(v.detach(), f)
+    np.testing.assert_allclose(rebuilt, L.to_dense().numpy(), rtol=1e-12, atol=1e-12)
+    # every mesh edge is in the pattern; polygons add the pairs of corners across a face
+    pairs = {tuple(e) for e in data.edge_index.t().tolist() if e[0] < e[1]}
+    assert _mesh_edge_set(f) <= pairs
+    if mesh == "triangles":  # the cotangent weights: libigl's cotmatrix off the diagonal
+        assert pairs == _mesh_edge_set(f)
+        igl = pytest.importorskip("igl", reason="libigl not installed")
+        C = igl.cotmatrix(v.detach().numpy(), f.numpy())
+        rows, cols = data.edge_index.numpy()
+        np.testing.assert_allclose(
+            data.edge_weight.detach().numpy(), np.asarray(C[rows, cols]).ravel(), rtol=1e-10
+        )
+    # the weights are differentiable in the vertices
+    data.edge_weight.square().sum().backward()
+    assert v.grad is not None and bool(v.grad.abs().sum() > 0)
 
 
 @pytest.mark.parametrize("triangulate", [False, True])
-def test_pyg_round_trips(triangulate):
+@pytest.mark.parametrize("laplacian", [False, True])
+def test_pyg_round_trips(triangulate, laplacian):
     tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
     verts, faces = three_meshes()
     for v, f in zip(verts, faces, strict=True):
-        back_v, back_f = from_pyg(to_pyg(v, f, triangulate=triangulate))
+        back_v, back_f = from_pyg(to_pyg(v, f, triangulate=triangulate, laplacian=laplacian))
         assert back_v is v and back_f.tolist() == tp.as_faces(f).tolist()
     m = PolygonMeshes(verts, faces)
-    batch = to_pyg(m, triangulate=triangulate)
+    batch = to_pyg(m, triangulate=triangulate, laplacian=laplacian)
     assert isinstance(batch, tg.data.Batch) and batch.num_graphs == 3
     assert torch.equal(batch.pos, m.verts_packed())
     back = from_pyg(batch)
     assert isinstance(back, PolygonMeshes)
     assert back.faces_packed().tolist() == m.faces_packed().tolist()
     assert torch.equal(back.verts_packed(), m.verts_packed())
-    # method form, and the same-degree batch keeps `face` (k, F) with global indices
+    if not laplacian:  # the batch's edges are the packed mesh's, offset by torch_geometric
+        assert torch.equal(batch.edge_index, _directed(_mesh_edge_set(m.faces_packed())))
+    # method form: a quad batch holds polygons, a triangle batch `face` with global indices
     grids = PolygonMeshes([quad_grid(2)[0], quad_grid(3)[0]], [quad_grid(2)[1], quad_grid(3)[1]])
-    gb = grids.to_pyg()
-    assert torch.equal(gb.face.t(), grids.faces_packed().as_uniform())
+    gb = grids.to_pyg(triangulate=triangulate, laplacian=laplacian)
+    assert torch.equal(gb.polygon_index, grids.faces_packed().indices)
+    v, q = quad_grid(2)
+    tris = torch.cat([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+    pair = PolygonMeshes([v, v * 2], [tris, tris])
+    tb = pair.to_pyg(triangulate=triangulate, laplacian=laplacian)
+    assert torch.equal(tb.face.t(), pair.faces_packed().as_uniform()) and "polygon_index" not in tb
 
 
-def test_from_pyg_accepts_quads_and_triangles_in_real_data():
+def test_from_pyg_reads_triangles_and_polygons_and_refuses_tetrahedra():
     tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
     v, f = quad_grid(2)
-    got_v, got_f = from_pyg(tg.data.Data(pos=v, face=f.t().contiguous()))
-    assert got_v is v and torch.equal(got_f.as_uniform(), f)
     tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
-    _, got_t = from_pyg(tg.data.Data(pos=v, face=tris.t()))
-    assert torch.equal(got_t.as_uniform(), tris)
-    batch = tg.data.Batch.from_data_list(
-        [tg.data.Data(pos=v, face=f.t()), tg.data.Data(pos=v * 2, face=f.t())]
-    )
+    got_v, got_t = from_pyg(tg.data.Data(pos=v, face=tris.t()))
+    assert got_v is v and torch.equal(got_t.as_uniform(), tris)
+    polys = tg.data.Data(pos=v, polygon_index=f.reshape(-1), polygon_sizes=torch.full((4,), 4))
+    assert torch.equal(from_pyg(polys)[1].as_uniform(), f)
+    batch = tg.data.Batch.from_data_list([polys, polys])
     m = PolygonMeshes.from_pyg(batch)
     assert len(m) == 2 and torch.equal(m[1][1].as_uniform(), f)
-    with pytest.raises(ValueError, match=r"\(k, F\) for faces of k >= 3"):
+    # torch_geometric reads a (4, F) `face` as tetrahedra: no guess, the message says what to do
+    with pytest.raises(ValueError, match="tetrahedra") as info:
+        from_pyg(tg.data.Data(pos=v, face=f.t().contiguous()))
+    assert "polygon_index" in str(info.value)
+    with pytest.raises(ValueError, match=r"must have shape \(3, F\)"):
         from_pyg(tg.data.Data(pos=v, face=f[:2]))
     with pytest.raises(ValueError, match="polygon_sizes"):
         from_pyg(SimpleNamespace(pos=v, polygon_index=f.reshape(-1)))

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import operator
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -82,6 +83,104 @@ def per_mesh_mean(
     total = per_mesh_sum(weights.to(values.dtype), index, num_meshes)
     total = torch.where(total > 0, total, torch.ones_like(total))
     return sums / total.reshape(-1, *([1] * (values.dim() - 1)))
+
+
+@dataclass(frozen=True)
+class TensorMove:
+    """Where and how :meth:`torch.Tensor.to` would move a tensor: the parsed arguments of a
+    container's ``.to`` (:func:`to_arguments`)."""
+
+    device: torch.device | None
+    dtype: torch.dtype | None
+    non_blocking: bool
+    copy: bool
+
+    def apply(self, t: torch.Tensor) -> torch.Tensor:
+        """``t`` moved to :attr:`device`; cast to :attr:`dtype` only if ``t`` is floating point
+        (index and label tensors keep their integer dtype)."""
+        dtype = self.dtype if t.is_floating_point() else None
+        return t.to(device=self.device, dtype=dtype, non_blocking=self.non_blocking, copy=self.copy)
+
+
+_TO_SIGNATURES = (
+    "to(dtype, non_blocking=False, copy=False), to(device=None, dtype=None, non_blocking=False, "
+    "copy=False) or to(tensor, non_blocking=False, copy=False)"
+)
+
+
+def to_arguments(*args: Any, **kwargs: Any) -> TensorMove:
+    """The arguments of a container's ``.to``, read with :meth:`torch.Tensor.to`'s three forms:
+
+    - ``to(dtype, non_blocking=False, copy=False)``;
+    - ``to(device=None, dtype=None, non_blocking=False, copy=False)``;
+    - ``to(tensor, non_blocking=False, copy=False)``: ``tensor``'s device and dtype.
+
+    ``memory_format`` is accepted as ``None`` or ``torch.preserve_format`` only (the containers
+    hold no image tensors).
+
+    Raises:
+        TypeError: arguments that fit none of the forms (as torch raises), or a dtype that is
+            not floating point (the containers' floating tensors are positions and operator
+            values; integer tensors are never cast).
+    """
+    unknown = sorted(set(kwargs) - {"device", "dtype", "non_blocking", "copy", "memory_format"})
+    if unknown:
+        raise TypeError(
+            f"to() got unexpected keyword arguments {unknown}; it takes {_TO_SIGNATURES}."
+        )
+    memory_format = kwargs.pop("memory_format", None)
+    if memory_format not in (None, torch.preserve_format):
+        raise TypeError(f"to(memory_format={memory_format}) is not supported on a mesh container.")
+    rest = list(args)
+    given: dict[str, Any] = {}
+    names: tuple[str, ...] = ("device", "dtype", "non_blocking", "copy")
+    if rest and isinstance(rest[0], torch.Tensor | torch.dtype):
+        first = rest.pop(0)
+        names = ("non_blocking", "copy")
+        taken = {"device", "dtype"}  # torch's dtype and tensor forms take neither keyword
+        if taken & kwargs.keys():
+            what = "a dtype" if isinstance(first, torch.dtype) else "a tensor"
+            raise TypeError(
+                f"to() got {what} positionally and {sorted(taken & kwargs.keys())} as keywords; "
+                f"it takes {_TO_SIGNATURES}."
+            )
+        if isinstance(first, torch.dtype):
+            given["dtype"] = first
+        else:
+            given.update(device=first.device, dtype=first.dtype)
+    if len(rest) > len(names):
+        raise TypeError(f"to() got {len(args)} positional arguments; it takes {_TO_SIGNATURES}.")
+    positional = dict(zip(names, rest, strict=False))
+    twice = sorted(positional.keys() & kwargs.keys())
+    if twice:
+        raise TypeError(f"to() got multiple values for {twice}.")
+    given.update(positional)
+    given.update(kwargs)
+    device, dtype = given.get("device"), given.get("dtype")
+    if device is not None and (
+        isinstance(device, bool) or not isinstance(device, str | int | torch.device)
+    ):
+        raise TypeError(
+            f"to(): device must be a torch.device, a string or an index, got {device!r}; it "
+            f"takes {_TO_SIGNATURES}."
+        )
+    if dtype is not None and not isinstance(dtype, torch.dtype):
+        raise TypeError(f"to(): dtype must be a torch.dtype, got {dtype!r}.")
+    if dtype is not None and not dtype.is_floating_point:
+        raise TypeError(
+            f"to(): a mesh container casts its positions and operator values, which must stay "
+            f"floating point; got dtype {dtype} (use torch.float32 or torch.float64)."
+        )
+    flags = {key: given.get(key, False) for key in ("non_blocking", "copy")}
+    for key, value in flags.items():
+        if not isinstance(value, bool):
+            raise TypeError(f"to(): {key} must be a bool, got {value!r}.")
+    return TensorMove(
+        None if device is None else torch.device(device),
+        dtype,
+        flags["non_blocking"],
+        flags["copy"],
+    )
 
 
 class _Connectivity:
@@ -235,8 +334,8 @@ class PolygonMeshes:
 
         Each ``Data`` needs ``pos`` ``(V, 3)`` and faces: ``polygons`` (any form accepted by
         :func:`torch_polylap.as_faces`), else ``polygon_index`` ``(N,)`` with ``polygon_sizes``
-        ``(F,)``, else ``face`` ``(k, F)`` (torch_geometric's column-wise convention: triangles
-        ``(3, F)``, quads ``(4, F)``). A ``Batch`` is split with its ``to_data_list()``. See
+        ``(F,)``, else ``face`` ``(3, F)`` (torch_geometric's column-wise triangles). A
+        ``Batch`` is split with its ``to_data_list()``. See
         :func:`torch_polylap.interop.from_pyg`.
         """
         from .interop import _pyg_meshes
@@ -250,11 +349,11 @@ class PolygonMeshes:
 
         return to_pytorch3d(self)
 
-    def to_pyg(self, *, triangulate: bool = False) -> Any:
+    def to_pyg(self, *, triangulate: bool = False, laplacian: bool = False) -> Any:
         """torch_geometric ``Batch`` of the meshes (:func:`torch_polylap.interop.to_pyg`)."""
         from .interop import to_pyg
 
-        return to_pyg(self, triangulate=triangulate)
+        return to_pyg(self, triangulate=triangulate, laplacian=laplacian)
 
     # ----------------------------------------------------------------- accessors
 
@@ -609,11 +708,17 @@ class PolygonMeshes:
         """``update_packed(verts_packed() + offsets_packed)`` (pytorch3d's ``offset_verts``)."""
         return self.update_packed(self.verts_packed() + offsets_packed)
 
-    def to(
-        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
-    ) -> PolygonMeshes:
-        """The batch with vertices on ``device`` in ``dtype`` (connectivity shared)."""
-        return self.update_packed(self.verts_packed().to(device=device, dtype=dtype))
+    def to(self, *args: Any, **kwargs: Any) -> PolygonMeshes:
+        """The batch with its vertices moved or cast as :meth:`torch.Tensor.to` would move them
+        (connectivity and its caches shared).
+
+        Takes torch's forms (see :func:`to_arguments`): ``to(dtype)``, ``to(device)``,
+        ``to(device, dtype)``, ``to(tensor)`` (its device and dtype), with ``non_blocking``
+        and ``copy`` positionally after them or as keywords, and ``device=``/``dtype=``
+        keywords. The dtype must be floating point.
+        """
+        move = to_arguments(*args, **kwargs)
+        return self.update_packed(move.apply(self.verts_packed()))
 
     def detach(self) -> PolygonMeshes:
         """The batch with detached vertices (connectivity shared)."""

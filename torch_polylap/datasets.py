@@ -25,7 +25,7 @@ from typing import Any, cast
 import torch
 from torch.utils.data import Dataset
 
-from .batch import PolygonMeshes
+from .batch import PolygonMeshes, to_arguments
 from .faces import FacesLike, PolygonFaces, as_faces
 from .io import read_mesh
 from .kernels import check_method
@@ -189,20 +189,31 @@ class MeshBatch:
     def M0(self) -> SparseOperator:
         return diag(self.spectrum.mass)
 
-    def to(
-        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
-    ) -> MeshBatch:
-        """The batch on ``device`` with floating tensors in ``dtype``."""
+    def to(self, *args: Any, **kwargs: Any) -> MeshBatch:
+        """The batch moved as :meth:`torch.Tensor.to` moves a tensor: ``to(dtype)``,
+        ``to(device)``, ``to(device, dtype)``, ``to(tensor)``, keywords ``device``, ``dtype``,
+        ``non_blocking``, ``copy`` (:func:`torch_polylap.batch.to_arguments`). Positions,
+        eigenpairs and operator values take the dtype; labels stay int64.
+        """
+        move = to_arguments(*args, **kwargs)
 
         def moved(A: SparseOperator) -> SparseOperator:
             # an operator's .to() is an operator; torch's stubs type Tensor.to as a Tensor
-            return cast(SparseOperator, A.to(device=device, dtype=dtype))
+            return cast(
+                SparseOperator,
+                A.to(
+                    device=move.device,
+                    dtype=move.dtype,
+                    non_blocking=move.non_blocking,
+                    copy=move.copy,
+                ),
+            )
 
         return MeshBatch(
-            self.meshes.to(device, dtype),
-            self.spectrum.to(device, dtype),
+            self.meshes.to(move.device, move.dtype, move.non_blocking, move.copy),
+            self.spectrum.to(move.device, move.dtype, move.non_blocking, move.copy),
             moved(self.L),
-            None if self.labels is None else self.labels.to(device),
+            None if self.labels is None else move.apply(self.labels),
             *(None if g is None else moved(g) for g in (self.grad_x, self.grad_y)),
         )
 

@@ -1,7 +1,9 @@
-"""Conversions to and from the mesh types of pytorch3d, PyTorch Geometric and trimesh.
+"""Conversions to and from the mesh types of pytorch3d, PyTorch Geometric and trimesh, and
+DiffusionNet's operators of a polygon mesh.
 
-Every adapter keeps the vertex tensor as it is (same dtype and device, autograd graph intact),
-so a loss computed on the converted mesh back-propagates to the polygon mesh's vertices.
+Every mesh adapter keeps the vertex tensor as it is (same dtype and device, autograd graph
+intact), so a loss computed on the converted mesh back-propagates to the polygon mesh's
+vertices. DiffusionNet's operators are precomputed and carry no gradient, as DiffusionNet's own.
 
 pytorch3d
     ``Meshes`` holds triangles only. :func:`to_pytorch3d` triangulates every polygon with
@@ -12,25 +14,40 @@ pytorch3d
     batch (the polygons a ``Meshes`` came from are not recoverable from it).
 
 PyTorch Geometric (``torch_geometric.data.Data``)
-    ``pos`` is ``(V, 3)``. torch_geometric stores triangles column-wise as ``face`` ``(3, F)``
-    and offsets it by the nodes before it when it batches graphs. For polygon meshes:
+    ``pos`` is ``(V, 3)`` and ``edge_index`` ``(2, 2E)`` the mesh's ``E`` undirected edges in
+    both directions, sorted by source then target (what ``torch_geometric.utils.to_undirected``
+    returns). torch_geometric's ``face`` is ``(3, F)`` triangles (its ``FaceToEdge`` reads a
+    ``(4, F)`` ``face`` as tetrahedra), so:
 
-    * every face of degree ``k`` (a uniform mesh, quads included): ``face`` is ``(k, F)``;
-    * faces of mixed degree: no ``face``; ``polygon_index`` ``(N,)`` holds the corners of all
-      faces concatenated, each face in its cyclic order, and ``polygon_sizes`` ``(F,)`` the
-      degree of every face (:class:`~torch_polylap.PolygonFaces`' ``indices`` and ``sizes``).
-      The ``_index`` suffix makes ``Batch.from_data_list`` offset it by the nodes before it,
-      the same as ``face``, and ``Batch.to_data_list`` undo that;
-    * ``triangulate=True``: ``face`` is the ``(3, T)`` triangulation (what torch_geometric's
-      face-based transforms, ``FaceToEdge``, ``GenerateMeshNormals``, ``SamplePoints``, expect;
-      they read any ``(k, F)`` ``face`` as triangles), and unless every face is a triangle the
-      polygons are kept in ``polygon_index``/``polygon_sizes``.
+    * a mesh (or batch) of triangles only: ``face`` ``(3, F)``, as torch_geometric stores it;
+    * any other mesh: no ``face``; ``polygon_index`` ``(N,)`` holds the corners of all faces
+      concatenated, each face in its cyclic order, and ``polygon_sizes`` ``(F,)`` the degree of
+      every face (:class:`~torch_polylap.PolygonFaces`' ``indices`` and ``sizes``). The
+      ``_index`` suffix makes ``Batch.from_data_list`` offset it by the nodes before it, the
+      same as ``face`` and ``edge_index``, and ``Batch.to_data_list`` undo that. No ``face``
+      can carry polygons through torch_geometric's ``FaceToEdge``: it reads ``(3, F)`` as
+      triangles and ``(4, F)`` as tetrahedra, so any ``face`` adds diagonals (20 edges instead
+      of 12 on a 2 x 2 quad grid). ``edge_index`` holds the edges already: leave
+      ``FaceToEdge`` out for polygon meshes (torch_geometric 2.8's raises an
+      ``AssertionError`` on a graph without ``face``);
+    * ``triangulate=True``: ``face`` is the ``(3, T)`` triangulation (for ``SamplePoints``,
+      ``GenerateMeshNormals`` and other transforms that need triangles), and unless every face
+      is a triangle the polygons are kept in ``polygon_index``/``polygon_sizes``. ``FaceToEdge``
+      then replaces ``edge_index`` by the triangulation's edges, diagonals included;
+    * ``laplacian=True``: ``edge_index`` is the off-diagonal pattern of ``L`` and
+      ``edge_weight`` the entries ``-L_pq`` (see :func:`to_pyg`), so that
+      ``torch_geometric.utils.get_laplacian(edge_index, edge_weight)`` is ``L``.
 
     A batch (:class:`~torch_polylap.PolygonMeshes`) is converted mesh by mesh with one
-    representation for all (``face (k, F)`` only when every mesh has the same uniform degree
-    ``k``) and returned as a ``Batch``. :func:`from_pyg` reads, in this order of precedence,
-    ``polygons`` (anything :func:`~torch_polylap.as_faces` accepts), ``polygon_index`` with
-    ``polygon_sizes``, or ``face`` ``(k, F)``.
+    representation for all (``face`` only when every mesh is all triangles) and returned as a
+    ``Batch``. :func:`from_pyg` reads, in this order of precedence, ``polygons`` (anything
+    :func:`~torch_polylap.as_faces` accepts), ``polygon_index`` with ``polygon_sizes``, or
+    ``face`` ``(3, F)``.
+
+DiffusionNet
+    :func:`to_diffusionnet` returns the seven operators of DiffusionNet's
+    ``geometry.get_operators`` (frames, mass, ``L``, eigenpairs, ``gradX``, ``gradY``) in its
+    format, built from this package's polygon operators.
 
 trimesh
     :func:`from_trimesh` and :func:`to_trimesh` (from :mod:`torch_polylap.io`, re-exported).
@@ -42,18 +59,32 @@ scipy
 
 from __future__ import annotations
 
+import warnings
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
+from .assembly import MeshFaces
 from .batch import PolygonMeshes
-from .faces import FacesLike, PolygonFaces
+from .checks import check_verts
+from .faces import FacesLike, PolygonFaces, as_faces
 from .io import from_trimesh, to_trimesh, triangulate_faces
+from .io.common import atomic_write
+from .kernels import check_method
+from .linalg import eigs
+from .nn.gradient_features import vertex_gradient_operators, vertex_tangent_frames
+from .operators import laplacian as mesh_laplacian
+from .sparse import as_operator, sparse_values, to_torch_sparse
+from .spectral import _load_eigs, _mesh_key, check_cache_dir
+from .topology import Topology, get_topology
 
 __all__ = [
     "from_pyg",
     "from_pytorch3d",
     "from_trimesh",
+    "to_diffusionnet",
     "to_pyg",
     "to_pytorch3d",
     "to_trimesh",
@@ -156,30 +187,49 @@ def from_pytorch3d(meshes: Any) -> PolygonMeshes:
     return PolygonMeshes.from_pytorch3d(meshes)
 
 
+def _undirected_edges(faces: PolygonFaces, num_verts: int) -> torch.Tensor:
+    """``(2, 2E)`` int64: every edge of the mesh in both directions, sorted by source, then
+    target (torch_geometric's coalesced order)."""
+    edges = get_topology(faces, num_verts).edges  # (E, 2)
+    both = torch.cat((edges, edges.flip(1))).t()
+    return both[:, torch.argsort(both[0] * num_verts + both[1])]
+
+
+def _laplacian_edges(verts: torch.Tensor, faces: PolygonFaces) -> dict[str, torch.Tensor]:
+    """``edge_index`` ``(2, nnz - V)``, the off-diagonal pattern of ``L`` (CSR order: sorted by
+    row, then column), and ``edge_weight`` the entries ``-L_pq`` (differentiable)."""
+    L, _ = mesh_laplacian(verts, faces)
+    A = as_operator(L)
+    pattern, values = A.pattern, sparse_values(A)
+    off = pattern.row != pattern.col
+    return {
+        "edge_index": torch.stack((pattern.row[off], pattern.col[off])),
+        "edge_weight": -values[off],
+    }
+
+
 def _pyg_attributes(
-    verts: torch.Tensor, faces: PolygonFaces, degree: int | None, triangulate: bool
+    verts: torch.Tensor,
+    faces: PolygonFaces,
+    triangles: bool,
+    triangulate: bool,
+    with_laplacian: bool,
 ) -> dict[str, torch.Tensor]:
+    """The attributes of one mesh's ``Data`` (see the module docstring)."""
     dev = verts.device
-    if triangulate:
-        out = {"face": torch.from_numpy(triangulate_faces(verts, faces)).t().contiguous()}
-        if degree == 3:
-            return {"face": out["face"].to(dev)}
-    elif degree is not None:
-        return {"face": faces.indices.view(-1, degree).t().contiguous().to(dev)}
+    out: dict[str, torch.Tensor] = {}
+    if with_laplacian:
+        out.update(_laplacian_edges(verts, faces))
     else:
-        out = {}
-    out["polygon_index"] = faces.indices
-    out["polygon_sizes"] = faces.sizes
-    return {key: value.to(dev) for key, value in out.items()}
-
-
-def _uniform_degree(faces_list: list[PolygonFaces]) -> int | None:
-    """The degree ``k`` every face of every mesh has, else ``None``."""
-    sizes = torch.cat([f.sizes.cpu() for f in faces_list])
-    if sizes.numel() == 0:
-        return 3
-    k = int(sizes[0])
-    return k if bool((sizes == k).all()) else None
+        out["edge_index"] = _undirected_edges(faces, verts.shape[0])
+    if triangles:
+        out["face"] = faces.indices.view(-1, 3).t()
+    else:
+        if triangulate:
+            out["face"] = torch.from_numpy(triangulate_faces(verts, faces)).t()
+        out["polygon_index"] = faces.indices
+        out["polygon_sizes"] = faces.sizes
+    return {key: value.contiguous().to(dev) for key, value in out.items()}
 
 
 def to_pyg(
@@ -187,35 +237,68 @@ def to_pyg(
     faces: FacesLike | None = None,
     *,
     triangulate: bool = False,
+    laplacian: bool = False,
 ) -> Any:
     """A torch_geometric ``Data`` (one mesh) or ``Batch`` (a :class:`PolygonMeshes`).
+
+    ``edge_index`` holds the mesh's edges, in both directions and coalesced (12 undirected
+    edges on a 2 x 2 quad grid; torch_geometric's ``to_undirected`` and ``coalesce`` leave it
+    as it is). Triangle meshes also get ``face`` ``(3, F)``, from which ``FaceToEdge`` rebuilds
+    the same ``edge_index``; other meshes get no ``face`` (torch_geometric's ``face`` holds
+    triangles or tetrahedra), so leave ``FaceToEdge`` out for them: ``edge_index`` is there.
 
     Args:
         meshes: a :class:`~torch_polylap.PolygonMeshes`, or the ``(V, 3)`` vertices of one mesh.
         faces: the faces of that one mesh.
-        triangulate: ``face`` holds the ``(3, T)`` triangulation (:func:`triangle_faces`), and
-            the polygons move to ``polygon_index``/``polygon_sizes`` (unless all are triangles).
+        triangulate: for meshes that are not all triangles, put the ``(3, T)`` triangulation
+            (:func:`triangle_faces`) in ``face`` for torch_geometric's triangle transforms
+            (``SamplePoints``, ``GenerateMeshNormals``); the polygons stay in
+            ``polygon_index``/``polygon_sizes``. ``FaceToEdge`` then gives the triangulation's
+            edges, diagonals included.
+        laplacian: ``edge_index`` is the off-diagonal pattern of the AW11 ``L``
+            (:func:`torch_polylap.laplacian` with its defaults) and ``edge_weight``, one entry
+            per column, holds ``-L_pq``: torch_geometric's sign for edge weights, so that
+            ``get_laplacian(edge_index, edge_weight)`` (``normalization=None``) builds
+            ``D - W = L`` (``L`` has zero row sums). On triangles ``-L_pq`` is the cotangent
+            weight ``(cot a + cot b) / 2``, positive on Delaunay edges and negative where the
+            opposite angles add up to more than pi; on polygons it can be negative too. In
+            faces of more than three corners ``L`` couples every pair of corners, so
+            ``edge_index`` then holds the mesh's edges and these diagonals. ``edge_weight`` is
+            differentiable in the vertices.
 
     Returns:
-        ``Data(pos=verts, face=...)``: ``face`` ``(k, F)`` when every face has degree ``k``;
-        for mixed degrees ``polygon_index`` ``(N,)`` and ``polygon_sizes`` ``(F,)`` instead
-        (see the module docstring). ``pos`` is the vertex tensor itself (gradients flow back);
-        the index tensors are int64 on its device. A batch gives
-        ``Batch.from_data_list([...])``, whose ``face``/``polygon_index`` carry global indices
-        like :meth:`PolygonMeshes.faces_packed` and whose ``batch`` equals
+        ``Data(pos=verts, edge_index=..., face=... | polygon_index=..., polygon_sizes=...)`` as
+        the module docstring describes: ``face`` ``(3, F)`` when every face is a triangle, else
+        ``polygon_index`` ``(N,)`` and ``polygon_sizes`` ``(F,)``. ``pos`` is the vertex tensor
+        itself (gradients flow back); index tensors are int64 on its device. A batch gives
+        ``Batch.from_data_list([...])``, whose ``face``/``polygon_index``/``edge_index`` carry
+        global indices like :meth:`PolygonMeshes.faces_packed` and whose ``batch`` equals
         :meth:`PolygonMeshes.verts_packed_to_mesh_idx`.
 
     Raises:
         ImportError: torch_geometric is not installed.
+
+    Examples:
+        >>> import torch
+        >>> from torch_geometric.transforms import FaceToEdge
+        >>> import torch_polylap as tp
+        >>> verts, faces = tp.shapes.quad_grid(2)
+        >>> data = tp.to_pyg(verts, faces)
+        >>> data.edge_index.shape[1] // 2, "face" in data  # the 12 edges of the 2 x 2 grid
+        (12, False)
+        >>> square = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+        >>> tri = tp.to_pyg(square, [[0, 1, 2], [0, 2, 3]])  # triangles: `face` (3, F) too
+        >>> torch.equal(FaceToEdge()(tri.clone()).edge_index, tri.edge_index)
+        True
     """
     verts_list, faces_list, batch = _mesh_lists(meshes, faces, "to_pyg")
     try:
         from torch_geometric.data import Batch, Data
     except ImportError as err:
         raise ImportError(_PYG_INSTALL) from err
-    degree = _uniform_degree(faces_list)
+    triangles = all(bool((f.sizes == 3).all()) for f in faces_list)
     data = [
-        Data(pos=v, **_pyg_attributes(v, f, degree, triangulate))
+        Data(pos=v, **_pyg_attributes(v, f, triangles, triangulate, laplacian))
         for v, f in zip(verts_list, faces_list, strict=True)
     ]
     return data[0] if batch is None else Batch.from_data_list(data)
@@ -237,15 +320,17 @@ def _pyg_faces(d: Any, i: int) -> FacesLike:
     face = getattr(d, "face", None)
     if face is None:
         raise ValueError(
-            f"graph {i} has no faces: a mesh needs `face` (k, F), or `polygon_index` with "
+            f"graph {i} has no faces: a mesh needs `face` (3, F), or `polygon_index` with "
             "`polygon_sizes`, or `polygons`."
         )
-    if not isinstance(face, torch.Tensor) or face.dim() != 2 or face.shape[0] < 3:
+    if not isinstance(face, torch.Tensor) or face.dim() != 2 or face.shape[0] != 3:
         shape = tuple(face.shape) if hasattr(face, "shape") else type(face).__name__
         raise ValueError(
-            f"graph {i}: `face` must have shape (3, F) for triangles, or (k, F) for faces of "
-            f"k >= 3 corners (torch_geometric stores faces column-wise), got {shape}; for "
-            "faces of mixed degree use `polygon_index` and `polygon_sizes`."
+            f"graph {i}: `face` must have shape (3, F), triangles stored column-wise as "
+            f"torch_geometric stores them, got {shape} (torch_geometric reads a (4, F) `face` "
+            "as tetrahedra). For polygons set `polygon_index` (the corners of all faces, face "
+            "after face) and `polygon_sizes` (each face's degree): for quads in a (4, F) "
+            "tensor `q`, polygon_index=q.t().reshape(-1) and polygon_sizes=torch.full((F,), 4)."
         )
     return face.t().cpu()
 
@@ -277,17 +362,165 @@ def from_pyg(data: Any) -> tuple[torch.Tensor, PolygonFaces] | PolygonMeshes:
         data: one ``Data``, a list of them, or a ``Batch`` (split with ``to_data_list()``).
             Each needs ``pos`` ``(V, 3)`` and faces: ``polygons`` (anything
             :func:`~torch_polylap.as_faces` accepts), else ``polygon_index`` ``(N,)`` with
-            ``polygon_sizes`` ``(F,)``, else ``face`` ``(k, F)`` (triangles ``(3, F)``, quads
-            ``(4, F)``, ...). Only these attributes are read; torch_geometric is not imported.
+            ``polygon_sizes`` ``(F,)``, else ``face`` ``(3, F)`` triangles. ``edge_index`` is
+            not read. Only these attributes are read; torch_geometric is not imported.
 
     Returns:
         For one ``Data``, ``(verts, faces)``: ``pos`` itself and :class:`PolygonFaces` on the
         CPU; for a list or a ``Batch``, a :class:`~torch_polylap.PolygonMeshes`.
 
     Raises:
-        ValueError: no ``pos``, no faces, a ``face`` that is not ``(k >= 3, F)``, or a face
+        ValueError: no ``pos``, no faces, a ``face`` that is not ``(3, F)`` (torch_geometric
+            reads ``(4, F)`` as tetrahedra; the message says how to pass quads), or a face
             index out of range (naming the graph).
     """
     single = hasattr(data, "pos") and not hasattr(data, "to_data_list")
     meshes = _pyg_meshes(data)
     return meshes[0] if single else meshes
+
+
+# ------------------------------------------------------------------------------- DiffusionNet
+
+
+def to_diffusionnet(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    k_eig: int = 128,
+    cache_dir: str | Path | None = None,
+    *,
+    lam: float = 1.0,
+    method: str = "aw11",
+) -> tuple[torch.Tensor, ...]:
+    """DiffusionNet's operators of a polygon mesh, in the format of its ``get_operators``.
+
+    ``frames, mass, L, evals, evecs, gradX, gradY = to_diffusionnet(verts, faces)`` go into the
+    official ``DiffusionNet.forward(x, mass, L, evals, evecs, gradX, gradY)`` as the output of
+    ``diffusion_net.geometry.get_operators`` would; DiffusionNet itself is not imported.
+
+    What each is, and how it compares with DiffusionNet's own (triangle meshes):
+
+    - ``L``: this package's weak Laplacian (``method``: ``"aw11"``, ``"plms"``, ``"degoes"``;
+      see :func:`torch_polylap.laplacian`), positive semi-definite like DiffusionNet's. On
+      triangles AW11 is the cotangent Laplacian DiffusionNet builds.
+    - ``mass``: the diagonal of the lumped mass ``M0``; on triangles a third of the areas of
+      the triangles around each vertex, DiffusionNet's vertex areas (it adds ``1e-8`` times
+      their mean; this does not).
+    - ``evals``, ``evecs``: the ``k_eig`` smallest eigenpairs of ``L phi = mu M0 phi``
+      (:func:`torch_polylap.eigs`), ascending, ``M0``-orthonormal, eigenvalues clipped at zero
+      as DiffusionNet clips them.
+    - ``frames``: ``(e_x, e_y, n)`` per vertex, DiffusionNet's order (``frames[:, 2]`` is the
+      normal), from :func:`~torch_polylap.nn.vertex_tangent_frames` (area-weighted normals; the
+      tangent axis is chosen otherwise than DiffusionNet's, which its gradient features do not
+      see: they are invariant to the choice).
+    - ``gradX``, ``gradY``: the tangent gradient in the frames,
+      :func:`~torch_polylap.nn.vertex_gradient_operators` (the area-weighted mean of the face
+      gradients around a vertex, exact for linear functions; DiffusionNet fits a gradient to
+      the edges by least squares).
+
+    Args:
+        verts: ``(V, 3)`` vertex positions, float32 or float64, any device.
+        faces: polygon faces in any form :func:`~torch_polylap.as_faces` accepts, or a
+            :class:`~torch_polylap.Topology`.
+        k_eig: number of eigenpairs, ``0 <= k_eig < V`` (``0``: empty ``evals`` and
+            ``evecs``, as DiffusionNet gives for ``diffusion_method="implicit_dense"``).
+        cache_dir: folder of an eigenpair cache (created when missing), as DiffusionNet's
+            ``op_cache_dir``; entries are keyed by a hash of the positions, the faces,
+            ``k_eig``, ``method`` and ``lam`` and shared with :func:`torch_polylap.cached_eigs`
+            (and so with :class:`torch_polylap.datasets.PolygonMeshDataset`). The other
+            operators are recomputed on every call (one assembly each, no eigensolve). A cache
+            that cannot be written (read-only, a path through a file) gives a warning and the
+            uncached result; an unreadable entry gives a warning and is recomputed.
+        lam: the AW11 parameter ``lambda`` (see :func:`torch_polylap.laplacian`).
+        method: ``"aw11"``, ``"plms"`` or ``"degoes"``.
+
+    Returns:
+        ``(frames, mass, L, evals, evecs, gradX, gradY)``, all on ``verts``' device in its
+        dtype (computed in float64 on the CPU, as DiffusionNet computes them, then cast):
+        ``frames`` ``(V, 3, 3)``, ``mass`` ``(V,)``, ``evals`` ``(k_eig,)``, ``evecs``
+        ``(V, k_eig)`` dense; ``L``, ``gradX``, ``gradY`` ``(V, V)`` coalesced torch sparse COO
+        tensors with int64 indices. None carries a gradient (precomputed operators, as in
+        DiffusionNet); for differentiable ones use :func:`torch_polylap.laplacian`,
+        :func:`torch_polylap.eigs` and :func:`~torch_polylap.nn.vertex_gradient_operators`.
+
+    Raises:
+        ValueError: no faces (DiffusionNet's point-cloud operators are not built here), an
+            invalid mesh, ``k_eig`` out of range, or a ``cache_dir`` that names a file.
+    """
+    check_verts(verts)
+    check_method(method)
+    if isinstance(k_eig, bool) or not isinstance(k_eig, int | np.integer):
+        raise TypeError(f"to_diffusionnet: k_eig must be an integer, got {k_eig!r}.")
+    n = verts.shape[0]
+    if not 0 <= k_eig < n:
+        raise ValueError(
+            f"to_diffusionnet: k_eig={k_eig} eigenpairs of a mesh with {n} vertices; pass "
+            f"0 <= k_eig < {n} (0 for DiffusionNet's implicit_dense diffusion)."
+        )
+    cache = None if cache_dir is None else Path(cache_dir)
+    if cache is not None:
+        check_cache_dir(cache)  # before any work
+    given = faces.faces if isinstance(faces, Topology) else as_faces(faces)
+    if given.num_faces == 0:
+        raise ValueError(
+            "to_diffusionnet needs a mesh with faces; for a point cloud use DiffusionNet's own "
+            "diffusion_net.geometry.get_operators."
+        )
+    topo = get_topology(faces, n)  # cached on a faces tensor across calls
+    v64 = verts.detach().to(device="cpu", dtype=torch.float64)
+    with torch.no_grad():
+        L, M0 = mesh_laplacian(v64, topo, lam, method=method)
+        normal, e_x, e_y = vertex_tangent_frames(v64, topo)
+        grad_x, grad_y = vertex_gradient_operators(v64, topo, frames=(e_x, e_y))
+        evals, evecs = _diffusionnet_eigs(v64, topo, L, M0, int(k_eig), cache, lam, method)
+
+    def cast(t: torch.Tensor) -> torch.Tensor:
+        return t.to(device=verts.device, dtype=verts.dtype)
+
+    def coo(A: torch.Tensor) -> torch.Tensor:
+        return cast(to_torch_sparse(A, layout=torch.sparse_coo)).coalesce()
+
+    frames = torch.stack((e_x, e_y, normal), dim=1)  # frames[v, i] is axis i of vertex v
+    return (
+        cast(frames),
+        cast(M0.diagonal()),
+        coo(L),
+        cast(evals.clamp_min(0)),
+        cast(evecs),
+        coo(grad_x),
+        coo(grad_y),
+    )
+
+
+def _diffusionnet_eigs(
+    verts: torch.Tensor,
+    topo: Topology,
+    L: torch.Tensor,
+    M0: torch.Tensor,
+    k: int,
+    cache: Path | None,
+    lam: float,
+    method: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``eigs(L, M0, k)`` through the eigenpair cache of :func:`~torch_polylap.cached_eigs`
+    (same file name and content), warning instead of failing when it cannot be written."""
+    if k == 0:
+        return verts.new_zeros(0), verts.new_zeros(verts.shape[0], 0)
+    if cache is None:
+        return eigs(L, M0, k)
+    path = cache / f"eigs-{_mesh_key(verts, topo, k, lam, method)}.npz"
+    hit = _load_eigs(path, k, verts.shape[0]) if path.exists() else None
+    if hit is not None:
+        return torch.from_numpy(hit[0]), torch.from_numpy(hit[1])
+    evals, evecs = eigs(L, M0, k)
+    evals_np, evecs_np = evals.numpy(), evecs.numpy()
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda f: np.savez(f, evals=evals_np, evecs=evecs_np))
+    except OSError as err:
+        warnings.warn(
+            f"to_diffusionnet: the eigenpair cache {path} cannot be written ({err}); returning "
+            "the operators without caching them. Pass a writable cache_dir, or None.",
+            UserWarning,
+            stacklevel=3,
+        )
+    return evals, evecs

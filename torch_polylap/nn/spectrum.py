@@ -16,10 +16,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 
+from ..batch import to_arguments
 from ..sparse import as_operator, is_operator
 
 if TYPE_CHECKING:
@@ -149,15 +150,18 @@ class Spectrum:
     def k(self) -> int:
         return int(self.evals.shape[1])
 
-    def to(
-        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
-    ) -> Spectrum:
-        """A copy on ``device`` with floating tensors cast to ``dtype``."""
+    def to(self, *args: Any, **kwargs: Any) -> Spectrum:
+        """The spectrum moved as :meth:`torch.Tensor.to` moves a tensor: ``to(dtype)``,
+        ``to(device)``, ``to(device, dtype)``, ``to(tensor)``, keywords ``device``, ``dtype``,
+        ``non_blocking``, ``copy`` (:func:`torch_polylap.batch.to_arguments`). The floating
+        tensors take the dtype; ``num_verts`` stays int64.
+        """
+        move = to_arguments(*args, **kwargs)
         return Spectrum(
-            self.evals.to(device=device, dtype=dtype),
-            self.evecs.to(device=device, dtype=dtype),
-            self.mass.to(device=device, dtype=dtype),
-            self.num_verts.to(device=device),
+            move.apply(self.evals),
+            move.apply(self.evecs),
+            move.apply(self.mass),
+            move.apply(self.num_verts),
         )
 
     def to_padded(self, x: torch.Tensor) -> torch.Tensor:

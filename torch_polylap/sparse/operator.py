@@ -309,9 +309,13 @@ def _unsupported_message(func: Callable) -> str:
         "built from them): it has no O(nnz) gradient here, or would build a dense V x V matrix. "
         "Supported: products with dense tensors (A @ X, torch.mm, torch.sparse.mm), sums and "
         "differences of operators, scalar multiples, row/column scaling, transposes, .to(), "
-        "A.values(), A.diagonal(), A.sum(dim). For other uses take A.to_dense() (small meshes), "
-        "torch_polylap.sparse.to_scipy(A), or A.detach().to_sparse_csr() and convert it with "
-        "torch_polylap.sparse.to_torch_sparse."
+        "A.values(), A.diagonal(), A.sum(dim). To hand A to another library (code that calls "
+        ".unsqueeze or indexes it) convert it to a torch sparse tensor: "
+        "torch_polylap.sparse.to_torch_sparse(A, layout=torch.sparse_coo) (values detached: no "
+        "gradient reaches the vertices through it; COO, since torch's CSR tensors have no "
+        "strides); for DiffusionNet, torch_polylap.interop.to_diffusionnet(verts, faces) gives "
+        "all its operators. Otherwise A.to_dense() (small meshes) or "
+        "torch_polylap.sparse.to_scipy(A)."
     )
 
 
