@@ -11,6 +11,7 @@ The API has two tiers, in the manner of pytorch3d and kornia:
   geodesics), solves and spectra, I/O and interop (trimesh, pytorch3d, PyG) and batches;
 - subpackages for what is built on it: :mod:`~torch_polylap.losses`,
   :mod:`~torch_polylap.apps` (the paper's applications), :mod:`~torch_polylap.nn` (layers),
+  :mod:`~torch_polylap.vector` (tangent vector fields: connection, transport, curvature),
   :mod:`~torch_polylap.fitting`, :mod:`~torch_polylap.datasets`, :mod:`~torch_polylap.plot`,
   and the building blocks :mod:`~torch_polylap.sparse` (the operator type and its algebra),
   :mod:`~torch_polylap.io`, :mod:`~torch_polylap.topology`, :mod:`~torch_polylap.kernels`,
@@ -39,6 +40,7 @@ from . import (
     shapes,
     sparse,
     topology,
+    vector,
 )
 from .batch import *
 from .calculus import *
@@ -69,6 +71,7 @@ _SUBPACKAGES = (
     "shapes",
     "sparse",
     "topology",
+    "vector",
 )
 
 __all__ = sorted(

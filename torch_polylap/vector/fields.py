@@ -1,0 +1,52 @@
+"""The smoothest ``n``-direction field (Knoeppel, Crane, Pinkall and Schroeder 2013).
+
+An ``n``-direction field (``n = 1`` vectors, ``2`` lines, ``4`` crosses) is stored at each
+vertex as the complex number ``X = r e^{i n theta}``, which is the same for the ``n`` directions
+``theta + 2 pi k / n``.  Its smoothness is measured by the connection Laplacian with the
+``n``-fold connection (:func:`~torch_polylap.vector.connection_laplacian` with ``symmetry=n``),
+and the smoothest field of unit mean length is the eigenvector of the smallest eigenvalue of
+``A_n X = mu M X`` (Knoeppel et al. 2013, sec. 5, "globally optimal" fields without
+alignment constraints).  On a surface without boundary of genus ``g != 1`` no such field is
+free of zeros (Poincare-Hopf), and the field's singularities appear where ``|X|`` is small.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..checks import Lam
+from ..linalg import eigs
+from .connection import MeshFaces, connection_laplacian
+
+__all__ = ["smoothest_field"]
+
+
+def smoothest_field(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    symmetry: int = 1,
+    lam: Lam = 1.0,
+    *,
+    method: str = "aw11",
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The globally smoothest ``n``-direction field (module docstring).
+
+    Args:
+        verts: ``(V, 3)`` vertex positions.
+        faces: faces in any accepted form, or a :class:`~torch_polylap.topology.Topology`.
+        symmetry: ``n``: 1 (vector field), 2 (line field), 4 (cross field), any ``n >= 1``.
+        lam, method: the scalar Laplacian's blocks (see :func:`~torch_polylap.laplacian`).
+
+    Returns:
+        ``directions`` ``(V, 3)``: one unit tangent vector per vertex, the representative
+        ``theta = arg(X) / n`` (the others are its rotations by ``2 pi k / n``);
+        ``magnitude`` ``(V,)``: ``|X|`` with ``X^* M X = 1``, small near singularities;
+        ``energy``: the eigenvalue ``mu`` (0-dim), ``X^* A_n X``.  Differentiable in ``verts``
+        through :func:`~torch_polylap.eigs` while the smallest eigenvalue is simple.
+    """
+    A, M, frames = connection_laplacian(verts, faces, lam, method=method, symmetry=symmetry)
+    mu, X = eigs(A, M, k=1)
+    x, y = X[0::2, 0], X[1::2, 0]
+    theta = torch.atan2(y, x) / symmetry
+    directions = torch.cos(theta)[:, None] * frames.e_x + torch.sin(theta)[:, None] * frames.e_y
+    return directions, torch.hypot(x, y), mu[0]

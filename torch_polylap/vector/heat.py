@@ -1,0 +1,237 @@
+"""The vector heat method (Sharp, Soliman and Crane 2019) on polygon meshes.
+
+Parallel transport (their Algorithm 1).  Diffusing a vector ``Y_0`` given at the sources for a
+short time with the connection Laplacian ``A`` (:mod:`torch_polylap.vector.connection`),
+
+    (M + t A) Y = M Y_0,                                                          (1)
+
+gives a field whose *direction* at every vertex approaches the parallel transport of ``Y_0``
+along the shortest geodesic from the nearest source as ``t -> 0`` (SSC19, sec. 4: the
+short-time asymptotics of the connection heat kernel). The magnitudes decay with distance, so
+they are interpolated separately by two scalar heat flows with the scalar Laplacian ``L``:
+``u`` from ``|Y_0|`` and ``phi`` from the sources' indicator, ``(M0 + t L) u = M0 |Y_0| delta``;
+the result is ``X = (u / phi) Y / |Y|`` (SSC19, eq. 4 / Algorithm 1).
+
+Logarithmic map (their sec. 7.2 and Algorithm 2).  For a source vertex ``s``:
+
+1. the *horizontal* field ``H``: (1) with ``Y_0 = e_x(s)``, the transport of the source's first
+   axis;
+2. the radius ``r``: the heat-method geodesic distance from ``s``
+   (:class:`~torch_polylap.HeatGeodesicSolver`);
+3. the *radial* field ``R = grad r`` at the vertices (the area-weighted mean of the face
+   gradients, :func:`~torch_polylap.nn.vertex_gradient_operators`), the direction in which
+   the geodesic from ``s`` arrives;
+4. the polar angle ``theta_v = arg(R_v conj(H_v))``: the angle from the transported axis to the
+   arriving geodesic, which parallel transport preserves, so it is the angle at ``s``, in
+   ``s``'s frame, of the geodesic that reaches ``v``;
+
+and ``log_s(v) = r_v (cos theta_v, sin theta_v)``.  SSC19 obtain ``R`` by diffusing, with (1),
+unit vectors pointing away from the source on its one-ring; on polygon meshes with irregular
+rings (Voronoi cells) that field keeps a bias from the ring's imbalance that refinement does not
+remove (mean angle error 0.22 and 0.33 rad on the Voronoi spheres at levels 3 and 4), while
+``grad r`` converges (0.064 and 0.055 rad; ``docs/vector.md`` has the numbers).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+
+import torch
+
+from ..calculus import POISSON_LAM, HeatGeodesicSolver
+from ..checks import Lam, check_index_or_mask, check_verts
+from ..faces import FacesLike
+from ..linalg import solve
+from ..nn.gradient_features import vertex_gradient_operators
+from ..sparse import diag
+from ..topology import Topology, get_topology
+from .connection import connection_laplacian
+from .transport import TangentFrames, to_ambient, to_tangent
+
+__all__ = ["VectorHeatSolver"]
+
+MeshFaces = FacesLike | Topology
+SourceLike = int | torch.Tensor | Sequence[int]
+
+
+class VectorHeatSolver:
+    """Parallel transport and the logarithmic map by the vector heat method (Sharp, Soliman and
+    Crane 2019), with the AW11 polygon Laplacian, prefactored for repeated queries.
+
+    Both system matrices, ``M + t A`` (``(2V, 2V)``, the connection Laplacian of
+    :func:`~torch_polylap.vector.connection_laplacian`) and the scalar ``M0 + t L`` (held by
+    the :class:`~torch_polylap.HeatGeodesicSolver` in :attr:`geodesic`, which also gives the log
+    map's radius), are built once; their factorizations are cached on them by
+    :func:`~torch_polylap.solve` and serve every query.  Every step runs in float64 (the heat
+    decays like ``exp(-d^2 / 4 t)``, which leaves float32's range a few dozen edge lengths from
+    the sources); results have ``verts``' dtype.  Differentiable with respect to ``verts``
+    through the solves (O(nnz) backward), away from the cut locus (where ``|Y| -> 0``).
+
+    Args:
+        verts: ``(V, 3)`` vertex positions.
+        faces: faces in any accepted form, or a :class:`~torch_polylap.topology.Topology`.
+        t: heat time; default that of :class:`~torch_polylap.HeatGeodesicSolver`, ``4 h^2``
+            with ``h`` the mean edge length (SSC19 use ``h^2``; the factor 4 measured on the
+            sphere families is at least as accurate for transport, see ``docs/vector.md``).
+        lam: the stabilizer weight of the Laplacians (see :func:`~torch_polylap.laplacian`).
+        poisson_lam: the Poisson step's weight for the log map's radius (see
+            :class:`~torch_polylap.HeatGeodesicSolver`).
+
+    Attributes:
+        frames: the :class:`~torch_polylap.vector.TangentFrames` in which ``log_map``'s
+            coordinates are given.
+        geodesic: the scalar :class:`~torch_polylap.HeatGeodesicSolver` (same ``t``).
+    """
+
+    def __init__(
+        self,
+        verts: torch.Tensor,
+        faces: MeshFaces,
+        t: float | torch.Tensor | None = None,
+        lam: Lam = 1.0,
+        *,
+        poisson_lam: Lam = POISSON_LAM,
+    ) -> None:
+        check_verts(verts)
+        self.topology = get_topology(faces, verts.shape[0])
+        self.verts = verts
+        self.geodesic = HeatGeodesicSolver(verts, self.topology, t, lam, poisson_lam=poisson_lam)
+        self.t = self.geodesic.t
+        A, M, self.frames = connection_laplacian(verts, self.topology, lam)
+        mass = M.diagonal()
+        system = M + self.t * A
+        # isolated vertices have an empty row and column: a unit diagonal keeps the system
+        # definite and their field zero
+        isolated = (mass == 0).detach()
+        if bool(isolated.any()):
+            system = system + diag(isolated.to(system.dtype))
+        self.vector_operator = system.double()
+        self.vector_mass = mass.double()
+        self._grad: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def _sources(self, sources: SourceLike, name: str = "sources") -> torch.Tensor:
+        n = self.topology.num_verts
+        if isinstance(sources, int) and not isinstance(sources, bool):
+            sources = [sources]
+        idx = check_index_or_mask(sources, n, name)
+        if idx.numel() == 0:
+            raise ValueError(f"{name} is empty; give at least one source vertex.")
+        return idx.to(self.verts.device)
+
+    def diffuse(self, initial: torch.Tensor) -> torch.Tensor:
+        """``(V, Q, 2)`` float64 solution ``Y`` of ``(M + t A) Y = M Y_0`` (eq. (1)) for
+        ``initial`` ``Y_0`` ``(V, Q, 2)`` in frame coordinates."""
+        n, q = initial.shape[:2]
+        rhs = self.vector_mass[:, None] * initial.double().transpose(1, 2).reshape(2 * n, q)
+        return solve(self.vector_operator, rhs).reshape(n, 2, q).transpose(1, 2)
+
+    def transport(self, sources: SourceLike, vectors: torch.Tensor) -> torch.Tensor:
+        """Parallel transport of tangent vectors given at source vertices to every vertex.
+
+        Args:
+            sources: ``S`` distinct source vertices (an int, a sequence or an index tensor).
+            vectors: ``(3,)`` or ``(S, 3)`` ambient vectors at the sources; their parts tangent
+                to the sources' planes are transported.
+
+        Returns:
+            ``(V, 3)`` tangent vectors (``e_x``, ``e_y`` combinations): at every vertex, the
+            vector of the nearest source (several sources blend near their Voronoi borders,
+            SSC19 sec. 5), with the length interpolated by the scalar heat flows.  Zero on
+            connected components without a source.
+
+        Raises:
+            ValueError: bad sources (see :func:`~torch_polylap.checks.check_index_or_mask`), a
+                shape mismatch, or a vector with no tangent part at its source.
+        """
+        idx = self._sources(sources)
+        vectors = torch.as_tensor(vectors, dtype=self.verts.dtype, device=self.verts.device)
+        if vectors.dim() == 1:
+            vectors = vectors[None]
+        if vectors.shape != (idx.numel(), 3):
+            raise ValueError(
+                f"transport: vectors must have shape (3,) or ({idx.numel()}, 3) for "
+                f"{idx.numel()} source(s), got {tuple(vectors.shape)}."
+            )
+        frames = TangentFrames(*(f[idx] for f in self.frames))
+        coords = to_tangent(vectors, frames)  # (S, 2)
+        length = torch.linalg.vector_norm(coords, dim=1)
+        flat = length <= torch.finfo(length.dtype).eps * torch.linalg.vector_norm(vectors, dim=1)
+        if bool(flat.any()):
+            s = int(torch.nonzero(flat)[0, 0])
+            raise ValueError(
+                f"transport: the vector {vectors[s].tolist()} at source vertex {int(idx[s])} "
+                "has no part tangent to the surface there (it is zero or normal to it)."
+            )
+        n = self.topology.num_verts
+        initial = self.verts.new_zeros(n, 1, 2).index_put((idx,), coords[:, None])
+        Y = self.diffuse(initial)[:, 0]  # (V, 2)
+        weights = self.verts.new_zeros(n, 2)
+        weights[idx, 0] = length
+        weights[idx, 1] = 1.0
+        u_phi = self.geodesic.heat(weights)
+        ratio = u_phi[:, 0] / u_phi[:, 1].clamp_min(torch.finfo(u_phi.dtype).tiny)
+        norm = torch.linalg.vector_norm(Y, dim=1)
+        reached = self._reached(idx)
+        _warn_underflow(reached & (norm == 0), self.t)
+        X = Y * (ratio / norm.clamp_min(torch.finfo(Y.dtype).tiny))[:, None]
+        X = torch.where(reached[:, None], X, torch.zeros_like(X))
+        return to_ambient(X.to(self.verts.dtype), self.frames)
+
+    def _reached(self, idx: torch.Tensor) -> torch.Tensor:
+        """``(V,)`` bool: the vertex lies on a connected component holding one of ``idx``."""
+        labels = self.geodesic.labels
+        hit = torch.zeros(self.geodesic.num_components, dtype=torch.bool, device=labels.device)
+        hit[labels[idx]] = True
+        return hit[labels]
+
+    def log_map(self, source: SourceLike) -> torch.Tensor:
+        """The logarithmic map at ``source``: ``(V, 2)`` coordinates in the source's frame
+        (``frames.e_x[source]``, ``frames.e_y[source]``) of the tangent vector at the source
+        whose geodesic reaches each vertex after its length.
+
+        Args:
+            source: one vertex (an int), giving ``(V, 2)``; or a sequence or index tensor of
+                ``Q`` vertices, independent queries solved together, giving ``(V, Q, 2)``.
+
+        Returns:
+            Coordinates in ``verts``' dtype; 0 at the source, ``inf`` on connected components
+            without the source. ``to_ambient``-style 3D vectors at the source are
+            ``log[..., :1] * e_x[s] + log[..., 1:] * e_y[s]``.
+        """
+        single = isinstance(source, (int, torch.Tensor)) and torch.as_tensor(source).dim() == 0
+        idx = self._sources(torch.as_tensor(source).reshape(-1) if single else source, "source")
+        n, q = self.topology.num_verts, idx.numel()
+        horizontal = self.verts.new_zeros(n, q, 2)
+        horizontal[idx, torch.arange(q, device=idx.device), 0] = 1.0
+        Y = self.diffuse(horizontal)
+        radius = self.geodesic.distance([[s] for s in idx.tolist()])  # (V, Q)
+        finite = torch.isfinite(radius)
+        _warn_underflow(finite & (torch.linalg.vector_norm(Y, dim=-1) == 0), self.t)
+        r = torch.where(finite, radius, torch.zeros_like(radius)).double()
+        grad_x, grad_y = self._gradients()
+        w = torch.complex(grad_x @ r, grad_y @ r) * torch.complex(Y[..., 0], Y[..., 1]).conj()
+        unit = w / w.abs().clamp_min(torch.finfo(r.dtype).tiny)
+        log = torch.stack((unit.real, unit.imag), -1) * r[..., None]
+        log = torch.where(finite[..., None], log, torch.inf).to(self.verts.dtype)
+        return log[:, 0] if single else log
+
+    def _gradients(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The vertex gradient operators in :attr:`frames` (float64), built on first use."""
+        if self._grad is None:
+            frames = (self.frames.e_x, self.frames.e_y)
+            grad_x, grad_y = vertex_gradient_operators(self.verts, self.topology, frames)
+            self._grad = (grad_x.double(), grad_y.double())
+        return self._grad
+
+
+def _warn_underflow(lost: torch.Tensor, t: float | torch.Tensor) -> None:
+    """Warn when the diffused field underflowed to exactly zero at reachable vertices."""
+    if bool(lost.any()):
+        warnings.warn(
+            f"VectorHeatSolver: the diffused field is exactly zero at {int(lost.sum())} vertices "
+            f"(the heat decays like exp(-d^2 / 4t) and underflowed far from the sources at "
+            f"t = {float(t):.3g}); their result is zero. Use a larger t for such distances.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
