@@ -42,11 +42,27 @@ def assemble(
     mirrored positions and minus their row sums to the diagonal. ``view`` is ``topo.on(device)``,
     taken once by the caller.
 
+    Autocast is off inside: the kernels form products of coordinates that half precision
+    cannot hold, and some (dGBD20's einsum) would otherwise be cast to it.
+
     Returns:
         ``values`` ``(nnz,)`` on ``view``'s pattern and ``masses`` ``(V,)`` (or ``None``).
     """
-    if functional():
-        return _assemble_functional(verts, view, topo, kernel, want_mass, validate)
+    with torch.autocast(verts.device.type, enabled=False):
+        if functional():
+            return _assemble_functional(verts, view, topo, kernel, want_mass, validate)
+        return _assemble_chunked(verts, view, topo, kernel, want_mass, validate)
+
+
+def _assemble_chunked(
+    verts: torch.Tensor,
+    view: TopologyView,
+    topo: Topology,
+    kernel: BlockKernel,
+    want_mass: bool,
+    validate: bool,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`assemble` eagerly: chunks whose temporaries stay small, in place."""
     verts_t = verts.t().contiguous()
     values = verts.new_zeros(topo.nnz)
     masses = verts.new_zeros(topo.num_verts) if want_mass else None

@@ -54,11 +54,12 @@ def check_verts(verts: object, name: str = "verts", *, finite: bool = True) -> t
     assembly's own ``validate`` pass can do it later at no extra sync).
 
     Returns:
-        ``verts`` unchanged.
+        ``verts`` unchanged, or in float32 when it is half precision under ``torch.autocast``.
 
     Raises:
-        TypeError: not a tensor, or not floating point, or half precision (float16/bfloat16
-            are refused: convert with ``verts.float()`` and cast the results back).
+        TypeError: not a tensor, or not floating point, or half precision outside autocast
+            (float16/bfloat16 are refused: convert with ``verts.float()`` and cast the results
+            back).
         ValueError: wrong shape, or a non-finite entry (names the first vertex).
     """
     if not isinstance(verts, torch.Tensor):
@@ -67,6 +68,12 @@ def check_verts(verts: object, name: str = "verts", *, finite: bool = True) -> t
         )
     if verts.dim() != 2 or verts.shape[1] != 3:
         raise ValueError(f"{name} must have shape (V, 3), got {tuple(verts.shape)}.")
+    if verts.dtype in (torch.float16, torch.bfloat16) and torch.is_autocast_enabled(
+        verts.device.type
+    ):
+        # under autocast, half-precision positions (a network's output) are taken in float32,
+        # as autocast does for its float32 ops; the gradient flows back through the cast
+        verts = verts.float()
     if verts.dtype not in _SUPPORTED_FLOATS:
         hint = (
             f"use {name}.float() and cast the results back"

@@ -117,7 +117,7 @@ def laplacian(
         ValueError: bad connectivity (see :func:`~torch_polylap.topology.build_topology`),
             non-finite coordinates or zero-area faces, naming the vertex or face.
     """
-    check_verts(verts, finite=False)
+    verts = check_verts(verts, finite=False)
     _check_layout(layout)
     lam = _checked_lam(lam, validate)
     check_method(method)
@@ -143,7 +143,7 @@ def planarity_laplacian(
     :func:`planarity_energy` for that energy without building the matrix. Triangles contribute
     nothing.
     """
-    check_verts(verts, finite=False)
+    verts = check_verts(verts, finite=False)
     lam = _checked_lam(lam, validate)
     topo = get_topology(faces, verts.shape[0])
     view = topo.on(verts.device)
@@ -238,7 +238,7 @@ class PolygonLaplacian(nn.Module):
         Returns:
             ``L`` and ``M0``, ``(V, V)`` operators as :func:`laplacian` returns them.
         """
-        check_verts(verts, finite=False)
+        verts = check_verts(verts, finite=False)
         topo = self._topology_for(faces, verts.shape[0])
         lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam
         return laplacian(

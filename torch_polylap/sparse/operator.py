@@ -336,6 +336,10 @@ def _check_dense(A: SparseOperator, X: object, what: str) -> torch.Tensor:
             f"torch_polylap: {what} needs a dense torch tensor, got {type(X).__name__}"
             f"{'' if not isinstance(X, torch.Tensor) else ' of layout ' + str(X.layout)}."
         )
+    if X.dtype != A.dtype and _autocast_cast(X):
+        # under autocast a product runs in the operator's precision (float32 or float64):
+        # torch has no half-precision sparse kernels, and L's entries need float32
+        X = X.to(A.dtype)
     if X.dtype != A.dtype:
         raise UnsupportedOperation(
             f"torch_polylap: {what} with an operator of dtype {A.dtype} and a tensor of dtype "
@@ -347,6 +351,13 @@ def _check_dense(A: SparseOperator, X: object, what: str) -> torch.Tensor:
             "not supported; move one of them."
         )
     return X
+
+
+def _autocast_cast(X: torch.Tensor) -> bool:
+    """Whether autocast is on for ``X``'s device and ``X`` is in its lower precision."""
+    return X.dtype in (torch.float16, torch.bfloat16) and torch.is_autocast_enabled(
+        X.device.type
+    )
 
 
 def apply(A: SparseOperator, X: object) -> torch.Tensor:
