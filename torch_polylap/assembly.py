@@ -22,7 +22,7 @@ from .kernels.frames import gather_corners
 from .topology import DegreeGroup, Topology, TopologyView, get_topology
 from .tracing import functional, require
 
-__all__ = ["MeshFaces", "assemble", "face_groups", "raise_bad_input"]
+__all__ = ["MeshFaces", "assemble", "assemble_flagged", "face_groups", "raise_bad_input"]
 
 MeshFaces = FacesLike | Topology
 
@@ -92,6 +92,19 @@ def _assemble_functional(
     want_mass: bool,
     validate: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    values, masses, ok = assemble_flagged(verts, view, topo, kernel, want_mass)
+    if validate and not require(ok, _BAD_INPUT):
+        raise_bad_input(verts, topo)
+    return values, masses
+
+
+def assemble_flagged(
+    verts: torch.Tensor,
+    view: TopologyView,
+    topo: Topology,
+    kernel: BlockKernel,
+    want_mass: bool,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """:func:`assemble` for traced and transformed code: out of place, one pass per group.
 
     In place updates of a value array from batched blocks fail under vmap, and a loop over
@@ -113,11 +126,8 @@ def _assemble_functional(
         values = values.index_add(0, positions, entries)
         if masses is not None:
             masses = masses.index_add(0, whole.corners_t.reshape(-1), corner_mass.reshape(-1))
-        if validate:
-            degenerate.append((area <= eps * size2).any())
-    if validate:
-        _validate(verts, topo, degenerate)
-    return values, masses
+        degenerate.append((area <= eps * size2).any())
+    return values, masses, _valid(verts, degenerate)
 
 
 _BAD_INPUT = (
@@ -127,13 +137,18 @@ _BAD_INPUT = (
 )
 
 
-def _validate(verts: torch.Tensor, topo: Topology, degenerate: list[torch.Tensor]) -> None:
-    """Raise on non-finite coordinates or a zero-area face (one device sync eagerly; an
-    in-graph assertion when traced; a check of every batch entry under vmap)."""
+def _valid(verts: torch.Tensor, degenerate: list[torch.Tensor]) -> torch.Tensor:
+    """0-dim bool: finite coordinates and no zero-area face."""
     ok = torch.isfinite(verts).all()
     if degenerate:
         ok = ok & ~torch.stack(degenerate).any()
-    if not require(ok, _BAD_INPUT):
+    return ok
+
+
+def _validate(verts: torch.Tensor, topo: Topology, degenerate: list[torch.Tensor]) -> None:
+    """Raise on non-finite coordinates or a zero-area face (one device sync eagerly; an
+    in-graph assertion when traced; a check of every batch entry under vmap)."""
+    if not require(_valid(verts, degenerate), _BAD_INPUT):
         raise_bad_input(verts, topo)
 
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .assembly import MeshFaces, assemble
+from .assembly import _BAD_INPUT, MeshFaces, assemble, assemble_flagged
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts
 from .kernels import block_kernel, check_method
 from .sparse import SparseOperator, operator_on
@@ -79,6 +79,8 @@ def laplacian(
     Args:
         verts: ``(V, 3)`` vertex positions, float32 or float64, any device. ``L`` and ``M0``
             follow its dtype and device, and their values are differentiable functions of it.
+            ``(B, V, 3)``: ``B`` meshes of one connectivity (a fixed-topology batch); ``L`` and
+            ``M0`` are then ``(B, V, V)`` batches of operators on one pattern.
         faces: ``(F, k)`` indices, a list of index lists of mixed degree, a
             :class:`~torch_polylap.PolygonFaces`, or a prebuilt
             :class:`~torch_polylap.topology.Topology` (cached on tensors/PolygonFaces).
@@ -117,13 +119,52 @@ def laplacian(
         ValueError: bad connectivity (see :func:`~torch_polylap.topology.build_topology`),
             non-finite coordinates or zero-area faces, naming the vertex or face.
     """
-    verts = check_verts(verts, finite=False)
     _check_layout(layout)
     lam = _checked_lam(lam, validate)
     check_method(method)
+    if isinstance(verts, torch.Tensor) and verts.dim() == 3:
+        return _laplacian_batch(verts, faces, lam, layout, validate, method)
+    verts = check_verts(verts, finite=False)
     topo = get_topology(faces, verts.shape[0])
     view = topo.on(verts.device)
     values, masses = assemble(verts, view, topo, block_kernel(method, lam), True, validate)
+    assert masses is not None
+    M0 = operator_on(view.diagonal, masses, symmetric=True, layout=layout)
+    return _operator(view, values, layout), M0
+
+
+def _laplacian_batch(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    lam: Lam,
+    layout: torch.layout,
+    validate: bool,
+    method: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``L``, ``M0`` of ``B`` meshes of one connectivity, ``verts`` ``(B, V, 3)``: one
+    topology, and the assembly vectorized over the batch (torch.func.vmap of the one-mesh
+    assembly: each step of the kernels is one operation on all ``B`` meshes)."""
+    if verts.shape[-1] != 3:
+        raise ValueError(f"verts must have shape (V, 3) or (B, V, 3), got {tuple(verts.shape)}.")
+    first = check_verts(verts[0], finite=False)
+    if first.dtype != verts.dtype:  # half precision under autocast
+        verts = verts.to(first.dtype)
+    topo = get_topology(faces, verts.shape[1])
+    view = topo.on(verts.device)
+    kernel = block_kernel(method, lam)
+
+    def one(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        with torch.autocast(v.device.type, enabled=False):
+            return assemble_flagged(v, view, topo, kernel, True)
+
+    values, masses, ok = torch.func.vmap(one)(verts)
+    if validate and not require(ok, _BAD_INPUT):
+        # name the mesh and the element: the one-mesh assembly's message
+        bad = int(torch.nonzero(~ok)[0, 0])
+        try:
+            assemble(verts[bad].detach(), view, topo, kernel, False, True)
+        except ValueError as err:
+            raise ValueError(f"mesh {bad} of the batch: {err}") from None
     assert masses is not None
     M0 = operator_on(view.diagonal, masses, symmetric=True, layout=layout)
     return _operator(view, values, layout), M0
@@ -238,8 +279,9 @@ class PolygonLaplacian(nn.Module):
         Returns:
             ``L`` and ``M0``, ``(V, V)`` operators as :func:`laplacian` returns them.
         """
-        verts = check_verts(verts, finite=False)
-        topo = self._topology_for(faces, verts.shape[0])
+        if verts.dim() != 3:
+            verts = check_verts(verts, finite=False)
+        topo = self._topology_for(faces, verts.shape[-2])
         lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam
         return laplacian(
             verts, topo, lam, layout=self.layout, validate=self.validate, method=self.method

@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in COMMANDS:
         module.add_parser(sub)
-    for command in sub.choices.values():
+    for _name, command in sub.choices.items():
         # SUPPRESS: given after the command it overrides the one before; absent it leaves it
         command.add_argument(
             "--threads",

@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import torch
 
 from ..tracing import in_functorch, tracing
-from .pattern import SparsityPattern
+from .pattern import SparsityPattern, block_diagonal_indices
 
 __all__ = ["csr_product", "sampled_product", "spmm", "spmm_t", "sampled", "torch_csr"]
 
@@ -250,18 +250,6 @@ sampled_op.register_autograd(_sampled_backward, setup_context=_sampled_setup)
 # --------------------------------------------------------------------------------------------
 
 
-def _block_pattern(
-    crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor, batch: int, n: int, m: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """CSR indices of ``blockdiag(A, ..., A)`` (``batch`` copies of an ``(n, m)`` pattern)."""
-    nnz = col.shape[0]
-    shift = torch.arange(batch, device=col.device)[:, None]
-    crow_b = torch.cat(
-        ((crow[:-1][None] + shift * nnz).reshape(-1), crow.new_full((1,), batch * nnz))
-    )
-    return crow_b, (col[None] + shift * m).reshape(-1), (row[None] + shift * n).reshape(-1)
-
-
 def _batched(x: torch.Tensor, dim: int | None, batch: int) -> torch.Tensor:
     """``x`` with its batch dimension first, expanded to ``batch`` if it has none."""
     return x.movedim(dim, 0) if dim is not None else x.expand(batch, *x.shape)
@@ -296,7 +284,7 @@ def _spmm_vmap(
         return Y.reshape(n, B, -1), 1
     m = X.shape[-2]
     Xb = _batched(X, x_dim, B).reshape(B * m, -1)
-    crow_b, col_b, row_b = _block_pattern(crow, col, row, B, n, m)
+    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
     Y = spmm_op(values.movedim(v_dim, 0).reshape(-1), crow_b, col_b, row_b, Xb, symmetric)
     return Y.reshape(B, n, -1), 0
 
@@ -320,7 +308,7 @@ def _spmm_t_vmap(
         Z = spmm_t_op(values, crow, col, row, Gb.reshape(n, -1), m)
         return Z.reshape(m, B, -1), 1
     Gb = _batched(G, g_dim, B).reshape(B * n, -1)
-    crow_b, col_b, row_b = _block_pattern(crow, col, row, B, n, m)
+    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
     Z = spmm_t_op(values.movedim(v_dim, 0).reshape(-1), crow_b, col_b, row_b, Gb, B * m)
     return Z.reshape(B, m, -1), 0
 
@@ -338,7 +326,7 @@ def _sampled_vmap(
     B, n, m = info.batch_size, crow.shape[0] - 1, X.shape[-2]
     Gb = _batched(G, in_dims[0], B).reshape(B * n, -1)
     Xb = _batched(X, in_dims[1], B).reshape(B * m, -1)
-    crow_b, col_b, row_b = _block_pattern(crow, col, row, B, n, m)
+    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
     return sampled_op(Gb, Xb, crow_b, col_b, row_b).reshape(B, -1), 0
 
 

@@ -28,7 +28,7 @@ import torch
 from ..tracing import run_eagerly, tracing
 from .autograd import spmm as csr_product_parts
 from .index_ops import diagonal_indices, positions_in, transpose_indices, union_indices
-from .pattern import SparsityPattern
+from .pattern import SparsityPattern, block_diagonal_indices
 
 __all__ = ["SparseOperator", "UnsupportedOperation", "is_operator", "operator_on"]
 
@@ -93,15 +93,21 @@ class SparseOperator(torch.Tensor):
         layout: torch.layout = torch.sparse_csr,
         pattern_key: int = -1,
     ) -> SparseOperator:
-        if values.dim() != 1 or values.shape[0] != col.shape[0]:
+        if values.dim() not in (1, 2) or values.shape[-1] != col.shape[0]:
             raise ValueError(
-                f"a sparse operator needs one value per stored entry: the pattern has "
-                f"{col.shape[0]}, the values have shape {tuple(values.shape)}."
+                f"a sparse operator needs one value per stored entry (or a batch (B, nnz) of "
+                f"them): the pattern has {col.shape[0]}, the values have shape "
+                f"{tuple(values.shape)}."
             )
         if layout not in _LAYOUTS:
             raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
+        # a batch of value arrays on one pattern is a (B, n, m) batch of operators
         A = torch.Tensor._make_wrapper_subclass(
-            cls, shape, dtype=values.dtype, device=values.device, requires_grad=False
+            cls,
+            (*values.shape[:-1], *shape),
+            dtype=values.dtype,
+            device=values.device,
+            requires_grad=False,
         )
         A._vals = values
         A._crow, A._col, A._row = crow, col, row
@@ -245,9 +251,15 @@ torch.serialization.add_safe_globals([_rebuild])
 
 
 def _shape2(A: torch.Tensor) -> tuple[int, int]:
+    """``(n, m)`` of an operator (of each operator of a batch)."""
     with torch._C.DisableTorchFunctionSubclass():
-        n, m = A.shape
+        n, m = A.shape[-2:]
     return int(n), int(m)
+
+
+def _batch(A: SparseOperator) -> tuple[int, ...]:
+    """``()`` for one operator, ``(B,)`` for a batch of operators on one pattern."""
+    return tuple(A._vals.shape[:-1])
 
 
 def operator_on(
@@ -355,14 +367,14 @@ def _check_dense(A: SparseOperator, X: object, what: str) -> torch.Tensor:
 
 def _autocast_cast(X: torch.Tensor) -> bool:
     """Whether autocast is on for ``X``'s device and ``X`` is in its lower precision."""
-    return X.dtype in (torch.float16, torch.bfloat16) and torch.is_autocast_enabled(
-        X.device.type
-    )
+    return X.dtype in (torch.float16, torch.bfloat16) and torch.is_autocast_enabled(X.device.type)
 
 
 def apply(A: SparseOperator, X: object) -> torch.Tensor:
     """``A @ X`` with ``X`` of shape ``(m,)``, ``(m, c)`` or ``(..., m, c)`` (batched)."""
     X = _check_dense(A, X, "A @ X")
+    if _batch(A):
+        return _apply_batch(A, X)
     n, m = _shape2(A)
     if X.dim() == 0 or X.shape[-2 if X.dim() > 1 else 0] != m:
         raise ValueError(
@@ -379,6 +391,28 @@ def apply(A: SparseOperator, X: object) -> torch.Tensor:
     flat = X.movedim(-2, 0).reshape(m, -1)
     Y = csr_product_parts(A._vals, *parts, flat, A.symmetric)
     return Y.reshape(n, *batch, c).movedim(0, -2)
+
+
+def _apply_batch(A: SparseOperator, X: torch.Tensor) -> torch.Tensor:
+    """``A[b] @ X[b]`` for a batch of ``B`` operators: ``X`` ``(B, m, c)``, ``(B, m)``, or one
+    ``(m, c)`` / ``(m,)`` for every operator; one product with the block-diagonal operator."""
+    (B,) = _batch(A)
+    n, m = _shape2(A)
+    # (B, m) is a batch of vectors; where B == m it is read as one (m, c) for all
+    vec = X.dim() == 1 or (X.dim() == 2 and X.shape == (B, m) and B != m)
+    Xb = X.unsqueeze(-1) if vec else X
+    if Xb.dim() == 2:
+        Xb = Xb.expand(B, *Xb.shape)
+    if Xb.dim() != 3 or Xb.shape[0] != B or Xb.shape[1] != m:
+        raise ValueError(
+            f"torch_polylap: a batch of {B} operators of shape {(n, m)} multiplies tensors of "
+            f"shape ({B}, {m}, c), ({B}, {m}), ({m}, c) or ({m},), got {tuple(X.shape)}."
+        )
+    crow, col, row = block_diagonal_indices(A._crow, A._col, A._row, B, n, m)
+    Y = csr_product_parts(
+        A._vals.reshape(-1), crow, col, row, Xb.reshape(B * m, -1), A.symmetric
+    ).reshape(B, n, -1)
+    return Y[..., 0] if vec else Y
 
 
 def _matmul(a: object, b: object, **kwargs: Any) -> torch.Tensor:
@@ -451,10 +485,13 @@ def _scale(A: SparseOperator, w: object, op: str) -> SparseOperator:
     ):
         n, m = _shape2(A)
         w = _check_dense(A, w, f"A {'*' if op == 'mul' else '/'} w")
-        if w.shape == (n, 1):
-            factor = w[:, 0][A._row]
-        elif w.shape in ((m,), (1, m)):
-            factor = w.reshape(-1)[A._col]
+        batch = _batch(A)
+        if w.shape[-2:] == (n, 1) and w.shape[:-2] in ((), batch):
+            factor = w[..., :, 0][..., A._row]
+        elif w.shape in ((m,), (1, m)) or w.shape == (*batch, 1, m) and batch:
+            factor = (
+                w.reshape(*w.shape[:-2], m)[..., A._col] if w.dim() > 2 else w.reshape(-1)[A._col]
+            )
         else:
             factor = None
         if factor is not None:
@@ -517,17 +554,26 @@ def _combine(A: SparseOperator, B: SparseOperator, alpha: Any) -> SparseOperator
     b_vals = B._vals
     if not (isinstance(alpha, numbers.Number) and alpha == 1):
         b_vals = b_vals * _scalar_tensor(A, alpha)
+    if _batch(A) != _batch(B):
+        if _batch(A) and _batch(B):
+            raise UnsupportedOperation(
+                f"torch_polylap: cannot add batches of {_batch(A)[0]} and {_batch(B)[0]} operators."
+            )
+        # one operator and a batch: the one is added to each
+        batch = _batch(A) or _batch(B)
+        A = A.with_values(A._vals.expand(*batch, A._vals.shape[-1]))
+        b_vals = b_vals.expand(*batch, b_vals.shape[-1])
     symmetric = A.symmetric and B.symmetric
     if tracing():
         return _combine_traced(A, B, b_vals, symmetric)
     pattern, at_a, at_b = A.pattern.union(B.pattern)
     if at_a is None:
-        values = A._vals + b_vals if at_b is None else A._vals.index_add(0, at_b, b_vals)
+        values = A._vals + b_vals if at_b is None else A._vals.index_add(-1, at_b, b_vals)
     elif at_b is None:
-        values = b_vals.index_add(0, at_a, A._vals)
+        values = b_vals.index_add(-1, at_a, A._vals)
     else:
-        values = A._vals.new_zeros(pattern.nnz).index_add(0, at_a, A._vals)
-        values = values.index_add(0, at_b, b_vals)
+        values = A._vals.new_zeros(*_batch(A), pattern.nnz).index_add(-1, at_a, A._vals)
+        values = values.index_add(-1, at_b, b_vals)
     return operator_on(pattern, values, symmetric=symmetric, layout=A._reported_layout)
 
 
@@ -554,10 +600,10 @@ def _combine_traced(
     nesting = _nesting(A, B)
     if nesting == 1:
         at_b = positions_in(A._crow, A._col, B._crow, B._col, m)
-        return A.with_values(A._vals.index_add(0, at_b, b_vals), symmetric)
+        return A.with_values(A._vals.index_add(-1, at_b, b_vals), symmetric)
     if nesting == -1:
         at_a = positions_in(B._crow, B._col, A._crow, A._col, m)
-        values = b_vals.index_add(0, at_a, A._vals)
+        values = b_vals.index_add(-1, at_a, A._vals)
         parts = (B._crow, B._col, B._row)
         return SparseOperator(values, *parts, (n, m), symmetric, A._reported_layout, B._pattern_key)
     if not torch._dynamo.config.capture_dynamic_output_shape_ops:
@@ -570,7 +616,8 @@ def _combine_traced(
             "outside the compiled code."
         )
     crow, col, row, at_a, at_b = union_indices(A._crow, A._col, B._crow, B._col, m)
-    values = A._vals.new_zeros(col.shape[0]).index_add(0, at_a, A._vals).index_add(0, at_b, b_vals)
+    values = A._vals.new_zeros(*_batch(A), col.shape[0]).index_add(-1, at_a, A._vals)
+    values = values.index_add(-1, at_b, b_vals)
     return SparseOperator(values, crow, col, row, (n, m), symmetric, A._reported_layout)
 
 
@@ -635,18 +682,21 @@ def _neg(A: SparseOperator, **kwargs: Any) -> SparseOperator:
 
 
 def _transpose(A: SparseOperator, *args: Any) -> SparseOperator:
-    if args and sorted(d % 2 for d in args) != [0, 1]:
+    nd = len(_batch(A)) + 2
+    if args and sorted(d % nd for d in args) != [nd - 2, nd - 1]:
         raise UnsupportedOperation(
-            f"torch_polylap: a sparse operator is 2-D; transpose(0, 1) only, got {args}."
+            f"torch_polylap: an operator transposes its last two dimensions only, got {args}."
         )
     if A.symmetric:
         return A
     if tracing():
         n, m = _shape2(A)
         crow, col, row, perm_t = transpose_indices(A._crow, A._col, m)
-        return SparseOperator(A._vals[perm_t], crow, col, row, (m, n), False, A._reported_layout)
+        return SparseOperator(
+            A._vals[..., perm_t], crow, col, row, (m, n), False, A._reported_layout
+        )
     transposed, perm = A.pattern.transpose()
-    return operator_on(transposed, A._vals[perm], layout=A._reported_layout)
+    return operator_on(transposed, A._vals[..., perm], layout=A._reported_layout)
 
 
 def _to(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
@@ -706,12 +756,20 @@ def _layout_as(layout: torch.layout) -> Callable[..., SparseOperator]:
 
 
 def _to_dense(A: SparseOperator, *args: Any, **kwargs: Any) -> torch.Tensor:
-    dense = A._vals.new_zeros(_shape2(A))
-    return dense.index_put((A._row, A._col), A._vals)
+    dense = A._vals.new_zeros(*_batch(A), *_shape2(A))
+    if not _batch(A):
+        return dense.index_put((A._row, A._col), A._vals)
+    b = torch.arange(_batch(A)[0], device=A._vals.device)[:, None]
+    return dense.index_put((b, A._row[None], A._col[None]), A._vals)
 
 
 def _diagonal(A: SparseOperator, offset: int = 0, dim1: int = 0, dim2: int = 1) -> torch.Tensor:
-    if offset != 0 or sorted((dim1 % 2, dim2 % 2)) != [0, 1]:
+    nd = len(_batch(A)) + 2
+    if (dim1, dim2) == (0, 1):
+        # the default: the diagonal of each operator of a batch (torch's would mix the batch
+        # dimension with the rows, which means nothing for operators)
+        dim1, dim2 = nd - 2, nd - 1
+    if offset != 0 or sorted((dim1 % nd, dim2 % nd)) != [nd - 2, nd - 1]:
         raise UnsupportedOperation(
             "torch_polylap: only the main diagonal of a sparse operator is supported."
         )
@@ -720,7 +778,7 @@ def _diagonal(A: SparseOperator, offset: int = 0, dim1: int = 0, dim2: int = 1) 
     else:
         pos = A.pattern.diagonal_positions()
     stored = pos >= 0
-    gathered = A._vals[pos.clamp_min(0)]
+    gathered = A._vals[..., pos.clamp_min(0)]
     return torch.where(stored, gathered, torch.zeros_like(gathered))
 
 
@@ -733,10 +791,17 @@ def _sum(
         )
     if dim is None:
         return A._vals.sum()
-    dim = dim % 2
+    nd = len(_batch(A)) + 2
+    dim = dim % nd
+    if dim < nd - 2:
+        raise UnsupportedOperation(
+            "torch_polylap: sum over the batch dimension of operators is not supported; add "
+            "them with + (or sum(list(A)))."
+        )
+    dim -= nd - 2
     index = A._row if dim == 1 else A._col
-    out = A._vals.new_zeros(_shape2(A)[1 - dim]).index_add(0, index, A._vals)
-    return out.unsqueeze(dim) if keepdim else out
+    out = A._vals.new_zeros(*_batch(A), _shape2(A)[1 - dim]).index_add(-1, index, A._vals)
+    return out.unsqueeze(dim - 2) if keepdim else out
 
 
 def _copy(A: SparseOperator, src: object, non_blocking: bool = False) -> SparseOperator:
@@ -766,6 +831,26 @@ def _copy(A: SparseOperator, src: object, non_blocking: bool = False) -> SparseO
     with torch.no_grad():
         A._vals.copy_(src._vals, non_blocking=non_blocking)
     return A
+
+
+def _getitem(A: SparseOperator, index: Any) -> SparseOperator:
+    """``A[b]``: operator ``b`` of a batch (an int), or a sub-batch (a slice or index tensor)."""
+    if not _batch(A):
+        raise UnsupportedOperation(
+            "torch_polylap: indexing a sparse operator is not supported; take rows with "
+            "torch_polylap.sparse.submatrix or entries with A.to_dense() on small meshes."
+        )
+    if not isinstance(index, int | slice | torch.Tensor):
+        raise UnsupportedOperation(
+            "torch_polylap: a batch of operators is indexed along the batch only (A[b], A[i:j])."
+        )
+    return A.with_values(A._vals[index])
+
+
+def _unbind(A: SparseOperator, dim: int = 0) -> tuple[SparseOperator, ...]:
+    if not _batch(A) or dim != 0:
+        raise UnsupportedOperation("torch_polylap: only a batch of operators unbinds (dim 0).")
+    return tuple(A.with_values(v) for v in A._vals.unbind(0))
 
 
 def _refuse_grad(A: SparseOperator, requires_grad: bool = True) -> SparseOperator:
@@ -841,6 +926,9 @@ def _build_handlers() -> dict[Callable, Callable]:
     add([T.clone], lambda A, **k: A.with_values(A._vals.clone()))
     add([T.requires_grad_], _refuse_grad)
     add([T.copy_], _copy)
+    add([T.__getitem__], _getitem)
+    add([T.unbind, torch.unbind], _unbind)
+    add([T.__iter__], lambda A: iter(_unbind(A)))
     add([T.to_sparse_csr], _layout_as(torch.sparse_csr))
     add([T.to_sparse_coo, T.to_sparse], _layout_as(torch.sparse_coo))
     add([T.coalesce], lambda A: A)

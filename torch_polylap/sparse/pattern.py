@@ -20,7 +20,7 @@ import torch
 
 from ..tracing import run_eagerly, tracing
 
-__all__ = ["SparsityPattern"]
+__all__ = ["SparsityPattern", "block_diagonal_indices"]
 
 
 def _stable_argsort(key: torch.Tensor) -> torch.Tensor:
@@ -296,3 +296,16 @@ def _register(pattern: SparsityPattern) -> int:
     key = next(_keys)
     _PATTERNS[key] = weakref.ref(pattern, lambda _: _PATTERNS.pop(key, None))
     return key
+
+
+def block_diagonal_indices(
+    crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor, batch: int, n: int, m: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """CSR indices ``(crow, col, row)`` of ``blockdiag(A, ..., A)``: ``batch`` copies of an
+    ``(n, m)`` pattern, as one ``(batch n, batch m)`` pattern (a batch of value arrays on one
+    pattern multiplies as this one operator)."""
+    nnz = col.shape[0]
+    shift = torch.arange(batch, device=col.device)[:, None]
+    tail = crow.new_full((1,), batch * nnz)
+    crow_b = torch.cat(((crow[:-1][None] + shift * nnz).reshape(-1), tail))
+    return crow_b, (col[None] + shift * m).reshape(-1), (row[None] + shift * n).reshape(-1)

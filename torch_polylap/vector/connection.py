@@ -45,7 +45,7 @@ from ..checks import Lam, check_verts
 from ..faces import FacesLike, PolygonFaces
 from ..kernels import check_method
 from ..operators import laplacian
-from ..sparse import SparseOperator, diag, operator_from_parts
+from ..sparse import SparseOperator, diag, operator_from_parts, pattern_of, sparse_values
 from ..topology import Topology, build_topology, get_topology
 from .transport import TangentFrames, corner_transport, tangent_frames
 
@@ -77,7 +77,8 @@ def _block_layout(
     key = ("vector.connection", torch.device(device))
     cached = topo.derived.get(key)
     if cached is None:
-        crow_x, col_x = blocks.crow_indices(), blocks.col_indices()
+        pattern = pattern_of(blocks)
+        crow_x, col_x = pattern.crow, pattern.col
         row_x = torch.repeat_interleave(
             torch.arange(crow_x.numel() - 1, device=device), crow_x.diff()
         )
@@ -186,7 +187,7 @@ def connection_laplacian(
     z = corner_transport(verts, topo.faces, topo, frames)
     if symmetry != 1:
         z = z**symmetry
-    entry = blocks.values() * (z[row_x].conj() * z[col_x])
+    entry = sparse_values(blocks) * (z[row_x].conj() * z[col_x])
     re, im = entry.real, entry.imag
     parts = torch.stack((re, -im, im, re), 1).reshape(-1)
     values = parts.new_zeros(col.numel()).index_add(0, inverse, parts)
