@@ -246,6 +246,27 @@ def _has_control_bytes(data: bytes) -> bool:
     return below != data.count(b"\x1b") or b"\x7f" in data
 
 
+_COMMENT = re.compile(rb"#[^\n]*")
+_LATIN1_SPACES = bytes.maketrans(b"\x85\xa0", b"  ")
+
+
+def plain_text(data: bytes) -> bytes | None:
+    """``data`` as the bulk parsers read it: ``\\n`` line breaks, ``#`` comments removed (line
+    breaks kept, so line numbers stay), and the non-ASCII bytes that ``str.split`` splits at on
+    latin-1 text made spaces.  None when it holds ESC (not whitespace, but below the space, so
+    the bulk tokenizer would split at it): the line parsers read such files."""
+    text = data
+    if b"\r" in text:
+        text = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    if b"#" in text:
+        text = _COMMENT.sub(b"", text)
+    if b"\x1b" in text:
+        return None
+    if b"\x85" in text or b"\xa0" in text:
+        text = text.translate(_LATIN1_SPACES)
+    return text
+
+
 def text_lines(data: bytes) -> list[str]:
     """The lines of a text file, split at LF, CRLF or a lone CR (classic Mac OS)."""
     text = data.decode("latin-1")  # every byte maps to one character: odd bytes cannot fail

@@ -23,9 +23,10 @@ from .common import (
     check_faces,
     check_text,
     numbers,
+    plain_text,
     text_lines,
 )
-from .tokens import chunks
+from .tokens import chunks, runs
 from .writers import face_block, vertex_block
 
 # Records that carry no polygon connectivity, as the skipped-content warning names them.
@@ -46,7 +47,6 @@ _FREE_FORM |= {"scrv", "sp", "end", "con", "mg", "bevel", "c_interp", "d_interp"
 _FREE_FORM |= {"shadow_obj", "trace_obj", "ctech", "stech", "call", "csh", "maplib", "usemap"}
 _EXTRA_VALUES = "vertex colours or weights (values after x y z)"
 _CONTINUATION = re.compile(rb"\\[ \t\x0b\x0c]*(?:\n|$)")
-_COMMENT = re.compile(rb"#[^\n]*")
 
 
 class _Corners:
@@ -87,22 +87,11 @@ def read_obj(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
 
 
 def _plain_text(data: bytes) -> bytes | None:
-    """``data`` with ``\\n`` line breaks, comments blanked and non-ASCII whitespace (which
-    Python's ``str.split`` splits at) made spaces; None for what the bulk parser leaves to the
-    line parser: line continuations and ESC bytes (not whitespace, but below the space)."""
-    text = data
-    if b"\r" in text:
-        text = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
-    if b"#" in text:
-        text = _COMMENT.sub(b"", text)
-    if b"\x1b" in text or (b"\\" in text and _CONTINUATION.search(text)):
+    """:func:`plain_text`, or None for line continuations (left to the line parser)."""
+    text = plain_text(data)
+    if text is None or (b"\\" in text and _CONTINUATION.search(text)):
         return None
-    if b"\x85" in text or b"\xa0" in text:
-        text = text.translate(_LATIN1_SPACES)
     return text
-
-
-_LATIN1_SPACES = bytes.maketrans(b"\x85\xa0", b"  ")
 
 
 def _warn_unterminated(data: bytes, name: str) -> None:
@@ -175,7 +164,7 @@ def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
         coords.append(values)
 
         f_size = count[is_f] - 1
-        corners = _face_tokens(key[is_f], f_size)
+        corners = runs(key[is_f] + 1, f_size)
         stop = chunk.first_slash(corners)
         if (buf[chunk.end[corners] - 1] == 47).any():
             return None  # a corner cut after its '/'
@@ -200,16 +189,6 @@ def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
         skipped.add(what, n, example)
     skipped.attributes_hint |= hint
     return Parsed(verts, index, size)
-
-
-def _face_tokens(first: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """Token indices of the corners of faces whose keyword is token ``first`` and that have
-    ``size`` corners each (one ``reshape`` when all faces have the same degree)."""
-    if len(size) and (size == size[0]).all():
-        return (first[:, None] + np.arange(1, int(size[0]) + 1)).reshape(-1)
-    starts = np.cumsum(size) - size
-    within = np.arange(int(size.sum())) - np.repeat(starts, size)
-    return np.repeat(first + 1, size) + within
 
 
 def _read_obj_lines(data: bytes, name: str, skipped: Skipped, want_attributes: bool) -> Parsed:

@@ -18,7 +18,7 @@ import numpy as np
 from .common import BadNumber, numbers
 from .numparse import PAD, parse_floats, parse_ints, word_view
 
-__all__ = ["CHUNK_BYTES", "Chunk", "chunks"]
+__all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
 
 CHUNK_BYTES = 1 << 21
 _SPACES = b" " * PAD
@@ -179,3 +179,13 @@ def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
         line0 += len(chunk.per_line)
         pos = stop
         yield chunk
+
+
+def runs(first: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """``first[i], first[i] + 1, ..., first[i] + size[i] - 1`` for every i, concatenated (one
+    ``reshape`` when all sizes are equal: all-quad or all-triangle meshes)."""
+    if len(size) and (size == size[0]).all():
+        return (first[:, None] + np.arange(int(size[0]))).reshape(-1)
+    starts = np.cumsum(size) - size
+    within = np.arange(int(size.sum())) - np.repeat(starts, size)
+    return np.repeat(first, size) + within
