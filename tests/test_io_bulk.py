@@ -363,3 +363,54 @@ def test_skipped_warning_is_the_same_through_both_parsers(tmp_path):
     message = str(bulk[0].message)
     assert message == str(lines[0].message)
     assert re.search(r"unknown keyword \(4: 'foo' at line 6, 'bar' at line 9, 'baz' at", message)
+
+
+@st.composite
+def off_texts(draw) -> tuple[bytes, bool]:
+    """Random ASCII OFF text, and whether a face record is wrapped over two lines."""
+    num_verts = draw(st.integers(3, 8))
+    keyword = draw(st.sampled_from(["OFF\n", "COFF\n", "OFF ", "", "NOFF\n\n"]))
+    declared_faces = draw(st.integers(1, 5))
+    lines = [f"{keyword}{num_verts} {declared_faces} 0"]
+    wrapped = False
+    for _ in range(num_verts + draw(st.sampled_from([0] * 8 + [-1]))):
+        values = [repr(draw(doubles)) for _ in range(draw(st.sampled_from([3] * 6 + [2, 4, 7])))]
+        lines.append(" ".join(values) + draw(st.sampled_from(["", "", "  # c"])))
+    for _ in range(declared_faces + draw(st.sampled_from([0] * 8 + [-1, 1]))):
+        k = draw(st.sampled_from([3, 4, 5, 2]))
+        corners = [
+            str(draw(st.integers(0, num_verts - (draw(st.integers(0, 20)) > 0)))) for _ in range(k)
+        ]
+        colour = draw(st.sampled_from(["", "", " 255 0 0", " 1"]))
+        wrap = draw(st.sampled_from([" "] * 8 + ["\n"]))
+        wrapped |= wrap == "\n"
+        lines.append(f"{k}{wrap}" + " ".join(corners) + colour)
+        if draw(st.integers(0, 9)) == 0:
+            lines.append(draw(st.sampled_from(["", "# comment", "   "])))
+    return ("\n".join(lines) + "\n").encode(), wrapped
+
+
+@settings(PROPERTY, max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(off_texts())
+def test_bulk_off_parser_agrees_with_record_parser(case):
+    from torch_polylap.io import off as off_module
+
+    text, wrapped = case
+    from torch_polylap.io.common import plain_text
+
+    bulk = _parse(lambda t, s: off_module._read_off_bulk(plain_text(t), "m.off", s), text)
+
+    def reference(t: bytes, s: Skipped):
+        # the record parser, with the bulk one switched off
+        original = off_module._read_off_bulk
+        off_module._read_off_bulk = lambda *args: None
+        try:
+            return off_module.read_off(t, "m.off", s, False)
+        finally:
+            off_module._read_off_bulk = original
+
+    lines = _parse(reference, text)
+    if bulk is not None:
+        assert lines == bulk
+    elif not wrapped:
+        assert lines[0] == "error"  # it gives up only on broken files and wrapped faces
