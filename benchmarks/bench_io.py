@@ -28,7 +28,8 @@ Times are medians of ``--repeat`` samples (``--grid-repeat`` on the grid) with t
 one thread (a sample lasts at least 50 ms; shorter calls are repeated within it); the
 correctness call is the warm-up. A library's read time includes turning its result into flat
 ``(verts, indices, sizes)`` arrays, what ``read_mesh`` returns (on the grid its bare call is
-timed too, "raw", and plyfile's ``known_list_len`` fast path); its write time includes building
+timed too, "raw", and plyfile's ``known_list_len`` fast path, and read_mesh's peak memory
+with tracemalloc); its write time includes building
 its input from those arrays. A library that fails on a file is not timed on it. Written
 files are read back with ``read_mesh`` and compared with what was written. Ratios are the
 library's time over ours (above 1: the library is slower). Prints Markdown; ``--json`` writes
@@ -47,6 +48,7 @@ import os
 import platform
 import sys
 import tempfile
+import tracemalloc
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -600,6 +602,17 @@ def real_meshes(real_dir: Path) -> dict[str, Path]:
 # ---------------------------------------------------------------- measurements
 
 
+def peak_memory(fn: Callable[[], object]) -> int:
+    """Peak bytes allocated during ``fn()`` (tracemalloc: Python objects and numpy arrays; the
+    file's bytes count, as they are read inside the call)."""
+    tracemalloc.start()
+    try:
+        quietly(fn)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
 def time_call(fn: Callable[[], object], repeat: int) -> float:
     """Median seconds of ``fn`` (its first call, the correctness check, was the warm-up)."""
     return quietly(lambda: median_time(fn, repeat, warmup=False, min_sample_s=0.05))
@@ -621,6 +634,8 @@ def bench_read(
     row["ours"] = {"verdict": "reference"}
     if timing:
         row["ours"]["read_s"] = time_call(lambda: ours_read(path), repeat)
+    if raw:
+        row["ours"]["peak_bytes"] = peak_memory(lambda: ours_read(path))
     for lib in libs:
         if path.suffix.lower() not in lib.reads:
             row["libs"][lib.name] = {"verdict": "n/a"}
@@ -740,6 +755,12 @@ def report(results: dict, libs: list[Library]) -> str:
         rows.append([r["case"], fmt_time(r["ours"]["read_s"]), *cells])
     out += [markdown_table(["file", "ours", *names], rows), ""]
     for r in results["grid_read"]:
+        if "peak_bytes" in r["ours"]:
+            peak = r["ours"]["peak_bytes"]
+            out.append(
+                f"* {r['case']}: read_mesh's peak memory {peak / 2**20:.0f} MiB, "
+                f"{peak / r['bytes']:.1f}x the file's {r['bytes'] / 2**20:.0f} MiB"
+            )
         if "plyfile_known_list_len_s" in r:
             seconds = r["plyfile_known_list_len_s"]
             out.append(

@@ -167,7 +167,7 @@ def check_content(data: bytes, name: str, ext: str) -> None:
     files and a mesh whose extension names another of the three formats.
     """
     fmt = _FORMAT_NAMES[ext]
-    if not data.strip():
+    if not data or data.isspace():
         raise ValueError(f"{name}: the file is empty; the download or export did not finish.")
     for magic, what, todo in _MAGIC:
         if data.startswith(magic) and (magic != b"BZh" or data[3:4].isdigit()):
@@ -229,6 +229,8 @@ def check_text(data: bytes, name: str, fmt: str, first_line: int = 1) -> None:
     """Reject binary bytes in what must be text, naming the first line holding one."""
     # NUL and the C0 controls other than tab, newlines, form feed and vertical tab never occur in
     # text meshes; random bytes hit one with probability ~1/9 per byte.
+    if not _has_control_bytes(data):
+        return
     bad = re.search(rb"[\x00-\x08\x0e-\x1a\x1c-\x1f\x7f]", data)
     if bad is None:
         return
@@ -237,6 +239,38 @@ def check_text(data: bytes, name: str, fmt: str, first_line: int = 1) -> None:
         f"{name}, line {line}: binary data (byte 0x{data[bad.start()]:02x}) in a text {fmt} file: "
         "the file is corrupt, compressed or in another format; re-export or re-download it."
     )
+
+
+def _has_control_bytes(data: bytes) -> bool:
+    """Whether ``data`` holds a byte :func:`check_text` refuses: a quick count with numpy (a
+    regular-expression scan takes seconds on a large file), then the regex only to locate it."""
+    whole = np.frombuffer(data, dtype=np.uint8)
+    below = 0
+    for at in range(0, len(whole), 1 << 22):  # slices: small temporaries, hot in the cache
+        u = whole[at : at + (1 << 22)]
+        below += np.count_nonzero(u < 32) - np.count_nonzero((u - np.uint8(9)) <= 4)
+    return below != data.count(b"\x1b") or b"\x7f" in data
+
+
+_COMMENT = re.compile(rb"#[^\n]*")
+_LATIN1_SPACES = bytes.maketrans(b"\x85\xa0", b"  ")
+
+
+def plain_text(data: bytes) -> bytes | None:
+    """``data`` as the bulk parsers read it: ``\\n`` line breaks, ``#`` comments removed (line
+    breaks kept, so line numbers stay), and the non-ASCII bytes that ``str.split`` splits at on
+    latin-1 text made spaces.  None when it holds ESC (not whitespace, but below the space, so
+    the bulk tokenizer would split at it): the line parsers read such files."""
+    text = data
+    if b"\r" in text:
+        text = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    if b"#" in text:
+        text = _COMMENT.sub(b"", text)
+    if b"\x1b" in text:
+        return None
+    if b"\x85" in text or b"\xa0" in text:
+        text = text.translate(_LATIN1_SPACES)
+    return text
 
 
 def text_lines(data: bytes) -> list[str]:

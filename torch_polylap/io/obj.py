@@ -1,6 +1,18 @@
-"""Wavefront OBJ: ``v``/``f`` records, and on request ``vt``/``vn`` with per-corner references."""
+"""Wavefront OBJ: ``v``/``f`` records, and on request ``vt``/``vn`` with per-corner references.
+
+Two parsers read the same files to the same result.  The bulk one (:func:`_read_obj_bulk`)
+finds tokens and converts numbers with numpy, a chunk of lines at a time; it handles ``v``,
+``vt``, ``vn`` and ``f`` records in bulk and loops in Python only over the other records
+(groups, materials...), which files hold few of.  Whenever it meets something it does not
+handle (line continuations, per-corner attributes on request) or anything wrong with the file,
+it gives up and the line-by-line parser (:func:`_read_obj_lines`) reads the file instead: that
+one is the reference, and the one whose messages name the offending line.
+"""
 
 from __future__ import annotations
+
+import re
+import warnings
 
 import numpy as np
 
@@ -11,8 +23,10 @@ from .common import (
     check_faces,
     check_text,
     numbers,
+    plain_text,
     text_lines,
 )
+from .tokens import chunks, runs
 from .writers import face_block, vertex_block
 
 # Records that carry no polygon connectivity, as the skipped-content warning names them.
@@ -31,6 +45,8 @@ _SKIPPED = {
 _FREE_FORM = {"cstype", "deg", "bmat", "step", "curv", "curv2", "surf", "parm", "trim", "hole"}
 _FREE_FORM |= {"scrv", "sp", "end", "con", "mg", "bevel", "c_interp", "d_interp", "lod"}
 _FREE_FORM |= {"shadow_obj", "trace_obj", "ctech", "stech", "call", "csh", "maplib", "usemap"}
+_EXTRA_VALUES = "vertex colours or weights (values after x y z)"
+_CONTINUATION = re.compile(rb"\\[ \t\x0b\x0c]*(?:\n|$)")
 
 
 class _Corners:
@@ -52,8 +68,131 @@ class _Corners:
 
 
 def read_obj(data: bytes, name: str, skipped: Skipped, want_attributes: bool) -> Parsed:
-    """Parse an OBJ file (any line ending, comments, ``\\`` continuations, negative indices)."""
+    """Parse an OBJ file (any line ending, comments, ``\\`` continuations, negative indices).
+
+    A file whose last line is a ``v`` or ``f`` record without a line break after it may have
+    been cut short in the middle of that record (a truncated download): it is read, with a
+    warning naming the line.  A corner ending in ``/`` (``12/``, what is left of ``12/7`` cut
+    short) is an error.
+    """
     check_text(data, name, "OBJ")
+    text = _plain_text(data)
+    parsed = None
+    if text is not None and not want_attributes:
+        parsed = _read_obj_bulk(text, name, skipped)
+    if parsed is None:
+        parsed = _read_obj_lines(data, name, skipped, want_attributes)
+    _warn_unterminated(data, name)
+    return parsed
+
+
+def _plain_text(data: bytes) -> bytes | None:
+    """:func:`plain_text`, or None for line continuations (left to the line parser)."""
+    text = plain_text(data)
+    if text is None or (b"\\" in text and _CONTINUATION.search(text)):
+        return None
+    return text
+
+
+def _warn_unterminated(data: bytes, name: str) -> None:
+    """Warn when the file ends inside a ``v`` or ``f`` record: without the line break that
+    ends every other line, its last number or corner may be missing."""
+    tail = data[-4096:]
+    cut = max(tail.rfind(b"\n"), tail.rfind(b"\r"))
+    last = tail[cut + 1 :]
+    if b"#" in last:  # the record ended where its comment began
+        return
+    keyword = last.split()[:1]
+    if keyword not in ([b"v"], [b"f"]):
+        return
+    what = "face" if keyword == [b"f"] else "vertex"
+    line = data.count(b"\n") + data.count(b"\r") - data.count(b"\r\n") + 1
+    warnings.warn(
+        f"{name}, line {line}: the file ends inside a {what} record (no line break after it); "
+        f"if the file was cut short, that {what} may have lost corners or digits. Check the "
+        "file is complete (re-download or re-export it).",
+        UserWarning,
+        stacklevel=4,
+    )
+
+
+def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
+    """Parse OBJ text prepared by :func:`_plain_text` in bulk; None when the file needs the
+    line parser (for anything unusual, and for every error, whose message that one words)."""
+    coords: list[np.ndarray] = []
+    indices: list[np.ndarray] = []
+    sizes: list[np.ndarray] = []
+    found: list[tuple[int, str, int, str | None]] = []  # (line, what, count, example)
+    hint = False
+    num_verts = 0
+    for chunk in chunks(text):
+        buf, per_line = chunk.buf, chunk.per_line
+        lines = np.flatnonzero(per_line)
+        key = chunk.first_token[lines]
+        count = per_line[lines]
+        at = chunk.start[key]
+        length = chunk.end[key] - at
+        c0, c1 = buf[at], buf[at + 1]
+        is_v = (length == 1) & (c0 == 118)
+        is_f = (length == 1) & (c0 == 102)
+        is_vt = (length == 2) & (c0 == 118) & (c1 == 116)
+        is_vn = (length == 2) & (c0 == 118) & (c1 == 110)
+        line_no = chunk.line0 + lines + 1
+
+        def note(mask: np.ndarray, what: str, line_no: np.ndarray = line_no) -> None:
+            if mask.any():
+                found.append((int(line_no[np.argmax(mask)]), what, int(mask.sum()), None))
+
+        note(is_vt, _SKIPPED["vt"])
+        note(is_vn, _SKIPPED["vn"])
+        hint |= bool(is_vt.any() or is_vn.any())
+        for i in np.flatnonzero(~(is_v | is_f | is_vt | is_vn)).tolist():
+            parts = chunk.line_text(int(key[i]), int(count[i])).split()
+            record = _skipped_what(parts[0], parts, int(line_no[i]))
+            if record is not None:
+                found.append((int(line_no[i]), *record))
+
+        v_count = count[is_v]
+        if (v_count < 4).any():
+            return None
+        note(v_count > 4, _EXTRA_VALUES, line_no[is_v])
+        first = key[is_v]
+        try:
+            values = chunk.floats((first[:, None] + np.arange(1, 4)).reshape(-1))
+        except BadNumber:
+            return None
+        coords.append(values)
+
+        f_size = count[is_f] - 1
+        corners = runs(key[is_f] + 1, f_size)
+        stop = chunk.first_slash(corners)
+        if (buf[chunk.end[corners] - 1] == 47).any():
+            return None  # a corner cut after its '/'
+        try:
+            written = chunk.ints(corners, stop)
+        except BadNumber:
+            return None
+        if (written == 0).any():
+            return None
+        before = num_verts + np.cumsum(is_v)[is_f]  # vertices read before each face
+        relative = np.repeat(before, f_size) + written
+        indices.append(np.where(written > 0, written - 1, relative))
+        sizes.append(f_size)
+        num_verts += len(first)
+
+    verts = np.concatenate(coords).reshape(-1, 3) if coords else np.zeros((0, 3))
+    index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
+    size = np.concatenate(sizes) if sizes else np.zeros(0, dtype=np.int64)
+    if (size.size and size.min() < 3) or ((index < 0) | (index >= len(verts))).any():
+        return None
+    for _, what, n, example in sorted(found, key=lambda item: item[0]):
+        skipped.add(what, n, example)
+    skipped.attributes_hint |= hint
+    return Parsed(verts, index, size)
+
+
+def _read_obj_lines(data: bytes, name: str, skipped: Skipped, want_attributes: bool) -> Parsed:
+    """The line-by-line reference parser (every feature, and the messages of every error)."""
     coords: list[str] = []
     vert_lines: list[int] = []
     corners: list[str] = []
@@ -94,6 +233,13 @@ def read_obj(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
                 skipped.add("vertex colours or weights (values after x y z)")
         elif key == "f":
             toks = parts[1:]
+            cut = next((t for t in toks if t.endswith("/")), None)
+            if cut is not None:
+                raise ValueError(
+                    f"{name}, line {start}: face corner {cut!r} ends in '/', what is left of "
+                    "'v/vt' or 'v/vt/vn' cut short (a truncated or corrupt file); re-export or "
+                    "re-download it."
+                )
             if refs is not None:
                 refs.add_face(toks, len(uv) // 2, len(normals) // 3)
             if "/" in line:
@@ -152,17 +298,23 @@ def read_obj(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
 
 def _skip_record(key: str, parts: list[str], skipped: Skipped, line: int) -> None:
     """Count a record the reader does not return (a nameless group or ``s off`` loses nothing)."""
-    if key in ("g", "o") and (len(parts) == 1 or parts[1:] == ["default"]):
-        return
-    if key == "s" and parts[1:] in (["off"], ["0"]):
-        return
-    if key in _SKIPPED:
-        skipped.add(_SKIPPED[key])
+    what = _skipped_what(key, parts, line)
+    if what is not None:
+        skipped.add(*what)
         skipped.attributes_hint |= key in ("vt", "vn")
-    elif key in _FREE_FORM:
-        skipped.add("free-form curves and surfaces")
-    else:
-        skipped.add("records with an unknown keyword", example=f"{key[:20]!r} at line {line}")
+
+
+def _skipped_what(key: str, parts: list[str], line: int) -> tuple[str, int, str | None] | None:
+    """What :meth:`Skipped.add` gets for a record that is not returned, or None."""
+    if key in ("g", "o") and (len(parts) == 1 or parts[1:] == ["default"]):
+        return None
+    if key == "s" and parts[1:] in (["off"], ["0"]):
+        return None
+    if key in _SKIPPED:
+        return _SKIPPED[key], 1, None
+    if key in _FREE_FORM:
+        return "free-form curves and surfaces", 1, None
+    return "records with an unknown keyword", 1, f"{key[:20]!r} at line {line}"
 
 
 def _attribute_values(parts: list[str], width: int, out: list[str], name: str, line: int) -> None:

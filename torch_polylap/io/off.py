@@ -1,4 +1,10 @@
-"""Object File Format: ASCII ``OFF``/``COFF``/``NOFF``/``CNOFF``/``STOFF`` and ``OFF BINARY``."""
+"""Object File Format: ASCII ``OFF``/``COFF``/``NOFF``/``CNOFF``/``STOFF`` and ``OFF BINARY``.
+
+ASCII files are read in bulk (:func:`_read_off_bulk`: numpy tokens and numbers, a chunk of lines
+at a time) when every face record sits on one line; a face wrapped over several lines, and every
+malformed file, is read by the record-by-record parser, the reference whose messages name the
+offending line.
+"""
 
 from __future__ import annotations
 
@@ -18,8 +24,10 @@ from .common import (
     check_text,
     content_lines,
     numbers,
+    plain_text,
     text_lines,
 )
+from .tokens import chunks, runs
 
 _OFF_KEYWORD = re.compile(r"(?:ST|C|N)*OFF")
 _FIRST_LINE = re.compile(rb"([^\r\n]*)(\r\n|\r|\n|$)")
@@ -45,6 +53,11 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
         return _read_off_binary(data[first.end() :], toks[0], name, skipped)
 
     check_text(data, name, "OFF")
+    text = plain_text(data)
+    if text is not None:
+        parsed = _read_off_bulk(text, name, skipped)
+        if parsed is not None:
+            return parsed
     content = content_lines(text_lines(data), 0)
     head = next(content, None)
     if head is None:
@@ -82,6 +95,86 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     indices, sizes, face_lines = _ascii_faces(content, num_faces, name, skipped)
     check_faces(name, indices, sizes, num_verts, lambda f: f"line {face_lines[f]}")
     return Parsed(verts, indices, sizes)
+
+
+def _header(text: bytes) -> tuple[str, int, int, int] | None:
+    """``(keyword, vertices, faces, byte offset of the body)`` of prepared ASCII OFF text, or
+    None when the header is anything but well formed (the reference parser says what)."""
+    pos, toks = 0, list[str]()
+    while not toks:
+        if pos >= len(text):
+            return None
+        end = text.find(b"\n", pos)
+        end = len(text) if end < 0 else end + 1
+        toks, pos = text[pos:end].decode("latin-1").split(), end
+    keyword = toks[0]
+    if _OFF_KEYWORD.fullmatch(keyword):
+        toks = toks[1:]
+        while not toks:
+            if pos >= len(text):
+                return None
+            end = text.find(b"\n", pos)
+            end = len(text) if end < 0 else end + 1
+            toks, pos = text[pos:end].decode("latin-1").split(), end
+    elif keyword.endswith("OFF"):
+        return None
+    else:
+        keyword = ""
+    try:
+        num_verts, num_faces = int(toks[0]), int(toks[1])
+    except (ValueError, IndexError):
+        return None
+    if not 0 <= num_verts <= len(text) or not 0 <= num_faces <= len(text):
+        return None
+    return keyword, num_verts, num_faces, pos
+
+
+def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
+    """ASCII OFF in bulk when each face is one line (``k i1 .. ik [colour]``); None for what
+    the record parser must read (wrapped faces, and every error)."""
+    header = _header(text)
+    if header is None:
+        return None
+    keyword, num_verts, num_faces, body = header
+    coords: list[np.ndarray] = []
+    indices: list[np.ndarray] = []
+    sizes: list[np.ndarray] = []
+    extra = coloured = 0
+    seen = 0  # content lines before the chunk
+    for chunk in chunks(text, body):
+        lines = np.flatnonzero(chunk.per_line)
+        first = chunk.first_token[lines]
+        count = chunk.per_line[lines]
+        rank = seen + np.arange(len(lines))
+        seen += len(lines)
+        vert = rank < num_verts
+        if (count[vert] < 3).any():
+            return None
+        extra += int((count[vert] > 3).sum())
+        try:
+            coords.append(chunk.floats((first[vert][:, None] + np.arange(3)).reshape(-1)))
+            face_first, face_count = first[~vert], count[~vert]
+            k = chunk.ints(face_first)
+        except BadNumber:
+            return None
+        if (k < 3).any() or (face_count < k + 1).any():
+            return None  # a face wrapped over lines, or broken
+        coloured += int((face_count > k + 1).sum())
+        try:
+            indices.append(chunk.ints(runs(face_first + 1, k)))
+        except BadNumber:
+            return None
+        sizes.append(k)
+    if seen != num_verts + num_faces:
+        return None
+    verts = np.concatenate(coords).reshape(-1, 3) if coords else np.zeros((0, 3))
+    index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
+    size = np.concatenate(sizes) if sizes else np.zeros(0, dtype=np.int64)
+    if ((index < 0) | (index >= num_verts)).any():
+        return None
+    skipped.add(_vertex_extras(keyword), extra)
+    skipped.add("face colours", coloured)
+    return Parsed(verts, index, size)
 
 
 def _ascii_vertices(

@@ -83,17 +83,25 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     if want_attributes:
         wanted["vertex"] |= set(normals) | set(uv)
     _name_skipped(elements, wanted, skipped, bool(normals or uv) and not want_attributes)
+    record_line: dict[str, Callable[[int], int]] = {}
     if fmt == "ascii":
         check_text(data[body:], name, "ASCII PLY", header_lines + 1)
-        columns = _read_ply_ascii(data, body, header_lines, elements, wanted, name)
+        columns = _read_ply_ascii(data, body, header_lines, elements, wanted, name, record_line)
     else:
         columns = _read_ply_binary(data, body, _PLY_FORMATS[fmt], elements, wanted, name)
+
+    def where(f: int) -> str:
+        line = record_line.get("face")
+        return (f"line {line(f)}: " if line else "") + f"element 'face' record {f}"
+
     vcols = columns["vertex"]
     verts = np.stack([_scalar(vcols[a]).astype(np.float64) for a in "xyz"], axis=1)
     values, counts = _list(columns["face"][face_list.name])
-    indices = values.astype(np.int64)
     sizes = counts.astype(np.int64)
-    check_faces(name, indices, sizes, len(verts), lambda f: f"element 'face' record {f}")
+    if face_list.dtype[0] == "f":
+        _check_whole(name, values, sizes, face_list.name, where)
+    indices = values.astype(np.int64)
+    check_faces(name, indices, sizes, len(verts), where)
     parsed = Parsed(verts, indices, sizes)
     for key, names in (("normals", normals), ("uv", uv)):
         if want_attributes and names:
@@ -102,6 +110,21 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
             )
             parsed.attributes["corner_" + key] = indices.copy()
     return parsed
+
+
+def _check_whole(
+    name: str, values: np.ndarray, sizes: np.ndarray, prop: str, where: Callable[[int], str]
+) -> None:
+    """Refuse a float-typed index list holding anything but whole numbers (``2.0`` is vertex
+    2; ``2.9`` is no vertex: truncating it would silently pick another face)."""
+    bad = ~(values == np.trunc(values)) | (np.abs(values) >= 2.0**62)
+    if bad.any():
+        corner = int(np.flatnonzero(bad)[0])
+        f = int(np.searchsorted(np.cumsum(sizes), corner, side="right"))
+        raise ValueError(
+            f"{name}, {where(f)}: face {f} lists {float(values[corner])!r} in {prop!r}, which is "
+            "no vertex index (a whole number): the file is corrupt or not a mesh; re-export it."
+        )
 
 
 def _vertex_attributes(vertex: _PlyElement) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -326,6 +349,7 @@ def _binary_list_element(
     plan = list(zip(readers, steps, seg_starts, strict=False))
     last = seg_starts[-1]
     p = pos
+    size = len(data)
     try:
         for record in range(el.count):
             for read, (before, count_size, item_size), starts in plan:
@@ -338,6 +362,8 @@ def _binary_list_element(
                         f"negative length {k}."
                     )
                 p += count_size + k * item_size
+                if p > size:
+                    _list_too_long(name, el, record, k, size - (p - k * item_size))
             last.append(p)
             p += tail
     except (IndexError, struct.error):
@@ -366,6 +392,16 @@ def _binary_list_element(
     return cols, p
 
 
+def _list_too_long(name: str, el: _PlyElement, record: int, count: int, left: int) -> None:
+    """Refuse a list length the rest of the file cannot hold, naming it (a corrupt count, or
+    the truncated last record)."""
+    raise ValueError(
+        f"{name}: PLY element {el.name!r} record {record} declares a list of {count} values, "
+        f"but only {max(left, 0)} bytes are left in the file (truncated file, or a corrupt "
+        "count); re-export or re-download it."
+    )
+
+
 def _count_reader(data: bytes, fmt: str) -> Callable[[int], int]:
     """Reads the list length (struct format ``fmt``) stored at a byte offset of ``data``."""
     unpack = struct.Struct(fmt).unpack_from
@@ -388,8 +424,8 @@ def _binary_uniform_lists(
         if p + count_dt.itemsize > len(data):
             return None
         k = int(np.frombuffer(data, count_dt, 1, p)[0])
-        if k < 0:
-            return None
+        if k < 0 or p + count_dt.itemsize + k * np.dtype(prop.dtype).itemsize > len(data):
+            return None  # the record-by-record walk says what is wrong
         lengths[i] = k
         fields.append((f"c{i}", count_dt))
         fields.append((f"p{i}", order + prop.dtype, (k,)))
@@ -432,7 +468,9 @@ def _read_ply_ascii(
     elements: list[_PlyElement],
     wanted: dict[str, set[str]],
     name: str,
+    record_line: dict[str, Callable[[int], int]],
 ) -> _Columns:
+    """Columns of the wanted elements; ``record_line`` gets each one's record -> line number."""
     lines = text_lines(data[pos:])
     # Records are found by line index; tokens are split from the line when needed, so no
     # per-record lists stay alive (millions of them make the cyclic GC rescan quadratically).
@@ -452,6 +490,7 @@ def _read_ply_ascii(
         if el.name in wanted:
             table = _AsciiRows(lines, rows, header_lines + 1)
             out[el.name] = _ascii_element(table, el, wanted[el.name], name)
+            record_line[el.name] = table.line_no
     return out
 
 

@@ -22,6 +22,11 @@ def face_block(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: in
     if len(sizes) == 0:
         return ""
     text = values.dtype == object
+    if (sizes == sizes[0]).all():  # one degree: one % over everything, no re-ordering
+        k = int(sizes[0])
+        line = (prefix or str(k)) + (" %s" if text else " %d") * k + "\n"
+        flat = values if text else values + base
+        return (line * len(sizes)) % tuple(flat.tolist())
     starts = np.cumsum(sizes) - sizes
     lines = np.empty(len(sizes), dtype=object)
     for k in np.unique(sizes).tolist():

@@ -1,0 +1,416 @@
+"""The bulk (numpy) text parsing behind read_mesh, against independent references.
+
+* Number conversion against Python's ``float``/``int`` (CPython's correctly rounded dtoa):
+  random doubles written with ``repr`` and ``%.17g``, random decimal strings, exact binary
+  midpoints (ties), and the edges of the double range; bit for bit.
+* The bulk OBJ parser against the line-by-line reference parser on random OBJ text: whenever
+  the bulk one answers, the same vertices, faces and skipped-content warning.
+* Peak memory of a read, and the reader bugs: truncated corners, files cut inside a record,
+  float PLY index lists, impossible PLY list lengths.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+import tracemalloc
+import warnings
+from fractions import Fraction
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from torch_polylap.io import SkippedContentWarning, read_mesh, write_mesh
+from torch_polylap.io import obj as obj_module
+from torch_polylap.io.common import Skipped
+from torch_polylap.io.numparse import PAD, parse_floats, parse_ints, word_view
+
+PROPERTY = settings(max_examples=150, deadline=None, database=None)
+
+
+def _buffer(tokens: list[bytes]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    text = b" " * PAD + b" ".join(tokens) + b" " * PAD
+    lengths = np.array([len(t) for t in tokens], dtype=np.int64)
+    start = PAD + np.cumsum(lengths + 1) - (lengths + 1)
+    return np.frombuffer(text, dtype=np.uint8), start, start + lengths
+
+
+def bulk_floats(tokens: list[bytes]) -> tuple[list[float], list[bool]]:
+    """parse_floats on ``tokens`` (the dot / exponent positions found here by ``bytes.find``,
+    as the tokenizer finds them), as (values, slow)."""
+    buf, start, end = _buffer(tokens)
+    dot = np.array([t.find(b".") for t in tokens], dtype=np.int64)
+    exp = np.array([max(t.find(b"e"), t.find(b"E")) for t in tokens], dtype=np.int64)
+    dot = np.where(dot >= 0, start + dot, -1)
+    exp = np.where(exp >= 0, start + exp, -1)
+    values, slow = parse_floats(buf, word_view(buf), start, end, dot, exp)
+    return values.tolist(), slow.tolist()
+
+
+def same_bits(a: float, b: float) -> bool:
+    return struct.pack("<d", a) == struct.pack("<d", b)
+
+
+def check_floats(tokens: list[bytes]) -> int:
+    """Every token converted in bulk equals float(token) bit for bit; returns how many were."""
+    values, slow = bulk_floats(tokens)
+    for token, value, left in zip(tokens, values, slow, strict=True):
+        if not left:
+            assert same_bits(value, float(token)), (token, value, float(token))
+    return len(tokens) - sum(slow)
+
+
+doubles = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+@PROPERTY
+@given(st.lists(doubles, min_size=1, max_size=200))
+def test_written_doubles_convert_exactly(xs):
+    check_floats([repr(x).encode() for x in xs] + [b"%.17g" % x for x in xs])
+
+
+def test_most_written_doubles_take_the_bulk_path():
+    """Only products within the error bound of a rounding boundary (and exact powers of two
+    written in full) are left to Python: well under 2% of random doubles."""
+    rng = np.random.default_rng(0)
+    xs = np.concatenate([rng.normal(size=20000), np.exp(rng.uniform(-600, 600, 20000))])
+    tokens = [repr(x).encode() for x in xs.tolist()] + [b"%.17g" % x for x in xs.tolist()]
+    assert check_floats(tokens) >= 0.98 * len(tokens)
+
+
+@st.composite
+def decimal_strings(draw) -> bytes:
+    digits = draw(st.text("0123456789", min_size=1, max_size=24))
+    point = draw(st.integers(-1, len(digits)))
+    text = digits if point < 0 else digits[:point] + "." + digits[point:]
+    if draw(st.booleans()):
+        text += draw(st.sampled_from("eE")) + draw(st.sampled_from(["", "+", "-"]))
+        text += str(draw(st.integers(0, 400)))
+    return (draw(st.sampled_from(["", "-", "+"])) + text).encode()
+
+
+@PROPERTY
+@given(st.lists(decimal_strings(), min_size=1, max_size=200))
+def test_random_decimals_convert_exactly(tokens):
+    check_floats(tokens)
+
+
+def _exact_decimal(value: Fraction) -> bytes:
+    """The finite decimal expansion of a dyadic rational."""
+    num, den = value.numerator, value.denominator
+    places = den.bit_length() - 1  # den is a power of two: 2**p needs p decimal places
+    scaled = num * 5**places
+    sign = "-" if scaled < 0 else ""
+    digits = str(abs(scaled)).rjust(places + 1, "0")
+    return f"{sign}{digits[: len(digits) - places]}.{digits[len(digits) - places :]}".encode()
+
+
+@PROPERTY
+@given(st.integers(2**52, 2**53 - 1), st.integers(-80, 80), st.sampled_from([-1, 0, 1]))
+def test_midpoints_between_doubles_round_to_even(m, e, nudge):
+    """The decimal of an exact midpoint between two doubles, and its neighbours in the last
+    written digit: ties must go to the even significand."""
+    midpoint = (Fraction(2 * m + 1) * Fraction(2) ** e) / 2
+    token = _exact_decimal(midpoint + nudge * Fraction(1, 10**40))
+    check_floats([token, token[:19], token[:25]])
+
+
+def test_edge_cases_convert_exactly():
+    tokens = [
+        b"0", b"-0", b"-0.0", b"0e5", b"1", b"1.", b".5", b"-.5", b"+.5e1", b"1e5", b"1E+05",
+        b"1e-5", b"9007199254740993", b"9007199254740992", b"9007199254740994",
+        b"2.2250738585072011e-308", b"2.2250738585072014e-308", b"4.9e-324", b"1e-320",
+        b"1.7976931348623157e308", b"1.7976931348623158e308", b"1e309", b"1e400", b"1e-400",
+        b"0.0030000000000000001", b"0.00034997964196241757", b"123456789012345678.9",
+        b"00000000000000000000001.5", b"0.1", b"0.2", b"0.3", b"3.14159265358979323846",
+    ]  # fmt: skip
+    check_floats(tokens)
+
+
+def test_non_numbers_are_left_to_python():
+    tokens = [b"nan", b"inf", b"-Infinity", b"1_0", b"1e", b"-", b".", b"e5", b"1.5d3", b"0x1"]
+    _, slow = bulk_floats(tokens)
+    assert all(slow)
+
+
+@PROPERTY
+@given(st.lists(st.integers(-(10**16) + 1, 10**16 - 1), min_size=1, max_size=200))
+def test_integers_convert_exactly(ints):
+    tokens = [str(i).encode() for i in ints] + [b"+%d" % abs(i) for i in ints]
+    buf, start, end = _buffer(tokens)
+    values, slow = parse_ints(buf, word_view(buf), start, end)
+    assert not slow.any()
+    assert values.tolist() == [int(t) for t in tokens]
+    odd = [b"1.0", b"-", b"", b"1_0", b"12345678901234567", b"1/2", b"x"]
+    buf, start, end = _buffer(odd)
+    assert parse_ints(buf, word_view(buf), start, end)[1].all()
+
+
+# --------------------------------------------------------------------------------------------
+# the bulk OBJ parser against the line parser
+# --------------------------------------------------------------------------------------------
+
+
+def _obj_line(draw, num_verts: int) -> str:
+    kinds = ["v", "v", "f", "f", "f", "vt", "vn", "g", "s", "o", "#"]
+    kind = draw(st.sampled_from(kinds * 4 + ["bad"]))
+    pad = draw(st.sampled_from(["", "", " ", "\t"]))
+    if kind == "v":
+        n = draw(st.sampled_from([3] * 10 + [4, 2]))
+        values = [draw(st.sampled_from([repr, "{:.17g}".format]))(draw(doubles)) for _ in range(n)]
+        return pad + "v " + " ".join(values)
+    if kind == "f":
+        in_range = st.one_of(st.integers(1, num_verts), st.integers(-num_verts, -1))
+        index = st.one_of(*[in_range] * 15, st.integers(-num_verts - 2, num_verts + 2))
+        suffix = st.sampled_from(["", "/1", "//2", "/1/2"] * 10 + ["/"])
+        corners = [str(draw(index)) + draw(suffix) for _ in range(draw(st.integers(3, 6)))]
+        return pad + "f " + " ".join(corners)
+    if kind in ("vt", "vn"):
+        return f"{kind} 0.5 0.25 1"
+    if kind == "#":
+        return "# a comment f 1 2 3"
+    if kind == "bad":
+        return draw(st.sampled_from(["v 1 x 2", "f 1 2.5 3", "foo", "vp 1", "l 1 2", "f", "f 1 2"]))
+    return kind + draw(st.sampled_from(["", " off", " name", " default", " 0"]))
+
+
+@st.composite
+def obj_texts(draw) -> bytes:
+    lines = [f"v {i} 0 {-i}" for i in range(8)]
+    lines += [_obj_line(draw, 8) for _ in range(draw(st.integers(1, 12)))]
+    newline = draw(st.sampled_from(["\n", "\r\n", "\r"]))
+    text = newline.join(lines) + draw(st.sampled_from([newline, ""]))
+    return text.encode()
+
+
+def _parse(parser, text: bytes):
+    skipped = Skipped()
+    try:
+        parsed = parser(text, skipped)
+    except ValueError as e:
+        return "error", str(e)
+    if parsed is None:
+        return None
+    return (
+        parsed.verts.view(np.int64).tolist(),
+        parsed.indices.tolist(),
+        parsed.sizes.tolist(),
+        skipped.counts,
+        skipped.examples,
+        skipped.attributes_hint,
+    )
+
+
+@settings(PROPERTY, max_examples=400, suppress_health_check=[HealthCheck.too_slow])
+@given(obj_texts())
+def test_bulk_obj_parser_agrees_with_line_parser(text):
+    plain = obj_module._plain_text(text)
+    assert plain is not None
+    bulk = _parse(lambda t, s: obj_module._read_obj_bulk(plain, "m.obj", s), text)
+    lines = _parse(lambda t, s: obj_module._read_obj_lines(t, "m.obj", s, False), text)
+    if bulk is None:  # it gives up on broken files only (these have no \\ continuations)
+        assert lines[0] == "error"
+    else:
+        assert lines == bulk
+
+
+def test_bulk_parser_handles_real_files_it_is_given(tmp_path):
+    """The common cases do take the bulk path: mixed degrees, CRLF, comments, negative and
+    v/vt/vn indices, vt/vn/g/usemtl records."""
+    text = (
+        b"# head\r\nmtllib a.mtl\r\nv 0 0 0\r\nv 1 0 0 # c\r\nv 1 1 0\r\nv 0 1 0 0.5\r\n"
+        b"vt 0 0\r\nvn 0 0 1\r\ng grp\r\nusemtl m\r\nf 1/1/1 2/1/1 3/1/1 4/1/1\r\n"
+        b"f -4 -3 -1\r\nf 1//1 2//1 3//1\r\n"
+    )
+    plain = obj_module._plain_text(text)
+    assert plain is not None
+    got = _parse(lambda t, s: obj_module._read_obj_bulk(plain, "m.obj", s), text)
+    assert got is not None
+    assert got == _parse(lambda t, s: obj_module._read_obj_lines(t, "m.obj", s, False), text)
+    assert got[1:3] == ([0, 1, 2, 3, 0, 1, 3, 0, 1, 2], [4, 3, 3])
+
+
+# --------------------------------------------------------------------------------------------
+# memory
+# --------------------------------------------------------------------------------------------
+
+
+def _grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    s = np.linspace(0.0, 1.0, n + 1)
+    xs, ys = np.meshgrid(s, s, indexing="ij")
+    verts = np.stack([xs.ravel(), ys.ravel(), 0.05 * np.sin(7 * xs).ravel()], 1)
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1)
+    return verts, quads.reshape(-1, 4)
+
+
+@pytest.mark.parametrize("name", ["grid.obj"])
+def test_peak_memory_of_a_read_is_a_few_times_the_file(tmp_path, name):
+    """A ~20 MB file: the read's peak (the file's bytes included; numpy arrays are
+    traced by tracemalloc) stays under 6x its size; the line parser peaked at 17-38x."""
+    verts, quads = _grid(450)
+    path = tmp_path / name
+    write_mesh(path, verts, quads)
+    size = path.stat().st_size
+    assert size > 15e6
+    tracemalloc.start()
+    try:
+        got, faces = read_mesh(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert np.array_equal(got.numpy(), verts) and faces.num_faces == len(quads)
+    assert peak <= 6 * size, f"peak {peak / size:.1f}x the file size"
+
+
+# --------------------------------------------------------------------------------------------
+# reader bugs: nothing silent
+# --------------------------------------------------------------------------------------------
+
+TRIANGLE_V = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
+
+
+@pytest.mark.parametrize("corner", ["3/", "3//", "3/1/"])
+def test_obj_corner_cut_after_slash_is_an_error(tmp_path, corner):
+    path = tmp_path / "cut.obj"
+    path.write_bytes(f"{TRIANGLE_V}f 1 2 4\nf 1 2 {corner}\n".encode())
+    with pytest.raises(ValueError, match=rf"cut\.obj, line 6: face corner '{corner}' ends in '/'"):
+        read_mesh(path)
+
+
+@pytest.mark.parametrize("last", ["f 1 2 3", "v 0.5 0.5 0.5"])
+def test_obj_ending_inside_a_record_warns(tmp_path, last):
+    path = tmp_path / "cut.obj"
+    body = TRIANGLE_V + "f 1 2 4\n" + last
+    path.write_bytes(body.encode())
+    what = "face" if last.startswith("f") else "vertex"
+    with pytest.warns(UserWarning, match=rf"cut\.obj, line 6: the file ends inside a {what}"):
+        read_mesh(path)
+    path.write_bytes((body + "\n").encode())  # with its line break: complete, no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_mesh(path)
+
+
+PLY_HEAD = (
+    "ply\nformat {fmt} 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+    "property float z\nelement face 1\nproperty list {count} {item} vertex_indices\nend_header\n"
+)
+PLY_VERTS = [0, 0, 0, 1, 0, 0, 0, 1, 0, 1, 1, 0]
+
+
+def _ply(fmt: str, face: list[float], item: str = "float", count: str = "uchar", k=None) -> bytes:
+    head = PLY_HEAD.format(fmt=fmt, count=count, item=item).encode()
+    k = len(face) if k is None else k
+    if fmt == "ascii":
+        rows = ["0 0 0", "1 0 0", "0 1 0", "1 1 0", " ".join(map(str, [k, *face]))]
+        return head + ("\n".join(rows) + "\n").encode()
+    codes = {"float": "f", "double": "d", "int": "i", "uchar": "B", "uint": "I"}
+    body = struct.pack("<12f", *PLY_VERTS)
+    body += struct.pack(f"<{codes[count]}{len(face)}{codes[item]}", k, *face)
+    return head + body
+
+
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+@pytest.mark.parametrize("item", ["float", "double"])
+def test_ply_float_index_lists_must_hold_whole_numbers(tmp_path, fmt, item):
+    path = tmp_path / "f.ply"
+    path.write_bytes(_ply(fmt, [0.7, 1.7, 2.9], item))
+    line = r"line 14: " if fmt == "ascii" else ""
+    with pytest.raises(
+        ValueError,
+        match=rf"f\.ply, {line}element 'face' record 0: face 0 lists 0\.(7|69)\d* in "
+        r"'vertex_indices', which is no vertex index",
+    ):
+        read_mesh(path)
+    path.write_bytes(_ply(fmt, [0.0, 1.0, 3.0], item))  # whole numbers: read as indices
+    assert read_mesh(path)[1].tolist() == [[0, 1, 3]]
+
+
+@pytest.mark.parametrize("count", [2**30, 2**31 + 5, 2**32 - 1])
+def test_ply_list_longer_than_the_file_names_its_length(tmp_path, count):
+    path = tmp_path / "long.ply"
+    path.write_bytes(_ply("binary_little_endian", [0, 1, 2], "int", "uint", k=count))
+    with pytest.raises(
+        ValueError,
+        match=rf"long\.ply: PLY element 'face' record 0 declares a list of {count} values, but "
+        r"only 12 bytes are left",
+    ):
+        read_mesh(path)
+
+
+def test_ply_truncated_mixed_faces_names_the_record(tmp_path):
+    verts, quads = _grid(3)
+    faces = [list(quads[0]), [0, 1, 5], *map(list, quads[1:])]
+    path = tmp_path / "m.ply"
+    write_mesh(path, verts, faces, binary=True)
+    path.write_bytes(path.read_bytes()[:-3])
+    with pytest.raises(ValueError, match=r"element 'face' record 9 .*truncated file"):
+        read_mesh(path)
+
+
+def test_skipped_warning_is_the_same_through_both_parsers(tmp_path):
+    text = "o x\nv 0 0 0 1\nv 1 0 0\nv 0 1 0\nvt 0 0\nfoo 1\ng a\nf 1 2 3\nbar\nbaz\nqux\n"
+    path = tmp_path / "w.obj"
+    path.write_bytes(text.encode())
+    with pytest.warns(SkippedContentWarning) as bulk:
+        read_mesh(path)
+    path.write_bytes(text.replace("g a", "g a\x1b").encode())  # ESC: the line parser reads it
+    with pytest.warns(SkippedContentWarning) as lines:
+        read_mesh(path)
+    message = str(bulk[0].message)
+    assert message == str(lines[0].message)
+    assert re.search(r"unknown keyword \(4: 'foo' at line 6, 'bar' at line 9, 'baz' at", message)
+
+
+@st.composite
+def off_texts(draw) -> tuple[bytes, bool]:
+    """Random ASCII OFF text, and whether a face record is wrapped over two lines."""
+    num_verts = draw(st.integers(3, 8))
+    keyword = draw(st.sampled_from(["OFF\n", "COFF\n", "OFF ", "", "NOFF\n\n"]))
+    declared_faces = draw(st.integers(1, 5))
+    lines = [f"{keyword}{num_verts} {declared_faces} 0"]
+    wrapped = False
+    for _ in range(num_verts + draw(st.sampled_from([0] * 8 + [-1]))):
+        values = [repr(draw(doubles)) for _ in range(draw(st.sampled_from([3] * 6 + [2, 4, 7])))]
+        lines.append(" ".join(values) + draw(st.sampled_from(["", "", "  # c"])))
+    for _ in range(declared_faces + draw(st.sampled_from([0] * 8 + [-1, 1]))):
+        k = draw(st.sampled_from([3, 4, 5, 2]))
+        corners = [
+            str(draw(st.integers(0, num_verts - (draw(st.integers(0, 20)) > 0)))) for _ in range(k)
+        ]
+        colour = draw(st.sampled_from(["", "", " 255 0 0", " 1"]))
+        wrap = draw(st.sampled_from([" "] * 8 + ["\n"]))
+        wrapped |= wrap == "\n"
+        lines.append(f"{k}{wrap}" + " ".join(corners) + colour)
+        if draw(st.integers(0, 9)) == 0:
+            lines.append(draw(st.sampled_from(["", "# comment", "   "])))
+    return ("\n".join(lines) + "\n").encode(), wrapped
+
+
+@settings(PROPERTY, max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(off_texts())
+def test_bulk_off_parser_agrees_with_record_parser(case):
+    from torch_polylap.io import off as off_module
+
+    text, wrapped = case
+    from torch_polylap.io.common import plain_text
+
+    bulk = _parse(lambda t, s: off_module._read_off_bulk(plain_text(t), "m.off", s), text)
+
+    def reference(t: bytes, s: Skipped):
+        # the record parser, with the bulk one switched off
+        original = off_module._read_off_bulk
+        off_module._read_off_bulk = lambda *args: None
+        try:
+            return off_module.read_off(t, "m.off", s, False)
+        finally:
+            off_module._read_off_bulk = original
+
+    lines = _parse(reference, text)
+    if bulk is not None:
+        assert lines == bulk
+    elif not wrapped:
+        assert lines[0] == "error"  # it gives up only on broken files and wrapped faces

@@ -1,0 +1,248 @@
+"""Decimal number tokens to int64 and correctly rounded float64, in bulk.
+
+The text readers find their number tokens as ``(start, end)`` byte offsets into a padded
+``uint8`` buffer (see :mod:`.tokens`); this module turns them into numbers with numpy operations
+on whole arrays, with no Python work per token:
+
+* digits are read eight at a time: the 8 bytes ending at a digit string's end are one
+  unaligned little-endian ``uint64``, checked to be digits and converted with three multiply-add
+  steps (the usual "SWAR" digit trick);
+* a float's decimal significand ``w`` (at most 19 digits) and exponent ``q`` give the double
+  nearest to ``w * 10**q``: by one IEEE operation when ``w <= 2**53`` and ``|q| <= 22`` (both
+  operands exact, one rounding), otherwise from the high word of the product of ``w`` with the
+  leading 64 bits of ``5**q``, whose error is bounded so that the products too close to a
+  rounding boundary (about one in two hundred) are recognised (the first step of Lemire's
+  method, "Number parsing at a gigabyte per second", 2021).
+
+Every token these paths cannot settle exactly (more than 19 significant digits, subnormal or
+overflowing results, products within the error bound of a tie, or anything but plain
+``[+-]digits[.digits][e[+-]digits]`` such as ``nan``, ``inf`` or ``1_000``) is returned in a
+``slow`` mask; the caller converts those few with Python's ``float``/``int`` (through
+:func:`.common.numbers`), so the result is always what ``float(token)`` gives.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["decimal_to_double", "parse_floats", "parse_ints", "word_view"]
+
+U64 = np.uint64
+_ZEROS = U64(0x3030303030303030)
+_HI_NIBBLES = U64(0xF0F0F0F0F0F0F0F0)
+_SIX = U64(0x0606060606060606)
+_THREES = U64(0x3333333333333333)
+_B = 8  # bytes per word
+PAD = 24  # bytes of padding a buffer needs before its first and after its last token
+
+# For c = 0..8 valid digits in the top c bytes of a word: the bytes to keep, and '0' bytes to
+# put in the others (leading zeros do not change the value).
+_KEEP = np.array([~((1 << (8 * (8 - c))) - 1) & (2**64 - 1) for c in range(9)], dtype=U64)
+_FILL = np.array([0x3030303030303030 & ((1 << (8 * (8 - c))) - 1) for c in range(9)], dtype=U64)
+_POW10_INT = np.array([10**k for k in range(20)], dtype=U64)
+_POW10_FLOAT = np.array([10.0**k for k in range(23)])
+
+
+def word_view(buf: np.ndarray) -> np.ndarray:
+    """The unaligned little-endian ``uint64`` starting at every byte of ``buf``:
+    ``word_view(buf)[i]`` holds bytes ``i .. i+7`` (byte ``i`` least significant)."""
+    return np.ndarray(shape=(len(buf) - 7,), dtype="<u8", buffer=buf, strides=(1,))
+
+
+def _digits_word(
+    words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray
+) -> np.ndarray:
+    """Value of the ``count`` (0-8) bytes ending at ``end`` read as digits; a nonzero ``bad``
+    word (or-ed in place) marks a non-digit among them.  In-place steps: this is the hot loop."""
+    c = np.minimum(count, 8)
+    np.maximum(c, 0, out=c)
+    x = words[end - _B]
+    x &= _KEEP[c]
+    x |= _FILL[c]
+    t = x + _SIX
+    t &= _HI_NIBBLES
+    t >>= U64(4)
+    t |= x & _HI_NIBBLES
+    t ^= _THREES
+    bad |= t
+    x -= _ZEROS
+    for shift, scale, mask in _SWAR_STEPS:
+        t = x >> shift
+        x *= scale
+        x += t
+        x &= mask
+    return x
+
+
+_SWAR_STEPS = (
+    (U64(8), U64(10), U64(0x00FF00FF00FF00FF)),
+    (U64(16), U64(100), U64(0x0000FFFF0000FFFF)),
+    (U64(32), U64(10000), U64(0xFFFFFFFF)),
+)
+
+
+def _digits(words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """Value (``uint64``) of the ``count`` (0-24) digits ending at ``end`` (see _digits_word);
+    more than 19 significant digits count as ``bad``."""
+    value = _digits_word(words, end, count, bad)
+    longest = int(count.max()) if len(count) else 0
+    for k in (1, 2):
+        if longest <= 8 * k:
+            break
+        more = _digits_word(words, end - 8 * k, count - 8 * k, bad)
+        if k == 2:  # up to 24 digits, of which at most 19 significant: no overflow
+            bad |= (more >= U64(1000)).astype(U64)
+        more *= _POW10_INT[8 * k]
+        value += more
+    return value
+
+
+def parse_ints(
+    buf: np.ndarray, words: np.ndarray, start: np.ndarray, end: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(values int64, slow bool)`` of the integer tokens ``buf[start:end]``: ``[+-]`` and up
+    to 16 digits; anything else is marked ``slow`` (its value is then meaningless)."""
+    first = buf[start]
+    neg = first == 45  # '-'
+    signed = neg | (first == 43)  # '+'
+    count = end - start - signed
+    bad = np.zeros(len(start), dtype=U64)
+    value = _digits(words, end, count, bad)
+    ok = (bad == 0) & (count >= 1) & (count <= 16)
+    out = value.view(np.int64)
+    np.negative(out, out=out, where=neg)
+    return out, ~ok
+
+
+def _table() -> tuple[np.ndarray, np.ndarray]:
+    """For q in [_QMIN, _QMAX]: the top word ``T`` of ``5**q * 2**-b`` truncated to 128 bits
+    (``2**127 <= 5**q * 2**-b < 2**128``, so ``2**63 <= T < 2**64``), and ``b``."""
+    hi, b = [], []
+    for q in range(_QMIN, _QMAX + 1):
+        if q >= 0:
+            p = 5**q
+            bits = p.bit_length()
+            t = p << (128 - bits) if bits <= 128 else p >> (bits - 128)
+            b.append(bits - 128)
+        else:
+            p = 5**-q
+            n = p.bit_length() + 127
+            t = (1 << n) // p  # p is odd, never a power of two: 2**127 <= t < 2**128
+            b.append(-n)
+        hi.append(t >> 64)  # the error bound below makes the low word unneeded
+    return np.array(hi, dtype=U64), np.array(b, dtype=np.int64)
+
+
+_QMIN, _QMAX = -342, 308
+_T_HI, _T_EXP = _table()
+_M32 = U64(0xFFFFFFFF)
+_S32 = U64(32)
+
+
+def _mul_hi_approx(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``floor(a * b / 2**64)`` minus 0, 1 or 2 (the carry of the dropped low cross terms)."""
+    a1, a0 = a >> _S32, a & _M32
+    b1, b0 = b >> _S32, b & _M32
+    return a1 * b1 + ((a0 * b1) >> _S32) + ((a1 * b0) >> _S32)
+
+
+def _bit_length(w: np.ndarray) -> np.ndarray:
+    """Bit length of each (nonzero) ``uint64``."""
+    _, e = np.frexp(w.astype(np.float64))  # may round up to the next power of two
+    e = e.astype(np.int64)
+    too_big = (w >> (e - 1).astype(U64)) == 0
+    return e - too_big
+
+
+def decimal_to_double(w: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(doubles, undecided)``: ``w * 10**q`` correctly rounded (to nearest, ties to even) for
+    ``uint64`` ``w > 0``; ``undecided`` marks the few results this path cannot guarantee
+    (products too close to a rounding boundary, subnormal or overflowing results)."""
+    out = np.zeros(len(w), dtype=np.float64)
+    undecided = np.zeros(len(w), dtype=bool)
+    # Clinger: w and 10**|q| are exact doubles, so one IEEE operation rounds once, correctly
+    easy = (w <= U64(2**53)) & (q >= -22) & (q <= 22)
+    if easy.any():
+        we = w[easy].astype(np.float64)
+        qe = q[easy]
+        p = _POW10_FLOAT[np.abs(qe)]
+        out[easy] = np.where(qe >= 0, we * p, we / p)
+    hard = np.flatnonzero(~easy)
+    if len(hard) == 0:
+        return out, undecided
+    wh, qh = w[hard], q[hard]
+    row = np.clip(qh, _QMIN, _QMAX) - _QMIN
+    shift = 64 - _bit_length(wh)
+    wn = wh << shift.astype(U64)  # 2**63 <= wn < 2**64
+    # The exact product P = wn * 5**q * 2**-b lies in [2**190, 2**192) and, T being the top
+    # word of 5**q * 2**-b, in [wn * T * 2**64, (wn * T + wn) * 2**64): its top word
+    # floor(P / 2**128) is in [a, a + 3] (a drops up to 2 carries of the low cross terms).
+    a = _mul_hi_approx(wn, _T_HI[row])
+    top = a >> U64(63)  # leading bit of P: 191 (top = 1) or 190
+    j = U64(10) + top  # bits of the top word below the 53-bit significand
+    rem = a & ((U64(1) << j) - U64(1))
+    half = U64(1) << (j - U64(1))
+    # Every candidate rounds the same way unless the window [rem, rem + 4] touches half; a
+    # candidate past the next multiple of 2**j rounds down to the same significand.
+    down = rem + U64(4) < half
+    up = rem > half
+    sure = (down | up) & (top == ((a + U64(4)) >> U64(63)))
+    mant = (a >> j) + up.astype(U64)
+    carry = mant >> U64(53)  # rounded up to 2**53: renormalise
+    mant >>= carry
+    e2 = 190 + (top + carry).astype(np.int64) + _T_EXP[row] + qh - shift
+    biased = e2 + 1023
+    sure &= (qh >= _QMIN) & (qh <= _QMAX) & (biased >= 1) & (biased <= 2046)
+    bits = (np.clip(biased, 0, 2047).astype(U64) << U64(52)) | (mant & U64(2**52 - 1))
+    out[hard] = bits.view(np.float64)
+    undecided[hard] = ~sure
+    return out, undecided
+
+
+def parse_floats(
+    buf: np.ndarray,
+    words: np.ndarray,
+    start: np.ndarray,
+    end: np.ndarray,
+    dot: np.ndarray,
+    exp: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(values float64, slow bool)`` of the number tokens ``buf[start:end]``.
+
+    ``dot`` and ``exp`` give each token's position of its ``.`` and of its ``e``/``E``, or
+    ``-1`` where it has none; the caller has already marked tokens with more than one of
+    either, or with a sign anywhere but first or right after the ``e``, as slow.  The bytes
+    between those positions must be digits, else the token is marked ``slow`` too.
+    """
+    first = buf[start]
+    neg = first == 45  # '-'
+    signed = (neg | (first == 43)).astype(np.int64)
+    has_exp = exp >= 0
+    mant_end = np.where(has_exp, exp, end)
+    has_dot = dot >= 0
+    int_end = np.where(has_dot, dot, mant_end)
+    n_int = int_end - start - signed
+    n_frac = np.where(has_dot, mant_end - dot - 1, 0)
+    ok = (n_int >= 0) & (n_frac >= 0) & (n_int + n_frac >= 1) & (n_int <= 19) & (n_frac <= 24)
+    bad = np.zeros(len(start), dtype=U64)
+    ipart = _digits(words, int_end, n_int, bad)
+    fpart = _digits(words, mant_end, n_frac, bad)
+    q = -n_frac
+    if has_exp.any():
+        e_first = buf[np.where(has_exp, exp + 1, start)]
+        e_signed = has_exp & ((e_first == 45) | (e_first == 43))
+        n_exp = np.where(has_exp, end - exp - 1 - e_signed, 0)
+        epart = _digits_word(words, end, n_exp, bad)
+        ok &= (n_exp <= 4) & (~has_exp | (n_exp >= 1))
+        e_val = epart.astype(np.int64)
+        q = q + np.where(has_exp & (e_first == 45), -e_val, e_val)
+    fits = n_int + n_frac <= 19
+    ok &= (bad == 0) & (fits | (ipart == 0))
+    w = np.where(fits, ipart * _POW10_INT[np.clip(n_frac, 0, 19)] + fpart, fpart)
+    nonzero = np.flatnonzero(ok & (w != 0))
+    out = np.zeros(len(start), dtype=np.float64)
+    if len(nonzero):
+        out[nonzero], undecided = decimal_to_double(w[nonzero], q[nonzero])
+        ok[nonzero[undecided]] = False
+    np.negative(out, out=out, where=neg)
+    return out, ~ok
