@@ -15,11 +15,18 @@ export PYTHONPATH="$PWD:${PYTHONPATH:-}"
 python3 -c "import torch; assert torch.cuda.is_available(), 'no CUDA device'; \
 print('torch', torch.__version__, '|', torch.cuda.get_device_name())" || exit 2
 
-# CUDA tests: every test whose name says cuda (they skip on machines without a GPU)
-timeout 300 python3 -m pytest -q -p no:cacheprovider -k cuda tests 2>&1 | tee "$out/gpu_tests.log"
+# CUDA tests: every test whose name says cuda (they skip on machines without a GPU), and the
+# compile tests (the inductor step included)
+timeout 300 python3 -m pytest -q -p no:cacheprovider --runslow -k "cuda or compile" tests \
+    2>&1 | tee "$out/gpu_tests.log"
 tests_rc=${PIPESTATUS[0]}
 
 timeout 240 python3 benchmarks/gpu_table.py --json "$out/gpu_table.json"
 table_rc=$?
-echo "gpu_check: tests exit $tests_rc, table exit $table_rc"
-[ "$tests_rc" -eq 0 ] && [ "$table_rc" -eq 0 ]
+
+# the compiled training step on the GPU (inductor, fullgraph) against eager, and a batch
+(cd benchmarks && timeout 300 python3 bench_training_step.py --device cuda --sizes 100000 1000000 \
+    --batch-sizes 10000 --repeats 5 --json "$out/gpu_training_step.json")
+step_rc=$?
+echo "gpu_check: tests exit $tests_rc, table exit $table_rc, training step exit $step_rc"
+[ "$tests_rc" -eq 0 ] && [ "$table_rc" -eq 0 ] && [ "$step_rc" -eq 0 ]

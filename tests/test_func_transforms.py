@@ -148,3 +148,19 @@ def test_grad_through_module_losses_and_solve():
     Xr = X.clone().requires_grad_(True)
     (want,) = torch.autograd.grad(f(Xr), Xr)
     torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+def test_jacfwd_and_vjp_equal_jacrev():
+    verts, faces = tp.shapes.quad_grid(2, 3)
+    X = _perturbed(verts, 7)
+
+    def f(X):
+        L, M0 = tp.laplacian(X, faces)
+        return (M0 + 0.5 * L) @ X[:, 0]
+
+    want = jacrev(f)(X)
+    torch.testing.assert_close(torch.func.jacfwd(f)(X), want, rtol=1e-10, atol=1e-12)
+    out, pullback = torch.func.vjp(f, X)
+    v = torch.randn(out.shape, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
+    (got,) = pullback(v)
+    torch.testing.assert_close(got, torch.einsum("i,ijk->jk", v, want), rtol=1e-10, atol=1e-12)
