@@ -62,6 +62,7 @@ def _clock(fn) -> float:
 
 
 def eager_vs_compiled(faces: int, repeats: int) -> dict:
+    torch._dynamo.reset()  # each size compiles anew, from a static trace
     verts, quads = _grid(faces)
     X_e = verts.clone().requires_grad_(True)
     X_c = verts.clone().requires_grad_(True)

@@ -258,3 +258,17 @@ def test_inductor_training_step_in_a_fresh_process():
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.strip().endswith("OK")
+
+
+def test_one_compiled_function_over_meshes_of_several_sizes():
+    """The second size makes torch.compile retrace with dynamic shapes; each mesh still gets
+    its own topology, and returning to the first mesh is still right."""
+
+    def energy(X: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+        L, M0 = tp.PolygonLaplacian()(X, faces)
+        return _loss(L, M0, X)
+
+    compiled = torch.compile(energy, backend="aot_eager", fullgraph=True)
+    meshes = [_grid(n) for n in (3, 4, 5)]
+    for verts, faces in [*meshes, meshes[0]]:
+        torch.testing.assert_close(compiled(verts, faces), energy(verts, faces))

@@ -28,7 +28,7 @@ from .assembly import _BAD_INPUT, MeshFaces, assemble, assemble_flagged
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts
 from .kernels import block_kernel, check_method
 from .sparse import SparseOperator, operator_on
-from .topology import Topology, TopologyView, get_topology
+from .topology import Topology, TopologyView, topology_of
 from .tracing import functional, require
 
 __all__ = [
@@ -125,7 +125,7 @@ def laplacian(
     if isinstance(verts, torch.Tensor) and verts.dim() == 3:
         return _laplacian_batch(verts, faces, lam, layout, validate, method)
     verts = check_verts(verts, finite=False)
-    topo = get_topology(faces, verts.shape[0])
+    topo = topology_of(faces, verts)
     view = topo.on(verts.device)
     values, masses = assemble(verts, view, topo, block_kernel(method, lam), True, validate)
     assert masses is not None
@@ -149,7 +149,7 @@ def _laplacian_batch(
     first = check_verts(verts[0], finite=False)
     if first.dtype != verts.dtype:  # half precision under autocast
         verts = verts.to(first.dtype)
-    topo = get_topology(faces, verts.shape[1])
+    topo = topology_of(faces, verts)
     view = topo.on(verts.device)
     kernel = block_kernel(method, lam)
 
@@ -186,7 +186,7 @@ def planarity_laplacian(
     """
     verts = check_verts(verts, finite=False)
     lam = _checked_lam(lam, validate)
-    topo = get_topology(faces, verts.shape[0])
+    topo = topology_of(faces, verts)
     view = topo.on(verts.device)
     values, _ = assemble(verts, view, topo, block_kernel("aw11", lam, False), False, validate)
     return _operator(view, values, layout)
@@ -256,14 +256,14 @@ class PolygonLaplacian(nn.Module):
         self.validate = validate
         self.topology: Topology | None = None
 
-    def _topology_for(self, faces: MeshFaces | None, num_verts: int) -> Topology:
+    def _topology_for(self, faces: MeshFaces | None, verts: torch.Tensor) -> Topology:
         if faces is None:
             if self.topology is None:
                 raise ValueError("PolygonLaplacian: pass faces on the first call.")
             return self.topology
         # The package's one topology cache (keyed weakly on the faces tensor): the module
         # keeps no reference to the faces, so a loop over fresh tensors pins no memory.
-        self.topology = get_topology(faces, num_verts)
+        self.topology = topology_of(faces, verts)
         return self.topology
 
     def forward(
@@ -281,7 +281,7 @@ class PolygonLaplacian(nn.Module):
         """
         if verts.dim() != 3:
             verts = check_verts(verts, finite=False)
-        topo = self._topology_for(faces, verts.shape[-2])
+        topo = self._topology_for(faces, verts)
         lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam
         return laplacian(
             verts, topo, lam, layout=self.layout, validate=self.validate, method=self.method

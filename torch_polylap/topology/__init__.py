@@ -30,7 +30,7 @@ The index work runs in numpy on the CPU (its ``argsort`` is several times faster
 
 from .analysis import duplicate_faces, edge_incidence, half_edge_vertices, orientation_flips
 from .build import build_topology
-from .cache import clear_topology_cache, get_topology, set_topology_cache_limits
+from .cache import clear_topology_cache, get_topology, set_topology_cache_limits, topology_of
 from .groups import DegreeGroup, GroupChunk
 from .report import TopologyReport
 from .structure import Topology, TopologyView
@@ -44,6 +44,7 @@ __all__ = [
     "build_topology",
     "get_topology",
     "clear_topology_cache",
+    "topology_of",
     "set_topology_cache_limits",
     "duplicate_faces",
     "orientation_flips",

@@ -143,6 +143,23 @@ def get_topology(faces: FacesLike | Topology, num_verts: int) -> Topology:
     return _lookup(faces, num_verts)
 
 
+def topology_of(faces: FacesLike | Topology, verts: torch.Tensor) -> Topology:
+    """:func:`get_topology` for ``verts`` ``(..., V, 3)``: the vertex count read from ``verts``.
+
+    Under torch.compile with dynamic shapes the count is symbolic while the graph is traced;
+    given the tensor, the lookup reads it from the real vertices at trace time.
+    """
+    if tracing() and not isinstance(faces, Topology):
+        topo = run_eagerly(_lookup_for, faces, verts)
+        _require_traced_faces(faces, topo)
+        return topo
+    return get_topology(faces, verts.shape[-2])
+
+
+def _lookup_for(faces: FacesLike, verts: torch.Tensor) -> Topology:
+    return _lookup(faces, int(verts.shape[-2]))
+
+
 def _lookup(faces: FacesLike, num_verts: int) -> Topology:
     if isinstance(faces, torch.Tensor):
         faces = _unwrapped(faces)
