@@ -1,5 +1,5 @@
 """Only what truly needs a manifold or an orientation refuses irregular meshes, at its own entry,
-with a message that names the defect and the repair (issue 10, item 1).
+with a message that names the defect and the repair.
 
 L, M0 and whatever is built only on them (the flow without volume normalization, the plate)
 run on a misoriented grid, a Moebius band and a fin (a quad standing on an interior edge).

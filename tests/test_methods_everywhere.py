@@ -1,4 +1,4 @@
-"""``method=`` reaches every entry point that builds ``L`` (issue 12, item 3).
+"""``method=`` reaches every entry point that builds ``L``.
 
 Each entry point (batches, losses and their modules, the spectrum and dataset precompute, the
 eigenpair cache, the applications and the command line) is compared with the same quantity built

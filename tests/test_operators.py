@@ -1,4 +1,4 @@
-"""Properties of L and M0 from MATH.md and AW11, checked against independent formulas."""
+"""Properties of L and M0 (AW11; docs/math/properties.md) against independent formulas."""
 
 from __future__ import annotations
 

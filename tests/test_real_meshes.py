@@ -1,4 +1,4 @@
-"""Structural properties of L and M0 (MATH.md, "Properties that must hold") on real polygon meshes.
+"""Structural properties of L and M0 (docs/math/properties.md) on real polygon meshes.
 
 Meshes: every file of ../shared/data/meshes/real (listed in its SOURCES.md; skipped when that
 directory is absent), read from the in-repository copy in tests/data/ when there is one, plus the

@@ -1,4 +1,4 @@
-"""Reproduce the polyLaplace reference values of ../shared/docs/REFERENCE-VALUES.md.
+"""Reproduce the error values the polyLaplace research code prints on the level-5 meshes.
 
 The table there (SH error, mean-curvature error and Franke error on the level-3 meshes, for
 lambda in {2, 1, 0.5}) was produced by the polyLaplace research code. The experiments are
@@ -66,7 +66,7 @@ REFERENCE = {
     ("franke", "grid/dia_quad_3"): ("1.20e-3", "5.14e-4", "5.13e-4"),
 }
 
-# Issue 12: the polyLaplace research code on the level-5 meshes (errors as above), AW11 and
+# The polyLaplace research code on the level-5 meshes (errors as above), AW11 and
 # dGBD20 at lambda = 1, PLMS with its own (Galerkin-lumped) mass; copied as printed.
 METHOD_REFERENCE = {
     ("sh", "sphere/quad_5"): {"aw11": "8.34e-6", "degoes": "7.88e-6", "plms": "3.86e-6"},
@@ -248,7 +248,7 @@ def test_franke_reference_uses_raw_coordinates(mesh):
 
 
 # --------------------------------------------------------------------------------------------
-# The three methods on the level-5 meshes (issue 12; ../shared/data/meshes)
+# The three methods on the level-5 meshes of the shared refinement families
 # --------------------------------------------------------------------------------------------
 
 
@@ -347,7 +347,7 @@ def test_first_order_convergence_on_irregular_spheres(family):
 
 
 if __name__ == "__main__":
-    print("issue 12, level 5 (AW11 and dGBD20 at lam = 1; PLMS with polyLaplace's mass)")
+    print("level 5 (AW11 and dGBD20 at lam = 1; PLMS with polyLaplace's mass)")
     for (exp, mesh), row in METHOD_REFERENCE.items():
         cells = []
         for method, printed in row.items():
