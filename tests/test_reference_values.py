@@ -1,6 +1,6 @@
 """Reproduce the error values the polyLaplace research code prints on the level-5 meshes.
 
-The table there (SH error, mean-curvature error and Franke error on the level-3 meshes, for
+Its printed table (SH error, mean-curvature error and Franke error on the level-3 meshes, for
 lambda in {2, 1, 0.5}) was produced by the polyLaplace research code. The experiments are
 implemented once, in ``examples/convergence_study.py`` (``sh_error``, ``mean_curvature_error``,
 ``franke_error``), which this module imports; what stays here is independent of them: the
