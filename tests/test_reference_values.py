@@ -1,4 +1,4 @@
-"""Reproduce the error values the polyLaplace research code prints on the level-5 meshes.
+"""Reproduce the error tables that the polyLaplace research code prints.
 
 Its printed table (SH error, mean-curvature error and Franke error on the level-3 meshes, for
 lambda in {2, 1, 0.5}) was produced by the polyLaplace research code. The experiments are
