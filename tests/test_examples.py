@@ -108,3 +108,18 @@ def test_classification_example_learns(tmp_path):
     overall = float(re.search(r"\| test, all \| \d+ \| ([\d.]+)%", out).group(1))
     assert overall > 60  # five classes: chance is 20%
     assert (tmp_path / "c.png").read_bytes()[:8] == PNG
+
+
+def test_vector_field_learning_is_frame_independent():
+    """A short run: the equivariant network's held-out error is the same with random frames
+    (to the 3 printed decimals) and below the noisy input's; the scalar network's rises."""
+    out = run("vector_field_learning.py", "--steps", "40", "--width", "4")
+    noisy = float(re.search(r"noisy input error \(held out\): ([\d.]+)", out).group(1))
+    rows = {
+        m.group(1): (float(m.group(2)), float(m.group(3)))
+        for m in re.finditer(r"^(vector|scalar)\D+\d+\s+[\d.]+\s+([\d.]+)\s+([\d.]+)", out, re.M)
+    }
+    vector_default, vector_random = rows["vector"]
+    scalar_default, scalar_random = rows["scalar"]
+    assert vector_default == vector_random < noisy
+    assert scalar_random > scalar_default

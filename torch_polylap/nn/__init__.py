@@ -1,5 +1,5 @@
 """Learning layers on polygon meshes: spectral features, learned diffusion, Chebyshev filters,
-spatial gradient features.
+spatial gradient features, and rotation-equivariant layers on tangent vectors.
 
 Kornia-style: each layer is a thin :class:`torch.nn.Module` over a plain function
 (:meth:`Spectrum.heat_diffusion`, :func:`torch_polylap.implicit_heat_diffusion`,
@@ -21,6 +21,7 @@ from .gradient_features import (
 from .models import DiffusionBlock, DiffusionNetLike
 from .spectral_features import SpectralFeatures, hks_time_range, wks_energy_range
 from .spectrum import Spectrum
+from .vector_diffusion import LearnedVectorDiffusion, VectorGate, VectorLinear, rotate_vectors
 
 __all__ = [
     "Spectrum",
@@ -37,4 +38,8 @@ __all__ = [
     "SpatialGradientFeatures",
     "DiffusionBlock",
     "DiffusionNetLike",
+    "LearnedVectorDiffusion",
+    "VectorLinear",
+    "VectorGate",
+    "rotate_vectors",
 ]

@@ -9,6 +9,8 @@
   method of Sharp, Soliman and Crane 2019, prefactored (:mod:`.heat`).
 - :func:`shape_operator`, :func:`principal_curvatures`: the derivative of the vertex normals
   through the polygon face gradient (:mod:`.curvature`).
+- :class:`HodgeDecomposition`: exact, co-exact and harmonic parts of a tangent field,
+  orthogonal to round-off, on the virtual refinement of the polygons (:mod:`.hodge`).
 - :func:`smoothest_field`: the globally smoothest ``n``-direction field of Knoeppel et al. 2013
   (:mod:`.fields`).
 
@@ -22,9 +24,12 @@ from .connection import connection_laplacian, vector_mass
 from .curvature import face_shape_operator, principal_curvatures, shape_operator
 from .fields import smoothest_field
 from .heat import VectorHeatSolver
+from .hodge import HodgeDecomposition, HodgeParts, virtual_refinement
 from .transport import TangentFrames, minimal_rotation, tangent_frames, to_ambient, to_tangent
 
 __all__ = [
+    "HodgeDecomposition",
+    "HodgeParts",
     "TangentFrames",
     "VectorHeatSolver",
     "connection_laplacian",
@@ -37,4 +42,5 @@ __all__ = [
     "to_ambient",
     "to_tangent",
     "vector_mass",
+    "virtual_refinement",
 ]
