@@ -165,9 +165,7 @@ def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
 
         f_size = count[is_f] - 1
         corners = runs(key[is_f] + 1, f_size)
-        stop = chunk.first_slash(corners)
-        if (buf[chunk.end[corners] - 1] == 47).any():
-            return None  # a corner cut after its '/'
+        stop = chunk.first_slash(corners)  # "12/" and "12//" are vertex 12
         try:
             written = chunk.ints(corners, stop)
         except BadNumber:
@@ -232,14 +230,9 @@ def _read_obj_lines(data: bytes, name: str, skipped: Skipped, want_attributes: b
             if len(parts) > 4:
                 skipped.add("vertex colours or weights (values after x y z)")
         elif key == "f":
+            # a corner "12/" is vertex 12 (the polyLaplace research code writes faces so); a
+            # file cut in the middle of a face is caught by the last-line check instead
             toks = parts[1:]
-            cut = next((t for t in toks if t.endswith("/")), None)
-            if cut is not None:
-                raise ValueError(
-                    f"{name}, line {start}: face corner {cut!r} ends in '/', what is left of "
-                    "'v/vt' or 'v/vt/vn' cut short (a truncated or corrupt file); re-export or "
-                    "re-download it."
-                )
             if refs is not None:
                 refs.add_face(toks, len(uv) // 2, len(normals) // 3)
             if "/" in line:
