@@ -115,6 +115,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _end(f"terminated ({ended.name})", 128 + ended.signum)
 
 
+# module -> the extra of setup.py that installs it
+OPTIONAL_EXTRAS = {
+    "matplotlib": "plot",
+    "mpl_toolkits": "plot",
+    "cholespy": "cholmod",
+    "igl": "bench",
+}
+
+
 def _run(argv: list[str]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -127,6 +136,17 @@ def _run(argv: list[str]) -> int:
         # bad input: a file that is missing or malformed, a mesh the operators reject, an output
         # folder that cannot be written
         print(f"polylap: error: {_one_line(err)}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as err:
+        extra = OPTIONAL_EXTRAS.get((err.name or "").split(".")[0])
+        if extra is None:
+            raise
+        # an optional dependency of this command (a plain `pip install` has none of them)
+        print(
+            f"polylap: error: `polylap {args.command}` needs the optional package "
+            f"{err.name!r}: pip install 'torch_polylap[{extra}]'",
+            file=sys.stderr,
+        )
         return 2
     except Exception as err:
         if os.environ.get("POLYLAP_DEBUG"):
