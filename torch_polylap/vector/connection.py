@@ -45,7 +45,8 @@ from ..checks import Lam, check_verts
 from ..faces import FacesLike, PolygonFaces
 from ..kernels import check_method
 from ..operators import laplacian
-from ..sparse import SparseOperator, diag, operator_from_parts, pattern_of, sparse_values
+from ..sparse import SparseOperator, diag, operator_from_parts, sparse_values
+from ..sparse.construct import csr_indices
 from ..topology import Topology, build_topology, get_topology
 from .transport import TangentFrames, corner_transport, tangent_frames
 
@@ -77,8 +78,7 @@ def _block_layout(
     key = ("vector.connection", torch.device(device))
     cached = topo.derived.get(key)
     if cached is None:
-        pattern = pattern_of(blocks)
-        crow_x, col_x = pattern.crow, pattern.col
+        crow_x, col_x = csr_indices(blocks)
         row_x = torch.repeat_interleave(
             torch.arange(crow_x.numel() - 1, device=device), crow_x.diff()
         )
