@@ -4,12 +4,13 @@
 evaluates the off-diagonal entries of the blocks of a chunk of faces of one degree, and
 :func:`assemble` adds them, their mirrors and the diagonal ``-row sums`` (``L_f 1 = 0``) into
 the CSR value array at the positions the :class:`~torch_polylap.topology.Topology` cached.
-Validation costs one device sync per call: the degenerate-face flags of all chunks are reduced
-on the device and read once.
+Validation costs one device sync per call: the checks of all chunks are reduced on the device
+and read once.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 
 import torch
@@ -19,12 +20,24 @@ from .faces import FacesLike
 from .kernels import BlockKernel
 from .kernels.aw11 import aw11_entries, row_sums
 from .kernels.frames import gather_corners
-from .topology import DegreeGroup, Topology, TopologyView, get_topology
+from .topology import DegreeGroup, GroupChunk, Topology, TopologyView, get_topology
 from .tracing import functional, require
 
-__all__ = ["MeshFaces", "assemble", "assemble_flagged", "face_groups", "raise_bad_input"]
+__all__ = [
+    "MeshFaces",
+    "FLOAT32_TOLERANCE",
+    "assemble",
+    "assemble_flagged",
+    "face_groups",
+    "raise_bad_input",
+]
 
 MeshFaces = FacesLike | Topology
+
+
+# A float32 face whose kernel bounds the relative error of its block above this is evaluated
+# in float64 (eager assembly with validation; see docs/math/properties.md, "Finite precision").
+FLOAT32_TOLERANCE = 1e-2
 
 
 def assemble(
@@ -41,6 +54,15 @@ def assemble(
     chunk of faces of one degree; each block's off-diagonal entries are scattered to their two
     mirrored positions and minus their row sums to the diagonal. ``view`` is ``topo.on(device)``,
     taken once by the caller.
+
+    The kernels see the coordinates divided by a power of two near their largest magnitude
+    (exact: ``L`` is scale invariant and the masses are scaled back by its square), so no
+    intermediate under- or overflows whatever the mesh's scale. With ``validate``, one device
+    sync reads every check: finite coordinates, no zero-area face, finite ``L`` and masses
+    that the dtype represents. For float32 input the same sync reads whether a face's kernel
+    expects a relative error above :data:`FLOAT32_TOLERANCE` (thin or nearly degenerate
+    faces; PLMS on nearly planar ones); if one does, the values are assembled again with
+    those faces evaluated in float64.
 
     Autocast is off inside: the kernels form products of coordinates that half precision
     cannot hold, and some (dGBD20's einsum) would otherwise be cast to it.
@@ -63,25 +85,180 @@ def _assemble_chunked(
     validate: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`assemble` eagerly: chunks whose temporaries stay small, in place."""
-    verts_t = verts.t().contiguous()
-    values = verts.new_zeros(topo.nnz)
-    masses = verts.new_zeros(topo.num_verts) if want_mass else None
-    eps = torch.finfo(verts.dtype).eps
-    degenerate = []
+    scale, unscale = _normalizer(verts)
+    verts_t = verts.t().contiguous() * scale
+    mixed = validate and verts.dtype == torch.float32
+    parts = _scatter(verts_t, view, topo, kernel, want_mass, mixed, None)
+    values, masses_n, degenerate, ill = parts
+    masses = _unscaled(masses_n, unscale)
+    if not validate:
+        return values, masses
+    checks = torch.stack(
+        [_input_ok(verts, degenerate), _output_ok(values, masses_n, masses)] + ill
+    ).tolist()
+    if any(checks[2:]):
+        # rare: faces too ill-conditioned for float32; assembled again, those in float64
+        values, masses_n, _, _ = _scatter(
+            verts_t, view, topo, kernel, want_mass, mixed, verts_t.double()
+        )
+        masses = _unscaled(masses_n, unscale)
+        checks[1] = bool(_output_ok(values, masses_n, masses))
+    if not (checks[0] and checks[1]):
+        raise_bad_input(verts, topo, kernel, (masses_n, masses), mixed)
+    return values, masses
+
+
+def _normalizer(verts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(scale, 1 / scale)``: 0-dim powers of two that bring the largest coordinate magnitude
+    into ``[1/2, 1)`` (multiplying by them is exact), without a device sync."""
+    info = torch.finfo(verts.dtype)
+    if verts.numel() == 0:
+        return verts.new_ones(()), verts.new_ones(())
+    low, high = torch.aminmax(verts.detach())
+    exponent = torch.frexp(torch.maximum(high, -low)).exponent
+    # within the normal range both ways; a non-finite maximum is refused by the validation
+    exponent = exponent.clamp(int(math.log2(info.tiny)) + 1, int(math.log2(info.max)) - 1)
+    one = verts.new_ones(())
+    return torch.ldexp(one, -exponent), torch.ldexp(one, exponent)
+
+
+def _unscaled(masses: torch.Tensor | None, unscale: torch.Tensor) -> torch.Tensor | None:
+    """The masses of the normalized coordinates in the caller's units (two factors: the
+    square of ``unscale`` alone can overflow where the product does not)."""
+    return None if masses is None else masses * unscale * unscale
+
+
+def _scatter(
+    verts_t: torch.Tensor,
+    view: TopologyView,
+    topo: Topology,
+    kernel: BlockKernel,
+    want_mass: bool,
+    mixed: bool,
+    verts_t64: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor], list[torch.Tensor]]:
+    """The eager, chunked, in place assembly on normalized coordinates ``verts_t (3, V)``.
+
+    With ``mixed``, also returns per chunk the ``(F_c,)`` flags of faces whose expected
+    relative error exceeds :data:`FLOAT32_TOLERANCE`; with ``verts_t64`` given, those faces
+    are evaluated from it in float64 and cast back (their float32 blocks never enter the
+    values or the graph, so their gradients are the float64 ones).
+    """
+    values = verts_t.new_zeros(topo.nnz)
+    masses = verts_t.new_zeros(topo.num_verts) if want_mass else None
+    eps = torch.finfo(verts_t.dtype).eps
+    degenerate, ill = [], []
     for grp in view.groups:
         for chunk in grp.chunks:
-            off, corner_mass, area, size2 = kernel(verts_t, grp, chunk.corners_t)
-            flat = off.reshape(-1)
-            values.index_add_(0, chunk.pos_upper, flat)
-            values.index_add_(0, chunk.pos_lower, flat)
-            values.index_add_(0, chunk.pos_diag, row_sums(off, grp).reshape(-1), alpha=-1)
-            if masses is not None:
-                masses.index_add_(0, chunk.corners_t.reshape(-1), corner_mass.reshape(-1))
-            if validate:
-                degenerate.append((area <= eps * size2).any())
-    if validate:
-        _validate(verts, topo, degenerate)
-    return values, masses
+            if verts_t64 is not None:
+                _scatter_mixed(verts_t, verts_t64, grp, chunk, kernel, values, masses, eps)
+                continue
+            off, corner_mass, area, size2, error = kernel(verts_t, grp, chunk.corners_t)
+            _scatter_blocks(grp, chunk, off, corner_mass, values, masses)
+            degenerate.append(_any_degenerate(area, size2, eps))
+            if mixed:
+                # amax propagates NaN: a face whose bound is NaN counts as ill-conditioned
+                ill.append(~(error.amax() * eps <= FLOAT32_TOLERANCE))
+    return values, masses, degenerate, ill
+
+
+def _scatter_blocks(
+    grp: DegreeGroup,
+    chunk: GroupChunk,
+    off: torch.Tensor,
+    corner_mass: torch.Tensor,
+    values: torch.Tensor,
+    masses: torch.Tensor | None,
+) -> None:
+    flat = off.reshape(-1)
+    values.index_add_(0, chunk.pos_upper, flat)
+    values.index_add_(0, chunk.pos_lower, flat)
+    values.index_add_(0, chunk.pos_diag, row_sums(off, grp).reshape(-1), alpha=-1)
+    if masses is not None:
+        masses.index_add_(0, chunk.corners_t.reshape(-1), corner_mass.reshape(-1))
+
+
+def _scatter_mixed(
+    verts_t: torch.Tensor,
+    verts_t64: torch.Tensor,
+    grp: DegreeGroup,
+    chunk: GroupChunk,
+    kernel: BlockKernel,
+    values: torch.Tensor,
+    masses: torch.Tensor | None,
+    eps: float,
+) -> None:
+    """One chunk with its ill-conditioned faces evaluated in float64 (host syncs: the rare
+    path, after the validation found such faces)."""
+    off, corner_mass, _, _, error = kernel(verts_t, grp, chunk.corners_t)
+    ill = ~(error * eps <= FLOAT32_TOLERANCE)
+    if not bool(ill.any()):
+        _scatter_blocks(grp, chunk, off, corner_mass, values, masses)
+        return
+    for part, source in ((~ill, verts_t), (ill, verts_t64)):
+        faces = torch.nonzero(part)[:, 0]
+        if faces.numel() == 0:
+            continue
+        sub = _sub_chunk(grp, chunk, faces)
+        off, corner_mass = (t.to(values.dtype) for t in kernel(source, grp, sub.corners_t)[:2])
+        _scatter_blocks(grp, sub, off, corner_mass, values, masses)
+
+
+def _sub_chunk(grp: DegreeGroup, chunk: GroupChunk, faces: torch.Tensor) -> GroupChunk:
+    """The faces ``faces`` (indices into the chunk) of ``chunk``, with their scatter maps."""
+    p, k = grp.pair_i.numel(), grp.k
+
+    def cols(t: torch.Tensor, rows: int) -> torch.Tensor:
+        return t.view(rows, -1).index_select(1, faces).reshape(-1)
+
+    return GroupChunk(
+        chunk.start,
+        chunk.stop,
+        chunk.corners_t.index_select(1, faces),
+        cols(chunk.pos_upper, p),
+        cols(chunk.pos_lower, p),
+        cols(chunk.pos_diag, k),
+    )
+
+
+def _any_degenerate(area: torch.Tensor, size2: torch.Tensor, eps: float) -> torch.Tensor:
+    """Whether a face has zero vector area (NaN included), or is too small against the mesh's
+    largest coordinate for the dtype (``s^2`` of the normalized face below ``tiny / eps``: its
+    products would be subnormal)."""
+    tiny = torch.finfo(area.dtype).tiny
+    return (~(area > eps * size2)).any() | ~(size2.amin() >= tiny / eps)
+
+
+def _finite(t: torch.Tensor) -> torch.Tensor:
+    """Whether every entry of ``t`` is finite: its extremes are (NaN propagates through them),
+    which is one read of ``t`` where ``isfinite(t).all()`` takes several."""
+    if t.numel() == 0:
+        return torch.ones((), dtype=torch.bool, device=t.device)
+    return torch.isfinite(torch.stack(torch.aminmax(t))).all()
+
+
+def _input_ok(verts: torch.Tensor, degenerate: list[torch.Tensor]) -> torch.Tensor:
+    ok = _finite(verts)
+    return ok & ~torch.stack(degenerate).any() if degenerate else ok
+
+
+def _output_ok(
+    values: torch.Tensor, masses_n: torch.Tensor | None, masses: torch.Tensor | None
+) -> torch.Tensor:
+    """Finite values, and masses that neither overflow nor underflow."""
+    ok = _finite(values)
+    if masses_n is not None and masses is not None:
+        tiny = torch.finfo(masses.dtype).tiny
+        smallest = torch.where(masses_n == 0, tiny, masses).abs().amin()
+        ok = ok & _finite(masses) & (smallest >= tiny)
+    return ok
+
+
+def _masses_ok(masses_n: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` masses ``masses`` (of the normalized ones ``masses_n``) that are finite and not
+    under- (subnormal, or zero where the normalized mass is not) or overflowed."""
+    tiny = torch.finfo(masses.dtype).tiny
+    return torch.isfinite(masses) & ((masses.abs() >= tiny) | (masses_n == 0))
 
 
 def _assemble_functional(
@@ -92,9 +269,12 @@ def _assemble_functional(
     want_mass: bool,
     validate: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`assemble` for traced and transformed code (see :func:`assemble_flagged`); the
+    checks are an in-graph assertion when traced, a batch-wide check under vmap, and under
+    the other torch.func transforms the eager error that names the vertex or face."""
     values, masses, ok = assemble_flagged(verts, view, topo, kernel, want_mass)
     if validate and not require(ok, _BAD_INPUT):
-        raise_bad_input(verts, topo)
+        raise_bad_input(verts, topo, kernel)
     return values, masses
 
 
@@ -105,55 +285,56 @@ def assemble_flagged(
     kernel: BlockKernel,
     want_mass: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """:func:`assemble` for traced and transformed code: out of place, one pass per group.
+    """``(values, masses, ok)``: the assembly out of place, one pass per group, and a 0-dim
+    bool saying whether every check passed (no error raised: batches check theirs together).
 
     In place updates of a value array from batched blocks fail under vmap, and a loop over
     chunks would unroll into the traced graph (thousands of nodes at a million faces, which
     the C++ compiler behind inductor then fails on); torch.compile fuses the whole group
-    instead, so the chunking that keeps eager temporaries small is not needed there.
+    instead, so the chunking that keeps eager temporaries small is not needed there. Faces
+    that float32 evaluates poorly are not re-evaluated in float64 here (that needs their
+    number on the host).
     """
-    verts_t = verts.t().contiguous()
+    scale, unscale = _normalizer(verts)
+    verts_t = verts.t().contiguous() * scale
     values = verts.new_zeros(topo.nnz)
     masses = verts.new_zeros(topo.num_verts) if want_mass else None
     eps = torch.finfo(verts.dtype).eps
     degenerate = []
     for i, grp in enumerate(view.groups):
         whole = view.whole(i)
-        off, corner_mass, area, size2 = kernel(verts_t, grp, whole.corners_t)
+        off, corner_mass, area, size2, _ = kernel(verts_t, grp, whole.corners_t)
         flat = off.reshape(-1)
         positions = torch.cat((whole.pos_upper, whole.pos_lower, whole.pos_diag))
         entries = torch.cat((flat, flat, -row_sums(off, grp).reshape(-1)))
         values = values.index_add(0, positions, entries)
         if masses is not None:
             masses = masses.index_add(0, whole.corners_t.reshape(-1), corner_mass.reshape(-1))
-        degenerate.append((area <= eps * size2).any())
-    return values, masses, _valid(verts, degenerate)
+        degenerate.append(_any_degenerate(area, size2, eps))
+    masses_n, masses = masses, _unscaled(masses, unscale)
+    ok = _input_ok(verts, degenerate) & _output_ok(values, masses_n, masses)
+    return values, masses, ok
 
 
 _BAD_INPUT = (
-    "torch_polylap: non-finite vertex coordinates or a zero-area face. Inside torch.compile "
-    "or torch.func.vmap the offending element cannot be named: call torch_polylap.laplacian "
-    "eagerly on these vertices to find it, or pass validate=False to accept huge entries."
+    "torch_polylap: non-finite vertex coordinates, a zero-area face, or a Laplacian or masses "
+    "that the dtype cannot represent. Inside torch.compile or torch.func.vmap the offending "
+    "element cannot be named: call torch_polylap.laplacian eagerly on these vertices to find "
+    "it, or pass validate=False to skip the checks."
 )
 
 
-def _valid(verts: torch.Tensor, degenerate: list[torch.Tensor]) -> torch.Tensor:
-    """0-dim bool: finite coordinates and no zero-area face."""
-    ok = torch.isfinite(verts).all()
-    if degenerate:
-        ok = ok & ~torch.stack(degenerate).any()
-    return ok
-
-
-def _validate(verts: torch.Tensor, topo: Topology, degenerate: list[torch.Tensor]) -> None:
-    """Raise on non-finite coordinates or a zero-area face (one device sync eagerly; an
-    in-graph assertion when traced; a check of every batch entry under vmap)."""
-    if not require(_valid(verts, degenerate), _BAD_INPUT):
-        raise_bad_input(verts, topo)
-
-
-def raise_bad_input(verts: torch.Tensor, topo: Topology) -> None:
-    """Raise the ValueError that names the first non-finite vertex or zero-area face."""
+def raise_bad_input(
+    verts: torch.Tensor,
+    topo: Topology,
+    kernel: BlockKernel | None = None,
+    masses: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None),
+    mixed: bool = False,
+) -> None:
+    """Raise the ValueError that names the first non-finite vertex, zero-area or too small
+    face, face with a non-finite block (``kernel``; with ``mixed`` its ill-conditioned faces
+    evaluated in float64, as the assembly did), or mass out of the dtype's range (``masses``:
+    those of the normalized coordinates and the caller's)."""
     bad_v = ~torch.isfinite(verts).all(1)
     if bool(bad_v.any()):
         v = int(torch.nonzero(bad_v)[0, 0])
@@ -161,20 +342,71 @@ def raise_bad_input(verts: torch.Tensor, topo: Topology) -> None:
             f"vertex {v} has non-finite coordinates {verts[v].tolist()} "
             f"({int(bad_v.sum())} such vertices); fix or remove them before building operators."
         )
-    eps = torch.finfo(verts.dtype).eps
-    for _, grp, x in face_groups(verts, topo):
+    verts = verts.detach()
+    info = torch.finfo(verts.dtype)
+    scale, unscale = _normalizer(verts)
+    biggest = float(verts.abs().max())
+    verts_n = verts * scale
+    for _, grp, x in face_groups(verts_n, topo):
         _, area, size2 = aw11_entries(x, grp, 0.0)
-        bad = area <= eps * size2
+        small = ~(size2 >= info.tiny / info.eps)
+        if bool(small.any()):
+            local = int(torch.nonzero(small)[0, 0])
+            f = int(grp.face_ids[local])
+            raise ValueError(
+                f"face {f} (vertices {topo.faces[f].tolist()}) is about "
+                f"{math.sqrt(float(size2[local])):.1g} times the mesh's largest coordinate "
+                f"({biggest:.3g}): too small for {verts.dtype} to compute its block "
+                f"({int(small.sum())} such face(s) of degree {grp.k}). Use float64, or move "
+                "far-away vertices (unreferenced ones included) closer."
+            )
+        bad = ~(area > info.eps * size2)
         if bool(bad.any()):
             local = int(torch.nonzero(bad)[0, 0])
             f = int(grp.face_ids[local])
+            rel = float(area[local] / size2[local])
             raise ValueError(
                 f"face {f} (vertices {topo.faces[f].tolist()}) has zero vector area "
-                f"(|f| = {float(area[local]):.3g}); its corners are collinear or its loop cancels "
-                f"out ({int(bad.sum())} such face(s) of degree {grp.k}). The Laplacian divides by "
-                "|f|: remove the face, collapse it, or move its vertices apart. Thin faces with "
-                "non-zero area are fine."
+                f"(|f| / s^2 = {rel:.3g}, s^2 the sum of its squared half-diagonals); its "
+                f"corners are collinear or its loop cancels out ({int(bad.sum())} such face(s) "
+                f"of degree {grp.k}). The Laplacian divides by |f|: remove the face, collapse "
+                "it, or move its vertices apart. Thin faces with non-zero area are fine."
             )
+    if kernel is not None:
+        verts_t = verts_n.t().contiguous()
+        for grp in topo.on(verts.device).groups:
+            off, corner_mass, _, _, error = kernel(verts_t, grp, grp.corners_t)
+            bad = ~(torch.isfinite(off).all(0) & torch.isfinite(corner_mass).all(0))
+            if mixed:
+                redo = torch.nonzero(bad & ~(error * info.eps <= FLOAT32_TOLERANCE))[:, 0]
+                off, corner_mass = kernel(verts_t.double(), grp, grp.corners_t[:, redo])[:2]
+                finite = torch.isfinite(off).all(0) & torch.isfinite(corner_mass).all(0)
+                bad[redo] = ~finite
+            if bool(bad.any()):
+                local = int(torch.nonzero(bad)[0, 0])
+                f = int(grp.face_ids[local])
+                raise ValueError(
+                    f"face {f} (vertices {topo.faces[f].tolist()}) has a non-finite block in "
+                    f"{verts.dtype} ({int(bad.sum())} such face(s) of degree {grp.k}); "
+                    "compute in float64 or repair the face (torch_polylap.repair)."
+                )
+    masses_n, m = masses
+    if masses_n is not None and m is not None:
+        out = ~_masses_ok(masses_n, m)
+        if bool(out.any()):
+            v = int(torch.nonzero(out)[0, 0])
+            mass = float(masses_n[v].double()) * float(unscale) ** 2
+            raise ValueError(
+                f"the mass of vertex {v} ({mass:.3g}; {int(out.sum())} such vertices) is "
+                f"outside the normal range of {verts.dtype} ({info.tiny:.3g} .. {info.max:.3g}): "
+                f"M0 scales with the square of the mesh's size, and its coordinates reach "
+                f"{biggest:.3g}. Use float64, or rescale the vertices (L is scale invariant, "
+                "M0 scales by the square of the factor)."
+            )
+    raise ValueError(
+        f"L holds non-finite values in {verts.dtype} although every face block is finite: "
+        "their sums overflow (a huge lam?). Use float64 or a smaller lam."
+    )
 
 
 def face_groups(

@@ -171,9 +171,11 @@ def polygon_entries(
     ``L_f = G G^T / |f| + lambda d^T Pi d`` (AW11 eq. 3 and 9), evaluated in a per-face scaled
     frame: with ``s^2 = sum_i |g_i|^2``, the vector area is divided by ``s^2`` before its norm
     is taken, so no quantity of order ``s^4`` is formed. ``L_f`` is scale invariant, so the
-    entries are those of the unscaled face to round-off for any ``s`` whose square is a normal
-    number (float64: ``1e-150 .. 1e150``; float32: ``1e-18 .. 1e18``); the area is rescaled by
-    ``s^2``. Triangles carry no stabilizer (AW11 Theorem 2).
+    entries are those of the unscaled face to round-off for any ``s`` with ``s^2`` at least
+    ``tiny / eps`` and ``1 / s^2`` below the largest number (float64: about ``1e-146 .. 1e154``;
+    float32: ``1e-15 .. 1e19``; the assembly divides the coordinates by a power of two near
+    their largest magnitude, which brings every face it accepts into that range); the area is
+    rescaled by ``s^2``. Triangles carry no stabilizer (AW11 Theorem 2).
 
     Args:
         x: ``(3, k, F)`` corner positions.
