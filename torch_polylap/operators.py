@@ -91,8 +91,12 @@ def laplacian(
         layout: the layout the operators report, ``torch.sparse_csr`` (default) or
             ``torch.sparse_coo``; either way they store CSR indices and offer ``crow_indices()``,
             ``col_indices()`` and the COO ``indices()``.
-        validate: check for non-finite coordinates and zero-area faces (one device sync). With
-            ``False`` a zero-area face gives huge but finite entries instead of an error.
+        validate: check the input and the result (one device sync): finite coordinates, no
+            zero-area face, finite ``L`` and masses the dtype represents; for float32, faces
+            whose blocks float32 would get wrong by more than 1e-2 (thin or nearly degenerate
+            ones) are evaluated in float64. With ``False`` none of this: a zero-area face gives
+            huge but finite entries instead of an error. Under torch.compile the checks are an
+            in-graph assertion and there is no float64 re-evaluation.
         method: ``"aw11"`` (default, this docstring), ``"plms"`` (Bunge et al. 2020, "Polygon
             Laplacian Made Simple": a virtual vertex per face, ``lam`` ignored) or ``"degoes"``
             (de Goes et al. 2020, with ``lam`` their ``beta``); see :mod:`torch_polylap.kernels`.
