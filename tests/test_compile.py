@@ -300,3 +300,10 @@ def test_whole_training_step_with_optimizer_compiles_and_equals_eager():
     for _ in range(3):
         torch.testing.assert_close(compiled(), eager(), rtol=1e-12, atol=0)
         torch.testing.assert_close(Xc, Xe, rtol=0, atol=1e-14)
+
+
+def test_importing_the_package_does_not_import_dynamo():
+    """torch._dynamo costs about a second to import, in every DataLoader worker and command."""
+    code = "import sys, torch_polylap; print('torch._dynamo' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr[-2000:]

@@ -17,7 +17,6 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 import torch
-from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
 
 __all__ = ["tracing", "in_functorch", "in_vmap", "functional", "require", "run_eagerly"]
 
@@ -46,7 +45,6 @@ _pin_count = itertools.count()
 _this_module = sys.modules[__name__]
 
 
-@torch._dynamo.assume_constant_result
 def _pin(fn: Callable[..., Any], *args: Any) -> str:
     global _eager_depth
     _eager_depth += 1
@@ -60,6 +58,12 @@ def _pin(fn: Callable[..., Any], *args: Any) -> str:
     while len(_pin_names) > _PIN_LIMIT:
         delattr(_this_module, _pin_names.popleft())
     return name
+
+
+# What torch._dynamo.assume_constant_result does (torch 2.13), without importing torch._dynamo
+# at import time: that import alone takes about a second, in every process (DataLoader
+# workers, the command line) whether or not it ever compiles.
+_pin._dynamo_marked_constant = True  # type: ignore[attr-defined]
 
 
 def run_eagerly(fn: Callable[..., T], *args: Any) -> T:
@@ -85,7 +89,11 @@ def in_functorch() -> bool:
 
 def in_vmap() -> bool:
     """Whether a ``torch.func.vmap`` is active eagerly (data cannot steer control flow)."""
-    return in_functorch() and any(
+    if not in_functorch():
+        return False
+    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+
+    return any(
         i.key() == torch._C._functorch.TransformType.Vmap
         for i in retrieve_all_functorch_interpreters()
     )

@@ -31,8 +31,6 @@ from torch import nn
 
 from ..linalg import solve
 from ..sparse import as_operator
-from ..sparse.index_ops import diagonal_indices
-from ..tracing import tracing
 from .diffusion import _inverse_softplus
 
 __all__ = ["LearnedVectorDiffusion", "VectorLinear", "VectorGate", "rotate_vectors"]
@@ -94,22 +92,10 @@ class LearnedVectorDiffusion(nn.Module):
         n = x.shape[0]
         A, M = as_operator(A), as_operator(M)
         flat = x.permute(0, 2, 1).reshape(2 * n, self.channels)  # row 2 v + c, as A's
-        # M + t A on A's own pattern: A stores its whole diagonal (every vertex in a face), so
-        # the sum needs no pattern union, whose size torch.compile could not know
-        pos = diagonal_indices(A.crow_indices(), A.col_indices(), 2 * n)
-        if not tracing() and bool((pos < 0).any()):
-            v = int(torch.nonzero(pos < 0)[0, 0]) // 2
-            raise ValueError(
-                f"LearnedVectorDiffusion: vertex {v} has an empty row in A (it is in no face); "
-                "remove unreferenced vertices first (torch_polylap.repair)."
-            )
-        mass = A.values().new_zeros(A.values().shape).index_put((pos,), M.diagonal())
         rhs = M @ flat
         times = self.times.to(x.dtype)
-        columns = [
-            solve(A.with_values(times[c] * A.values() + mass, symmetric=True), rhs[:, c])
-            for c in range(self.channels)
-        ]
+        # M + t A keeps A's pattern (it holds the whole diagonal), also under torch.compile
+        columns = [solve(M + times[c] * A, rhs[:, c]) for c in range(self.channels)]
         return torch.stack(columns, 1).reshape(n, 2, self.channels).permute(0, 2, 1)
 
     def extra_repr(self) -> str:

@@ -76,6 +76,7 @@ class SparseOperator(torch.Tensor):
     _row: torch.Tensor
     _reported_layout: torch.layout
     _pattern_key: int
+    _pattern_obj: SparsityPattern | None
     _solver_cache: dict[str, Any]
 
     # Built from tensors and constants only (not from a SparsityPattern object): code that
@@ -114,12 +115,17 @@ class SparseOperator(torch.Tensor):
         A.symmetric = bool(symmetric and shape[0] == shape[1])
         A._reported_layout = layout
         A._pattern_key = pattern_key
+        # the pattern object itself where known (eagerly): it keeps its caches, and its entry in
+        # the registry that traced code looks it up in, alive as long as the operator
+        A._pattern_obj = None
         A._solver_cache = {}
         return A
 
     @property
     def pattern(self) -> SparsityPattern:
         """The :class:`SparsityPattern` (the index structure and its cached derived indices)."""
+        if self._pattern_obj is not None and not tracing():
+            return self._pattern_obj
         return pattern_of_indices(
             self._pattern_key, self._crow, self._col, self._row, _shape2(self)
         )
@@ -144,6 +150,7 @@ class SparseOperator(torch.Tensor):
             self._reported_layout,
             self._pattern_key,
         )
+        A._pattern_obj = self._pattern_obj
         if share_cache:
             A._solver_cache = self._solver_cache
         return A
@@ -273,7 +280,10 @@ def operator_on(
     if values.device != pattern.device:
         pattern = pattern.to(values.device)
     parts = (pattern.crow, pattern.col, pattern.row)
-    return SparseOperator(values, *parts, pattern.shape, symmetric, layout, pattern.key)
+    A = SparseOperator(values, *parts, pattern.shape, symmetric, layout, pattern.key)
+    if not tracing():
+        A._pattern_obj = pattern
+    return A
 
 
 def pattern_of_indices(
