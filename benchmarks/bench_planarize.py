@@ -2,15 +2,20 @@
 iteration budgets and at equal time.
 
     python benchmarks/bench_planarize.py [--meshes NAME ...] [--tol 1e-4]
-        [--budgets 1 5 10 50 200] [--igl-python /work/igl241/bin/python]
+        [--budgets 1 5 10 50 200] [--positions-solve] [--igl-python /work/igl241/bin/python]
         [--igl-max-seconds 120] [--igl-max-vertices 10000] [--json PATH]
 
 Meshes: every pure-quad mesh of ``../shared/data/meshes/real`` (found by reading them all) and
 generated architectural quad grids (a hyperbolic paraboloid over its rulings, a freeform roof,
-a perturbed cube-sphere dome); ``--meshes`` picks some by name. Contenders, one thread each:
+a perturbed cube-sphere dome); ``--meshes`` picks some by name, and a real mesh named there is
+taken whatever its degrees (``lion_vase_poly.off``, hexagon-dominant). Contenders, one thread
+each:
 
 * ours: ``torch_polylap.apps.planarize`` with its defaults (Gauss-Newton on the face-plane
   residuals) and with ``method="lbfgs"`` (the paper's descent of ``E_plan``, 60 s at most);
+* with ``--positions-solve``: the same Gauss-Newton iterations with each step solved in the
+  free vertex coordinates (CHOLMOD on ``C^T C + D``, three rows per vertex), as the default did
+  before it solved them in the faces' plane conditions: the old default's linear algebra;
 * Shape-Up, vectorized (``shapeup.py`` beside this script): the same local projection and
   prefactored global step as libigl, without its per-face loop; run until it reaches ``tol``,
   for 100,000 iterations, or for ``max(30 s, 10x ours)`` but at most ``--su-max-seconds``
@@ -19,7 +24,8 @@ a perturbed cube-sphere dome); ``--meshes`` picks some by name. Contenders, one 
   Python bindings after 2.4.1, so it runs in a separate interpreter, ``--igl-python``, on
   ``.npz`` files and is timed inside that process), at each iteration budget with
   ``threshold = 0``; skipped where its time predicted from the first budget exceeds
-  ``--igl-max-seconds`` (120) and on meshes of more than ``--igl-max-vertices`` (10,000): its
+  ``--igl-max-seconds`` (120), on meshes of more than ``--igl-max-vertices`` (10,000) and on
+  meshes that are not pure quads: its
   iterations cost ``O(V F)`` (a selector matrix of the full width per face). Its output is
   compared with the vectorized Shape-Up's after the same iterations (positions, after removing
   the translation of every connected part, which libigl leaves to round-off: its system matrix
@@ -37,6 +43,7 @@ the numbers.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -46,16 +53,22 @@ import sys
 import tempfile
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 from common import cpu_model, markdown_table
 from shapeup import ShapeUp
 
 import torch_polylap as tp
 from torch_polylap.apps import planarize
+from torch_polylap.linalg.factor import CholeskyFactorization
+
+GN = importlib.import_module("torch_polylap.apps.planarize")
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "real"
 SHAPEUP = """
@@ -104,7 +117,7 @@ GENERATED: dict[str, Callable[[], tuple[torch.Tensor, torch.Tensor]]] = {
 }
 
 
-Mesh = tuple[str, torch.Tensor, torch.Tensor]
+Mesh = tuple[str, torch.Tensor, Any]  # faces: (F, 4) quads, or polygons of mixed degrees
 
 
 def load_meshes(names: list[str] | None, real: Path) -> list[Mesh]:
@@ -119,6 +132,8 @@ def load_meshes(names: list[str] | None, real: Path) -> list[Mesh]:
             F = faces.as_uniform()
             if F is not None and F.shape[1] == 4:
                 meshes.append((path.name, V.double(), F))
+            elif names:
+                meshes.append((path.name, V.double(), faces))
     else:
         print(f"{real} missing: real meshes skipped", file=sys.stderr)
     for name, make in GENERATED.items():
@@ -128,7 +143,7 @@ def load_meshes(names: list[str] | None, real: Path) -> list[Mesh]:
     return meshes
 
 
-def shape(V: torch.Tensor, V0: torch.Tensor, F: torch.Tensor) -> dict:
+def shape(V: torch.Tensor, V0: torch.Tensor, F: Any) -> dict:
     n = tp.face_nonplanarity(V, F)
     diag = float((V0.amax(0) - V0.amin(0)).norm())
     disp = (V - V0).norm(dim=1) / diag
@@ -163,11 +178,30 @@ def part_demeaned(X: np.ndarray, part: np.ndarray) -> np.ndarray:
     return X - mean[part]
 
 
-def run_ours(V: torch.Tensor, F: torch.Tensor, tol: float, **kw: object) -> dict:
+def positions_step(C: sp.csr_matrix, c: np.ndarray, g0: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The Gauss-Newton step solved in the free vertex coordinates, ``(C^T C + D) dx = -(C^T c
+    + g0)``: the matrix the old default factored (its per-face Schur complements sum to
+    ``C^T C``), three rows per vertex."""
+    H = (C.T @ C + sp.diags(d)).tocsr()
+    rhs = torch.from_numpy(C.T @ c + g0)[:, None]
+    return -CholeskyFactorization(H, check=False).solve(rhs)[:, 0].numpy()
+
+
+@contextmanager
+def solved_in_positions() -> Iterator[None]:
+    original = GN._damped_step
+    GN._damped_step = positions_step
+    try:
+        yield
+    finally:
+        GN._damped_step = original
+
+
+def run_ours(V: torch.Tensor, F: Any, tol: float, **kw: object) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # stopping above tol is reported in the table
         start = time.perf_counter()
-        res = planarize(V, F.clone(), tol=tol, **kw)  # type: ignore[arg-type]
+        res = planarize(V, F, tol=tol, **kw)  # type: ignore[arg-type]
         seconds = time.perf_counter() - start
     return shape(res.verts, V, F) | {
         "seconds": seconds,
@@ -182,14 +216,21 @@ def at_time(trace_seconds: list[float], trace_np: list[float], before: float, t:
     return (trace_np[done - 1] if done else before), done
 
 
-def bench_mesh(name: str, V: torch.Tensor, F: torch.Tensor, args: argparse.Namespace) -> dict:
-    print(f"{name}: {V.shape[0]} vertices, {F.shape[0]} quads", file=sys.stderr)
+def bench_mesh(name: str, V: torch.Tensor, F: Any, args: argparse.Namespace) -> dict:
+    quads = isinstance(F, torch.Tensor)
+    topo = tp.get_topology(F, V.shape[0])
+    groups = [g.corners_t.t().numpy() for g in topo.groups]
+    nf = sum(g.shape[0] for g in groups)
+    print(f"{name}: {V.shape[0]} vertices, {nf} faces", file=sys.stderr)
     before = shape(V, V, F)
-    rec: dict = {"mesh": name, "V": V.shape[0], "F": F.shape[0], "before": before}
+    rec: dict = {"mesh": name, "V": V.shape[0], "F": nf, "before": before}
     rec["ours"] = gn = run_ours(V, F, args.tol)
+    if args.positions_solve:
+        with solved_in_positions():
+            rec["positions_solve"] = run_ours(V, F, args.tol)
     rec["lbfgs"] = run_ours(V, F, args.tol, method="lbfgs", max_iter=100000, time_limit=60.0)
 
-    su = ShapeUp(V.numpy(), F.numpy())
+    su = ShapeUp(V.numpy(), groups)
     limit = min(max(30.0, 10 * gn["seconds"]), args.su_max_seconds)
     trace = su.run(args.su_max_iter, tol=args.tol, time_limit=limit, faces=F)
     reached = trace.nonplanarity[-1] if trace.iterations else before["nonplanarity_max"]
@@ -223,6 +264,7 @@ def bench_mesh(name: str, V: torch.Tensor, F: torch.Tensor, args: argparse.Names
             }
         if (
             have_igl(args)
+            and quads
             and V.shape[0] <= args.igl_max_vertices
             and (igl_per_iter is None or igl_per_iter * b <= args.igl_max_seconds)
         ):
@@ -252,6 +294,7 @@ def e(x: float) -> str:
 
 def report(records: list[dict], tol: float) -> None:
     print(f"\nTo max non-planarity {tol:g}, one thread each:\n")
+    positions = all("positions_solve" in r for r in records)
     body = []
     for r in records:
         b, o, lb, s = r["before"], r["ours"], r["lbfgs"], r["shapeup"]
@@ -272,6 +315,11 @@ def report(records: list[dict], tol: float) -> None:
                 f"{eq['ratio']:.0f}",
                 f"{s['seconds'] / o['seconds']:.1f}" + ("" if s["converged"] else "+"),
             ]
+            + (
+                [f"{r['positions_solve']['iterations']}, {r['positions_solve']['seconds']:.2f}"]
+                if positions
+                else []
+            )
         )
     print(
         markdown_table(
@@ -288,7 +336,8 @@ def report(records: list[dict], tol: float) -> None:
                 "Shape-Up at ours' time: iters: max",
                 "max ratio at equal time (SU/ours)",
                 "time to tol (SU/ours)",
-            ],
+            ]
+            + (["GN solved in the positions (old): iters, s"] if positions else []),
             body,
         )
     )
@@ -330,6 +379,11 @@ def main() -> int:
     ap.add_argument("--budgets", type=int, nargs="+", default=[1, 5, 10, 50, 200])
     ap.add_argument("--su-max-iter", type=int, default=100000)
     ap.add_argument("--su-max-seconds", type=float, default=300.0)
+    ap.add_argument(
+        "--positions-solve",
+        action="store_true",
+        help="also time Gauss-Newton with its steps solved in the vertex coordinates (old)",
+    )
     ap.add_argument(
         "--igl-python", default=os.environ.get("IGL241_PYTHON", "/work/igl241/bin/python")
     )

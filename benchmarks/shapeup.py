@@ -1,7 +1,8 @@
 """Shape-Up quad planarization (Bouaziz, Deuss, Schwartzburg, Weise & Pauly 2012), vectorized.
 
 The benchmark's second peer beside libigl's ``igl.planarize_quad_mesh``: the same local and
-global steps, without libigl's per-face loop. Each iteration
+global steps, without libigl's per-face loop, and for polygons of any degree (libigl's takes
+quads only; a mixed mesh is passed as one corner array per degree). Each iteration
 
 * **local step**: every face's corners, centered at their mean, are projected onto the plane
   through that mean spanned by the two largest principal directions of the corners (the
@@ -47,22 +48,29 @@ class ShapeUpTrace:
 
 
 class ShapeUp:
-    """Vectorized Shape-Up on a mesh of ``k``-gons only (``F`` of shape ``(F, k)``)."""
+    """Vectorized Shape-Up on a mesh of ``k``-gons (``F`` of shape ``(F, k)``), or of mixed
+    degrees (a list of such arrays, one per degree)."""
 
-    def __init__(self, V: np.ndarray, F: np.ndarray) -> None:
+    def __init__(self, V: np.ndarray, F: np.ndarray | list[np.ndarray]) -> None:
         from cholespy import CholeskySolverD, MatrixType
 
         start = time.perf_counter()
         self.V0 = np.ascontiguousarray(V, dtype=np.float64)
-        self.F = np.ascontiguousarray(F, dtype=np.int64)
-        n, (nf, k) = self.V0.shape[0], self.F.shape
-        center = np.eye(k) - 1.0 / k
-        rows = np.repeat(self.F, k, axis=1).reshape(-1)
-        cols = np.tile(self.F, (1, k)).reshape(-1)
-        K = sp.csr_matrix((np.tile(center.reshape(-1), nf), (rows, cols)), shape=(n, n))
+        groups = [F] if isinstance(F, np.ndarray) else F
+        self.groups = [np.ascontiguousarray(g, dtype=np.int64) for g in groups]
+        self.F = self.groups[0]  # the faces, on a mesh of one degree
+        n = self.V0.shape[0]
+        K = sp.csr_matrix((n, n))
+        for g in self.groups:
+            nf, k = g.shape
+            center = np.eye(k) - 1.0 / k
+            rows = np.repeat(g, k, axis=1).reshape(-1)
+            cols = np.tile(g, (1, k)).reshape(-1)
+            K = K + sp.csr_matrix((np.tile(center.reshape(-1), nf), (rows, cols)), shape=(n, n))
         # one held vertex per connected part (and every vertex outside all faces)
         used = np.zeros(n, dtype=bool)
-        used[self.F.reshape(-1)] = True
+        for g in self.groups:
+            used[g.reshape(-1)] = True
         _, part = connected_components(K, directed=False)
         part[~used] = part.max() + 1 + np.arange(int((~used).sum()))
         self.part = part
@@ -88,21 +96,26 @@ class ShapeUp:
         self.counts = counts
         self.setup_seconds = time.perf_counter() - start
 
-    def project(self, X: np.ndarray) -> np.ndarray:
-        """Local step: ``(F, k, 3)`` centered corners projected onto their best-fit planes."""
-        corners = X[self.F]
-        centered = corners - corners.mean(axis=1, keepdims=True)
-        scatter = np.einsum("fki,fkj->fij", centered, centered)
-        _, vecs = np.linalg.eigh(scatter)
-        normal = vecs[:, :, 0]
-        return centered - (centered @ normal[:, :, None]) * normal[:, None, :]
+    def project(self, X: np.ndarray) -> list[np.ndarray]:
+        """Local step: per degree, ``(F, k, 3)`` centered corners projected onto their best-fit
+        planes."""
+        out = []
+        for g in self.groups:
+            corners = X[g]
+            centered = corners - corners.mean(axis=1, keepdims=True)
+            scatter = np.einsum("fki,fkj->fij", centered, centered)
+            _, vecs = np.linalg.eigh(scatter)
+            normal = vecs[:, :, 0]
+            out.append(centered - (centered @ normal[:, :, None]) * normal[:, None, :])
+        return out
 
-    def global_step(self, projected: np.ndarray, X: np.ndarray) -> np.ndarray:
+    def global_step(self, projected: list[np.ndarray], X: np.ndarray) -> np.ndarray:
         """Global step: the least-squares positions for the projected corners, every part
         translated back to its input mean."""
         n = X.shape[0]
-        rhs = np.zeros((n, 3))
-        np.add.at(rhs, self.F.reshape(-1), projected.reshape(-1, 3))
+        index = np.concatenate([g.reshape(-1) for g in self.groups])
+        corners = np.concatenate([p.reshape(-1, 3) for p in projected])
+        rhs = np.stack([np.bincount(index, corners[:, c], minlength=n) for c in range(3)], 1)
         b = rhs[self.free] - self.K_free_held @ X[self.held]
         rhs_free = torch.from_numpy(np.ascontiguousarray(b))
         out = torch.empty_like(rhs_free)
@@ -123,12 +136,13 @@ class ShapeUp:
         max_iter: int,
         tol: float = 0.0,
         time_limit: float | None = None,
-        faces: torch.Tensor | None = None,
+        faces: object = None,
     ) -> ShapeUpTrace:
         """Iterate until ``max_iter`` iterations, the largest non-planarity below ``tol`` or
         ``time_limit`` seconds have passed. The non-planarity is measured after every iteration,
         as libigl does, but its time is not counted: ``seconds`` holds the setup and the
-        iterations only, in Shape-Up's favour."""
+        iterations only, in Shape-Up's favour. ``faces``: the mesh's faces for
+        :func:`torch_polylap.face_nonplanarity` (default: the one degree's array)."""
         F = torch.from_numpy(self.F) if faces is None else faces
         X = self.V0.copy()
         trace = ShapeUpTrace(verts=X, setup_seconds=self.setup_seconds)

@@ -6,9 +6,12 @@ Two optimizers, chosen by ``method=``:
 residuals ``r_fi = n_f . (x_i - c_f) / diam_f`` (corner distance from the face's plane through
 the corner centroid ``c_f``, over the face diameter; the quantity the stopping criterion
 measures), with the unit normals ``n_f`` as unknowns next to the positions. The normals are
-eliminated face by face (a ``2 x 2`` Schur complement per face) and reset to the least-squares
-normals after every step (variable projection), so each iteration is one sparse SPD solve in the
-free vertex coordinates (CHOLMOD when cholespy is installed, else SuperLU).
+eliminated face by face and reset to the least-squares normals after every step (variable
+projection); what remains of a ``k``-gon's residuals are ``k - 3`` plane conditions (one per
+quad, three per hexagon). Each iteration is one sparse SPD solve in those conditions, not in
+the vertex coordinates: the same step by the Woodbury identity, with a system of one row per
+quad instead of three per vertex, fewer nonzeros and far less fill (CHOLMOD when cholespy is
+installed, else SuperLU; on the CPU, the per-face work on the input's device).
 It minimizes
 
     Phi(X) = 1/2 sum_f sum_{i in f} r_fi^2 + closeness/2 sum_i |x_i - x0_i|^2 / h^2
@@ -29,8 +32,8 @@ face the part of the edge vectors that leaves the plane of the maximal projectio
 Why Gauss-Newton is the default (``benchmarks/bench_planarize.py``, tol 1e-4, one thread):
 L-BFGS needs hundreds to thousands of iterations on real quad meshes and stopped above the
 tolerance at its old default of 500 iterations on some; Gauss-Newton reaches the tolerance in
-a handful of iterations (each one factorization), faster in wall time on every quad mesh
-measured and with a displacement of the same order. Both stop when the largest
+a handful of iterations (each one factorization), faster in wall time on every mesh measured
+and with a displacement of the same order. Both stop when the largest
 :func:`torch_polylap.face_nonplanarity` (maximal-projection plane) is below ``tol``, and both warn
 (``UserWarning``) when they stop above it.
 """
@@ -43,14 +46,14 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+import scipy.sparse as sp
 import torch
 
 from ..assembly import MeshFaces
 from ..checks import check_index_or_mask, check_verts
-from ..linalg.factor import spd_factorization
+from ..linalg.factor import CholeskyFactorization, _cholespy_available, spd_splu
 from ..measures import face_nonplanarity, planarity_energy
-from ..sparse.operator import operator_on
-from ..sparse.pattern import SparsityPattern
 from ..topology import Topology, get_topology
 
 __all__ = ["planarize", "PlanarizeResult"]
@@ -97,8 +100,8 @@ def _stats(x: torch.Tensor) -> tuple[float, float]:
     return (float(x.max()), float(x.mean())) if x.numel() else (0.0, 0.0)
 
 
-# per degree group (k > 3): (k, corners (F, k), free dofs (F, 3k) or -1, kept block entries)
-_Parts = list[tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]]
+# per degree group (k > 3): (k, corners (F, k), free dof of each corner coordinate (F, 3k) or -1)
+_Parts = list[tuple[int, torch.Tensor, torch.Tensor]]
 # what a method returns: (positions, iterations, energies, objectives, stop reason)
 _Run = tuple[torch.Tensor, int, list[float], list[float], str]
 # Levenberg-Marquardt damping, relative to each vertex's stiffness: start, and floor
@@ -106,105 +109,143 @@ _MU_START = 1e-6
 _MU_MIN = 1e-12
 
 
-def _lm_setup(
-    topo: Topology, free_mask: torch.Tensor, n: int
-) -> tuple[_Parts, torch.Tensor, SparsityPattern, torch.Tensor]:
-    """Per degree group (k > 3): corners and the CSR positions of the per-face ``3k x 3k``
-    blocks in the free-dof system, computed once (the pattern does not change)."""
+def _dof_setup(topo: Topology, free_mask: torch.Tensor, n: int) -> tuple[_Parts, torch.Tensor]:
+    """Per degree group (k > 3): corners and their free dofs (``3 i + c`` numbered among the free
+    ones, -1 where fixed), computed once; and the ``(m,)`` free dofs themselves."""
     device = free_mask.device
     dof_map = torch.full((3 * n,), -1, dtype=torch.int64, device=device)
     free_dofs = 3 * torch.nonzero(free_mask).reshape(-1, 1) + torch.arange(3, device=device)
     free_dofs = free_dofs.reshape(-1)
-    m = free_dofs.numel()
-    dof_map[free_dofs] = torch.arange(m, device=device)
-    groups = topo.on(device).groups
+    dof_map[free_dofs] = torch.arange(free_dofs.numel(), device=device)
     parts: _Parts = []
-    rows, cols = [], []
-    for grp in groups:
+    for grp in topo.on(device).groups:
         if grp.k <= 3:
             continue  # triangles are planar: no residual
         corners = grp.corners_t.t().to(torch.int64)  # (F, k)
         dofs = dof_map[
             (3 * corners[:, :, None] + torch.arange(3, device=device)).reshape(corners.shape[0], -1)
         ]  # (F, 3k), -1 where fixed
-        r = dofs[:, :, None].expand(-1, -1, dofs.shape[1])
-        c = dofs[:, None, :].expand(-1, dofs.shape[1], -1)
-        keep = (r >= 0) & (c >= 0)
-        parts.append((grp.k, corners, dofs, keep))
-        rows.append(r[keep])
-        cols.append(c[keep])
-    diag = torch.arange(m, device=device)
-    rows.append(diag)
-    cols.append(diag)
-    keys = torch.cat(rows) * max(m, 1) + torch.cat(cols)
-    unique, inverse = torch.unique(keys, sorted=True, return_inverse=True)
-    urow = torch.div(unique, max(m, 1), rounding_mode="floor")
-    pattern = SparsityPattern.from_rows(urow, unique - urow * max(m, 1), (m, m))
-    return parts, free_dofs, pattern, inverse
+        parts.append((grp.k, corners, dofs))
+    return parts, free_dofs
 
 
 def _face_fit(
     y: torch.Tensor, corners: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Least-squares planes of ``(F, k)`` faces: centered corners, diameters, eigenpairs."""
-    x = y[corners]  # (F, k, 3)
-    centered = x - x.mean(1, keepdim=True)
-    diameter = torch.cdist(x, x).amax((1, 2)).clamp_min(torch.finfo(y.dtype).tiny)
-    evals, evecs = torch.linalg.eigh(centered.transpose(1, 2) @ centered)
+    """Least-squares planes of ``(F, k)`` faces: centered corners, diameters, eigenpairs of the
+    scatter matrices (ascending)."""
+    centered, diameter, scatter = _face_scatter(y, corners)
+    evals, evecs = torch.linalg.eigh(scatter)
     return centered, diameter, evals, evecs
 
 
+def _face_scatter(
+    y: torch.Tensor, corners: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Centered corners ``(F, k, 3)``, diameters ``(F,)`` and scatter matrices ``(F, 3, 3)``."""
+    x = y[corners]  # (F, k, 3)
+    centered = x - x.mean(1, keepdim=True)
+    diameter = torch.cdist(x, x).amax((1, 2)).clamp_min(torch.finfo(y.dtype).tiny)
+    return centered, diameter, centered.transpose(1, 2) @ centered
+
+
 def _plane_objective(y: torch.Tensor, parts: _Parts) -> float:
-    """``1/2 sum_f sum_i (n_f . (x_i - c_f))^2 / diam_f^2`` with least-squares normals."""
+    """``1/2 sum_f sum_i (n_f . (x_i - c_f))^2 / diam_f^2`` with least-squares normals (the
+    smallest eigenvalue of the scatter matrix: eigenvalues only, half the cost of eigenpairs)."""
     total = 0.0
-    for _, corners, _, _ in parts:
-        _, diameter, evals, _ = _face_fit(y, corners)
-        total += 0.5 * float((evals[:, 0].clamp_min(0) / diameter**2).sum())
+    for _, corners, _ in parts:
+        _, diameter, scatter = _face_scatter(y, corners)
+        smallest = torch.linalg.eigvalsh(scatter)[:, 0]
+        total += 0.5 * float((smallest.clamp_min(0) / diameter**2).sum())
     return total
 
 
-def _gauss_newton_system(
+def _plane_conditions(
     y: torch.Tensor, parts: _Parts, free_dofs: torch.Tensor, h: float
-) -> tuple[torch.Tensor, list[torch.Tensor], torch.Tensor]:
-    """Gradient and Gauss-Newton matrix values of the plane objective in the free dofs, with the
-    per-face normals as extra unknowns eliminated face by face (Schur complement), and each free
-    dof's stiffness for the damping: a third of the trace of its vertex's ``3 x 3`` block,
-    ``sum_f (1 - 1/k) / (3 diam_f^2)``, plus ``1 / h^2`` (``h``: the mean edge length) so that
-    vertices of triangles only are damped too. Per vertex, not global: a face much smaller
-    than the others has entries ``1 / diam_f^2`` that a global damping would not reach,
-    leaving the matrix numerically indefinite."""
-    grad = y.new_zeros(3 * y.shape[0])
+) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+    """The Gauss-Newton model of the plane residuals with the normals eliminated, as ``k - 3``
+    conditions per ``k``-gon: ``(R, m)`` Jacobian ``C`` in the free dofs, ``(R,)`` values ``c``,
+    and each free dof's stiffness for the damping.
+
+    Per face, the residuals ``r_i = n . (x_i - c) / s`` (``s``: diameter) and the rows of their
+    Jacobian in the positions, ``d r_i / d x_j = (I - 11^T / k)_ij n^T / s``, are orthogonal to
+    ``1``; a rotation of the normal towards tangent ``t_a`` changes ``r`` along ``u_a = (x - c)
+    t_a / sqrt(lambda_a)`` (``lambda_a``: the scatter matrix's eigenvalue of ``t_a``; the two
+    ``u_a`` are orthonormal). Eliminating the normals from the linearized least-squares problem
+    (a Schur complement) projects each face's residuals and Jacobian onto the complement of
+    ``{1, u_1, u_2}``; ``B`` (``k x (k - 3)``) is an orthonormal basis of it, so ``C_f = B^T J_f``
+    and ``c_f = B^T r_f``, with ``|c_f| = |r_f|`` (the least-squares normal makes ``r`` orthogonal
+    to the ``u_a``). ``C^T C`` is the Gauss-Newton matrix in the positions and ``C^T c`` the
+    gradient of ``1/2 |r|^2``.
+
+    The stiffness is a third of the trace of a vertex's ``3 x 3`` block of ``C^T C`` before the
+    elimination, ``sum_f (1 - 1/k) / (3 s_f^2)``, plus ``1 / h^2`` (``h``: the mean edge length) so
+    that vertices of triangles only are damped too. Per vertex, not global: a face much smaller
+    than the others has entries ``1 / s_f^2`` that a global damping would not reach, leaving the
+    system numerically indefinite.
+    """
     stiffness = y.new_full((y.shape[0],), 1.0 / h**2)
-    values = []
-    for k, corners, _dofs, keep in parts:
+    rows, cols, vals, values = [], [], [], []
+    first = 0
+    for k, corners, dofs in parts:
+        count = corners.shape[0]
         centered, s, evals, evecs = _face_fit(y, corners)
         nrm = evecs[:, :, 0]  # (F, 3)
-        tang = evecs[:, :, 1:]  # (F, 3, 2)
-        r = (centered @ nrm[:, :, None])[:, :, 0] / s[:, None]  # (F, k)
-        eye = torch.eye(k, dtype=y.dtype, device=y.device)
-        pc = eye - 1.0 / k  # centering, P^T P = P
-        # d r_i / d x_jc = Pc_ij n_c / s: J_y = Pc (x) n^T / s, so J_y^T J_y = Pc (x) n n^T / s^2
-        nn = nrm[:, :, None] * nrm[:, None, :] / (s**2)[:, None, None]
-        hyy = (pc[None, :, None, :, None] * nn[:, None, :, None, :]).reshape(-1, 3 * k, 3 * k)
-        # d r_i / d alpha_a (normal rotated towards tangent a) = centered_i . t_a / s
-        jn = (centered @ tang) / s[:, None, None]  # (F, k, 2)
-        # J_y^T J_n: entry (j c, a) = sum_i Pc_ij n_c jn_ia / s = n_c (Pc jn)_ja / s
-        hyn = ((pc @ jn)[:, :, None, :] * nrm[:, None, :, None]).reshape(-1, 3 * k, 2)
-        hyn = hyn / s[:, None, None]
-        hnn = evals[:, 1:] / (s**2)[:, None]  # J_n^T J_n = diag(lambda_2, lambda_3) / s^2
-        hnn = hnn + 1e-12 * hnn.sum(1, keepdim=True) + torch.finfo(y.dtype).tiny
-        schur = hyy - (hyn / hnn[:, None, :]) @ hyn.transpose(1, 2)
+        u = (centered @ evecs[:, :, 1:]) / evals[:, None, 1:].clamp_min(
+            torch.finfo(y.dtype).tiny
+        ).sqrt()  # (F, k, 2)
+        spanned = torch.cat([u.new_full((count, k, 1), k**-0.5), u], 2)  # (F, k, 3)
+        # a complete QR of the orthonormal (k, 3) columns: the last k - 3 columns of Q span
+        # their complement (Householder: a quarter of the time of a k x k eigh)
+        basis = torch.linalg.qr(spanned, mode="complete")[0][:, :, 3:]
+        r = (centered @ nrm[:, :, None]) / s[:, None, None]  # (F, k, 1)
+        values.append((basis.transpose(1, 2) @ r).reshape(-1))
+        jac = basis.transpose(1, 2)[:, :, :, None] * (nrm / s[:, None])[:, None, None, :]
+        jac = jac.reshape(count, k - 3, 3 * k)  # (F, k - 3, 3k): columns as dofs
+        row = first + torch.arange(count * (k - 3), device=y.device).reshape(count, k - 3, 1)
+        col = dofs[:, None, :].expand(-1, k - 3, -1)
+        keep = col >= 0
+        rows.append(row.expand(-1, -1, 3 * k)[keep])
+        cols.append(col[keep])
+        vals.append(jac[keep])
+        first += count * (k - 3)
         stiffness.index_add_(
             0, corners.reshape(-1), ((1 - 1 / k) / (3 * s**2)).repeat_interleave(k)
         )
-        g = ((pc @ r[:, :, None]) * nrm[:, None, :]) / s[:, None, None]  # (F, k, 3) = J_y^T r
-        grad.index_add_(
-            0,
-            (3 * corners[:, :, None] + torch.arange(3, device=y.device)).reshape(-1),
-            g.reshape(-1),
-        )
-        values.append(schur[keep])
-    return grad[free_dofs], values, stiffness.repeat_interleave(3)[free_dofs]
+    C = sp.csr_matrix(
+        (
+            torch.cat(vals).cpu().numpy(),
+            (torch.cat(rows).cpu().numpy(), torch.cat(cols).cpu().numpy()),
+        ),
+        shape=(first, free_dofs.numel()),
+    )
+    stiffness = stiffness.repeat_interleave(3)[free_dofs]
+    return C, torch.cat(values).cpu().numpy(), stiffness.cpu().numpy()
+
+
+def _damped_step(C: sp.csr_matrix, c: np.ndarray, g0: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The Levenberg-Marquardt step ``dx = -(C^T C + D)^-1 (C^T c + g0)`` (``D = diag(d) > 0``)
+    through the ``R x R`` system of the plane conditions, ``G = I + C D^-1 C^T``:
+
+        dx = -D^-1 (g0 + C^T G^-1 (c - C D^-1 g0))
+
+    (the Woodbury identity). Equal to the solve in the positions, but ``G`` has one row per
+    condition (one per quad, three per hexagon) instead of three per vertex, fewer nonzeros and
+    far less fill in its Cholesky factor. ``G >= I`` is positive definite however rank deficient
+    ``C`` is; ``D^-1 g0`` (the closeness pull, ``g0 = w (x - x0)`` with ``d >= w``) stays bounded.
+    """
+    w = g0 / d
+    scaled = C @ sp.diags(1.0 / np.sqrt(d))
+    G = (scaled @ scaled.T + sp.identity(C.shape[0], format="csr")).tocsc()
+    rhs = c - C @ w
+    if _cholespy_available():
+        z = CholeskyFactorization(G, check=False).solve(torch.from_numpy(rhs)[:, None])[:, 0]
+        z_np = z.numpy()
+    else:
+        z_np = spd_splu(G).solve(rhs)
+        if not np.isfinite(z_np).all():
+            raise ValueError("non-finite Gauss-Newton step")
+    return -w - (C.T @ z_np) / d
 
 
 METHODS = ("gauss-newton", "lbfgs")
@@ -367,8 +408,7 @@ def _gauss_newton(
     deadline: float | None,
     **_: Any,
 ) -> _Run:
-    n = y0.shape[0]
-    parts, free_dofs, pattern, inverse = _lm_setup(topo, free_mask, n)
+    parts, free_dofs = _dof_setup(topo, free_mask, y0.shape[0])
     m = free_dofs.numel()
     wc = closeness / h**2
     y = y0.clone()
@@ -381,6 +421,7 @@ def _gauss_newton(
     objectives = [phi]
     mu = _MU_START
     iterations, reason = 0, "max_iter"
+    model = None  # the linearization at y, kept while steps from y are rejected
     while worst >= tol and m:
         if iterations >= max_iter:
             reason = "max_iter"
@@ -391,25 +432,23 @@ def _gauss_newton(
         if mu > 1e6:
             reason = "stalled"
             break
-        grad, blocks, stiffness = _gauss_newton_system(y, parts, free_dofs, h)
-        grad = grad + wc * (y - y0).reshape(-1)[free_dofs]
-        diag = wc + mu * stiffness
-        values = y.new_zeros(pattern.nnz)
-        values.index_add_(0, inverse, torch.cat([*blocks, diag]))
-        A = operator_on(pattern, values, symmetric=True)
+        if model is None:
+            model = _plane_conditions(y, parts, free_dofs, h)
+        C, c, stiffness = model
+        pull = (wc * (y - y0).reshape(-1)[free_dofs]).cpu().numpy()
         try:
-            # no singularity check: the damping keeps A positive definite (per vertex), and a
-            # step that still comes out non-finite (ValueError) counts as one that fails to
-            # decrease Phi: more damping
-            delta = spd_factorization(A, check=False).solve(-grad[:, None])[:, 0]
+            # no singularity check: the damping keeps the system positive definite, and a step
+            # that still comes out non-finite (ValueError) counts as one that fails to decrease
+            # Phi: more damping
+            delta = _damped_step(C, c, pull, wc + mu * stiffness)
             trial = y.clone()
-            trial.view(-1)[free_dofs] += delta
+            trial.view(-1)[free_dofs] += torch.from_numpy(delta).to(y)
             phi_trial = total(trial)
         except ValueError:
             trial, phi_trial = y, math.inf
         iterations += 1
         if phi_trial < phi:
-            y, phi = trial, phi_trial
+            y, phi, model = trial, phi_trial, None
             mu = max(mu / 10, _MU_MIN)
             energies.append(float(planarity_energy(y, topo, lam)))
             objectives.append(phi)
