@@ -31,6 +31,7 @@ setup(
         # libigl: the independent cotan Laplacian the tests and benchmarks compare against
         # matplotlib: the figures the command line and the examples write
         # cholespy: CHOLMOD's supernodal Cholesky, the fast factorization behind eigs
+        # qdldl: QDLDL's L D L^T, the heat geodesic solver's factorization (tests compare both)
         # hypothesis: the property-based tests of the mesh readers and writers
         # adobe-lagrange: de Goes et al. 2020's operators (polyddg), the dGBD20 reference (wheel)
         # torch_geometric: the real Data/Batch that tests/test_interop.py checks to_pyg/from_pyg
@@ -44,11 +45,14 @@ setup(
             "libigl>=2.5",
             "matplotlib>=3.5",
             "cholespy>=2.0",
+            "qdldl>=0.1.9",
             "hypothesis>=6",
             "adobe-lagrange>=6.49",
             "torch_geometric>=2.3",
         ],
         "cholmod": ["cholespy>=2.0"],
+        # qdldl: QDLDL's sparse L D L^T (AMD ordering), the heat geodesic solver's factorization
+        "ldl": ["qdldl>=0.1.9"],
         # mkdocs + mkdocstrings-python: the documentation site (docs/, mkdocs.yml), whose API
         # reference is generated from the docstrings (2.0: the griffe extension API that
         # docs/griffe_roles.py uses); CI builds it with --strict
@@ -59,6 +63,7 @@ setup(
             "libigl>=2.5",
             "matplotlib>=3.5",
             "cholespy>=2.0",
+            "qdldl>=0.1.9",
             "robust-laplacian",
             "potpourri3d",
         ],

@@ -14,20 +14,25 @@ For each mesh it reports the mean relative error over the vertices other than th
   when installed (``pip install potpourri3d``);
 
 On the real meshes of ``../shared/data/meshes/real`` (``--real``; the consistently oriented
-manifolds up to ``--real-max-verts`` vertices) the reference is libigl's exact polyhedral
-geodesic distance (``igl.exact_geodesic``, Mitchell-Mount-Papadimitriou) on the ear-clipped
-triangulation of the polygons, from vertex 0, over the vertices of its connected component.
+manifolds with ``--real-min-verts`` to ``--real-max-verts`` vertices) the reference is libigl's
+exact polyhedral geodesic distance (``igl.exact_geodesic``, Mitchell-Mount-Papadimitriou) on the
+ear-clipped triangulation of the polygons, from vertex 0, over the vertices of its connected
+component.
 
-and the best seconds (over ``--repeat`` rounds that alternate the methods: other processes on
-a shared machine only add time) of building the solver plus one query ("total") and of one
-more query on the built solver ("query"), with the ratios ours / potpourri3d. Prints a
-Markdown table; ``--json`` writes the numbers (default ``benchmarks/results/geodesics.json``).
+and the median seconds (over ``--repeat`` rounds that alternate the methods, so that the load
+of a shared machine falls on all of them alike) of building the solver plus one query
+("total") and of one more query on the built solver ("query"), in wall-clock time and in the
+process's CPU time (which other processes inflate less), with the ratios ours / potpourri3d.
+The load average is read before and after. Prints a Markdown table; ``--json`` writes the
+numbers (default ``benchmarks/results/geodesics.json``). ``POLYLAP_SHARED_MESHES`` overrides
+where the meshes are.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 import warnings
@@ -44,7 +49,10 @@ import torch_polylap as tp
 # A method: build its solver and answer one query -> (solver, distances); one more query.
 Method = tuple[Callable[[], tuple[object, object]], Callable[[object], object]]
 
-MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+MESHES = Path(
+    os.environ.get("POLYLAP_SHARED_MESHES")
+    or Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+)
 SPHERES = ("hex", "quad", "voronoi", "concave")
 GRIDS = ("quad", "voronoi", "concave")
 
@@ -54,23 +62,32 @@ except ImportError:  # the comparison is optional
     pp3d = None
 
 
-def interleaved_best(methods: dict[str, Method], repeat: int) -> dict[str, dict]:
-    """Per method: the distances and the best seconds over ``repeat`` rounds of "build the
-    solver and answer one query" and "one more query".  The rounds alternate the methods, and
-    the minimum is kept, because other processes on a shared machine only ever add time."""
-    best = {name: {"total_s": float("inf"), "query_s": float("inf")} for name in methods}
+def interleaved_medians(methods: dict[str, Method], repeat: int) -> dict[str, dict]:
+    """Per method: the distances and the median wall-clock and CPU seconds over ``repeat``
+    rounds of "build the solver and answer one query" and "one more query".  The rounds
+    alternate the methods, so that a shared machine's load falls on all of them alike."""
+    times: dict[str, dict[str, list[float]]] = {name: {} for name in methods}
+    dists = {}
     for _ in range(repeat):
         for name, (build_and_query, query) in methods.items():
-            start = time.perf_counter()
+            wall0, cpu0 = time.perf_counter(), time.process_time()
             solver, dist = build_and_query()
-            middle = time.perf_counter()
+            wall1, cpu1 = time.perf_counter(), time.process_time()
             query(solver)
-            end = time.perf_counter()
-            entry = best[name]
-            entry["dist"] = np.asarray(dist)
-            entry["total_s"] = min(entry["total_s"], middle - start)
-            entry["query_s"] = min(entry["query_s"], end - middle)
-    return best
+            wall2, cpu2 = time.perf_counter(), time.process_time()
+            dists[name] = np.asarray(dist)
+            spans = {
+                "total_s": wall1 - wall0,
+                "query_s": wall2 - wall1,
+                "total_cpu_s": cpu1 - cpu0,
+                "query_cpu_s": cpu2 - cpu1,
+            }
+            for key, value in spans.items():
+                times[name].setdefault(key, []).append(value)
+    return {
+        name: {"dist": dists[name]} | {k: float(np.median(v)) for k, v in times[name].items()}
+        for name in methods
+    }
 
 
 def mean_relative_error(dist: np.ndarray, exact: np.ndarray, source: int) -> float:
@@ -118,7 +135,7 @@ def potpourri(verts, faces, source) -> Method:
     return build_and_query, lambda solver: solver.compute_distance([source])
 
 
-def load_real_case(path: Path, max_verts: int):
+def load_real_case(path: Path, min_verts: int, max_verts: int):
     """``(verts, faces, source 0, exact distances on the triangulation)`` of a real mesh, or
     ``None`` when it is too large or not a consistently oriented manifold (the exact algorithm
     and the peer need one). Vertices of other components are dropped from the comparison by
@@ -129,7 +146,9 @@ def load_real_case(path: Path, max_verts: int):
         warnings.simplefilter("ignore")
         verts, faces = tp.read_mesh(path, dtype=torch.float64)
         topo = tp.get_topology(faces, verts.shape[0])
-    if verts.shape[0] > max_verts or not (topo.is_manifold and topo.is_oriented):
+    if not min_verts <= verts.shape[0] <= max_verts:
+        return None
+    if not (topo.is_manifold and topo.is_oriented):
         return None
     if bool(topo.isolated.any()):
         return None
@@ -158,18 +177,15 @@ def run_case(kind, family, level, repeat, case=None) -> dict | None:
     if pp3d is not None:
         methods["potpourri3d"] = potpourri(verts, faces, source)
     try:
-        results = interleaved_best(methods, repeat)
+        results = interleaved_medians(methods, repeat)
     except (RuntimeError, ValueError):  # the peer refuses some meshes: reference only
         methods.pop("potpourri3d", None)
-        results = interleaved_best(methods, repeat)
+        results = interleaved_medians(methods, repeat)
     row = {"kind": kind, "family": family, "level": level, "verts": verts.shape[0]}
     row["source"] = source
     for name, m in results.items():
-        row[name] = {
-            "mean_rel_error": mean_relative_error(m["dist"], exact, source),
-            "total_s": m["total_s"],
-            "query_s": m["query_s"],
-        }
+        row[name] = {"mean_rel_error": mean_relative_error(m["dist"], exact, source)}
+        row[name] |= {k: v for k, v in m.items() if k.endswith("_s")}
     return row
 
 
@@ -178,7 +194,10 @@ def markdown(rows: list[dict]) -> str:
     head = "| mesh | V | error (ours) | error (t=h^2, lam=1) |"
     rule = "|---|---:|---:|---:|"
     if has_pp:
-        head += " error (potpourri3d) | total ours / pp3d | query ours / pp3d |"
+        head += (
+            " error (potpourri3d) | total ours / pp3d (wall, CPU) |"
+            " query ours / pp3d (wall, CPU) |"
+        )
         rule += "---:|---:|---:|"
     head += " total ours (s) | query ours (s) |"
     rule += "---:|---:|"
@@ -193,8 +212,8 @@ def markdown(rows: list[dict]) -> str:
             cells += (
                 [
                     f"{p['mean_rel_error']:.2e}",
-                    f"{o['total_s'] / p['total_s']:.2f}",
-                    f"{o['query_s'] / p['query_s']:.2f}",
+                    f"{o['total_s'] / p['total_s']:.2f}, {o['total_cpu_s'] / p['total_cpu_s']:.2f}",
+                    f"{o['query_s'] / p['query_s']:.2f}, {o['query_cpu_s'] / p['query_cpu_s']:.2f}",
                 ]
                 if p
                 else ["-"] * 3
@@ -204,12 +223,21 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def load_average() -> str:
+    """``/proc/loadavg``'s three load averages, or ``"?"`` off Linux."""
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "?"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--levels", type=int, nargs="*", default=[3, 4, 5])
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--real", action=argparse.BooleanOptionalAction, default=True)
-    parser.add_argument("--real-max-verts", type=int, default=30000)
+    parser.add_argument("--real-min-verts", type=int, default=0)
+    parser.add_argument("--real-max-verts", type=int, default=100000)
     # potpourri3d solves on one thread; torch's two-thread kernels also stall whenever another
     # process holds a core of a shared machine, which made timings swing tenfold.
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
@@ -221,6 +249,8 @@ def main() -> None:
         raise SystemExit(f"{MESHES} not found: the refinement families live outside the repo.")
     if pp3d is None:
         print("potpourri3d is not installed: comparing against the exact distances only.")
+    load_before = load_average()
+    print(f"load average before: {load_before}", flush=True)
     rows = []
     for kind, families in (("sphere", SPHERES), ("grid", GRIDS)):
         for family in families:
@@ -234,7 +264,7 @@ def main() -> None:
         for path in sorted(real.iterdir()):
             if path.suffix not in (".obj", ".off", ".ply"):
                 continue
-            case = load_real_case(path, args.real_max_verts)
+            case = load_real_case(path, args.real_min_verts, args.real_max_verts)
             if case is None:
                 continue
             row = run_case("real", path.stem, 0, args.repeat, case)
@@ -242,7 +272,9 @@ def main() -> None:
                 rows.append(row)
                 print(f"done real/{path.name}", flush=True)
     table = markdown(rows)
+    load_after = load_average()
     print(table)
+    print(f"load average before: {load_before}, after: {load_after}")
     meta = {
         "cpu": cpu_model(),
         "threads": torch.get_num_threads(),
@@ -250,6 +282,8 @@ def main() -> None:
         "python": platform.python_version(),
         "potpourri3d": version("potpourri3d") if pp3d is not None else None,
         "repeat": args.repeat,
+        "statistic": "median",
+        "load_average": {"before": load_before, "after": load_after},
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"meta": meta, "rows": rows, "table": table}, indent=1))

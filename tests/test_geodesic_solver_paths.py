@@ -1,0 +1,140 @@
+"""The heat geodesic solver's fast paths against the algorithm written out with public operators.
+
+``HeatGeodesicSolver`` factors its systems with QDLDL (``backend="ldl"``) and forms the Poisson
+right-hand side in one pass over the faces; the reference here is Crane et al.'s Algorithm 1
+spelled out with ``tp.laplacian``, ``tp.face_gradient``, ``tp.divergence`` and SuperLU solves,
+which share neither the factorization nor the per-face code. Exact distances (Euclidean on a
+plane) check the far field, where the heat underflows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+from conftest import DATA, hex_pent_mesh
+from meshes import load, shared_path
+
+import torch_polylap as tp
+from torch_polylap.calculus import mean_edge_length
+from torch_polylap.linalg.factor import LDLFactorization
+
+pytest.importorskip("qdldl", reason="the 'ldl' backend needs the optional qdldl")
+
+
+def _reference_distance(verts, faces, source: int, t: float) -> torch.Tensor:
+    """Algorithm 1 on a connected mesh: heat, unit field, Poisson with vertex 0 pinned, shift."""
+    L, M0 = tp.laplacian(verts, faces, 1.0)
+    L_poisson, _ = tp.laplacian(verts, faces, 0.1)
+    delta = torch.zeros(verts.shape[0], dtype=verts.dtype)
+    delta[source] = 1.0
+    u = tp.solve(M0 + t * L, M0 @ delta, backend="splu")
+    grad = tp.face_gradient(verts, faces, u)
+    field = -grad / grad.norm(dim=1, keepdim=True)
+    rhs = -tp.divergence(verts, faces, field)
+    diagonal = L_poisson.diagonal()
+    pin = torch.zeros_like(diagonal)
+    pin[0] = diagonal[diagonal > 0].mean()
+    phi = tp.solve(L_poisson + tp.sparse.diag(pin), rhs, backend="splu")
+    return phi - phi[source]
+
+
+def _sphere_quad():
+    verts, faces = load(DATA / "sphere" / "quad_3.obj")
+    return verts / verts.norm(dim=1, keepdim=True), faces
+
+
+MESHES = {
+    "sphere quad_3": _sphere_quad,
+    "grid voronoi_3": lambda: load(DATA / "grid" / "voronoi_3.obj"),
+    "grid concave_3": lambda: load(DATA / "grid" / "concave_3.obj"),
+    "hex_pent": hex_pent_mesh,
+    "mixedFaring": lambda: load(DATA / "mixedFaring.off"),
+    "rockerArm": lambda: load(shared_path("real/rockerArm.obj")),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MESHES))
+def test_solver_equals_the_algorithm_written_out(name):
+    verts, faces = MESHES[name]()
+    topo = tp.get_topology(faces, verts.shape[0])
+    source = verts.shape[0] // 3
+    t = 4.0 * float(mean_edge_length(verts, topo)) ** 2
+    reference = _reference_distance(verts, faces, source, t)
+    solver = tp.HeatGeodesicSolver(verts, topo)
+    assert solver.backend == "ldl"
+    dist = solver.distance([source])
+    scale = float(reference.abs().max())
+    assert float((dist - reference).abs().max()) <= 1e-12 * scale
+
+
+def test_backends_give_the_same_distances():
+    verts, faces = _sphere_quad()
+    sources = [[0], [5, 40]]
+    dist = {b: tp.heat_geodesic_distance(verts, faces, sources, backend=b) for b in ("ldl", "splu")}
+    torch.testing.assert_close(dist["ldl"], dist["splu"], rtol=0, atol=1e-12)
+    # the public steps still compose to the distance
+    solver = tp.HeatGeodesicSolver(verts, faces)
+    ind = solver._indicator([0])
+    phi = solver.potential(solver.normalized_field(solver.heat(ind)))
+    torch.testing.assert_close(solver.shift_to_sources(phi, ind)[:, 0], dist["ldl"][:, 0])
+
+
+def _strip(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` unit squares in a row, ``2 (n + 1)`` vertices."""
+    x = torch.arange(n + 1, dtype=torch.float64)
+    zero = torch.zeros_like(x)
+    verts = torch.cat([torch.stack([x, zero, zero], 1), torch.stack([x, zero + 1, zero], 1)])
+    i = torch.arange(n)
+    return verts, torch.stack([i, i + 1, i + n + 2, i + n + 1], 1)
+
+
+def test_far_field_where_the_heat_gradient_squared_underflows():
+    # At t = 4 h^2 the heat falls like exp(-d / 2): below 1e-154 (whose square underflows)
+    # some 700 squares from the source, to 1e-195 at the end of this strip. A norm of the heat
+    # gradient that squares it was 0 there, and the clamped division blew the field up to
+    # 1e146 everywhere. The error must stay that of a short strip (the heat method's offset
+    # next to the source).
+    errors = []
+    for n in (100, 900):
+        verts, faces = _strip(n)
+        dist = tp.heat_geodesic_distance(verts, faces, [0])
+        exact = (verts - verts[0]).norm(dim=1)
+        assert bool(torch.isfinite(dist).all())
+        errors.append(float((dist - exact).abs().max()))
+        keep = exact > 0
+        assert float(((dist - exact).abs() / exact)[keep].mean()) < 1e-2
+    assert errors[1] <= 1.01 * errors[0]
+
+
+def test_unknown_backend_is_refused():
+    verts, faces = _strip(3)
+    with pytest.raises(ValueError, match="backend must be 'auto', 'ldl'"):
+        tp.HeatGeodesicSolver(verts, faces, backend="qr")
+
+
+# --- the factorization itself --------------------------------------------------------------
+
+
+def _random_spd(n: int, seed: int) -> sp.csr_matrix:
+    rng = np.random.default_rng(seed)
+    A = sp.random(n, n, density=0.1, random_state=rng)
+    return sp.csr_matrix(A @ A.T + sp.eye(n))
+
+
+def test_ldl_factorization_solves_against_dense_solve():
+    S = _random_spd(40, 0)
+    B = torch.from_numpy(np.random.default_rng(1).standard_normal((40, 3)))
+    X = LDLFactorization(tp.sparse.from_scipy(S, symmetric=True)).solve(B)
+    np.testing.assert_allclose(X.numpy(), np.linalg.solve(S.toarray(), B.numpy()), rtol=1e-10)
+
+
+def test_ldl_factorization_refuses_singular_and_indefinite_matrices():
+    verts, faces = _strip(4)
+    L, _ = tp.laplacian(verts, faces)  # the constants are in its kernel
+    with pytest.raises(ValueError, match="singular"):
+        LDLFactorization(L)
+    indefinite = tp.sparse.from_scipy(_random_spd(30, 2) - 3.0 * sp.eye(30), symmetric=True)
+    with pytest.raises(ValueError, match="not positive definite|singular"):
+        LDLFactorization(indefinite)
