@@ -307,3 +307,22 @@ def test_importing_the_package_does_not_import_dynamo():
     code = "import sys, torch_polylap; print('torch._dynamo' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr[-2000:]
+
+
+def test_operators_cross_a_compiled_boundary_without_gradients_only():
+    """Returned without grad: equal to eager. With grad, as input or output: an error (never
+    a silently lost gradient)."""
+    verts, faces = _grid()
+    got = torch.compile(lambda X: tp.laplacian(X, faces), backend="aot_eager")(verts)
+    want = tp.laplacian(verts, faces)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a.to_dense(), b.to_dense(), rtol=0, atol=0)
+    torch._dynamo.reset()
+    X = verts.clone().requires_grad_(True)
+    # the errors are torch's own (AOTAutograd's), wrapped by torch.compile
+    with pytest.raises(Exception):  # noqa: B017
+        torch.compile(lambda X: tp.laplacian(X, faces), backend="aot_eager")(X)
+    torch._dynamo.reset()
+    L, _ = tp.laplacian(X, faces)
+    with pytest.raises(Exception):  # noqa: B017
+        torch.compile(lambda L, Y: (L @ Y).sum(), backend="aot_eager")(L, verts)

@@ -184,8 +184,15 @@ class SparseOperator(torch.Tensor):
         args: Sequence[Any] = (),
         kwargs: dict[str, Any] | None = None,
     ) -> Any:
-        # Only reached by code that bypasses __torch_function__ (e.g. torch internals in C++).
-        raise UnsupportedOperation(_unsupported_message(func))
+        # Only reached by code that bypasses __torch_function__: torch internals in C++, and
+        # torch.compile's AOTAutograd handling an operator that crosses a compiled function's
+        # boundary with a gradient (it models gradients on the wrapper, ours are on the values)
+        raise UnsupportedOperation(
+            _unsupported_message(func)
+            + " Inside torch.compile: an operator whose values require grad cannot be an input"
+            " or output of a compiled function; build it inside the compiled function (from "
+            "the vertices), or pass it detached."
+        )
 
     # mypy rejects any annotated override of the unannotated Tensor.__repr__(self, *,
     # tensor_contents=None), even one with the same parameters
