@@ -291,3 +291,36 @@ def test_well_conditioned_faces_stay_in_float32():
     for grp in topo.groups:
         error = kernel(V.t().contiguous(), grp, grp.corners_t)[4]
         assert float(error.max()) * F32.eps <= FLOAT32_TOLERANCE
+
+
+def _dart() -> tuple[torch.Tensor, list[list[int]]]:
+    """The thin concave dart above, in float32: its blocks need float64."""
+    t = 5e-7
+    P = torch.tensor([[0, 0, 0], [2, t, 0], [0, 2 * t, 0], [1, 0.4 * t, 0]], dtype=torch.float64)
+    return _rotated(P, 1).float(), [[0, 1, 2, 3]]
+
+
+def test_ill_conditioned_float32_faces_are_refused_where_float64_cannot_run():
+    """Traced or transformed, the float64 re-evaluation needs a host read it cannot make:
+    such faces are refused rather than returned inaccurate."""
+    P, faces = _dart()
+    torch._dynamo.reset()
+    with pytest.raises(RuntimeError, match="too thin or nearly degenerate for float32"):
+        torch.compile(lambda X: tp.laplacian(X, faces)[0] @ X, backend="aot_eager")(P)
+    torch._dynamo.reset()
+    with pytest.raises(ValueError, match="too thin or nearly degenerate for float32"):
+        torch.func.vmap(lambda X: (tp.laplacian(X, faces)[0] @ X).sum())(P[None])
+    with pytest.raises(ValueError, match="too thin or nearly degenerate for float32"):
+        torch.func.grad(lambda X: (tp.laplacian(X, faces)[0] @ X).square().sum())(P)
+    # validate=False accepts the error, as documented
+    torch.func.grad(lambda X: (tp.laplacian(X, faces, validate=False)[0] @ X).square().sum())(P)
+
+
+def test_an_eager_float32_batch_with_ill_conditioned_faces_is_evaluated_mesh_by_mesh():
+    P, faces = _dart()
+    batch = torch.stack([P, P * 1.5])
+    L, M0 = tp.laplacian(batch, faces)
+    for b in range(2):
+        Lb, Mb = tp.laplacian(batch[b], faces)
+        torch.testing.assert_close(L[b].to_dense(), Lb.to_dense(), rtol=0, atol=0)
+        torch.testing.assert_close(M0.diagonal()[b], Mb.diagonal(), rtol=0, atol=0)

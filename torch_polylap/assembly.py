@@ -272,9 +272,12 @@ def _assemble_functional(
     """:func:`assemble` for traced and transformed code (see :func:`assemble_flagged`); the
     checks are an in-graph assertion when traced, a batch-wide check under vmap, and under
     the other torch.func transforms the eager error that names the vertex or face."""
-    values, masses, ok = assemble_flagged(verts, view, topo, kernel, want_mass)
-    if validate and not require(ok, _BAD_INPUT):
-        raise_bad_input(verts, topo, kernel)
+    values, masses, ok, accurate = assemble_flagged(verts, view, topo, kernel, want_mass)
+    if validate:
+        if not require(ok, _BAD_INPUT):
+            raise_bad_input(verts, topo, kernel)
+        if not require(accurate, FLOAT32_INACCURATE):
+            raise ValueError(FLOAT32_INACCURATE)
     return values, masses
 
 
@@ -284,26 +287,31 @@ def assemble_flagged(
     topo: Topology,
     kernel: BlockKernel,
     want_mass: bool,
-) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """``(values, masses, ok)``: the assembly out of place, one pass per group, and a 0-dim
-    bool saying whether every check passed (no error raised: batches check theirs together).
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor]:
+    """``(values, masses, ok, accurate)``: the assembly out of place, one pass per group; a
+    0-dim bool saying whether every check passed, and one saying whether every face's
+    expected relative error stays within :data:`FLOAT32_TOLERANCE` (always true in float64).
+    No error is raised here: batches check theirs together.
 
     In place updates of a value array from batched blocks fail under vmap, and a loop over
     chunks would unroll into the traced graph (thousands of nodes at a million faces, which
     the C++ compiler behind inductor then fails on); torch.compile fuses the whole group
     instead, so the chunking that keeps eager temporaries small is not needed there. Faces
     that float32 evaluates poorly are not re-evaluated in float64 here (that needs their
-    number on the host).
+    number on the host): such faces make ``accurate`` false, and the callers refuse them
+    rather than return a silently inaccurate result.
     """
     scale, unscale = _normalizer(verts)
     verts_t = verts.t().contiguous() * scale
     values = verts.new_zeros(topo.nnz)
     masses = verts.new_zeros(topo.num_verts) if want_mass else None
     eps = torch.finfo(verts.dtype).eps
-    degenerate = []
+    degenerate, accurate = [], []
     for i, grp in enumerate(view.groups):
         whole = view.whole(i)
-        off, corner_mass, area, size2, _ = kernel(verts_t, grp, whole.corners_t)
+        off, corner_mass, area, size2, error = kernel(verts_t, grp, whole.corners_t)
+        if verts.dtype == torch.float32:
+            accurate.append(error.amax() * eps <= FLOAT32_TOLERANCE)
         flat = off.reshape(-1)
         positions = torch.cat((whole.pos_upper, whole.pos_lower, whole.pos_diag))
         entries = torch.cat((flat, flat, -row_sums(off, grp).reshape(-1)))
@@ -313,8 +321,16 @@ def assemble_flagged(
         degenerate.append(_any_degenerate(area, size2, eps))
     masses_n, masses = masses, _unscaled(masses, unscale)
     ok = _input_ok(verts, degenerate) & _output_ok(values, masses_n, masses)
-    return values, masses, ok
+    all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
+    return values, masses, ok, all_accurate
 
+
+FLOAT32_INACCURATE = (
+    "torch_polylap: a face is too thin or nearly degenerate for float32 (its blocks' expected "
+    "relative error exceeds 1e-2). Eagerly such faces are evaluated in float64; inside "
+    "torch.compile or torch.func they cannot be: use float64 vertices there, or validate=False "
+    "to accept the error."
+)
 
 _BAD_INPUT = (
     "torch_polylap: non-finite vertex coordinates, a zero-area face, or a Laplacian or masses "

@@ -24,7 +24,13 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .assembly import _BAD_INPUT, MeshFaces, assemble, assemble_flagged
+from .assembly import (
+    _BAD_INPUT,
+    FLOAT32_INACCURATE,
+    MeshFaces,
+    assemble,
+    assemble_flagged,
+)
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts
 from .kernels import block_kernel, check_method
 from .sparse import SparseOperator, operator_on
@@ -157,11 +163,13 @@ def _laplacian_batch(
     view = topo.on(verts.device)
     kernel = block_kernel(method, lam)
 
-    def one(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    def one(
+        v: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor]:
         with torch.autocast(v.device.type, enabled=False):
             return assemble_flagged(v, view, topo, kernel, True)
 
-    values, masses, ok = torch.func.vmap(one)(verts)
+    values, masses, ok, accurate = torch.func.vmap(one)(verts)
     if validate and not require(ok, _BAD_INPUT):
         # name the mesh and the element: the one-mesh assembly's message
         bad = int(torch.nonzero(~ok)[0, 0])
@@ -169,6 +177,13 @@ def _laplacian_batch(
             assemble(verts[bad].detach(), view, topo, kernel, False, True)
         except ValueError as err:
             raise ValueError(f"mesh {bad} of the batch: {err}") from None
+    if validate and not require(accurate, FLOAT32_INACCURATE):
+        if functional():
+            raise ValueError(FLOAT32_INACCURATE)
+        # eagerly, mesh by mesh: the one-mesh assembly evaluates such faces in float64
+        pairs = [assemble(v, view, topo, kernel, True, True) for v in verts.unbind(0)]
+        values = torch.stack([p[0] for p in pairs])
+        masses = torch.stack([p[1] for p in pairs if p[1] is not None])
     assert masses is not None
     M0 = operator_on(view.diagonal, masses, symmetric=True, layout=layout)
     return _operator(view, values, layout), M0
