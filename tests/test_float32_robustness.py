@@ -20,6 +20,7 @@ with the same float32-rounded cotangents, whose gradients agree with finite diff
 from __future__ import annotations
 
 import re
+import warnings
 from collections import Counter
 
 import numpy as np
@@ -324,3 +325,17 @@ def test_an_eager_float32_batch_with_ill_conditioned_faces_is_evaluated_mesh_by_
         Lb, Mb = tp.laplacian(batch[b], faces)
         torch.testing.assert_close(L[b].to_dense(), Lb.to_dense(), rtol=0, atol=0)
         torch.testing.assert_close(M0.diagonal()[b], Mb.diagonal(), rtol=0, atol=0)
+
+
+def test_faces_too_thin_for_a_float32_gradient_warn():
+    """Below thinness ~1e-6 float32's own backward loses the accuracy that float64 blocks
+    keep: a warning says so (float64 input, or a fatter face, gives none)."""
+    P, faces = _dart()  # thinness ~1e-6
+    with pytest.warns(UserWarning, match="float32 gradients lose accuracy"):
+        tp.laplacian(P, faces)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tp.laplacian(P.double(), faces)
+        t = 1e-3
+        fat = [[0, 0, 0], [2, t, 0], [0, 2 * t, 0], [1, 0.4 * t, 0]]
+        tp.laplacian(torch.tensor(fat, dtype=torch.float32), faces)

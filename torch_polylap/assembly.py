@@ -15,7 +15,7 @@ from collections.abc import Iterator
 
 import torch
 
-from .checks import check_verts
+from .checks import check_verts, warn_outside_package
 from .faces import FacesLike
 from .kernels import BlockKernel
 from .kernels.aw11 import aw11_entries, row_sums
@@ -38,6 +38,9 @@ MeshFaces = FacesLike | Topology
 # A float32 face whose kernel bounds the relative error of its block above this is evaluated
 # in float64 (eager assembly with validation; see docs/math/properties.md, "Finite precision").
 FLOAT32_TOLERANCE = 1e-2
+# expected relative errors above which float64 blocks do not save a float32 gradient: faces of
+# thinness below about 1e-6 (AW11's bound 4 / t times float32's epsilon)
+FLOAT32_HOPELESS = 0.4
 
 
 def assemble(
@@ -93,10 +96,19 @@ def _assemble_chunked(
     masses = _unscaled(masses_n, unscale)
     if not validate:
         return values, masses
-    checks = torch.stack(
-        [_input_ok(verts, degenerate), _output_ok(values, masses_n, masses)] + ill
-    ).tolist()
-    if any(checks[2:]):
+    flags = [_input_ok(verts, degenerate), _output_ok(values, masses_n, masses)]
+    if ill:
+        flags.append(torch.stack(ill).amax())  # NaN propagates: counts as ill-conditioned
+    read = torch.stack([f.to(verts.dtype) for f in flags]).tolist()
+    checks = [bool(read[0]), bool(read[1])]
+    worst = read[2] if ill else 0.0
+    if checks[0] and worst > FLOAT32_HOPELESS:
+        warn_outside_package(
+            f"torch_polylap: a face is so thin that float32 gradients lose accuracy even with its "
+            f"blocks evaluated in float64 (expected relative error {worst:.1g}; the backward "
+            "pass itself rounds in float32): use float64 vertices for this mesh."
+        )
+    if not worst <= FLOAT32_TOLERANCE:
         # rare: faces too ill-conditioned for float32; assembled again, those in float64
         values, masses_n, _, _ = _scatter(
             verts_t, view, topo, kernel, want_mass, mixed, verts_t.double()
@@ -157,8 +169,8 @@ def _scatter(
             _scatter_blocks(grp, chunk, off, corner_mass, values, masses)
             degenerate.append(_any_degenerate(area, size2, eps))
             if mixed:
-                # amax propagates NaN: a face whose bound is NaN counts as ill-conditioned
-                ill.append(~(error.amax() * eps <= FLOAT32_TOLERANCE))
+                # the chunk's worst expected relative error (amax propagates NaN)
+                ill.append(error.amax() * eps)
     return values, masses, degenerate, ill
 
 
@@ -191,7 +203,7 @@ def _scatter_mixed(
     """One chunk with its ill-conditioned faces evaluated in float64 (host syncs: the rare
     path, after the validation found such faces)."""
     off, corner_mass, _, _, error = kernel(verts_t, grp, chunk.corners_t)
-    ill = ~(error * eps <= FLOAT32_TOLERANCE)
+    ill = ~(error * eps <= FLOAT32_TOLERANCE)  # NaN bounds count as ill-conditioned
     if not bool(ill.any()):
         _scatter_blocks(grp, chunk, off, corner_mass, values, masses)
         return
