@@ -138,3 +138,23 @@ def test_ldl_factorization_refuses_singular_and_indefinite_matrices():
     indefinite = tp.sparse.from_scipy(_random_spd(30, 2) - 3.0 * sp.eye(30), symmetric=True)
     with pytest.raises(ValueError, match="not positive definite|singular"):
         LDLFactorization(indefinite)
+
+
+def test_solve_takes_the_ldl_backend_with_gradients():
+    """tp.solve(backend="ldl") equals SuperLU's answer and keeps the solve's derivatives."""
+    pytest.importorskip("qdldl", reason="the ldl backend needs qdldl: pip install qdldl")
+    verts, faces = tp.shapes.quad_grid(6, 5)
+    X = verts.double().requires_grad_(True)
+    L, M0 = tp.laplacian(X, faces)
+    B = torch.randn(X.shape[0], 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    got = tp.solve(M0 + 0.1 * L, B, backend="ldl")
+    want = tp.solve(M0 + 0.1 * L, B, backend="splu")
+    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+    (g1,) = torch.autograd.grad(got.square().sum(), X)
+    L, M0 = tp.laplacian(X, faces)
+    (g2,) = torch.autograd.grad(tp.solve(M0 + 0.1 * L, B, backend="splu").square().sum(), X)
+    torch.testing.assert_close(g1, g2, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="backend='ldl' factors a symmetric operator"):
+        tp.solve(
+            (M0 + 0.1 * L) * torch.arange(1.0, X.shape[0] + 1)[:, None].double(), B, backend="ldl"
+        )

@@ -35,9 +35,8 @@ from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
 from .linalg import solve
 from .linalg.factor import _qdldl_available
-from .linalg.solves import _solve
 from .operators import laplacian
-from .sparse import SparseOperator, SparsityPattern, as_operator, diag, operator_on
+from .sparse import SparseOperator, SparsityPattern, diag, operator_on
 from .topology import DegreeGroup, Topology, get_topology
 
 __all__ = [
@@ -348,10 +347,7 @@ class HeatGeodesicSolver:
         return ind
 
     def _solve(self, A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
-        """``A^{-1} B`` with :attr:`backend`'s factorization, cached on ``A`` (symmetric, so
-        the ``"ldl"`` path may skip :func:`~torch_polylap.solve`'s checks)."""
-        if self.backend == "ldl":
-            return _solve(as_operator(A), B, "ldl", 0.0, 0)
+        """``A^{-1} B`` with :attr:`backend`'s factorization, cached on ``A``."""
         return solve(A, B, backend=self.backend)
 
     def heat(self, indicator: torch.Tensor) -> torch.Tensor:
