@@ -28,13 +28,13 @@ an ``autograd.Function`` with a forward-mode rule, so traced code calls the oper
 from __future__ import annotations
 
 import warnings
-import weakref
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import torch
 
 from ..tracing import in_functorch, tracing
+from .index_ops import transposed
 from .pattern import SparsityPattern, block_diagonal_indices
 
 __all__ = ["csr_product", "sampled_product", "spmm", "spmm_t", "sampled", "torch_csr"]
@@ -60,31 +60,9 @@ def torch_csr(pattern: SparsityPattern, values: torch.Tensor) -> torch.Tensor:
 
 
 # --------------------------------------------------------------------------------------------
-# the kernels: torch's CSR products, and the transposed pattern cached per index tensor
+# the kernels: torch's CSR products (A^T G with the transposed pattern, computed once per
+# pattern: an argsort per product would cost more than the product)
 # --------------------------------------------------------------------------------------------
-
-# col tensor id -> (weak reference to it, transposed crow, transposed col, permutation):
-# A^T G through torch's CSR kernel needs the transposed pattern; an argsort per product would
-# cost more than the product, so it is computed once per pattern (index tensors are immutable
-# here) and dropped with the pattern.
-_TRANSPOSES: dict[int, tuple[weakref.ref, torch.Tensor, torch.Tensor, torch.Tensor]] = {}
-
-
-def _transposed_pattern(
-    crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor, m: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(crow_t (m + 1,), col_t (nnz,), perm (nnz,))`` with ``values(A^T) = values[perm]``."""
-    key = id(col)
-    hit = _TRANSPOSES.get(key)
-    if hit is not None and hit[0]() is col:
-        return hit[1], hit[2], hit[3]
-    perm = torch.argsort(col * max(crow.numel() - 1, 1) + row, stable=True)
-    counts = torch.zeros(m + 1, dtype=torch.int64, device=col.device)
-    counts.index_add_(0, col + 1, torch.ones_like(col))
-    crow_t = counts.cumsum(0)
-    col_t = row[perm]
-    _TRANSPOSES[key] = (weakref.ref(col, lambda _: _TRANSPOSES.pop(key, None)), crow_t, col_t, perm)
-    return crow_t, col_t, perm
 
 
 @torch.library.custom_op("torch_polylap::spmm", mutates_args=())
@@ -124,7 +102,7 @@ def spmm_t_op(
     m: int,
 ) -> torch.Tensor:
     """``A^T G`` for ``A`` ``(n, m)`` as in :func:`spmm_op` and ``G`` ``(n, c)``: ``(m, c)``."""
-    crow_t, col_t, perm = _transposed_pattern(crow, col, row, m)
+    crow_t, col_t, _, perm = transposed(crow, col, m, copy=False)
     return _csr(crow_t, col_t, values[perm], G.shape[0]) @ G
 
 

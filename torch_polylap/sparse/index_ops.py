@@ -21,7 +21,13 @@ from typing import TypeVar
 
 import torch
 
-__all__ = ["union_indices", "positions_in", "transpose_indices", "diagonal_indices"]
+__all__ = [
+    "union_indices",
+    "positions_in",
+    "transposed",
+    "transpose_indices",
+    "diagonal_indices",
+]
 
 T = TypeVar("T", bound=tuple)
 
@@ -29,7 +35,11 @@ T = TypeVar("T", bound=tuple)
 _RESULTS: dict[tuple, tuple[tuple[weakref.ref, ...], tuple[torch.Tensor, ...]]] = {}
 
 
-def _remembered(name: str, keys: tuple[torch.Tensor, ...], compute: Callable[[], T]) -> T:
+def _remembered(
+    name: str, keys: tuple[torch.Tensor, ...], compute: Callable[[], T], *, copy: bool = True
+) -> T:
+    """``compute()``'s result for these index tensors, computed once while they live; copies
+    of it (``copy``) for an operator's outputs, which a compiled graph may overwrite."""
     key = (name, *map(id, keys))
     hit = _RESULTS.get(key)
     if hit is None or any(r() is not k for r, k in zip(hit[0], keys, strict=True)):
@@ -40,7 +50,7 @@ def _remembered(name: str, keys: tuple[torch.Tensor, ...], compute: Callable[[],
         refs = tuple(weakref.ref(k, forget) for k in keys)
         hit = (refs, compute())
         _RESULTS[key] = hit
-    result: T = tuple(t.clone() for t in hit[1])  # type: ignore[assignment]
+    result: T = tuple(t.clone() for t in hit[1]) if copy else hit[1]  # type: ignore[assignment]
     return result
 
 
@@ -120,12 +130,12 @@ def _positions_fake(
     return col_b.new_empty(col_b.shape)
 
 
-@torch.library.custom_op("torch_polylap::transpose_indices", mutates_args=())
-def transpose_indices(
-    crow: torch.Tensor, col: torch.Tensor, m: int
+def transposed(
+    crow: torch.Tensor, col: torch.Tensor, m: int, *, copy: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The pattern of ``A^T`` for ``A`` ``(n, m)``: ``(crow_t (m + 1,), col_t, row_t, perm)``
-    with ``values(A^T) = values(A)[perm]``."""
+    """``(crow_t (m + 1,), col_t, row_t, perm)`` of ``A^T`` for ``A`` ``(n, m)``, with
+    ``values(A^T) = values(A)[perm]``; computed once per pattern (``copy=False``: the kept
+    tensors themselves, for callers that only read them)."""
 
     def compute() -> tuple[torch.Tensor, ...]:
         n = crow.numel() - 1
@@ -134,8 +144,17 @@ def transpose_indices(
         row_t = col[perm]
         return _crow(row_t, m), row[perm], row_t, perm
 
-    result = _remembered("transpose", (crow, col), compute)
+    result = _remembered("transpose", (crow, col), compute, copy=copy)
     return result[0], result[1], result[2], result[3]
+
+
+@torch.library.custom_op("torch_polylap::transpose_indices", mutates_args=())
+def transpose_indices(
+    crow: torch.Tensor, col: torch.Tensor, m: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The pattern of ``A^T`` for ``A`` ``(n, m)``: ``(crow_t (m + 1,), col_t, row_t, perm)``
+    with ``values(A^T) = values(A)[perm]``."""
+    return transposed(crow, col, m)
 
 
 @transpose_indices.register_fake
