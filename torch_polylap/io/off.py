@@ -97,25 +97,34 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     return Parsed(verts, indices, sizes)
 
 
-def _header(text: bytes) -> tuple[str, int, int, int] | None:
-    """``(keyword, vertices, faces, byte offset of the body)`` of prepared ASCII OFF text, or
-    None when the header is anything but well formed (the reference parser says what)."""
-    pos, toks = 0, list[str]()
+def _next_tokens(text: bytes, pos: int) -> tuple[list[str], int] | None:
+    """The tokens of the first non-blank line from ``pos`` and the offset after it (None at
+    the end of the text)."""
+    toks: list[str] = []
     while not toks:
         if pos >= len(text):
             return None
         end = text.find(b"\n", pos)
         end = len(text) if end < 0 else end + 1
         toks, pos = text[pos:end].decode("latin-1").split(), end
+    return toks, pos
+
+
+def _header(text: bytes) -> tuple[str, int, int, int] | None:
+    """``(keyword, vertices, faces, byte offset of the body)`` of prepared ASCII OFF text, or
+    None when the header is anything but well formed (the reference parser says what)."""
+    found = _next_tokens(text, 0)
+    if found is None:
+        return None
+    toks, pos = found
     keyword = toks[0]
     if _OFF_KEYWORD.fullmatch(keyword):
         toks = toks[1:]
-        while not toks:
-            if pos >= len(text):
+        if not toks:
+            found = _next_tokens(text, pos)
+            if found is None:
                 return None
-            end = text.find(b"\n", pos)
-            end = len(text) if end < 0 else end + 1
-            toks, pos = text[pos:end].decode("latin-1").split(), end
+            toks, pos = found
     elif keyword.endswith("OFF"):
         return None
     else:
