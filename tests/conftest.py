@@ -145,3 +145,14 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture
+def fresh_dynamo():
+    """torch.compile's caches cleared around the test, with torch's ``trace_autograd_ops`` on
+    (its switch for tracing ``.backward()`` and ``torch.autograd.grad`` into the graph, off by
+    default in torch 2.13)."""
+    torch._dynamo.reset()
+    with torch._dynamo.config.patch(trace_autograd_ops=True):
+        yield
+    torch._dynamo.reset()

@@ -307,7 +307,9 @@ def test_gradient_operator_equals_adobe_lagrange_on_polygons(name):
     """de Goes et al. 2020's polygon gradient (eq. 8, adobe-lagrange's ``polyddg``) is, on any
     polygon, the gradient of this package: an independent implementation to compare with, on
     non-planar and non-convex faces of degree 3 to 10."""
-    lagrange = pytest.importorskip("lagrange", reason="adobe-lagrange not installed")
+    lagrange = pytest.importorskip(
+        "lagrange", reason="adobe-lagrange not installed: pip install adobe-lagrange"
+    )
     from lagrange import polyddg
 
     verts, faces = load(DATA / name)

@@ -21,15 +21,7 @@ import torch_polylap as tp
 from torch_polylap.sparse.autograd import sampled_op, spmm_op, spmm_t_op
 from torch_polylap.sparse.index_ops import diagonal_indices, transpose_indices, union_indices
 
-
-@pytest.fixture(autouse=True)
-def _fresh_dynamo():
-    # trace_autograd_ops: torch's own switch for tracing torch.autograd.grad and .backward()
-    # into the graph (a whole training step in one graph), off by default in torch 2.13
-    torch._dynamo.reset()
-    with torch._dynamo.config.patch(trace_autograd_ops=True):
-        yield
-    torch._dynamo.reset()
+pytestmark = pytest.mark.usefixtures("fresh_dynamo")
 
 
 def _loss(L: torch.Tensor, M0: torch.Tensor, X: torch.Tensor) -> torch.Tensor:

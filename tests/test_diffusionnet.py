@@ -93,7 +93,7 @@ def test_outputs_have_diffusionnets_shapes_dtypes_and_layouts(mesh, dtype, devic
 
 
 def test_triangle_mesh_matches_libigl_cotan_laplacian_mass_and_normals():
-    igl = pytest.importorskip("igl", reason="libigl not installed")
+    igl = pytest.importorskip("igl", reason="libigl not installed: pip install libigl")
     v, f = _triangle_sphere()
     frames, mass, L, *_ = to_diffusionnet(v, f, k_eig=4)
     vn, fn = v.numpy(), f.numpy()

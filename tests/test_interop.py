@@ -96,7 +96,9 @@ def _block_diag_dense(mats: list[torch.Tensor]) -> torch.Tensor:
 
 
 def test_packed_faces_follow_the_pyg_increment_and_give_the_block_diagonal_laplacian():
-    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    tg = pytest.importorskip(
+        "torch_geometric", reason="torch_geometric not installed: pip install torch_geometric"
+    )
     verts, faces = three_meshes()
     m = PolygonMeshes(verts, faces)
     # torch_geometric's own batching of the same meshes (its increment rule, not ours)
@@ -154,7 +156,9 @@ def _directed(edges: set[tuple[int, int]]) -> torch.Tensor:
 
 
 def test_to_pyg_quad_grid_has_the_mesh_edges_and_no_tetrahedra():
-    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    tg = pytest.importorskip(
+        "torch_geometric", reason="torch_geometric not installed: pip install torch_geometric"
+    )
     from torch_geometric.transforms import FaceToEdge
     from torch_geometric.utils import coalesce, is_undirected, to_undirected
 
@@ -183,7 +187,9 @@ def test_to_pyg_quad_grid_has_the_mesh_edges_and_no_tetrahedra():
 
 
 def test_to_pyg_triangles_match_face_to_edge():
-    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    tg = pytest.importorskip(
+        "torch_geometric", reason="torch_geometric not installed: pip install torch_geometric"
+    )
     from torch_geometric.transforms import FaceToEdge
 
     v, q = quad_grid(3, bump=0.2, seed=1)
@@ -197,7 +203,9 @@ def test_to_pyg_triangles_match_face_to_edge():
 
 
 def test_to_pyg_mixed_degrees_and_triangulate():
-    pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    pytest.importorskip(
+        "torch_geometric", reason="torch_geometric not installed: pip install torch_geometric"
+    )
     vm, fm = mixed_mesh()
     mixed = to_pyg(vm, fm)
     pf = tp.as_faces(fm)
@@ -216,7 +224,9 @@ def test_to_pyg_mixed_degrees_and_triangulate():
 
 @pytest.mark.parametrize("mesh", ["mixed", "hexpent", "triangles"])
 def test_to_pyg_laplacian_is_what_get_laplacian_rebuilds(mesh):
-    pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    pytest.importorskip(
+        "torch_geometric", reason="torch_geometric not installed: pip install torch_geometric"
+    )
     from torch_geometric.utils import get_laplacian, is_undirected, to_scipy_sparse_matrix
 
     if mesh == "triangles":
@@ -238,7 +248,7 @@ def test_to_pyg_laplacian_is_what_get_laplacian_rebuilds(mesh):
     assert _mesh_edge_set(f) <= pairs
     if mesh == "triangles":  # the cotangent weights: libigl's cotmatrix off the diagonal
         assert pairs == _mesh_edge_set(f)
-        igl = pytest.importorskip("igl", reason="libigl not installed")
+        igl = pytest.importorskip("igl", reason="libigl not installed: pip install libigl")
         C = igl.cotmatrix(v.detach().numpy(), f.numpy())
         rows, cols = data.edge_index.numpy()
         np.testing.assert_allclose(
@@ -252,7 +262,9 @@ def test_to_pyg_laplacian_is_what_get_laplacian_rebuilds(mesh):
 @pytest.mark.parametrize("triangulate", [False, True])
 @pytest.mark.parametrize("laplacian", [False, True])
 def test_pyg_round_trips(triangulate, laplacian):
-    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    tg = pytest.importorskip(
+        "torch_geometric", reason="torch_geometric not installed: pip install torch_geometric"
+    )
     verts, faces = three_meshes()
     for v, f in zip(verts, faces, strict=True):
         back_v, back_f = from_pyg(to_pyg(v, f, triangulate=triangulate, laplacian=laplacian))
@@ -279,7 +291,9 @@ def test_pyg_round_trips(triangulate, laplacian):
 
 
 def test_from_pyg_reads_triangles_and_polygons_and_refuses_tetrahedra():
-    tg = pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    tg = pytest.importorskip(
+        "torch_geometric", reason="torch_geometric not installed: pip install torch_geometric"
+    )
     v, f = quad_grid(2)
     tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
     got_v, got_t = from_pyg(tg.data.Data(pos=v, face=tris.t()))
@@ -302,7 +316,9 @@ def test_from_pyg_reads_triangles_and_polygons_and_refuses_tetrahedra():
 
 
 def test_pyg_gradients_reach_the_vertices():
-    pytest.importorskip("torch_geometric", reason="torch_geometric not installed")
+    pytest.importorskip(
+        "torch_geometric", reason="torch_geometric not installed: pip install torch_geometric"
+    )
     verts, faces = three_meshes()
     leaves = [v.clone().requires_grad_(True) for v in verts]
     batch = to_pyg(PolygonMeshes(leaves, faces))

@@ -115,7 +115,9 @@ def test_equals_adobe_lagrange_on_triangles(n):
     """On triangles every polygon method is the cotangent Laplacian and our connection
     Laplacian is de Goes et al. 2020's vertex-based one: the spectra of adobe-lagrange's
     ``connection_laplacian_nrosy`` and ours agree to rounding (measured 6e-13 relative)."""
-    lagrange = pytest.importorskip("lagrange", reason="adobe-lagrange not installed")
+    lagrange = pytest.importorskip(
+        "lagrange", reason="adobe-lagrange not installed: pip install adobe-lagrange"
+    )
     from lagrange import polyddg
 
     verts, quads = tp.shapes.quad_sphere(4, noise=0.02, seed=1)
@@ -207,7 +209,9 @@ def test_transport_on_sphere_beats_potpourri3d(name):
     """Transport from three sources against the exact great-circle transport, beside
     potpourri3d's PolygonMeshHeatSolver: ours is at least as accurate in mean and max angle
     (measured ratios 0.3 to 0.03 on these meshes at the default t = 4 h^2)."""
-    pp3d = pytest.importorskip("potpourri3d", reason="potpourri3d not installed")
+    pp3d = pytest.importorskip(
+        "potpourri3d", reason="potpourri3d not installed: pip install potpourri3d"
+    )
     verts, faces = sphere(name)
     solver = tv.VectorHeatSolver(verts, faces)
     peer = pp3d.PolygonMeshHeatSolver(verts.numpy(), faces.tolist())
@@ -346,7 +350,9 @@ def test_principal_curvatures_close_to_lagrange_on_torus():
     """adobe-lagrange's ``compute_principal_curvatures`` (de Goes et al. 2020's adjoint shape
     operator) on the same torus: both within 2x of each other's error (measured 0.048 ours,
     0.028 lagrange at 48 x 24), and the curvatures agree to 0.05."""
-    lagrange = pytest.importorskip("lagrange", reason="adobe-lagrange not installed")
+    lagrange = pytest.importorskip(
+        "lagrange", reason="adobe-lagrange not installed: pip install adobe-lagrange"
+    )
     from lagrange import polyddg
 
     verts, faces = tp.shapes.torus(48, 24, major=1.0, minor=0.4)

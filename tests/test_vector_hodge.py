@@ -229,7 +229,9 @@ def test_close_to_adobe_lagrange_on_the_torus():
     exact parts as 3D vectors: ours is at least as accurate on every part (measured at
     48 x 24: ours 0.035, 0.018, 0.0098; lagrange 0.040, 0.023, 0.087), and the energies of the
     parts agree within 5%."""
-    lagrange = pytest.importorskip("lagrange", reason="adobe-lagrange not installed")
+    lagrange = pytest.importorskip(
+        "lagrange", reason="adobe-lagrange not installed: pip install adobe-lagrange"
+    )
     from lagrange import polyddg
 
     verts, faces = tp.shapes.torus(48, 24)

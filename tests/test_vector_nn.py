@@ -14,12 +14,7 @@ from torch_polylap.sparse import to_scipy
 C = 3
 
 
-@pytest.fixture(autouse=True)
-def _fresh_dynamo():
-    torch._dynamo.reset()
-    with torch._dynamo.config.patch(trace_autograd_ops=True):
-        yield
-    torch._dynamo.reset()
+pytestmark = pytest.mark.usefixtures("fresh_dynamo")
 
 
 def mesh() -> tuple[torch.Tensor, torch.Tensor]:
