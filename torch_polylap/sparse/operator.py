@@ -51,22 +51,10 @@ class SparseOperator(torch.Tensor):
     :func:`torch_polylap.laplacian`.  Attributes (read-only): ``pattern``, ``symmetric``
     (``A = A^T`` is known, so products' backward reuse ``A``).
 
-    Supported torch operations (all keep O(nnz) gradients):
-
-    - products with dense tensors: ``A @ X``, ``X @ A``, ``torch.mm``, ``torch.matmul``,
-      ``torch.sparse.mm``, ``torch.mv``, ``torch.addmm``; ``X`` of shape ``(m,)``, ``(m, c)`` or
-      ``(..., m, c)``;
-    - linear combinations: ``A + B``, ``A - B`` (any two patterns of one shape), ``-A``,
-      ``s * A``, ``A * s``, ``A / s`` with a number or 0-dim tensor ``s`` (which may require
-      grad), and row or column scaling ``A * w[:, None]``, ``A * w[None, :]``, ``A / w[:, None]``;
-    - ``A.t()``, ``A.T``, ``A.mT``, ``A.transpose(0, 1)``;
-    - ``A.to(dtype / device)``, ``.double()``, ``.float()``, ``.cpu()``, ``.cuda()``,
-      ``.detach()``, ``.clone()``, ``.to_sparse_csr()``, ``.to_sparse_coo()``, ``.coalesce()``;
-    - ``A.values()`` (differentiable), ``A.crow_indices()``, ``A.col_indices()``,
-      ``A.indices()``, ``A._nnz()``, ``A.diagonal()`` (differentiable), ``A.sum(dim)``,
-      ``A.to_dense()`` (differentiable; ``n x m`` memory by request).
-
-    Everything else raises :class:`UnsupportedOperation`, which says what to use instead.
+    Torch algebra on it (products with dense tensors, sums, scaling, transposes, ``.to``,
+    ``values()``, ``diagonal()``, ...) keeps O(nnz) gradients; the documentation's page
+    "Operator algebra" lists every supported operation, generated from this class's dispatch
+    table.  Everything else raises :class:`UnsupportedOperation`, which says what to use instead.
     """
 
     symmetric: bool
@@ -904,62 +892,112 @@ def _getter(prop: Any) -> Callable:
     return prop.__get__
 
 
+# What each group of handled torch functions does with an operator ``A``, and what it returns:
+# the rows of the documentation's list of supported operations, which
+# docs/gen_supported_ops.py writes from _SUPPORTED (a test keeps the page in step with it).
+_SUPPORTED: list[tuple[str, str, list[Callable]]] = []
+
+
+def _true(A: SparseOperator) -> bool:
+    return True
+
+
 def _build_handlers() -> dict[Callable, Callable]:
     T = torch.Tensor
     handlers: dict[Callable, Callable] = {}
 
-    def add(funcs: list, handler: Callable) -> None:
+    def add(what: str, result: str, funcs: list, handler: Callable) -> None:
+        funcs = [f for f in funcs if f is not None]
         for f in funcs:
-            if f is not None:
-                handlers[f] = handler
+            handlers[f] = handler
+        for row_what, row_result, row_funcs in _SUPPORTED:
+            if (row_what, row_result) == (what, result):
+                row_funcs.extend(funcs)
+                return
+        _SUPPORTED.append((what, result, funcs))
 
-    add([T.matmul, T.__matmul__, torch.matmul, T.mm, torch.mm, T.mv, torch.mv], _matmul)
-    add([T.__rmatmul__], lambda a, b: _matmul(b, a))
-    add([torch.sparse.mm], _sparse_mm)
-    add([torch.addmm, T.addmm, torch.sparse.addmm], _addmm)
-    add([T.mul, T.__mul__, T.__rmul__, torch.mul, T.multiply, torch.multiply], _mul)
-    add([T.div, T.__truediv__, torch.div, T.divide, torch.divide, torch.true_divide], _div)
-    add([T.__rtruediv__, T.__rdiv__], lambda a, b: _div(b, a))
-    add([T.add, T.__add__, T.__radd__, torch.add], _add)
-    add([T.sub, T.__sub__, torch.sub, T.subtract, torch.subtract], _sub)
-    add([T.__rsub__, torch.rsub], _rsub)
-    add([T.neg, T.__neg__, torch.neg, T.negative, torch.negative], _neg)
+    product = "product with a dense `X` of shape `(m,)`, `(m, c)` or `(..., m, c)`"
+    add(product, "dense", [T.matmul, T.__matmul__, torch.matmul, T.mm, torch.mm], _matmul)
+    add(product, "dense", [T.mv, torch.mv], _matmul)
+    add(product, "dense", [T.__rmatmul__], lambda a, b: _matmul(b, a))
+    add(product, "dense", [torch.sparse.mm], _sparse_mm)
+    add(product, "dense", [torch.addmm, T.addmm, torch.sparse.addmm], _addmm)
+    combination = (
+        "sum or difference of two operators of one shape (any two patterns); `0 + A`, so "
+        "Python's `sum` works"
+    )
+    add(combination, "operator", [T.add, T.__add__, T.__radd__, torch.add], _add)
+    add(combination, "operator", [T.sub, T.__sub__, torch.sub, T.subtract, torch.subtract], _sub)
+    add(combination, "operator", [T.__rsub__, torch.rsub], _rsub)
+    scaling = (
+        "multiple by a number or a 0-dim tensor (which may require grad); row scaling "
+        "`A * w[:, None]`, `A / w[:, None]`; column scaling `A * w[None, :]`"
+    )
+    add(scaling, "operator", [T.mul, T.__mul__, T.__rmul__, torch.mul], _mul)
+    add(scaling, "operator", [T.multiply, torch.multiply], _mul)
+    add(scaling, "operator", [T.div, T.__truediv__, torch.div, T.divide], _div)
+    add(scaling, "operator", [torch.divide, torch.true_divide], _div)
+    sign = "negation (`-A`), absolute value of the entries"
+    add(sign, "operator", [T.neg, T.__neg__, torch.neg, T.negative, torch.negative], _neg)
     add(
+        sign,
+        "operator",
         [T.abs, T.__abs__, torch.abs, T.absolute, torch.absolute],
         lambda A: A.with_values(A._vals.abs()),
     )
-    add([T.__pos__, torch.positive, T.positive], lambda A: A)
-    add([T.t, torch.t, T.transpose, torch.transpose, T.adjoint, torch.adjoint], _transpose)
-    add([_getter(T.T), _getter(T.mT), _getter(T.H), _getter(T.mH)], _transpose)
-    add([T.conj, torch.conj, T.resolve_conj, T.resolve_neg, T.contiguous], lambda A, *a, **k: A)
-    add([T.to], _to)
-    add([T.double], _cast(torch.float64))
-    add([T.float], _cast(torch.float32))
-    add([T.half], _cast(torch.float16))
-    add([T.bfloat16], _cast(torch.bfloat16))
-    add([T.cpu], lambda A, *a, **k: _to(A, torch.device("cpu")))
-    add([T.cuda], _cuda)
-    add([T.detach], lambda A: A.with_values(A._vals.detach(), share_cache=True))
-    add([T.clone], lambda A, **k: A.with_values(A._vals.clone()))
-    add([T.requires_grad_], _refuse_grad)
-    add([T.copy_], _copy)
-    add([T.__getitem__], _getitem)
-    add([T.unbind, torch.unbind], _unbind)
-    add([T.__iter__], lambda A: iter(_unbind(A)))
-    add([T.to_sparse_csr], _layout_as(torch.sparse_csr))
-    add([T.to_sparse_coo, T.to_sparse], _layout_as(torch.sparse_coo))
-    add([T.coalesce], lambda A: A)
-    add([T.is_coalesced], lambda A: True)
-    add([T.to_dense], _to_dense)
-    add([T.values, T._values], lambda A: A._vals)
-    add([T.crow_indices], lambda A: A._crow)
-    add([T.col_indices], lambda A: A._col)
-    add([T.indices, T._indices], lambda A: torch.stack((A._row, A._col)))
-    add([T._nnz], lambda A: A._col.shape[0])
-    add([T.diagonal, torch.diagonal], _diagonal)
-    add([T.sum, torch.sum], _sum)
+    add(sign, "operator", [T.__pos__, torch.positive, T.positive], lambda A: A)
+    transpose = "transpose (`A` itself when symmetric); conjugation is a no-op on real values"
+    add(transpose, "operator", [T.t, torch.t, T.transpose, torch.transpose], _transpose)
+    add(transpose, "operator", [T.adjoint, torch.adjoint], _transpose)
+    getters = [_getter(T.T), _getter(T.mT), _getter(T.H), _getter(T.mH)]
+    add(transpose, "operator", getters, _transpose)
+    add(
+        transpose,
+        "operator",
+        [T.conj, torch.conj, T.resolve_conj, T.resolve_neg, T.contiguous],
+        lambda A, *a, **k: A,
+    )
+    move = "dtype and device"
+    add(move, "operator", [T.to], _to)
+    add(move, "operator", [T.double], _cast(torch.float64))
+    add(move, "operator", [T.float], _cast(torch.float32))
+    add(move, "operator", [T.half], _cast(torch.float16))
+    add(move, "operator", [T.bfloat16], _cast(torch.bfloat16))
+    add(move, "operator", [T.cpu], lambda A, *a, **k: _to(A, torch.device("cpu")))
+    add(move, "operator", [T.cuda], _cuda)
+    values = "detached or cloned values; `copy_` loads the values of an operator of one pattern"
+    add(values, "operator", [T.detach], lambda A: A.with_values(A._vals.detach(), share_cache=True))
+    add(values, "operator", [T.clone], lambda A, **k: A.with_values(A._vals.clone()))
+    add(values, "operator", [T.copy_], _copy)
+    batch = "one operator or a sub-batch of a batch `(B, n, m)` (along the batch only)"
+    add(batch, "operator", [T.__getitem__], _getitem)
+    add(batch, "operator", [T.unbind, torch.unbind], _unbind)
+    add(batch, "operator", [T.__iter__], lambda A: iter(_unbind(A)))
+    layout = "reported layout (the storage is sorted CSR either way)"
+    add(layout, "operator", [T.to_sparse_csr], _layout_as(torch.sparse_csr))
+    add(layout, "operator", [T.to_sparse_coo, T.to_sparse], _layout_as(torch.sparse_coo))
+    add(layout, "operator", [T.coalesce], lambda A: A)
+    add("whether the entries are coalesced (they always are)", "`True`", [T.is_coalesced], _true)
+    reductions = "the value array, the main diagonal, row or column sums, the dense matrix"
+    add(reductions, "dense, differentiable", [T.values, T._values], lambda A: A._vals)
+    add(reductions, "dense, differentiable", [T.diagonal, torch.diagonal], _diagonal)
+    add(reductions, "dense, differentiable", [T.sum, torch.sum], _sum)
+    add(reductions, "dense, differentiable", [T.to_dense], _to_dense)
+    indices = "the stored indices (CSR, and COO's `(2, nnz)`), the number of stored entries"
+    add(indices, "index tensors", [T.crow_indices], lambda A: A._crow)
+    add(indices, "index tensors", [T.col_indices], lambda A: A._col)
+    add(indices, "index tensors", [T.indices, T._indices], lambda A: torch.stack((A._row, A._col)))
+    add(indices, "index tensors", [T._nnz], lambda A: A._col.shape[0])
     for name in ("layout", "is_sparse", "is_sparse_csr", "requires_grad", "grad_fn", "is_leaf"):
-        add([_getter(getattr(T, name))], _metadata(name))
+        add(
+            "metadata of a sparse tensor, `requires_grad` and `grad_fn` of the value array",
+            "as for a torch sparse tensor",
+            [_getter(getattr(T, name))],
+            _metadata(name),
+        )
+    refused = "refused with the reason and what to do instead"
+    add(refused, "`UnsupportedOperation`", [T.requires_grad_], _refuse_grad)
+    add(refused, "`UnsupportedOperation`", [T.__rtruediv__, T.__rdiv__], lambda a, b: _div(b, a))
     return handlers
 
 
