@@ -2,7 +2,7 @@
 vertices triangulated two ways.
 
     python examples/conformal_parameterization.py [--lam 1.0] [--out examples/output]
-        [--families ../shared/data/meshes/grid] [--level 2]
+        [--families DIR] [--level 2]
 
 Meshes: the embedded hexagon/pentagon hemisphere cap (``torch_polylap/data/hex_hemisphere.obj``,
 75 slightly non-planar hexagons) and a procedural patch of irregular, non-planar quads on a

@@ -1,9 +1,9 @@
 """Convergence of the polygon Laplacians under refinement: AW11, dGBD20 and PLMS side by side.
 
     python examples/convergence_study.py [--levels 1 2 3 4 5] [--methods aw11 degoes plms]
-        [--lam 1] [--lams 0.5 1 2] [--out FILE]
+        [--lam 1] [--lams 0.5 1 2] [--shared DIR] [--out FILE]
 
-On the sphere and grid refinement families of ``../shared/data/meshes`` (levels 1..5), for the
+On the sphere and grid refinement families in ``--shared DIR`` (levels 1..5), for the
 Laplacians of ``tp.laplacian(..., method=...)``: ``"aw11"`` (Alexa and Wardetzky 2011),
 ``"degoes"`` (dGBD20, de Goes, Butts and Desbrun 2020), both at ``lambda = --lam``, and
 ``"plms"`` (Bunge et al. 2020, no lambda), each with its own lumped mass ``M0``:

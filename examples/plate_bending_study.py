@@ -4,8 +4,8 @@
 
 A simply supported unit square plate under a uniform load (q = 1, flexural rigidity 1) is solved
 with :func:`torch_polylap.apps.plate_bending` on the grid families ``quad``, ``str_hex``
-(stretched hexagons), ``triangle`` and ``irr_poly`` (irregular 3- to 9-gons) of
-``../shared/data/meshes/grid`` and compared with the Navier series
+(stretched hexagons), ``triangle`` and ``irr_poly`` (irregular 3- to 9-gons) of the
+refinement families in ``--shared DIR`` (its ``grid`` folder) and compared with the Navier series
 (:func:`torch_polylap.apps.navier_deflection`) in the relative L2 norm of ``M0``.  ``quad`` and
 ``triangle`` cover ``[-1/2, 1/2]^2`` and are shifted onto ``[0, 1]^2``; the others already cover
 it.  Observed orders are ``log(e_prev / e) / log(h_prev / h)`` with ``h = |V|^-1/2``.
