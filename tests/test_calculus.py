@@ -192,7 +192,8 @@ def test_heat_distance_on_planar_polygon_grids(name, bound):
     assert err < bound, err
 
 
-# Measured mean relative errors from vertex 0 (level 3 in tests/data, level 4 in ../shared):
+# Measured mean relative errors from vertex 0 (level 3 in tests/data, level 4 of the shared
+# families):
 # hex 0.0091 / 0.0037, quad 0.0156 / 0.0094, Voronoi 0.0194 / 0.0140, concave 0.0018 / 0.00047.
 # The bounds add about 40%.
 SPHERE_BOUNDS = {

@@ -61,7 +61,7 @@ def test_convergence_study_reproduces_reference_values(tmp_path):
         elif line.startswith("| sphere/") or line.startswith("| grid/"):
             cells = [c.strip() for c in line.strip("|").split("|")]
             rows[(section, cells[0])] = [float(c) for c in cells[3:]]
-    expected = {  # REFERENCE-VALUES.md, lam = 2, 1, 0.5
+    expected = {  # the polyLaplace reference values, lam = 2, 1, 0.5
         ("(a)", "sphere/hex"): (3.15e-3, 1.05e-3, 4.92e-4),
         ("(a)", "sphere/concave"): (2.59e-2, 1.09e-2, 4.89e-3),
         ("(b)", "sphere/quad"): (6.0e-2, 3.0e-2, 1.5e-2),

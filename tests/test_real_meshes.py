@@ -1,8 +1,9 @@
 """Structural properties of L and M0 (docs/math/properties.md) on real polygon meshes.
 
-Meshes: every file of ../shared/data/meshes/real (listed in its SOURCES.md; skipped when that
-directory is absent), read from the in-repository copy in tests/data/ when there is one, plus the
-in-repository sphere and grid meshes (always run). All in float64 with lambda = 1.
+Meshes: every file of the shared mesh directory's ``real/`` folder
+(``meshes.shared_meshes_dir``, listed in its SOURCES.md; skipped when that directory is absent),
+read from the in-repository copy in tests/data/ when there is one, plus the in-repository sphere
+and grid meshes (always run). All in float64 with lambda = 1.
 
 Cost control: dense eigenvalues only below DENSE_MAX vertices; up to SPARSE_MAX vertices PSD-ness
 and the kernel dimension come from the inertia of a sparse symmetric factorization (exact
@@ -26,16 +27,16 @@ import torch_polylap as tp
 from torch_polylap.apps import conformal_parameterization
 
 try:  # tests/ on sys.path (pytest's default import mode)
-    from meshes import DATA_DIR, load, require_shared, shared_meshes_dir
+    from meshes import DATA_DIR, SHARED_SKIP_REASON, load, require_shared, shared_meshes_dir
 except ImportError:  # tests/ imported as a package
-    from tests.meshes import DATA_DIR, load, require_shared, shared_meshes_dir
+    from tests.meshes import DATA_DIR, SHARED_SKIP_REASON, load, require_shared, shared_meshes_dir
 
 LAM = 1.0
 DENSE_MAX = 2000  # dense eigvalsh up to here (~0.5 s at 2000 vertices on 2 cores)
 SPARSE_MAX = 21000  # sparse factorizations up to here (rockerArm, 20088: ~0.5 s)
 
 
-# Facts about the files, copied from ../shared/data/meshes/real/SOURCES.md (V, F, degree
+# Facts about the files, copied from the shared real/SOURCES.md (V, F, degree
 # histogram "deg", boundary edges / boundary loops "bdry"), plus:
 #   comps: connected components (SOURCES notes: catmark_car has 31 separate parts, others 1);
 #   genus: per SOURCES notes where stated (quadknot, rockerArm: 1; spot: 0; bunny-dual: closed
@@ -204,7 +205,7 @@ def test_counts_match_sources(name):
 def test_in_repo_copies_equal_shared_files():
     root = shared_meshes_dir()
     if root is None:
-        pytest.skip("../shared/data/meshes not found: nothing to compare the in-repo copies with")
+        pytest.skip(SHARED_SKIP_REASON)
     for name in REAL:
         local = DATA_DIR / name
         if local.is_file():

@@ -2,11 +2,12 @@
 
 Its printed table (SH error, mean-curvature error and Franke error on the level-3 meshes, for
 lambda in {2, 1, 0.5}) was produced by the polyLaplace research code. The experiments are
-implemented once, in ``examples/convergence_study.py`` (``sh_error``, ``mean_curvature_error``,
-``franke_error``), which this module imports; what stays here is independent of them: the
-published numbers (copied as printed), ``Y_3^2`` from its definition with associated Legendre
-functions, a finite-difference check of Franke's Laplacian and polyLaplace's PLMS mass
-(:func:`meshes.plms_galerkin_mass`). The definitions, as REFERENCE-VALUES.md writes them:
+written here from their definitions, independently of ``examples/convergence_study.py`` (whose
+report ``tests/test_examples.py`` checks against the same numbers): ``Y_3^2`` with associated
+Legendre functions, Franke's function and its exact Laplacian (checked by finite differences),
+and polyLaplace's PLMS mass (:func:`meshes.plms_galerkin_mass`); only ``L``, ``M0`` and
+``dirichlet_solve`` come from the package. The definitions the published table was computed
+with:
 
 * spheres: vertices normalized to the unit sphere first;
 * SH error: ``y = Y_3^2`` with ``phi = atan2(x, z) + pi``, ``cos(theta) = y / |p|``,
@@ -16,7 +17,7 @@ functions, a finite-difference check of Franke's Laplacian and polyLaplace's PLM
   ``concave`` grids cover [-0.5, 0.5]^2), Dirichlet problem ``L u = -M0 lap(f)`` on the interior
   with ``u = f`` on the boundary vertices of ``build_topology``; ``error = RMS(u - f)``.
 
-The issue-12 table (level 5, the three methods: AW11 and dGBD20 at lambda = 1, PLMS) uses the
+The level-5 table (the three methods: AW11 and dGBD20 at lambda = 1, PLMS) uses the
 same definitions with ``tp.laplacian(..., method=...)`` and each method's lumped mass. For PLMS
 the polyLaplace code lumps the Galerkin mass of the triangle fan (``setup_sandwich_mass_matrix``
 then ``lump_matrix``: each fan triangle gives a third of its area to each of its corners, the
@@ -31,7 +32,6 @@ Run ``PYTHONPATH=. python tests/test_reference_values.py`` to print the full com
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -42,13 +42,10 @@ from scipy.special import factorial, lpmv
 
 import torch_polylap as tp
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-import convergence_study as study  # noqa: E402  (the experiments)
-
 LAMBDAS = (2.0, 1.0, 0.5)
 
-# REFERENCE-VALUES.md, "Values (level 3 meshes)", copied as printed (strings keep the number of
-# significant digits, which sets how closely each value can be compared).
+# The polyLaplace research code's values on the level-3 meshes, copied as printed (strings keep
+# the number of significant digits, which sets how closely each value can be compared).
 REFERENCE = {
     ("sh", "sphere/hex_3"): ("3.15e-3", "1.05e-3", "4.92e-4"),
     ("sh", "sphere/quad_3"): ("6.56e-4", "2.76e-4", "1.87e-4"),
@@ -83,7 +80,7 @@ METHOD_REFERENCE = {
 
 
 def sh_y32(p: np.ndarray) -> np.ndarray:
-    """Real spherical harmonic ``Y_3^2`` exactly as REFERENCE-VALUES.md defines it.
+    """Real spherical harmonic ``Y_3^2`` exactly as the reference experiments define it.
 
     ``Y_l^m = sqrt(2) K(l, m) cos(m phi) P_l^m(cos theta)``, ``K = sqrt((2l+1)(l-m)! / (4 pi
     (l+m)!))``; scipy's ``lpmv`` includes the Condon-Shortley phase ``(-1)^m`` (a no-op for
@@ -97,26 +94,79 @@ def sh_y32(p: np.ndarray) -> np.ndarray:
     return math.sqrt(2.0) * k * np.cos(m * phi) * lpmv(m, deg, cos_theta)
 
 
+def franke(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Franke's function (Franke 1979) at raw coordinates, as the definition writes it."""
+    return (
+        0.75 * np.exp(-((9 * x - 2) ** 2 + (9 * y - 2) ** 2) / 4)
+        + 0.75 * np.exp(-((9 * x + 1) ** 2) / 49 - (9 * y + 1) / 10)
+        + 0.5 * np.exp(-((9 * x - 7) ** 2 + (9 * y - 3) ** 2) / 4)
+        - 0.2 * np.exp(-((9 * x - 4) ** 2) - (9 * y - 7) ** 2)
+    )
+
+
+def franke_laplacian(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The exact Laplacian of :func:`franke`: each term is ``c exp(q)`` with ``q`` at most
+    quadratic, whose Laplacian is ``c exp(q) (|grad q|^2 + lap q)``."""
+    terms = (  # c, q, dq/dx, dq/dy, lap q
+        (0.75, -((9 * x - 2) ** 2 + (9 * y - 2) ** 2) / 4, -4.5 * (9 * x - 2),
+         -4.5 * (9 * y - 2), -81.0),
+        (0.75, -((9 * x + 1) ** 2) / 49 - (9 * y + 1) / 10, -18 * (9 * x + 1) / 49,
+         -0.9, -162 / 49),
+        (0.5, -((9 * x - 7) ** 2 + (9 * y - 3) ** 2) / 4, -4.5 * (9 * x - 7),
+         -4.5 * (9 * y - 3), -81.0),
+        (-0.2, -((9 * x - 4) ** 2) - (9 * y - 7) ** 2, -18 * (9 * x - 4),
+         -18 * (9 * y - 7), -324.0),
+    )  # fmt: skip
+    return sum(c * np.exp(q) * (qx * qx + qy * qy + lq) for c, q, qx, qy, lq in terms)
+
+
 # --------------------------------------------------------------------------------------------
-# The three experiments (examples/convergence_study.py)
+# The three experiments, from the definitions above
 # --------------------------------------------------------------------------------------------
 
 
-def polylaplace_mass(verts: torch.Tensor, faces) -> torch.Tensor:
+def polylaplace_mass(verts: torch.Tensor, faces) -> np.ndarray:
     """polyLaplace's PLMS lumped mass, computed independently of the package (numpy)."""
-    return torch.from_numpy(plms_galerkin_mass(verts, faces))
+    return plms_galerkin_mass(verts, faces)
+
+
+def _operators(verts: np.ndarray, faces, lam: float, method: str, mass: str):
+    """``L`` (scipy) and the lumped masses ``m`` for float64 vertices ``verts``."""
+    V = torch.from_numpy(verts)
+    L, M0 = tp.laplacian(V, faces, lam, method=method)
+    if mass == "polylaplace" and method == "plms":
+        m = polylaplace_mass(V, faces)
+    else:
+        m = M0.diagonal().numpy()
+    return L, tp.sparse.to_scipy(L), m
 
 
 def experiment(name: str, path: Path, lam: float, method: str = "aw11", mass: str = "own"):
     """The error of experiment ``name`` on the mesh at ``path``; ``mass="polylaplace"`` swaps
     PLMS's lumped mass for :func:`polylaplace_mass` (other methods keep their own)."""
-    fn = {
-        "sh": study.sh_error,
-        "mean_curvature": study.mean_curvature_error,
-        "franke": study.franke_error,
-    }[name]
-    swap = polylaplace_mass if mass == "polylaplace" and method == "plms" else None
-    return fn(*load(path), lam, method, swap)
+    verts, faces = load(path)
+    p = verts.numpy()
+    if name in ("sh", "mean_curvature"):
+        p = p / np.linalg.norm(p, axis=1, keepdims=True)  # spheres: onto the unit sphere first
+    L_op, L, m = _operators(p, faces, lam, method, mass)
+    if name == "sh":
+        y = sh_y32(p)
+        e = y - (L @ y) / m / 12.0  # M0^-1 L approximates -lap, and -lap_S Y = 12 Y
+        return float((e * m * e).sum() / y.size) ** 0.5
+    if name == "mean_curvature":
+        c = np.linalg.norm((L @ p) / m[:, None], axis=1) / 2
+        return float(((c - 1) ** 2).mean()) ** 0.5
+    assert name == "franke"
+    return _franke_error(p, faces, L_op, m)
+
+
+def _franke_error(p: np.ndarray, faces, L: torch.Tensor, m: np.ndarray) -> float:
+    """``L u = -M0 lap(f)`` inside, ``u = f`` on the boundary vertices: RMS of ``u - f``."""
+    f = franke(p[:, 0], p[:, 1])
+    boundary = tp.get_topology(faces, p.shape[0]).boundary_vertices
+    rhs = torch.from_numpy(-m * franke_laplacian(p[:, 0], p[:, 1]))
+    u = tp.dirichlet_solve(L, rhs, boundary, torch.from_numpy(f)[boundary]).numpy()
+    return float(((u - f) ** 2).mean()) ** 0.5
 
 
 def _half_unit(printed: str) -> float:
@@ -137,10 +187,13 @@ def test_y32_matches_closed_form_is_normalized_and_harmonic():
     rng = np.random.default_rng(0)
     p = rng.normal(size=(1000, 3))
     y = sh_y32(p)
-    # The definition against the experiments' closed form ``sqrt(2) K 15 y (z^2 - x^2) / r^3``
+    # The definition against the closed form ``sqrt(2) K 15 y (z^2 - x^2) / r^3``
     # (P_3^2(t) = 15 t (1 - t^2), sin^2(theta) = (x^2 + z^2) / r^2 and cos(2 phi) =
     # (z^2 - x^2) / (x^2 + z^2); the + pi drops out): agreement to round-off (values are O(1)).
-    closed_form = study.y32(torch.from_numpy(p)).numpy()
+    x_, y_, z_ = p.T
+    k = math.sqrt(7.0 / (4 * math.pi * 120.0))
+    r = np.linalg.norm(p, axis=1)
+    closed_form = math.sqrt(2.0) * k * 15.0 * y_ * (z_ * z_ - x_ * x_) / r**3
     np.testing.assert_allclose(y, closed_form, rtol=0, atol=1e-13)
 
     # Unit L2 norm on the sphere: Gauss-Legendre in cos(theta) (the integrand is a polynomial
@@ -172,14 +225,6 @@ def test_y32_matches_closed_form_is_normalized_and_harmonic():
     np.testing.assert_allclose(lap / h**2, 0.0, atol=1e-6)
     # ... and homogeneous of degree 3.
     np.testing.assert_allclose(cubic(2 * q), 8 * cubic(q), rtol=1e-12)
-
-
-def franke(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    return study.franke_and_laplacian(torch.from_numpy(x), torch.from_numpy(y))[0].numpy()
-
-
-def franke_laplacian(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    return study.franke_and_laplacian(torch.from_numpy(x), torch.from_numpy(y))[1].numpy()
 
 
 def test_franke_laplacian_matches_finite_differences():
@@ -237,13 +282,14 @@ def test_reference_value(name, mesh, lam, printed):
 
 @pytest.mark.parametrize("mesh", ["grid/quad_3", "grid/voronoi_3", "grid/concave_3"])
 def test_franke_reference_uses_raw_coordinates(mesh):
-    # These three grids cover [-0.5, 0.5]^2. REFERENCE-VALUES.md says "raw vertex coordinates
-    # (no shift)", and the table agrees with that reading only: shifting to [0, 1]^2 moves every
-    # value by > 10% (observed 17-33%), far outside the rounding tolerance above.
+    # These three grids cover [-0.5, 0.5]^2. The experiment evaluates f at the raw vertex
+    # coordinates (no shift), and the table agrees with that reading only: shifting to [0, 1]^2
+    # moves every value by > 10% (observed 17-33%), far outside the rounding tolerance above.
     for lam, printed in zip(LAMBDAS, REFERENCE[("franke", mesh)], strict=True):
         verts, faces = load(DATA_DIR / f"{mesh}.obj")
-        shift = torch.tensor([0.5, 0.5, 0.0], dtype=verts.dtype)
-        shifted = study.franke_error(verts + shift, faces, lam)
+        p = verts.numpy() + np.array([0.5, 0.5, 0.0])
+        L, _, m = _operators(p, faces, lam, "aw11", "own")
+        shifted = _franke_error(p, faces, L, m)
         assert abs(shifted / float(printed) - 1.0) > 0.10
 
 
@@ -278,10 +324,9 @@ def test_method_reference_value_level5(name, mesh, method, printed):
     _assert_rounds_to(value, printed, f"{name} on {mesh}, {method}")
 
 
-# Where the two PLMS masses differ. With the package's mixed-Voronoi M0 (observed):
-# quad sphere SH 4.02e-6, concave sphere SH 9.32e-4, hex sphere mean curvature 4.79e-5,
-# concave grid Franke 2.80e-5; on the regular quad grid the masses agree to 1e-14 (right
-# isosceles fan triangles: Voronoi and barycentric corner areas give the same prolonged sums).
+# The package's PLMS mass lumps the fan's Galerkin mass as polyLaplace does (checked entry by
+# entry in test_plms_galerkin_mass_matches_the_package), so the printed PLMS numbers reproduce
+# with the package's own M0 as well, not only with the independent numpy mass.
 @pytest.mark.parametrize(
     "name, mesh, printed",
     [
@@ -306,7 +351,7 @@ def test_plms_galerkin_mass_matches_the_package():
 
 
 # --------------------------------------------------------------------------------------------
-# Refinement (levels 1..5 from ../shared/data/meshes)
+# Refinement (levels 1..5 of the shared refinement families)
 # --------------------------------------------------------------------------------------------
 
 
@@ -329,8 +374,8 @@ def _errors_over_levels(family: str, name: str, lam: float):
 )
 def test_second_order_convergence(family, name, lam):
     errs, steps, slope = _errors_over_levels(family, name, lam)
-    # REFERENCE-VALUES.md: these fall at second order. Observed: every step >= 1.70, slopes
-    # 1.92..2.73. 1.5 separates second from first order with margin on both sides; the
+    # The polyLaplace reference runs fall at second order here. Observed: every step >= 1.70,
+    # slopes 1.92..2.73. 1.5 separates second from first order with margin on both sides; the
     # least-squares slope over the five levels must be close to 2 (>= 1.8) as well.
     assert np.all(np.diff(errs) < 0), errs
     assert np.all(steps >= 1.5), f"orders between levels: {np.round(steps, 2)}"
@@ -339,8 +384,9 @@ def test_second_order_convergence(family, name, lam):
 
 @pytest.mark.parametrize("family", ["sphere/voronoi", "sphere/concave"])
 def test_first_order_convergence_on_irregular_spheres(family):
-    # REFERENCE-VALUES.md: "on Voronoi and concave spheres at first order". Observed slopes
-    # 0.76 (voronoi) and 0.86 (concave) at lambda = 1; [0.5, 1.5] says first, not second order.
+    # The polyLaplace reference runs fall at first order on Voronoi and concave spheres.
+    # Observed slopes 0.76 (voronoi) and 0.86 (concave) at lambda = 1; [0.5, 1.5] says first,
+    # not second order.
     errs, steps, slope = _errors_over_levels(family, "sh", 1.0)
     assert np.all(np.diff(errs) < 0), errs
     assert 0.5 <= slope <= 1.5, f"least-squares order {slope:.2f}"
