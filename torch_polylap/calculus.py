@@ -33,8 +33,7 @@ import torch
 from .checks import Lam, check_index_or_mask, check_verts
 from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
-from .linalg import solve
-from .linalg.factor import _qdldl_available
+from .linalg import qdldl_available, solve
 from .operators import laplacian
 from .sparse import SparseOperator, SparsityPattern, diag, operator_on
 from .topology import DegreeGroup, Topology, get_topology
@@ -426,14 +425,14 @@ def _geodesic_backend(backend: str, device: torch.device, num_verts: int) -> str
     """The solve backend :class:`HeatGeodesicSolver` uses for ``backend`` (see there)."""
     cpu = device.type == "cpu"
     if backend == "auto":
-        return "ldl" if cpu and num_verts <= LDL_MAX_VERTS and _qdldl_available() else "auto"
+        return "ldl" if cpu and num_verts <= LDL_MAX_VERTS and qdldl_available() else "auto"
     if backend == "ldl":
         if not cpu:
             raise ValueError(
                 f"HeatGeodesicSolver: backend='ldl' factors on the CPU, but verts are on "
                 f"{device}; use backend='auto' (CHOLMOD on CUDA through cholespy, or CG)."
             )
-        if not _qdldl_available():
+        if not qdldl_available():
             raise ValueError(
                 "HeatGeodesicSolver: backend='ldl' needs the optional package qdldl "
                 "(pip install 'torch_polylap[ldl]'); use backend='auto' without it."

@@ -224,7 +224,7 @@ def _finite(X: torch.Tensor) -> torch.Tensor:
     return X
 
 
-def _cholespy_available() -> bool:
+def cholespy_available() -> bool:
     try:
         import cholespy  # noqa: F401
     except ImportError:
@@ -232,7 +232,7 @@ def _cholespy_available() -> bool:
     return True
 
 
-def _qdldl_available() -> bool:
+def qdldl_available() -> bool:
     try:
         import qdldl  # noqa: F401
     except ImportError:
@@ -274,7 +274,7 @@ def spd_factorization(
     is installed (on ``A``'s device), else SuperLU on the CPU."""
     return (
         CholeskyFactorization(A, check=check)
-        if _cholespy_available()
+        if cholespy_available()
         else Factorization(A, check=check)
     )
 
@@ -282,13 +282,15 @@ def spd_factorization(
 Factor = Factorization | CholeskyFactorization | LDLFactorization
 
 
-def _factorization(A: SparseOperator, backend: str) -> Factor:
+def cached_factorization(A: SparseOperator, backend: str) -> Factor:
+    """The factorization of ``A`` for ``backend`` (``"cholesky"``, ``"ldl"``, else SuperLU),
+    built once and kept in ``A``'s solver cache for every later solve with the same values."""
     kinds: dict[str, type[Factor]] = {"cholesky": CholeskyFactorization, "ldl": LDLFactorization}
     kind = kinds.get(backend, Factorization)
     return solver_cache(A, backend, lambda: kind(A))
 
 
-class _Held:
+class Held:
     """A sparse operator passed to an autograd.Function as a plain object: autograd and
     torch.func must see only its value array as the differentiable input."""
 
