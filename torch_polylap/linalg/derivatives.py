@@ -13,10 +13,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from ..sparse import (
-    sampled_gradient,
-    to_scipy,
-)
+from ..sparse import to_scipy
+from ..sparse.construct import sampled_gradient
 from .factor import Held
 
 _SECOND_ORDER_MESSAGE = (

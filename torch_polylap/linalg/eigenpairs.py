@@ -57,9 +57,9 @@ def _check_symmetric(A: SparseOperator, S: sp.csr_matrix, name: str) -> None:
         f"{abs(D.data[worst]) / size:.3g} to max |{name}|; "
         f"{int((np.abs(D.data) > _SYMMETRY_RTOL * size).sum())} such entries). eigs solves "
         "the symmetric generalized problem only. If the asymmetry is round-off, symmetrize "
-        f"with 0.5 * ({name} + {name}.T) and declare it with "
-        "torch_polylap.sparse.mark_symmetric; a non-symmetric problem needs "
-        "scipy.sparse.linalg.eigs."
+        f"with 0.5 * ({name} + {name}.T), or build it with "
+        "torch_polylap.sparse.operator_from_parts(..., symmetric=True); a non-symmetric "
+        "problem needs scipy.sparse.linalg.eigs."
     )
 
 

@@ -13,11 +13,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from ..sparse import (
-    SparseOperator,
-    solver_cache,
-    to_scipy,
-)
+from ..sparse import SparseOperator, to_scipy
+from ..sparse.construct import solver_cache
 
 
 def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:
@@ -38,8 +35,8 @@ class Factorization:
     where that breaks down or is inaccurate (a zero or tiny pivot of an indefinite or
     non-symmetric matrix), SuperLU with partial pivoting, which solves any non-singular matrix.
     Built from ``A``'s values at one point in time and cached on ``A`` by
-    :func:`torch_polylap.sparse.solver_cache`, which checks the values' storage and version
-    counter before reusing it. ``check`` refuses a numerically singular ``A`` (one extra
+    :func:`torch_polylap.sparse.construct.solver_cache`, which checks the values' storage and
+    version counter before reusing it. ``check`` refuses a numerically singular ``A`` (one extra
     solve); a caller that handles ill-conditioning itself (damped Gauss-Newton) passes False.
     """
 

@@ -15,14 +15,8 @@ from typing import Any
 import torch
 
 from ..checks import check_index_or_mask
-from ..sparse import (
-    SparseOperator,
-    as_operator,
-    sampled_gradient,
-    sparse_values,
-    submatrix,
-)
-from ..sparse.construct import csr_indices
+from ..sparse import SparseOperator, as_operator, sparse_values, submatrix
+from ..sparse.construct import csr_indices, sampled_gradient
 from ..tracing import tracing
 from .cg import ConvergenceError as ConvergenceError
 from .factor import Held, cached_factorization, cholespy_available, qdldl_available
