@@ -1,6 +1,6 @@
-"""The package's import graph, read from its source with ``ast``: no circle among its modules,
-the command line imported by no library module, and no private name taken from another
-subpackage.
+"""The package's import graph, read from its source with ``ast``: no circle among its modules
+nor among its parts (no upward arrow), the command line imported by no library module, and no
+private name taken from another subpackage.
 
 Every import statement counts wherever it stands: at module level, under ``if TYPE_CHECKING:``
 and inside functions. A function-local import still ties the two modules together (it only
@@ -141,6 +141,21 @@ def test_the_cycle_finder_finds_circles():
 def test_no_import_circle():
     circles = _cycles(_graph())
     assert not circles, f"import circles among the package's modules: {circles}"
+
+
+def test_the_parts_are_layered():
+    """No upward arrow: the parts of the package (subpackages and top-level modules, a
+    subpackage's modules taken together) import each other without a circle, so they stack
+    in layers (sparse below linalg below apps, ...). The root package, which imports every
+    part to export its names, is left out."""
+    parts: dict[str, set[str]] = {}
+    for module, targets in _graph().items():
+        part = _subpackage(module)
+        parts.setdefault(part, set())
+        if part != NAME:
+            parts[part] |= {_subpackage(t) for t in targets} - {part, NAME}
+    circles = _cycles(parts)
+    assert not circles, f"parts of the package that import each other: {circles}"
 
 
 def test_no_library_module_imports_the_command_line():
