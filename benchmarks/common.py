@@ -12,7 +12,7 @@ import platform
 import resource
 from collections.abc import Callable
 
-from torch_polylap.cli.timing import (
+from torch_polylap.timing import (
     DEFAULT_THREADS,
     fmt_time,
     markdown_table,

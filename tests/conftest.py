@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
-from torch_polylap.cli.timing import pinned_threads  # noqa: E402
+from torch_polylap.timing import pinned_threads  # noqa: E402
 
 DATA = Path(__file__).resolve().parent / "data"
 

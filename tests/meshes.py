@@ -92,3 +92,32 @@ def plms_galerkin_mass(verts: torch.Tensor, faces) -> np.ndarray:
         corner = (fan + np.roll(fan, 1, axis=1)) / 3 + w * fan.sum(1, keepdims=True) / 3
         np.add.at(m, corners, corner)
     return m
+
+
+def dumbbell(rings: int = 24, sides: int = 16) -> tuple[torch.Tensor, list[list[int]]]:
+    """A closed surface of revolution about z with a thin neck at z = 0 (radius 0.15 of the
+    bulbs'), quads between rings and triangle fans at the poles: ``(verts (V, 3) float64,
+    faces)``. Mean-curvature flow pinches the neck in finite time."""
+    z = np.linspace(-1, 1, rings + 2)[1:-1]
+    rho = np.sqrt(1 - z**2) * (1 - 0.85 * np.exp(-((z / 0.2) ** 2)))
+    phi = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    ring = np.stack(
+        [rho[:, None] * np.cos(phi), rho[:, None] * np.sin(phi), np.repeat(z[:, None], sides, 1)],
+        -1,
+    ).reshape(-1, 3)
+    verts = np.concatenate([[[0, 0, -1.0]], ring, [[0, 0, 1.0]]])
+    top = len(verts) - 1
+    ids = 1 + np.arange(rings * sides).reshape(rings, sides)
+    faces = [[0, int(ids[0, (j + 1) % sides]), int(ids[0, j])] for j in range(sides)]
+    faces += [
+        [
+            int(ids[i, j]),
+            int(ids[i, (j + 1) % sides]),
+            int(ids[i + 1, (j + 1) % sides]),
+            int(ids[i + 1, j]),
+        ]
+        for i in range(rings - 1)
+        for j in range(sides)
+    ]
+    faces += [[top, int(ids[-1, j]), int(ids[-1, (j + 1) % sides])] for j in range(sides)]
+    return torch.from_numpy(verts), faces

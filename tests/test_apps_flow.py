@@ -9,10 +9,18 @@ import pytest
 import scipy.spatial
 import torch
 from conftest import DATA, assert_directional_derivative, hex_pent_mesh
+from meshes import dumbbell
 
 import torch_polylap as tp
-from torch_polylap.apps import enclosed_volume, mean_curvature_flow
-from torch_polylap.shapes import quad_grid, schwarz_lantern
+from torch_polylap.apps import (
+    FlowResult,
+    FlowStoppedWarning,
+    enclosed_volume,
+    mean_curvature_flow,
+    scale_free_mean_curvature,
+)
+from torch_polylap.apps.flow import SINGULARITY_FACTOR
+from torch_polylap.shapes import quad_grid, schwarz_lantern, torus
 
 
 def unit_sphere(name: str):
@@ -189,3 +197,122 @@ def test_lantern_quad_flow_keeps_the_symmetry_that_triangulations_break():
     }
     assert min(diff.values()) > 1e-2, diff
     assert np.isfinite(list(diff.values())).all()
+
+
+# ---- the singularity guard ----------------------------------------------------------------
+
+
+def largest_scale_free_curvature(verts: torch.Tensor, faces) -> float:
+    """max_p |M0^{-1} L X|_p / 2 * sqrt(A / 4 pi), from the public operators (closed meshes)."""
+    L, M0 = tp.laplacian(verts, faces)
+    h = tp.strong_laplacian(L, M0, verts).norm(dim=1) / 2
+    return float(h.max()) * math.sqrt(float(tp.face_areas(verts, faces).sum()) / (4 * math.pi))
+
+
+def unguarded_flow_degenerates(verts, faces, dt: float, steps: int, bound: float) -> bool:
+    """Whether the plain flow passes ``bound`` or breaks down (a singular system)."""
+    try:
+        raw = mean_curvature_flow(verts, faces, dt, steps)
+    except ValueError:
+        return True
+    return not largest_scale_free_curvature(raw, faces) <= bound
+
+
+@pytest.mark.parametrize(
+    ("shape", "dt", "steps"),
+    [("thin torus", 0.01, 20), ("dumbbell", 0.05, 20)],
+)
+def test_guard_stops_before_a_thin_part_pinches(shape, dt, steps):
+    verts, faces = torus(24, 8, major=1.0, minor=0.15) if shape == "thin torus" else dumbbell()
+    before = largest_scale_free_curvature(verts, faces)
+    bound = SINGULARITY_FACTOR * max(before, 1.0)
+    # the plain flow with this step does degenerate: without the guard this test would fail
+    assert unguarded_flow_degenerates(verts, faces, dt, steps, bound)
+    result = mean_curvature_flow(
+        verts, faces, dt, steps, stop_at_singularity=True, return_result=True
+    )
+    assert isinstance(result, FlowResult)
+    assert 0 < result.steps < steps and result.dt == dt  # a chosen step is kept
+    assert result.stopped.startswith(f"at step {result.steps + 1} ")
+    assert "pinching off" in result.stopped or "shrank to a point" in result.stopped
+    # the state kept is within the bound (recomputed from the public operators) and is the
+    # plain flow's state after as many steps: the guard only chooses where to stop
+    assert largest_scale_free_curvature(result.verts, faces) <= bound
+    plain = mean_curvature_flow(verts, faces, dt, result.steps)
+    assert torch.equal(result.verts, plain)
+    # without return_result the same stop is a warning that says after how many steps
+    with pytest.warns(FlowStoppedWarning, match=rf"stopped after {result.steps} of {steps}"):
+        warned = mean_curvature_flow(verts, faces, dt, steps, stop_at_singularity=True)
+    assert torch.equal(warned, result.verts)
+
+
+def test_guard_halves_the_step_before_giving_up():
+    verts, faces = torus(24, 8, major=1.0, minor=0.15)
+    dt, steps, halvings = 0.002, 10, 6
+    kept = mean_curvature_flow(
+        verts, faces, dt, steps, stop_at_singularity=True, return_result=True
+    )
+    halved = mean_curvature_flow(
+        verts,
+        faces,
+        dt,
+        steps,
+        stop_at_singularity=True,
+        max_halvings=halvings,
+        return_result=True,
+    )
+    # the smaller steps went further; a singularity in time still stops the flow, and only
+    # once every halving is spent
+    assert halved.steps > kept.steps
+    assert halved.stopped and halved.dt == dt / 2**halvings
+    bound = SINGULARITY_FACTOR * max(largest_scale_free_curvature(verts, faces), 1.0)
+    assert largest_scale_free_curvature(halved.verts, faces) <= bound
+
+
+def test_guard_that_never_fires_changes_nothing():
+    """On a sphere the curvature stays put: every step is taken, bit for bit the plain flow's,
+    trajectory and gradients included."""
+    verts, faces = unit_sphere("quad_2.obj")
+    verts = verts.clone().requires_grad_(True)
+    plain = mean_curvature_flow(verts, faces, 0.01, 3, return_trajectory=True)
+    guarded = mean_curvature_flow(
+        verts,
+        faces,
+        0.01,
+        3,
+        return_trajectory=True,
+        stop_at_singularity=True,
+        max_halvings=2,
+        return_result=True,
+    )
+    assert (guarded.steps, guarded.dt, guarded.stopped) == (3, 0.01, "")
+    assert torch.equal(guarded.verts, plain)
+    weights = torch.linspace(-1, 1, verts.numel(), dtype=torch.float64).reshape(verts.shape)
+    (g_plain,) = torch.autograd.grad((plain[-1] * weights).sum(), verts)
+    (g_guarded,) = torch.autograd.grad((guarded.verts[-1] * weights).sum(), verts)
+    assert torch.equal(g_plain, g_guarded)
+    # return_result alone (no guard) wraps the plain result
+    wrapped = mean_curvature_flow(verts, faces, 0.01, 3, return_result=True)
+    assert torch.equal(wrapped.verts, plain[-1]) and wrapped.steps == 3 and not wrapped.stopped
+
+
+def test_scale_free_mean_curvature_is_one_on_round_spheres_of_any_size():
+    verts, faces = unit_sphere("hex_3.obj")
+    h = scale_free_mean_curvature(verts, faces)
+    torch.testing.assert_close(h, torch.ones_like(h), atol=0.05, rtol=0)  # H = 1/r, A = 4 pi r^2
+    for radius in (0.1, 30.0):  # scale-free: the same at every size
+        torch.testing.assert_close(scale_free_mean_curvature(radius * verts, faces), h)
+
+
+def test_guard_argument_checks():
+    verts, faces = unit_sphere("quad_2.obj")
+    with pytest.raises(ValueError, match="stop_at_singularity"):
+        mean_curvature_flow(verts, faces, 0.01, 1, max_halvings=2)
+    with pytest.raises(ValueError, match="frozen"):
+        mean_curvature_flow(
+            verts, faces, 0.01, 1, frozen=True, stop_at_singularity=True, max_halvings=2
+        )
+    with pytest.raises(ValueError, match="singularity_factor"):
+        mean_curvature_flow(verts, faces, 0.01, 1, stop_at_singularity=True, singularity_factor=1)
+    with pytest.raises(ValueError, match="max_halvings"):
+        mean_curvature_flow(verts, faces, 0.01, 1, stop_at_singularity=True, max_halvings=-1)

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from torch_polylap.io import common as io_common
-from torch_polylap.io.common import atomic_write
+from torch_polylap import atomic
+from torch_polylap.atomic import atomic_write
 
 ROOT = Path(__file__).resolve().parents[1]
 # the documented ages: a killed writer's temporary is stale after 10 minutes, any after a day
@@ -91,13 +91,13 @@ def test_stale_symlink_or_folder_with_a_temporary_name_is_left_alone(tmp_path):
     (tmp_path / "elsewhere").write_text("keep me")
     (tmp_path / name).symlink_to(tmp_path / "elsewhere")
     os.utime(tmp_path / name, (0, 0), follow_symlinks=False)
-    assert io_common.remove_stale_temporaries(tmp_path / "x.obj") == []
+    assert atomic.remove_stale_temporaries(tmp_path / "x.obj") == []
     assert (tmp_path / "elsewhere").read_text() == "keep me"
 
 
 WRITER = """
 import os, sys, time
-from torch_polylap.io.common import atomic_write
+from torch_polylap.atomic import atomic_write
 
 def fill(f):
     f.write(b"x" * 100000)

@@ -236,7 +236,7 @@ def test_from_list_and_trimesh():
     trimesh = pytest.importorskip("trimesh", reason="trimesh not installed: pip install trimesh")
     box = trimesh.creation.box()
     ico = trimesh.creation.icosphere(1)
-    m = PolygonMeshes.from_trimesh([box, ico])
+    m = PolygonMeshes.from_list([tp.from_trimesh(mesh) for mesh in (box, ico)])
     assert m.num_verts_per_mesh().tolist() == [len(box.vertices), len(ico.vertices)]
     np.testing.assert_allclose(m.verts_list()[1].numpy(), ico.vertices)
     assert m.faces_list()[0].tolist() == box.faces.tolist()
@@ -252,12 +252,12 @@ def test_from_pyg_duck_typed_data():
     v2 = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=torch.float64)
     d1 = SimpleNamespace(pos=v1, polygons=f1)
     d2 = SimpleNamespace(pos=v2, face=tri.t())
-    m = PolygonMeshes.from_pyg([d1, d2])
+    m = tp.from_pyg([d1, d2])
     assert m[1][1].tolist() == tri.tolist() and m[0][1].tolist() == f1
     batch = SimpleNamespace(to_data_list=lambda: [d2, d1])
-    assert PolygonMeshes.from_pyg(batch).num_verts_per_mesh().tolist() == [4, 12]
+    assert tp.from_pyg(batch).num_verts_per_mesh().tolist() == [4, 12]
     with pytest.raises(ValueError, match=r"`face` must have shape \(3, F\)"):
-        PolygonMeshes.from_pyg(SimpleNamespace(pos=v2, face=tri))
+        tp.from_pyg(SimpleNamespace(pos=v2, face=tri))
 
 
 def test_from_pyg_real_data():
@@ -268,7 +268,7 @@ def test_from_pyg_real_data():
     v, f = quad_grid(2)
     tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
     data = tg.data.Data(pos=v, face=tris.t().contiguous())
-    m = PolygonMeshes.from_pyg(tg.data.Batch.from_data_list([data, data]))
+    m = tp.from_pyg(tg.data.Batch.from_data_list([data, data]))
     assert len(m) == 2 and m[1][1].tolist() == tris.tolist()
 
 
@@ -280,7 +280,7 @@ def test_from_pytorch3d():
     v, f = quad_grid(2)
     tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
     meshes = structures.Meshes([v.float(), v.float() * 2], [tris, tris])
-    m = PolygonMeshes.from_pytorch3d(meshes)
+    m = tp.from_pytorch3d(meshes)
     assert torch.equal(m.verts_packed(), meshes.verts_packed())
     assert torch.equal(m.faces_packed().as_uniform(), meshes.faces_packed())
 

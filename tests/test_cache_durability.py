@@ -175,7 +175,7 @@ def test_cache_dir_that_is_a_file_fails_before_any_work(tmp_path, mesh, monkeypa
         raise AssertionError("work started before the cache_dir check")
 
     monkeypatch.setattr(tp.spectral, "laplacian", no_work)
-    monkeypatch.setattr(tp.spectral, "_mesh_key", no_work)
+    monkeypatch.setattr(tp.spectral, "eigs_cache_key", no_work)
     with pytest.raises(ValueError, match=r"cache_dir .*cache exists but is not a directory"):
         tp.cached_eigs(V, F, K, not_a_dir)
     with pytest.raises(ValueError, match=r"cache_dir .*cache exists but is not a directory"):

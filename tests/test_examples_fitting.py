@@ -18,9 +18,9 @@ import fit_quad_sphere_to_target as fitting_example  # noqa: E402
 import large_steps_fit  # noqa: E402
 
 import torch_polylap as tp  # noqa: E402
-from torch_polylap.cli.timing import pinned_threads  # noqa: E402
 from torch_polylap.fitting import mesh_quality, sample_points  # noqa: E402
 from torch_polylap.shapes import quad_sphere  # noqa: E402
+from torch_polylap.timing import pinned_threads  # noqa: E402
 
 SMALL = dict(n=6, steps=80, num_samples=1000, target_samples=2000, eval_samples=4000)
 

@@ -279,14 +279,14 @@ def test_pyg_round_trips(triangulate, laplacian):
     assert torch.equal(back.verts_packed(), m.verts_packed())
     if not laplacian:  # the batch's edges are the packed mesh's, offset by torch_geometric
         assert torch.equal(batch.edge_index, _directed(_mesh_edge_set(m.faces_packed())))
-    # method form: a quad batch holds polygons, a triangle batch `face` with global indices
+    # a quad batch holds polygons, a triangle batch `face` with global indices
     grids = PolygonMeshes([quad_grid(2)[0], quad_grid(3)[0]], [quad_grid(2)[1], quad_grid(3)[1]])
-    gb = grids.to_pyg(triangulate=triangulate, laplacian=laplacian)
+    gb = to_pyg(grids, triangulate=triangulate, laplacian=laplacian)
     assert torch.equal(gb.polygon_index, grids.faces_packed().indices)
     v, q = quad_grid(2)
     tris = torch.cat([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
     pair = PolygonMeshes([v, v * 2], [tris, tris])
-    tb = pair.to_pyg(triangulate=triangulate, laplacian=laplacian)
+    tb = to_pyg(pair, triangulate=triangulate, laplacian=laplacian)
     assert torch.equal(tb.face.t(), pair.faces_packed().as_uniform()) and "polygon_index" not in tb
 
 
@@ -301,7 +301,7 @@ def test_from_pyg_reads_triangles_and_polygons_and_refuses_tetrahedra():
     polys = tg.data.Data(pos=v, polygon_index=f.reshape(-1), polygon_sizes=torch.full((4,), 4))
     assert torch.equal(from_pyg(polys)[1].as_uniform(), f)
     batch = tg.data.Batch.from_data_list([polys, polys])
-    m = PolygonMeshes.from_pyg(batch)
+    m = from_pyg(batch)
     assert len(m) == 2 and torch.equal(m[1][1].as_uniform(), f)
     # torch_geometric reads a (4, F) `face` as tetrahedra: no guess, the message says what to do
     with pytest.raises(ValueError, match="tetrahedra") as info:
@@ -389,10 +389,9 @@ def test_to_pytorch3d_hands_over_triangles_and_the_vertices(fake_pytorch3d):
     for v, f, t in zip(verts, faces, meshes.faces, strict=True):
         assert t.dtype == torch.int64 and torch.equal(t, triangle_faces(v, f))
         assert int(t.min()) >= 0 and int(t.max()) < v.shape[0]  # local indices
-    # single mesh and method form
+    # a single mesh
     one = to_pytorch3d(verts[1], faces[1])
     assert len(one.verts) == 1 and torch.equal(one.faces[0], meshes.faces[1])
-    assert torch.equal(m.to_pytorch3d().faces[2], meshes.faces[2])
     # a loss on the triangles' areas back-propagates to the polygon mesh's vertices
     area = sum(_triangle_areas(v, t).sum() for v, t in zip(meshes.verts, meshes.faces, strict=True))
     area.backward()

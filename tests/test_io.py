@@ -17,14 +17,13 @@ import torch
 import trimesh
 from conftest import DATA
 
+from torch_polylap import atomic
 from torch_polylap.faces import PolygonFaces
+from torch_polylap.interop import from_trimesh, to_trimesh
 from torch_polylap.io import (
     MeshAttributes,
     SkippedContentWarning,
-    common,
-    from_trimesh,
     read_mesh,
-    to_trimesh,
     triangulate_faces,
     write_mesh,
 )
@@ -754,7 +753,7 @@ def test_failed_write_leaves_old_file_and_no_temporary(tmp_path, mixed_verts, mo
     def broken_fsync(fd):
         raise OSError("disk full")
 
-    monkeypatch.setattr(common.os, "fsync", broken_fsync)
+    monkeypatch.setattr(atomic.os, "fsync", broken_fsync)
     with pytest.raises(OSError, match="disk full"):
         write_mesh(path, mixed_verts * 2, MIXED_FACES, binary=True)
     assert path.read_bytes() == old

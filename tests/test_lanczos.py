@@ -14,7 +14,7 @@ from conftest import DATA
 
 import torch_polylap as tp
 import torch_polylap.linalg as linalg
-from torch_polylap.lanczos import block_lanczos
+from torch_polylap.linalg.lanczos import block_lanczos
 
 
 def test_block_lanczos_finds_a_known_spectrum_with_multiplicities():

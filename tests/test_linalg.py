@@ -243,7 +243,7 @@ def test_dirichlet_solve_refuses_bad_fixed_rows():
 
 
 def test_preconditioned_cg_with_the_exact_inverse_takes_one_step():
-    from torch_polylap.linalg.solves import preconditioned_cg
+    from torch_polylap.linalg.cg import preconditioned_cg
 
     A = torch.tensor([[4.0, 1, 0], [1, 3, 1], [0, 1, 2]], dtype=torch.float64)
     B = torch.tensor([[1.0, 0], [2, 1], [3, -1]], dtype=torch.float64)

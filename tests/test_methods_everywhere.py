@@ -24,7 +24,7 @@ from torch_polylap.cli import main
 from torch_polylap.datasets import PolygonMeshDataset
 from torch_polylap.kernels import METHODS
 from torch_polylap.nn import Spectrum
-from torch_polylap.spectral import _mesh_key
+from torch_polylap.spectral import eigs_cache_key
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*read vertex positions and polygons only")
 
@@ -215,14 +215,14 @@ def test_cached_eigs(pair, method, tmp_path):
 
 def test_cache_keys_differ_by_method(pair, tmp_path):
     verts, faces = pair[0]
-    keys = {m: _mesh_key(verts, faces, K, LAM, m) for m in METHODS}
+    keys = {m: eigs_cache_key(verts, faces, K, LAM, m) for m in METHODS}
     assert len(set(keys.values())) == 3
     # AW11 keeps the key of earlier versions (no method field), so existing caches stay valid.
-    assert keys["aw11"] == _mesh_key(verts, faces, K, LAM)
+    assert keys["aw11"] == eigs_cache_key(verts, faces, K, LAM)
     # lam is part of the key where the method uses it, not for PLMS.
-    assert _mesh_key(verts, faces, K, 0.5, "plms") == keys["plms"]
-    assert _mesh_key(verts, faces, K, 0.5, "degoes") != keys["degoes"]
-    assert _mesh_key(verts, faces, K, 0.5, "aw11") != keys["aw11"]
+    assert eigs_cache_key(verts, faces, K, 0.5, "plms") == keys["plms"]
+    assert eigs_cache_key(verts, faces, K, 0.5, "degoes") != keys["degoes"]
+    assert eigs_cache_key(verts, faces, K, 0.5, "aw11") != keys["aw11"]
     # one file per method in the same folder, each holding its own method's eigenvalues
     results = {m: tp.cached_eigs(verts, faces, K, tmp_path, lam=LAM, method=m)[0] for m in METHODS}
     assert len(list(tmp_path.glob("eigs-*.npz"))) == 3

@@ -369,7 +369,7 @@ def test_one_sparse_seam():
 def test_operator_algebra_solves_and_eigs_on_every_device(device):
     V, F = quad_grid(12, bump=0.3, seed=4)
     topo = tp.build_topology(F, V.shape[0])
-    backends = ["cg", "splu"] + (["cholesky"] if tp.linalg.factor._cholespy_available() else [])
+    backends = ["cg", "splu"] + (["cholesky"] if tp.linalg.factor.cholespy_available() else [])
 
     def run(device):
         X = V.to(device).clone().requires_grad_(True)

@@ -24,10 +24,10 @@ import pytest
 import torch
 from conftest import DATA
 
+from torch_polylap import atomic, timing
 from torch_polylap.cli import COMMANDS, build_parser, main
 from torch_polylap.cli import timing as cli_timing
 from torch_polylap.cli.common import Output
-from torch_polylap.io import common as io_common
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
@@ -66,7 +66,7 @@ def test_every_file_is_moved_into_place_from_a_temporary(
         replaced.append((Path(src), Path(dst)))
         real_replace(src, dst)
 
-    monkeypatch.setattr(io_common.os, "replace", spy)
+    monkeypatch.setattr(atomic.os, "replace", spy)
     assert main([command, *options, "-o", str(tmp_path)]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names)
     assert sorted(dst.name for _, dst in replaced) == sorted(names)
@@ -113,10 +113,10 @@ elif hook == "compute":  # the eigensolver of polylap spectrum
     import torch_polylap.cli.spectrum as spectrum
 
     spectrum.eigs = lambda *args, **kwargs: block("eigs")
-elif hook == "flow":  # a step of polylap smooth, its progress bar drawn
+elif hook == "flow":  # the solve of a step of polylap smooth, its progress bar drawn
     import torch_polylap.apps.flow as flow
 
-    flow.mean_curvature_flow = lambda *args, **kwargs: block("flow")
+    flow.solve = lambda *args, **kwargs: block("flow")
 
 from torch_polylap.cli import main
 
@@ -185,7 +185,8 @@ def test_signal_leaves_previous_files_and_one_line(moment, signame, tmp_path):
     result = interrupt(cmd, "blocked in", signame)
     status, line = ENDINGS[signame]
     if hook == "flow":  # the progress bar, closed, then the message on a line of its own
-        assert result.returncode == status and result.stderr.lstrip().startswith("flow:")
+        bar = result.stderr.lstrip()
+        assert result.returncode == status and bar.startswith("mean curvature flow:"), bar
         assert result.stderr.endswith(f"\n{line}\n") and result.stderr.count(line) == 1
     else:
         assert (result.returncode, result.stderr) == (status, line + "\n")
@@ -310,7 +311,7 @@ def test_every_command_runs_on_one_thread_unless_told(command, tmp_path, monkeyp
 def test_threads_zero_is_torchs_own_default(tmp_path, monkeypatch, two_threads):
     seen = _spy_threads(monkeypatch)
     assert main(["--threads", "0", "spectrum", *QUICK["spectrum"], "-o", str(tmp_path)]) == 0
-    assert set(seen) == {cli_timing.TORCH_DEFAULT_THREADS}
+    assert set(seen) == {timing.TORCH_DEFAULT_THREADS}
     seen.clear()  # after the command, as before it
     argv = ["--threads", "3", "spectrum", *QUICK["spectrum"], "--threads", "1", "-o", str(tmp_path)]
     assert main(argv) == 0
@@ -321,7 +322,7 @@ def test_info_and_spectrum_report_the_same_first_assembly(tmp_path, monkeypatch,
     """A fake clock that the topology build advances by 0.25 s and the first Laplacian by
     0.0625 s: both commands report their sum, 312.50 ms, under the same label."""
     clock = SimpleNamespace(now=0.0)
-    monkeypatch.setattr(cli_timing, "time", SimpleNamespace(perf_counter=lambda: clock.now))
+    monkeypatch.setattr(timing, "time", SimpleNamespace(perf_counter=lambda: clock.now))
     for name, seconds in (("build_topology", 0.25), ("laplacian", 0.0625)):
         real = getattr(cli_timing, name)
 

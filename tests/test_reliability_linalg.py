@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 import torch_polylap as tp
 import torch_polylap.linalg as linalg
-from torch_polylap.lanczos import block_lanczos
+from torch_polylap.linalg.lanczos import block_lanczos
 from torch_polylap.shapes import quad_cube, quad_sphere
 
 D64 = {"dtype": torch.float64}

@@ -45,8 +45,8 @@ from . import (
 from .batch import *
 from .calculus import *
 from .faces import *
-from .interop import from_pyg, from_pytorch3d, to_pyg, to_pytorch3d
-from .io import from_trimesh, read_mesh, to_trimesh, write_mesh
+from .interop import from_pyg, from_pytorch3d, from_trimesh, to_pyg, to_pytorch3d, to_trimesh
+from .io import read_mesh, write_mesh
 from .linalg import *
 from .measures import *
 from .operators import *

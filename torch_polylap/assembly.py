@@ -286,7 +286,7 @@ def _assemble_functional(
     the other torch.func transforms the eager error that names the vertex or face."""
     values, masses, ok, accurate = assemble_flagged(verts, view, topo, kernel, want_mass)
     if validate:
-        if not require(ok, _BAD_INPUT):
+        if not require(ok, BAD_INPUT):
             raise_bad_input(verts, topo, kernel)
         if not require(accurate, FLOAT32_INACCURATE):
             raise ValueError(FLOAT32_INACCURATE)
@@ -344,7 +344,7 @@ FLOAT32_INACCURATE = (
     "to accept the error."
 )
 
-_BAD_INPUT = (
+BAD_INPUT = (
     "torch_polylap: non-finite vertex coordinates, a zero-area face, or a Laplacian or masses "
     "that the dtype cannot represent. Inside torch.compile or torch.func.vmap the offending "
     "element cannot be named: call torch_polylap.laplacian eagerly on these vertices to find "

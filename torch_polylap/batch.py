@@ -247,6 +247,9 @@ class PolygonMeshes:
     mesh a packed row belongs to.  :meth:`laplacian` assembles the block-diagonal ``(L, M0)``
     of the whole batch in one call (AW11 eq. 3, 9, 10 on the packed mesh).
 
+    Conversions to and from trimesh, pytorch3d and PyTorch Geometric are functions of
+    :mod:`torch_polylap.interop` (``tp.to_pytorch3d(meshes)``, ``tp.from_pyg(batch)``, ...).
+
     Raises:
         ValueError: lists of different lengths, a malformed verts tensor, or a face of mesh
             ``i`` that refers to a vertex ``j >= V_i`` (the message names ``i`` and ``j``).
@@ -293,67 +296,13 @@ class PolygonMeshes:
         out._verts_packed = verts_packed
         return out
 
-    # ----------------------------------------------------------------- adapters
+    # ----------------------------------------------------------------- constructors
 
     @classmethod
     def from_list(cls, meshes: Sequence[tuple[torch.Tensor, FacesLike]]) -> PolygonMeshes:
         """From a sequence of ``(verts, faces)`` pairs."""
         meshes = list(meshes)
         return cls([m[0] for m in meshes], [m[1] for m in meshes])
-
-    @classmethod
-    def from_trimesh(
-        cls,
-        meshes: Sequence[Any],
-        dtype: torch.dtype = torch.float64,
-        device: torch.device | str | None = None,
-    ) -> PolygonMeshes:
-        """From a sequence of :class:`trimesh.Trimesh` (triangle meshes)."""
-        from .io import from_trimesh
-
-        pairs = [from_trimesh(m, dtype=dtype, device=device) for m in meshes]
-        return cls.from_list(pairs)
-
-    @classmethod
-    def from_pytorch3d(cls, meshes: Any) -> PolygonMeshes:
-        """From a ``pytorch3d.structures.Meshes`` (triangles; vertices keep their autograd graph).
-
-        Uses the list accessors ``verts_list()`` and ``faces_list()``, so any object with those
-        behaves the same; pytorch3d itself is not imported.
-        """
-        if not (hasattr(meshes, "verts_list") and hasattr(meshes, "faces_list")):
-            raise TypeError(
-                f"from_pytorch3d needs a pytorch3d Meshes (verts_list/faces_list), got "
-                f"{type(meshes).__name__}."
-            )
-        return cls(list(meshes.verts_list()), list(meshes.faces_list()))
-
-    @classmethod
-    def from_pyg(cls, data_or_list: Any) -> PolygonMeshes:
-        """From torch_geometric ``Data`` (one mesh), a list of them, or a ``Batch``.
-
-        Each ``Data`` needs ``pos`` ``(V, 3)`` and faces: ``polygons`` (any form accepted by
-        :func:`torch_polylap.as_faces`), else ``polygon_index`` ``(N,)`` with ``polygon_sizes``
-        ``(F,)``, else ``face`` ``(3, F)`` (torch_geometric's column-wise triangles). A
-        ``Batch`` is split with its ``to_data_list()``. See
-        :func:`torch_polylap.interop.from_pyg`.
-        """
-        from .interop import _pyg_meshes
-
-        return _pyg_meshes(data_or_list)
-
-    def to_pytorch3d(self) -> Any:
-        """``pytorch3d.structures.Meshes`` of the batch, polygons triangulated
-        (:func:`torch_polylap.interop.to_pytorch3d`)."""
-        from .interop import to_pytorch3d
-
-        return to_pytorch3d(self)
-
-    def to_pyg(self, *, triangulate: bool = False, laplacian: bool = False) -> Any:
-        """torch_geometric ``Batch`` of the meshes (:func:`torch_polylap.interop.to_pyg`)."""
-        from .interop import to_pyg
-
-        return to_pyg(self, triangulate=triangulate, laplacian=laplacian)
 
     # ----------------------------------------------------------------- accessors
 

@@ -33,10 +33,11 @@ import torch
 from .checks import Lam, check_index_or_mask, check_verts
 from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
-from .linalg import solve
-from .linalg.factor import _qdldl_available
+from .linalg import qdldl_available, solve
 from .operators import laplacian
-from .sparse import SparseOperator, SparsityPattern, diag, operator_on
+from .sparse import SparseOperator, diag
+from .sparse.operator import operator_on
+from .sparse.pattern import SparsityPattern
 from .topology import DegreeGroup, Topology, get_topology
 
 __all__ = [
@@ -72,7 +73,7 @@ POISSON_LAM = 0.1
 LDL_MAX_VERTS = 40_000
 
 
-def _corner_gradients(
+def corner_gradients(
     verts: torch.Tensor, topo: Topology
 ) -> Iterator[tuple[DegreeGroup, torch.Tensor, torch.Tensor]]:
     """Per degree group: ``(grp, w (3, k, F_k), area (F_k,))`` with ``w_i = (g_i x a_f) / |a_f|^2``
@@ -133,7 +134,7 @@ def face_gradient(verts: torch.Tensor, faces: MeshFaces, u: torch.Tensor) -> tor
         )
     u = u.to(verts.dtype)
     out = verts.new_zeros((topo.num_faces, 3) + tuple(u.shape[1:]))
-    for grp, w, _ in _corner_gradients(verts, topo):
+    for grp, w, _ in corner_gradients(verts, topo):
         uc = u[grp.corners_t]  # (k, F_k) or (k, F_k, C)
         grad = torch.einsum("dkf,kf...->fd...", w, uc)
         out = out.index_copy(0, grp.face_ids, grad)
@@ -148,7 +149,7 @@ def gradient_operator(verts: torch.Tensor, faces: MeshFaces) -> SparseOperator:
     faces: they are computed on the first call and kept with the topology, so later calls on
     the same faces only evaluate the per-corner weights."""
     topo = _topology(verts, faces)
-    parts = list(_corner_gradients(verts, topo))
+    parts = list(corner_gradients(verts, topo))
     pattern, order = _gradient_layout(topo, [grp for grp, _, _ in parts], verts.device)
     values = torch.cat([verts.new_zeros(0)] + [w.reshape(-1) for _, w, _ in parts])
     return operator_on(pattern, values.index_select(0, order))
@@ -158,7 +159,7 @@ def _gradient_layout(
     topo: Topology, groups: Sequence[DegreeGroup], device: torch.device
 ) -> tuple[SparsityPattern, torch.Tensor]:
     """The CSR pattern of the gradient operator and, for the weights concatenated in the order
-    of :func:`_corner_gradients` (component, corner, face per degree group), the permutation
+    of :func:`corner_gradients` (component, corner, face per degree group), the permutation
     that sorts them into it; cached on the topology per device."""
     key = ("gradient_operator", torch.device(device))
     cached = topo.derived.get(key)
@@ -200,7 +201,7 @@ def divergence(verts: torch.Tensor, faces: MeshFaces, field: torch.Tensor) -> to
         )
     field = field.to(verts.dtype)
     out = verts.new_zeros((topo.num_verts,) + tuple(field.shape[2:]))
-    for grp, w, area in _corner_gradients(verts, topo):
+    for grp, w, area in corner_gradients(verts, topo):
         X = field[grp.face_ids]  # (F_k, 3) or (F_k, 3, C)
         flux = torch.einsum("dkf,f,fd...->kf...", w, area, X)
         out = out.index_add(0, grp.corners_t.reshape(-1), flux.flatten(0, 1), alpha=-1)
@@ -309,7 +310,7 @@ class HeatGeodesicSolver:
         self.poisson_operator = L_poisson + self._pin(L_poisson)
         self._corners = [
             _Corners(grp.face_ids, grp.corners_t, w.double(), w * area)
-            for grp, w, area in _corner_gradients(verts, self.topology)
+            for grp, w, area in corner_gradients(verts, self.topology)
         ]
         self.num_components, labels = self.topology.connected_components()
         self.labels = labels.to(verts.device)
@@ -426,14 +427,14 @@ def _geodesic_backend(backend: str, device: torch.device, num_verts: int) -> str
     """The solve backend :class:`HeatGeodesicSolver` uses for ``backend`` (see there)."""
     cpu = device.type == "cpu"
     if backend == "auto":
-        return "ldl" if cpu and num_verts <= LDL_MAX_VERTS and _qdldl_available() else "auto"
+        return "ldl" if cpu and num_verts <= LDL_MAX_VERTS and qdldl_available() else "auto"
     if backend == "ldl":
         if not cpu:
             raise ValueError(
                 f"HeatGeodesicSolver: backend='ldl' factors on the CPU, but verts are on "
                 f"{device}; use backend='auto' (CHOLMOD on CUDA through cholespy, or CG)."
             )
-        if not _qdldl_available():
+        if not qdldl_available():
             raise ValueError(
                 "HeatGeodesicSolver: backend='ldl' needs the optional package qdldl "
                 "(pip install 'torch_polylap[ldl]'); use backend='auto' without it."

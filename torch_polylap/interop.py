@@ -50,7 +50,8 @@ DiffusionNet
     format, built from this package's polygon operators.
 
 trimesh
-    :func:`from_trimesh` and :func:`to_trimesh` (from :mod:`torch_polylap.io`, re-exported).
+    :func:`from_trimesh` reads a ``trimesh.Trimesh`` (triangles); :func:`to_trimesh` triangulates
+    the polygons as :func:`to_pytorch3d` does, keeping the vertex order.
 
 scipy
     Operators convert with :func:`torch_polylap.sparse.to_scipy` and
@@ -61,24 +62,27 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from .assembly import MeshFaces
+from .atomic import atomic_write
 from .batch import PolygonMeshes
-from .checks import check_verts
+from .checks import check_verts, check_verts_array
 from .faces import FacesLike, PolygonFaces, as_faces
-from .io import from_trimesh, to_trimesh, triangulate_faces
-from .io.common import atomic_write
+from .io import triangulate_faces
 from .kernels import check_method
 from .linalg import eigs
 from .nn.gradient_features import vertex_gradient_operators, vertex_tangent_frames
 from .operators import laplacian as mesh_laplacian
 from .sparse import as_operator, sparse_values, to_torch_sparse
-from .spectral import _load_eigs, _mesh_key, check_cache_dir
+from .spectral import check_cache_dir, eigs_cache_key, load_cached_eigs
 from .topology import Topology, get_topology
+
+if TYPE_CHECKING:
+    import trimesh
 
 __all__ = [
     "from_pyg",
@@ -184,7 +188,77 @@ def from_pytorch3d(meshes: Any) -> PolygonMeshes:
     tensors keep their autograd graph. Polygons triangulated by :func:`to_pytorch3d` stay
     triangles: ``Meshes`` does not record them.
     """
-    return PolygonMeshes.from_pytorch3d(meshes)
+    if not (hasattr(meshes, "verts_list") and hasattr(meshes, "faces_list")):
+        raise TypeError(
+            f"from_pytorch3d needs a pytorch3d Meshes (verts_list/faces_list), got "
+            f"{type(meshes).__name__}."
+        )
+    return PolygonMeshes(list(meshes.verts_list()), list(meshes.faces_list()))
+
+
+# ------------------------------------------------------------------------------------ trimesh
+
+
+def from_trimesh(
+    mesh: trimesh.Trimesh,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> tuple[torch.Tensor, PolygonFaces]:
+    """Convert a :class:`trimesh.Trimesh` to ``(verts, faces)``.
+
+    The result is a triangle mesh (trimesh only stores triangles); use
+    :func:`~torch_polylap.read_mesh` to load polygon files without triangulating them.
+
+    Args:
+        mesh: the triangle mesh; its vertex order and face order are kept.
+        dtype: floating dtype of the returned vertex tensor.
+        device: device of the returned vertex tensor (faces stay on the CPU).
+
+    Returns:
+        ``(verts, faces)``: a ``(V, 3)`` tensor and :class:`PolygonFaces` of ``F`` triangles.
+
+    Raises:
+        TypeError: ``mesh`` is a :class:`trimesh.Scene` or not a mesh at all.
+    """
+    import trimesh
+
+    if isinstance(mesh, trimesh.Scene):
+        raise TypeError(
+            "from_trimesh got a trimesh.Scene; merge it into one mesh first, e.g. with "
+            "scene.to_geometry() or trimesh.load(path, force='mesh')."
+        )
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TypeError(f"from_trimesh needs a trimesh.Trimesh, got {type(mesh).__name__}.")
+    verts = torch.tensor(np.asarray(mesh.vertices, dtype=np.float64), dtype=dtype, device=device)
+    return verts, as_faces(np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3))
+
+
+def to_trimesh(verts: torch.Tensor | np.ndarray, faces: FacesLike) -> trimesh.Trimesh:
+    """Triangulate a polygon mesh into a :class:`trimesh.Trimesh` (for viewing or export).
+
+    Uses :func:`~torch_polylap.io.triangulate_faces`: faces convex in their maximal-projection
+    plane become the fan ``(c0, c_j, c_{j+1})``, non-convex ones are ear-clipped, and every
+    triangle keeps the polygon's orientation.  The mesh is built with ``process=False`` so the
+    vertex order, and hence per-vertex data, is kept.
+
+    Args:
+        verts: ``(V, 3)`` vertex positions (tensor or array).
+        faces: anything :func:`~torch_polylap.faces.as_faces` accepts.
+
+    Returns:
+        A ``trimesh.Trimesh`` with ``V`` vertices and ``sum_f (k_f - 2)`` triangles, face
+        ``f``'s consecutive and in face order.
+
+    Raises:
+        ValueError: ``verts`` is not of shape ``(V, 3)`` or ``faces`` cannot be interpreted.
+    """
+    import trimesh
+
+    v = check_verts_array(verts)
+    return trimesh.Trimesh(vertices=v, faces=triangulate_faces(v, faces), process=False)
+
+
+# ------------------------------------------------------------------------- torch_geometric
 
 
 def _undirected_edges(faces: PolygonFaces, num_verts: int) -> torch.Tensor:
@@ -507,8 +581,8 @@ def _diffusionnet_eigs(
         return verts.new_zeros(0), verts.new_zeros(verts.shape[0], 0)
     if cache is None:
         return eigs(L, M0, k)
-    path = cache / f"eigs-{_mesh_key(verts, topo, k, lam, method)}.npz"
-    hit = _load_eigs(path, k, verts.shape[0]) if path.exists() else None
+    path = cache / f"eigs-{eigs_cache_key(verts, topo, k, lam, method)}.npz"
+    hit = load_cached_eigs(path, k, verts.shape[0]) if path.exists() else None
     if hit is not None:
         return torch.from_numpy(hit[0]), torch.from_numpy(hit[1])
     evals, evecs = eigs(L, M0, k)

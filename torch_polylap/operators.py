@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from .assembly import (
-    _BAD_INPUT,
+    BAD_INPUT,
     FLOAT32_INACCURATE,
     MeshFaces,
     assemble,
@@ -33,7 +33,8 @@ from .assembly import (
 )
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts
 from .kernels import block_kernel, check_method
-from .sparse import SparseOperator, operator_on
+from .sparse import SparseOperator
+from .sparse.operator import operator_on
 from .topology import Topology, TopologyView, topology_of
 from .tracing import functional, require
 
@@ -170,7 +171,7 @@ def _laplacian_batch(
             return assemble_flagged(v, view, topo, kernel, True)
 
     values, masses, ok, accurate = torch.func.vmap(one)(verts)
-    if validate and not require(ok, _BAD_INPUT):
+    if validate and not require(ok, BAD_INPUT):
         # name the mesh and the element: the one-mesh assembly's message
         bad = int(torch.nonzero(~ok)[0, 0])
         try:

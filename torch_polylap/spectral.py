@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from .assembly import MeshFaces
-from .io.common import atomic_write
+from .atomic import atomic_write
 from .kernels import check_method
 from .linalg import eigs, solve
 from .operators import laplacian
@@ -148,7 +148,7 @@ def implicit_heat_diffusion(
     return torch.stack(columns, 1)
 
 
-def _mesh_key(
+def eigs_cache_key(
     verts: torch.Tensor, faces: MeshFaces, k: int, lam: float, method: str = "aw11"
 ) -> str:
     """Hash of everything the eigenpairs depend on: positions, faces, ``k``, ``method`` and
@@ -188,7 +188,7 @@ def cached_eigs(
     A cache file that cannot be used (truncated, corrupted, or holding arrays of the wrong shape
     for ``k`` and this mesh) counts as a miss: the eigenpairs are recomputed, the file replaced,
     and one warning names it.  Files are written to a unique temporary and moved into place
-    (:func:`~torch_polylap.io.common.atomic_write`), so concurrent processes computing the same
+    (:func:`~torch_polylap.atomic.atomic_write`), so concurrent processes computing the same
     key never see or leave half a file.
 
     A cache that cannot be written (no permission, a read-only file system, a full disk, a path
@@ -202,9 +202,9 @@ def cached_eigs(
     check_method(method)
     cache = Path(cache_dir)
     check_cache_dir(cache)
-    path = cache / f"eigs-{_mesh_key(verts, faces, k, lam, method)}.npz"
+    path = cache / f"eigs-{eigs_cache_key(verts, faces, k, lam, method)}.npz"
     # is_file: False also where the path cannot be reached (a symbolic link loop, say)
-    cached = _load_eigs(path, k, verts.shape[0]) if path.is_file() else None
+    cached = load_cached_eigs(path, k, verts.shape[0]) if path.is_file() else None
     if cached is None:
         with torch.no_grad():
             L, M0 = laplacian(verts.detach(), faces, lam, method=method)
@@ -276,7 +276,7 @@ def check_cache_dir(cache_dir: Path) -> None:
 _UNREADABLE = (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile, zlib.error)
 
 
-def _load_eigs(path: Path, k: int, num_verts: int) -> tuple[np.ndarray, np.ndarray] | None:
+def load_cached_eigs(path: Path, k: int, num_verts: int) -> tuple[np.ndarray, np.ndarray] | None:
     """``(evals (k,), evecs (V, k))`` from a cache file, or None (with a warning naming the
     file) when it is unreadable or does not hold eigenpairs of this shape."""
     try:

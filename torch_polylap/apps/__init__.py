@@ -7,12 +7,22 @@ from .conformal import (
     conformal_matrix,
     conformal_parameterization,
 )
-from .flow import enclosed_volume, mean_curvature_flow, schwarz_lantern
+from .flow import (
+    FlowResult,
+    FlowStoppedWarning,
+    enclosed_volume,
+    mean_curvature_flow,
+    scale_free_mean_curvature,
+    schwarz_lantern,
+)
 from .planarize import PlanarizeResult, planarize
 from .plate import navier_deflection, plate_bending, plate_error
 
 __all__ = [
     "mean_curvature_flow",
+    "FlowResult",
+    "FlowStoppedWarning",
+    "scale_free_mean_curvature",
     "enclosed_volume",
     "schwarz_lantern",
     "plate_bending",

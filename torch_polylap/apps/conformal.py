@@ -35,8 +35,7 @@ import torch
 from ..assembly import MeshFaces
 from ..checks import check_verts
 from ..kernels import check_method
-from ..linalg import dirichlet_solve, solve
-from ..linalg.derivatives import top_eigenpair
+from ..linalg import dirichlet_solve, solve, top_eigenpair
 from ..measures import face_normals, vector_area
 from ..operators import laplacian
 from ..sparse import block_diag, from_coo, submatrix

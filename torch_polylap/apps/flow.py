@@ -15,6 +15,10 @@ with respect to the initial vertex positions through :func:`torch_polylap.solve`
 
 from __future__ import annotations
 
+import math
+import warnings
+from typing import Literal, NamedTuple, overload
+
 import numpy as np
 import torch
 
@@ -24,14 +28,71 @@ from ..kernels import check_method
 from ..kernels.frames import corner_terms, gather_corners
 from ..linalg import solve
 from ..measures import face_areas
-from ..operators import laplacian
+from ..operators import laplacian, strong_laplacian
 from ..shapes import schwarz_lantern  # re-exported: the lantern of AW11 Fig. 2
-from ..sparse import eliminate
+from ..sparse.construct import eliminate
 from ..topology import Topology, get_topology, half_edge_vertices
 
-__all__ = ["mean_curvature_flow", "enclosed_volume", "schwarz_lantern"]
+__all__ = [
+    "mean_curvature_flow",
+    "FlowResult",
+    "FlowStoppedWarning",
+    "scale_free_mean_curvature",
+    "enclosed_volume",
+    "schwarz_lantern",
+]
 
 _NORMALIZE = (None, "area", "volume")
+
+# Mean-curvature flow develops singularities in finite time where a thin part of the surface
+# pinches off (a cylinder of radius r at t = r^2 / 2): on a coarse mesh with thin ears that is
+# within a few steps, and the ears turn into spikes whose curvature grows without bound. A
+# healthy flow lowers the largest scale-free curvature; the guard refuses a step that raises it
+# above this multiple of its initial value (or of a round sphere's, 1, if that is larger).
+SINGULARITY_FACTOR = 4.0
+
+
+class FlowResult(NamedTuple):
+    """What :func:`mean_curvature_flow` did (``return_result=True``).
+
+    Attributes:
+        verts: ``(V, 3)`` positions after the last step taken, or ``(steps + 1, V, 3)`` with
+            ``return_trajectory`` (index 0 is the input).
+        steps: steps taken; fewer than asked where the singularity guard stopped the flow.
+        dt: the time step of the last step (smaller than asked after halvings).
+        stopped: why the guard stopped the flow, e.g. ``"at step 7 the scale-free mean
+            curvature at vertex 12 would reach ..."``; empty when every step ran.
+    """
+
+    verts: torch.Tensor
+    steps: int
+    dt: float
+    stopped: str
+
+
+class FlowStoppedWarning(UserWarning):
+    """The singularity guard of :func:`mean_curvature_flow` stopped the flow before the steps
+    asked for (issued unless ``return_result=True``, whose :class:`FlowResult` says it)."""
+
+
+def scale_free_mean_curvature(
+    verts: torch.Tensor, faces: MeshFaces, lam: float | torch.Tensor = 1.0, method: str = "aw11"
+) -> torch.Tensor:
+    """``(V,)`` ``|H| sqrt(A / 4 pi)``: the mean curvature ``|M0^{-1} L X| / 2`` (AW11 sec. 3.2)
+    times the radius of the sphere with the mesh's total area ``A``.
+
+    1 at every vertex of a round sphere of any radius, so that flows that shrink the mesh compare
+    by shape, not size. On boundary vertices the value is a boundary term, not a curvature.
+
+    Args:
+        verts: ``(V, 3)`` positions.
+        faces: any face form accepted by :func:`torch_polylap.laplacian`.
+        lam: the Laplacian's ``lambda`` (AW11 eq. 9).
+        method: ``"aw11"``, ``"plms"`` or ``"degoes"`` (see :func:`torch_polylap.laplacian`).
+    """
+    L, M0 = laplacian(verts, faces, lam, method=method)
+    H = torch.linalg.vector_norm(strong_laplacian(L, M0, verts), dim=1) / 2
+    return H * math.sqrt(float(face_areas(verts, faces).sum()) / (4 * math.pi))
 
 
 def _require_closed_oriented(topo: Topology, what: str, hint: str = "") -> None:
@@ -114,10 +175,14 @@ def _volume(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
     return total
 
 
+def _check_count(name: str, value: int) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {value!r}.")
+
+
 def _check_args(verts: torch.Tensor, dt: float, steps: int, normalize: str | None) -> None:
     check_verts(verts)
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
-        raise ValueError(f"steps must be an integer >= 0, got {steps!r}.")
+    _check_count("steps", steps)
     dt_value = float(dt)
     if not dt_value > 0.0 or dt_value == float("inf"):
         raise ValueError(
@@ -175,6 +240,48 @@ def _measure(X: torch.Tensor, topo: Topology, normalize: str) -> torch.Tensor:
     return face_areas(X, topo).sum() if normalize == "area" else _volume(X, topo)
 
 
+@overload
+def mean_curvature_flow(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    dt: float,
+    steps: int,
+    lam: float | torch.Tensor = ...,
+    frozen: bool = ...,
+    normalize: str | None = ...,
+    return_trajectory: bool = ...,
+    progress: bool = ...,
+    *,
+    fixed: torch.Tensor | None = ...,
+    method: str = ...,
+    stop_at_singularity: bool = ...,
+    singularity_factor: float = ...,
+    max_halvings: int = ...,
+    return_result: Literal[False] = ...,
+) -> torch.Tensor: ...
+
+
+@overload
+def mean_curvature_flow(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    dt: float,
+    steps: int,
+    lam: float | torch.Tensor = ...,
+    frozen: bool = ...,
+    normalize: str | None = ...,
+    return_trajectory: bool = ...,
+    progress: bool = ...,
+    *,
+    fixed: torch.Tensor | None = ...,
+    method: str = ...,
+    stop_at_singularity: bool = ...,
+    singularity_factor: float = ...,
+    max_halvings: int = ...,
+    return_result: Literal[True],
+) -> FlowResult: ...
+
+
 def mean_curvature_flow(
     verts: torch.Tensor,
     faces: MeshFaces,
@@ -188,7 +295,11 @@ def mean_curvature_flow(
     *,
     fixed: torch.Tensor | None = None,
     method: str = "aw11",
-) -> torch.Tensor:
+    stop_at_singularity: bool = False,
+    singularity_factor: float = SINGULARITY_FACTOR,
+    max_halvings: int = 0,
+    return_result: bool = False,
+) -> torch.Tensor | FlowResult:
     """Implicit mean-curvature flow ``(M0 + dt L) X' = M0 X`` (AW11 sec. 5.1; Desbrun et al. 1999).
 
     Args:
@@ -217,20 +328,58 @@ def mean_curvature_flow(
             ``normalize``.
         method: the Laplacian, ``"aw11"`` (default), ``"plms"`` (``lam`` unused) or
             ``"degoes"`` (see :func:`torch_polylap.laplacian`).
+        stop_at_singularity: guard the flow against the singularities it develops in finite
+            time (a thin part pinching off, faces folding over, a small closed part shrinking
+            to a point). A step is refused when the largest
+            :func:`scale_free_mean_curvature` over the interior vertices (all vertices of a
+            mesh without interior) rises above ``singularity_factor`` times the input's, or a
+            round sphere's (1) if that is larger, or when the step fails (its system singular,
+            the normalized measure vanishing). The flow then stops at the last state before it
+            and warns (:class:`FlowStoppedWarning`), unless ``return_result``. The check runs
+            without gradient; the steps taken stay differentiable. Off by default: every step
+            is taken, whatever it does.
+        singularity_factor: the guard's bound, ``> 1`` (default 4, what ``polylap smooth``
+            keeps).
+        max_halvings: with the guard, retry a refused step with half the time step up to this
+            many times in all before stopping (default 0: the ``dt`` asked for is kept;
+            ``polylap smooth`` halves its default step up to 6 times). Needs ``frozen=False``,
+            whose operator depends on ``dt``.
+        return_result: return a :class:`FlowResult` (positions, steps taken, last ``dt``, why
+            the guard stopped) instead of the positions alone.
 
     Returns:
         ``(V, 3)`` final positions, or ``(steps + 1, V, 3)`` with ``return_trajectory`` (index 0
-        is ``verts``). dtype and device follow ``verts``.
+        is ``verts``; with the guard, only the steps taken). dtype and device follow ``verts``.
+        With ``return_result``, a :class:`FlowResult` holding them.
 
     Raises:
         ValueError: ``dt <= 0``, ``steps < 0``, an unknown ``normalize``, ``"volume"`` on a mesh
             that is not closed and consistently oriented (see :func:`enclosed_volume`; the flow
             itself runs on any mesh, non-manifold or non-orientable ones included), ``fixed``
-            together with ``normalize``, or bad mesh input (``fixed`` out of range, repeated,
+            together with ``normalize``, ``max_halvings`` without the guard or with ``frozen``,
+            a ``singularity_factor <= 1``, or bad mesh input (``fixed`` out of range, repeated,
             or a mask of the wrong length).
+
+    Warns:
+        FlowStoppedWarning: the guard stopped the flow early (without ``return_result``): the
+            message says after how many steps, at which vertex and why.
+
+    Examples:
+        The tube of a thin torus pinches in finite time; the guard stops the flow before:
+
+        >>> import warnings
+        >>> import torch
+        >>> from torch_polylap.apps import FlowStoppedWarning, mean_curvature_flow
+        >>> from torch_polylap.shapes import torus
+        >>> verts, faces = torus(24, 8, major=1.0, minor=0.15)
+        >>> result = mean_curvature_flow(verts, faces, 0.01, 20, stop_at_singularity=True,
+        ...                              return_result=True)
+        >>> 0 < result.steps < 20 and "pinching off" in result.stopped
+        True
     """
     _check_args(verts, dt, steps, normalize)
     check_method(method)
+    _check_guard(stop_at_singularity, singularity_factor, max_halvings, frozen)
     topo = get_topology(faces, verts.shape[0])
     if normalize == "volume":
         _require_closed_oriented(topo, "normalize='volume'", "Use normalize='area' or None.")
@@ -241,33 +390,132 @@ def mean_curvature_flow(
     if target is not None and not float(target.abs()) > 0.0:
         raise ValueError(f"the initial {normalize} is zero; it cannot be kept by rescaling.")
 
-    X = verts
-    trajectory = [X]
-    system = (
-        _StepSystem(*laplacian(X, topo, lam, method=method), float(dt), fixed_mask)
-        if frozen
-        else None
-    )
-    iterator = range(steps)
+    flow = _Flow(topo, lam, method, fixed_mask, normalize, target)
+    system = flow.system(verts, float(dt)) if frozen else None
+    guard = _Guard(verts, topo, lam, method, singularity_factor) if stop_at_singularity else None
+    X, trajectory, taken, halvings_left, stopped = verts, [verts], 0, max_halvings, ""
+    bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        iterator = tqdm(iterator, desc="mean curvature flow", unit="step")
-    for _ in iterator:
-        step_system = system or _StepSystem(
-            *laplacian(X, topo, lam, method=method), float(dt), fixed_mask
+        bar = tqdm(total=steps, desc="mean curvature flow", unit="step")
+    try:
+        while taken < steps:
+            if guard is None:
+                new = flow.step(X, system, float(dt))
+            else:
+                try:
+                    new = flow.step(X, system, float(dt))
+                    reason = guard.check(new)
+                except ValueError as err:
+                    reason = f"the step fails ({err}): a small closed part shrank to a point"
+                if reason:
+                    if halvings_left:
+                        dt, halvings_left = float(dt) / 2, halvings_left - 1
+                        continue
+                    stopped = f"at step {taken + 1} {reason}"
+                    break
+            X, taken = new, taken + 1
+            if return_trajectory:
+                trajectory.append(X)
+            if bar is not None:
+                bar.update()
+    finally:  # also when interrupted: a bar left open would take the next message's line
+        if bar is not None:
+            bar.close()
+    out = torch.stack(trajectory) if return_trajectory else X
+    if return_result:
+        return FlowResult(out, taken, float(dt), stopped)
+    if stopped:
+        warnings.warn(
+            f"mean_curvature_flow stopped after {taken} of {steps} steps (dt = {float(dt):.3g}): "
+            f"{stopped}. Mean-curvature flow develops such singularities in finite time; for "
+            "more smoothing take a smaller dt with more steps, or frozen=True (one linear "
+            "operator from the input: thin parts shrink instead of pinching).",
+            FlowStoppedWarning,
+            stacklevel=2,
         )
-        X = step_system.step(X)
-        if normalize and target is not None:  # (target is set exactly when normalize is)
-            ratio = target / _measure(X, topo, normalize)
+    return out
+
+
+def _check_guard(guard: bool, factor: float, max_halvings: int, frozen: bool) -> None:
+    _check_count("max_halvings", max_halvings)
+    if not float(factor) > 1.0 or math.isinf(float(factor)):
+        raise ValueError(f"singularity_factor must be a finite number > 1, got {factor!r}.")
+    if max_halvings and not guard:
+        raise ValueError("max_halvings halves refused steps: it needs stop_at_singularity=True.")
+    if max_halvings and frozen:
+        raise ValueError(
+            "max_halvings needs frozen=False: a frozen flow factors M0 + dt L once, for one dt."
+        )
+
+
+class _Flow:
+    """One backward-Euler step of the flow, rescaled where ``normalize`` asks."""
+
+    def __init__(
+        self,
+        topo: Topology,
+        lam: float | torch.Tensor,
+        method: str,
+        fixed: torch.Tensor,
+        normalize: str | None,
+        target: torch.Tensor | None,
+    ) -> None:
+        self.topo, self.lam, self.method, self.fixed = topo, lam, method, fixed
+        self.normalize, self.target = normalize, target
+
+    def system(self, X: torch.Tensor, dt: float) -> _StepSystem:
+        return _StepSystem(*laplacian(X, self.topo, self.lam, method=self.method), dt, self.fixed)
+
+    def step(self, X: torch.Tensor, system: _StepSystem | None, dt: float) -> torch.Tensor:
+        X = (system or self.system(X, dt)).step(X)
+        if self.normalize and self.target is not None:  # (target is set exactly when normalize is)
+            ratio = self.target / _measure(X, self.topo, self.normalize)
             if not float(ratio) > 0.0:
                 raise ValueError(
-                    f"the {normalize} changed sign or vanished during the flow (the mesh "
+                    f"the {self.normalize} changed sign or vanished during the flow (the mesh "
                     "collapsed); take a smaller dt or fewer steps."
                 )
-            scale = ratio.sqrt() if normalize == "area" else ratio.pow(1.0 / 3.0)
-            center = _centroid(X, topo)
+            scale = ratio.sqrt() if self.normalize == "area" else ratio.pow(1.0 / 3.0)
+            center = _centroid(X, self.topo)
             X = center + scale * (X - center)
-        if return_trajectory:
-            trajectory.append(X)
-    return torch.stack(trajectory) if return_trajectory else X
+        return X
+
+
+class _Guard:
+    """Refuses states whose largest interior scale-free mean curvature exceeds the bound."""
+
+    def __init__(
+        self,
+        verts: torch.Tensor,
+        topo: Topology,
+        lam: float | torch.Tensor,
+        method: str,
+        factor: float,
+    ) -> None:
+        self.topo, self.lam, self.method, self.factor = topo, lam, method, float(factor)
+        interior = torch.ones(verts.shape[0], dtype=torch.bool, device=verts.device)
+        interior[topo.boundary_vertices.to(verts.device)] = False
+        if not bool(interior.any()):  # a strip of faces: its boundary values after all
+            interior[:] = True
+        self.interior = interior
+        self.largest = max(float(self._curvature(verts).max()), 1.0)
+        self.bound = self.factor * self.largest
+
+    def _curvature(self, X: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            h = scale_free_mean_curvature(X.detach(), self.topo, self.lam, self.method)
+        return h.where(self.interior, torch.zeros_like(h))
+
+    def check(self, X: torch.Tensor) -> str:
+        """Why ``X`` is refused, or ``""``."""
+        h = self._curvature(X)
+        if bool(torch.isfinite(h).all()) and not float(h.max()) > self.bound:
+            return ""
+        v = int(torch.nan_to_num(h, nan=float("inf")).argmax())
+        return (
+            f"the scale-free mean curvature at vertex {v} would reach {float(h[v]):.3g}, more "
+            f"than {self.factor:g} x the input's largest ({self.largest:.3g}): a thin part is "
+            "pinching off or faces are folding over"
+        )

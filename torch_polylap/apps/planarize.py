@@ -52,7 +52,7 @@ import torch
 
 from ..assembly import MeshFaces
 from ..checks import check_index_or_mask, check_verts
-from ..linalg.factor import CholeskyFactorization, _cholespy_available, spd_splu
+from ..linalg import CholeskyFactorization, cholespy_available, spd_splu
 from ..measures import face_nonplanarity, planarity_energy
 from ..topology import Topology, get_topology
 
@@ -238,7 +238,7 @@ def _damped_step(C: sp.csr_matrix, c: np.ndarray, g0: np.ndarray, d: np.ndarray)
     scaled = C @ sp.diags(1.0 / np.sqrt(d))
     G = (scaled @ scaled.T + sp.identity(C.shape[0], format="csr")).tocsc()
     rhs = c - C @ w
-    if _cholespy_available():
+    if cholespy_available():
         z = CholeskyFactorization(G, check=False).solve(torch.from_numpy(rhs)[:, None])[:, 0]
         z_np = z.numpy()
     else:

@@ -31,7 +31,7 @@ from ..kernels import check_method
 from ..linalg import solve
 from ..measures import mass
 from ..operators import laplacian
-from ..sparse import eliminate
+from ..sparse.construct import eliminate
 from ..topology import get_topology
 
 __all__ = ["plate_bending", "navier_deflection", "plate_error"]

@@ -14,7 +14,7 @@ command with one ``polylap: error: ...`` line on stderr and exit status 2; set
 (:class:`.common.Output`), so an interrupted command leaves the previous file and no temporary.
 
 Every command runs with torch pinned to ``--threads N`` intra-op threads, 1 by default (``0``:
-torch's own default, see :func:`.timing.pinned_threads`).
+torch's own default, see :func:`torch_polylap.timing.pinned_threads`).
 
 The command protocol: every command module has
 
@@ -37,10 +37,10 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from .. import __version__
+from ..timing import DEFAULT_THREADS, pinned_threads
 from . import bench, demo, info, param, planarize, smooth, spectrum
 from .common import DEFAULT_MESH
 from .interrupts import Terminated, ignore_signals, signals_as_exceptions
-from .timing import DEFAULT_THREADS, pinned_threads
 
 __all__ = ["main", "build_parser", "DEFAULT_MESH"]
 

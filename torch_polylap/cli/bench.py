@@ -1,8 +1,8 @@
 """``polylap bench [MESH]``: quick side-by-side timings of the operators on one mesh.
 
-Each time is the median of ``--repeat`` calls after a warm-up call, with torch pinned to one
-thread unless ``polylap bench --threads N`` asks for more (:mod:`.timing`). The operations run
-through the library (``laplacian``, ``M0 + h * L``, :func:`torch_polylap.solve`,
+Each time is the median of ``--repeat`` samples after a warm-up, with torch pinned to one
+thread unless ``polylap bench --threads N`` asks for more (:mod:`torch_polylap.timing`). The
+operations run through the library (``laplacian``, ``M0 + h * L``, :func:`torch_polylap.solve`,
 :func:`torch_polylap.eigs`); the references are libigl's triangle ``cotmatrix`` and
 ``massmatrix`` on the library's triangulation of the same mesh
 (:func:`torch_polylap.io.triangulate_faces`, when libigl is installed), scipy's CSR product,
@@ -26,6 +26,7 @@ from ..io import triangulate_faces
 from ..linalg import eigs, solve, spd_splu
 from ..operators import laplacian
 from ..sparse import to_scipy
+from ..timing import fmt_time, markdown_table, median_time, pinned_threads
 from ..topology import build_topology
 from .common import (
     Result,
@@ -40,7 +41,6 @@ from .common import (
     positive_int,
     result_name,
 )
-from .timing import fmt_time, markdown_table, median_time, pinned_threads
 
 # shift of the scipy eigsh reference, relative to max|L| / max M0: L is singular, so the
 # shift-invert needs one just below zero

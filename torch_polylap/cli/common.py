@@ -1,6 +1,6 @@
 """What every ``polylap`` command shares: the command protocol (:class:`Result`,
 :func:`execute`), mesh and output arguments, output files, tables. Timing helpers are in
-:mod:`.timing`."""
+:mod:`torch_polylap.timing`."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ from typing import TYPE_CHECKING, Any, BinaryIO
 import numpy as np
 import torch
 
+from ..atomic import atomic_write
 from ..faces import PolygonFaces
 from ..io import SkippedContentWarning, read_mesh, write_mesh
-from ..io.common import atomic_write
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -42,7 +42,7 @@ class Output:
     """A file a command writes: its name in the output directory and its content, either
     ``fill`` or ``mesh``.
 
-    Every output is written atomically (:func:`~torch_polylap.io.common.atomic_write`): into a
+    Every output is written atomically (:func:`~torch_polylap.atomic.atomic_write`): into a
     temporary next to the target, fsynced, then moved onto it, so that an error, Ctrl-C or
     ``kill`` mid-write leaves the previous file and no temporary.
 

@@ -18,7 +18,9 @@ import torch
 
 from .. import __version__
 from ..faces import PolygonFaces
+from ..timing import markdown_table
 from ..topology import get_topology
+from . import param, planarize, smooth
 from .common import (
     DATA_DIR,
     DEFAULT_OUTPUT,
@@ -30,7 +32,6 @@ from .common import (
     read_mesh_quietly,
     text_output,
 )
-from .timing import markdown_table
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -78,9 +79,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def compute(args: argparse.Namespace) -> Result:
     from tqdm import tqdm
 
-    from . import build_parser
-
-    parser = build_parser()
+    parser = _steps_parser()
     common = ["--no-plot"] if args.no_plot else []
     tasks: list[tuple[str, str, str, Callable[[], Result]]] = []
     for title, section, argv in STEPS:
@@ -118,6 +117,17 @@ def compute(args: argparse.Namespace) -> Result:
 
 def run(args: argparse.Namespace) -> int:
     return execute(compute, args)
+
+
+def _steps_parser() -> argparse.ArgumentParser:
+    """A parser of the commands that :data:`STEPS` runs, built by their own ``add_parser``
+    (the options and defaults of ``polylap``'s, without the package's parser, which holds this
+    command too)."""
+    parser = argparse.ArgumentParser(prog="polylap")
+    sub = parser.add_subparsers(dest="command")
+    for module in (smooth, param, planarize):
+        module.add_parser(sub)
+    return parser
 
 
 def _bound(sub_args: argparse.Namespace) -> Callable[[], Result]:

@@ -16,6 +16,7 @@ from ..linalg import eigs
 from ..measures import face_areas, face_nonplanarity
 from ..operators import laplacian
 from ..sparse import to_scipy
+from ..timing import pinned_threads, synchronizer, timed
 from .common import (
     Result,
     Rows,
@@ -28,7 +29,7 @@ from .common import (
     method_label,
     result_name,
 )
-from .timing import FIRST_ASSEMBLY, first_assembly, pinned_threads, synchronizer, timed
+from .timing import FIRST_ASSEMBLY, first_assembly
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 

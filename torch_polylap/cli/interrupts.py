@@ -4,7 +4,7 @@ Python turns SIGINT (Ctrl-C) into :class:`KeyboardInterrupt`; by default SIGTERM
 SIGHUP (the terminal closed) end the process on the spot, so no ``finally`` block runs and a
 file being written stays behind as a temporary. :func:`signals_as_exceptions` turns them into
 :class:`Terminated` (a :class:`SystemExit`), which unwinds the stack like Ctrl-C does: every
-atomic write (:func:`torch_polylap.io.common.atomic_write`) removes its temporary and the
+atomic write (:func:`torch_polylap.atomic.atomic_write`) removes its temporary and the
 previous file stays as it was. ``main`` then prints one line and exits with ``128 + signal``.
 
 A signal the parent process set to be ignored (``nohup``, SIGINT of a background job) stays

@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import argparse
-import math
 import time
 from typing import TYPE_CHECKING
 
 import torch
-from tqdm import tqdm
 
-from ..assembly import MeshFaces
+from ..apps.flow import (
+    SINGULARITY_FACTOR,
+    enclosed_volume,
+    mean_curvature_flow,
+    scale_free_mean_curvature,
+)
 from ..measures import face_areas
-from ..operators import laplacian, strong_laplacian
-from ..topology import Topology, get_topology
+from ..topology import get_topology
 from .common import (
     Result,
     add_mesh_argument,
@@ -34,13 +36,10 @@ from .common import (
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-# Mean-curvature flow develops singularities in finite time where a thin part of the surface
-# pinches off (a cylinder of radius r at t = r^2 / 2): on a coarse mesh with thin ears that is
-# within a few default steps, and the ears turn into spikes whose curvature grows without bound.
-# A healthy flow lowers the largest scale-free curvature; the command keeps the last step before
-# it rises above this multiple of its initial value.
-SINGULARITY_FACTOR = 4.0
-# With the default time step, a refused step is retried with half the step this many times.
+# Mean-curvature flow pinches thin parts in finite time: on a coarse mesh with thin ears that is
+# within a few default steps. The command guards the flow (mean_curvature_flow's
+# stop_at_singularity) and, with the default time step, retries a refused step with half the
+# step this many times; a --dt the user chose is kept.
 MAX_HALVINGS = 6
 
 
@@ -54,7 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "curvature |H| sqrt(A / 4 pi) (1 on any round sphere). Mean-curvature flow pinches thin "
         "parts in finite time: a step that would raise the largest curvature above "
         f"{SINGULARITY_FACTOR:g} x its initial value is refused (retried with half the default "
-        "step, up to 6 times), and the command says where it stopped.",
+        f"step, up to {MAX_HALVINGS} times), and the command says where it stopped.",
     )
     add_mesh_argument(p)
     p.add_argument(
@@ -83,43 +82,47 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run, compute=compute)
 
 
-def scaled_mean_curvature(
-    verts: torch.Tensor, faces: MeshFaces, lam: float, method: str = "aw11"
-) -> torch.Tensor:
-    """``(V,)`` ``|H| sqrt(A / 4 pi)``: the mean curvature ``|M0^{-1} L X| / 2`` (AW11 sec. 3.2)
-    times the radius of the sphere with the mesh's area, so that flows that shrink the mesh
-    compare by shape, not size. ``L, M0`` of ``method`` (``"aw11"``, ``"plms"``, ``"degoes"``)."""
-    L, M0 = laplacian(verts, faces, lam, method=method)
-    H = torch.linalg.vector_norm(strong_laplacian(L, M0, verts), dim=1) / 2
-    return H * math.sqrt(float(face_areas(verts, faces).sum()) / (4 * math.pi))
-
-
 def compute(args: argparse.Namespace) -> Result:
-    from ..apps.flow import _require_closed_oriented, enclosed_volume
-
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
-    dt = args.dt if args.dt is not None else 0.1 * mean_edge_length(verts, topo.edges) ** 2
-    normalize = None if args.normalize == "none" else args.normalize
-    if normalize == "volume":  # checked here: a failing step below means a singularity
-        _require_closed_oriented(topo, "normalize='volume'", "Use --normalize area or none.")
-    h_before = scaled_mean_curvature(verts, topo, args.lam, args.method)
+    default_dt = args.dt is None
+    dt = 0.1 * mean_edge_length(verts, topo.edges) ** 2 if default_dt else args.dt
+    start = time.perf_counter()
+    flow = mean_curvature_flow(
+        verts,
+        topo,
+        dt,
+        args.steps,
+        args.lam,
+        frozen=args.frozen,
+        normalize=None if args.normalize == "none" else args.normalize,
+        progress=not args.no_progress,
+        method=args.method,
+        stop_at_singularity=True,
+        max_halvings=MAX_HALVINGS if default_dt and not args.frozen else 0,
+        return_result=True,
+    )
+    seconds = time.perf_counter() - start
+    smoothed, kept, dt = flow.verts, flow.steps, flow.dt
+    warning = ""
+    if flow.stopped:
+        warning = (
+            f"stopped after {kept} of {args.steps} steps (dt = {dt:.3g}): {flow.stopped}. "
+            "Mean-curvature flow develops such singularities in finite time; for more smoothing "
+            "take a smaller --dt with more --steps, or --frozen (one linear operator from the "
+            "input: thin parts shrink instead of pinching)."
+        )
+    h_before = scale_free_mean_curvature(verts, topo, args.lam, args.method)
     interior = torch.ones(verts.shape[0], dtype=torch.bool)
     interior[topo.boundary_vertices] = False
     if not bool(interior.any()):  # a strip of faces: report the boundary values after all
         interior[:] = True
-    start = time.perf_counter()
-    smoothed, kept, dt, warning = _flow_before_singularity(
-        verts, topo, dt, normalize, args, h_before, interior
-    )
-    seconds = time.perf_counter() - start
 
     try:  # the volume row only where a volume is defined: closed and consistently oriented
-        _require_closed_oriented(topo, "enclosed volume")
-        has_volume = True
+        volume_before = float(enclosed_volume(verts, topo))
     except ValueError:
-        has_volume = False
-    h_after = scaled_mean_curvature(smoothed, topo, args.lam, args.method)
+        volume_before = None
+    h_after = scale_free_mean_curvature(smoothed, topo, args.lam, args.method)
     shift = torch.linalg.vector_norm(smoothed - verts, dim=1).max()
     diag = torch.linalg.vector_norm(verts.amax(0) - verts.amin(0))
     rows = [
@@ -134,12 +137,11 @@ def compute(args: argparse.Namespace) -> Result:
             f"{float(face_areas(smoothed, topo).sum()):.5g}",
         ),
     ]
-    if has_volume:
+    if volume_before is not None:
         rows.append(
             (
                 "enclosed volume before / after",
-                f"{float(enclosed_volume(verts, topo)):.5g} / "
-                f"{float(enclosed_volume(smoothed, topo)):.5g}",
+                f"{volume_before:.5g} / {float(enclosed_volume(smoothed, topo)):.5g}",
             )
         )
     rows += [
@@ -179,80 +181,6 @@ def compute(args: argparse.Namespace) -> Result:
         warnings=[warning] if warning else [],
         data={"steps_kept": kept, "steps_asked": args.steps, "dt": dt},
     )
-
-
-def _flow_before_singularity(
-    verts: torch.Tensor,
-    topo: Topology,
-    dt: float,
-    normalize: str | None,
-    args: argparse.Namespace,
-    h_before: torch.Tensor,
-    interior: torch.Tensor,
-) -> tuple[torch.Tensor, int, float, str]:
-    """Up to ``args.steps`` flow steps that stop short of a singularity.
-
-    A step is refused when the largest scale-free mean curvature over the ``interior`` vertices
-    (``(V,)`` bool; boundary vertices carry a boundary term, not curvature) rises above
-    ``SINGULARITY_FACTOR`` times the input's, or a round sphere's (1) if that is larger: a thin
-    part pinching off or when its system is
-    singular (a small closed component shrunk to a point: its masses vanish). With the default
-    time step a refused step is retried with half the step, up to ``MAX_HALVINGS`` times; a
-    ``--dt`` the user chose is kept. Returns the positions ``(V, 3)``, the steps taken, the
-    last time step and the warning that says why the flow stopped early (empty if it did not).
-    """
-    from ..apps.flow import mean_curvature_flow
-
-    largest = max(float(h_before[interior].max()), 1.0)
-    bound = SINGULARITY_FACTOR * largest
-    flow = dict(lam=args.lam, normalize=normalize, method=args.method)
-    frozen_states = None
-    if args.frozen:  # one operator from the input and one factorization: all steps in one call
-        frozen_states = mean_curvature_flow(
-            verts, topo, dt, args.steps, frozen=True, return_trajectory=True, **flow
-        )[1:]
-    halvings_left = MAX_HALVINGS if args.dt is None and not args.frozen else 0
-    current, taken = verts, 0
-    bar = tqdm(total=args.steps, desc="flow", disable=args.no_progress)
-    while taken < args.steps:
-        reason = ""
-        try:
-            if frozen_states is not None:
-                new = frozen_states[taken]
-            else:
-                new = mean_curvature_flow(current, topo, dt, 1, **flow)
-            h = scaled_mean_curvature(new, topo, args.lam, args.method)
-            h = h.where(interior, torch.zeros_like(h))
-            if not bool(torch.isfinite(h).all()) or float(h.max()) > bound:
-                v = int(torch.nan_to_num(h, nan=float("inf")).argmax())
-                reason = (
-                    f"the scale-free mean curvature at vertex {v} would reach {float(h[v]):.3g}, "
-                    f"more than {SINGULARITY_FACTOR:g} x the input's largest "
-                    f"({largest:.3g}): a thin part is pinching off or faces are folding over"
-                )
-        except ValueError as err:
-            reason = f"its system is singular ({err}): a small closed part shrank to a point"
-        if not reason:
-            current, taken = new, taken + 1
-            bar.update()
-            continue
-        if halvings_left:
-            dt, halvings_left = dt / 2, halvings_left - 1
-            continue
-        bar.close()
-        return (
-            current,
-            taken,
-            dt,
-            (
-                f"stopped after {taken} of {args.steps} steps (dt = {dt:.3g}): at step {taken + 1} "
-                f"{reason}. Mean-curvature flow develops such singularities in finite time; for "
-                "more smoothing take a smaller --dt with more --steps, or --frozen (one linear "
-                "operator from the input: thin parts shrink instead of pinching)."
-            ),
-        )
-    bar.close()
-    return current, taken, dt, ""
 
 
 def _figure(panels: list[dict]) -> Figure:

@@ -11,6 +11,7 @@ import torch
 from ..faces import PolygonFaces
 from ..linalg import eigs
 from ..sparse import to_scipy
+from ..timing import timed
 from .common import (
     Output,
     Result,
@@ -26,7 +27,7 @@ from .common import (
     result_name,
     up_axis,
 )
-from .timing import FIRST_ASSEMBLY, first_assembly, timed
+from .timing import FIRST_ASSEMBLY, first_assembly
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

@@ -15,17 +15,19 @@ coordinates and normals.  Writing is atomic: a file is either the old one or the
 one, whatever happens during the write.
 
 Modules: :mod:`.obj`, :mod:`.off`, :mod:`.ply` (one per format), :mod:`.common` (what they
-share), :mod:`.writers` (text blocks, PLY) and :mod:`.triangulate` (for :func:`to_trimesh`).
+share), :mod:`.writers` (text blocks, PLY) and :mod:`.triangulate` (the triangles that
+:func:`torch_polylap.interop.to_trimesh` and :func:`torch_polylap.interop.to_pytorch3d` hand over).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal, overload
+from typing import Literal, overload
 
 import numpy as np
 import torch
 
+from ..atomic import atomic_write
 from ..faces import FacesLike, PolygonFaces, as_faces
 from .common import (
     ArrayLike,
@@ -34,7 +36,6 @@ from .common import (
     PathLike,
     Skipped,
     SkippedContentWarning,
-    atomic_write,
     check_content,
     check_mesh,
     read_regular_file,
@@ -47,15 +48,10 @@ from .ply import read_ply
 from .triangulate import triangulate_faces
 from .writers import off_bytes, ply_bytes
 
-if TYPE_CHECKING:
-    import trimesh
-
 __all__ = [
     "MeshAttributes",
     "SkippedContentWarning",
-    "from_trimesh",
     "read_mesh",
-    "to_trimesh",
     "triangulate_faces",
     "write_mesh",
 ]
@@ -194,7 +190,7 @@ def write_mesh(
     Coordinates are written with 17 significant digits (text formats) or as doubles (binary PLY),
     so reading the file back with ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The
     file is written to a temporary file in the same folder and moved onto ``path`` only once
-    complete (see :func:`~torch_polylap.io.common.atomic_write`): an existing file is never
+    complete (see :func:`~torch_polylap.atomic.atomic_write`): an existing file is never
     left half-overwritten.
 
     Args:
@@ -282,62 +278,3 @@ def _attributes_numpy(
 
 def _numpy(x: torch.Tensor | np.ndarray) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-
-
-def from_trimesh(
-    mesh: trimesh.Trimesh,
-    dtype: torch.dtype = torch.float64,
-    device: torch.device | str | None = None,
-) -> tuple[torch.Tensor, PolygonFaces]:
-    """Convert a :class:`trimesh.Trimesh` to ``(verts, faces)``.
-
-    The result is a triangle mesh (trimesh only stores triangles); use :func:`read_mesh` to load
-    polygon files without triangulating them.
-
-    Args:
-        mesh: the triangle mesh; its vertex order and face order are kept.
-        dtype: floating dtype of the returned vertex tensor.
-        device: device of the returned vertex tensor (faces stay on the CPU).
-
-    Returns:
-        ``(verts, faces)``: a ``(V, 3)`` tensor and :class:`PolygonFaces` of ``F`` triangles.
-
-    Raises:
-        TypeError: ``mesh`` is a :class:`trimesh.Scene` or not a mesh at all.
-    """
-    import trimesh
-
-    if isinstance(mesh, trimesh.Scene):
-        raise TypeError(
-            "from_trimesh got a trimesh.Scene; merge it into one mesh first, e.g. with "
-            "scene.to_geometry() or trimesh.load(path, force='mesh')."
-        )
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise TypeError(f"from_trimesh needs a trimesh.Trimesh, got {type(mesh).__name__}.")
-    verts = torch.tensor(np.asarray(mesh.vertices, dtype=np.float64), dtype=dtype, device=device)
-    return verts, as_faces(np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3))
-
-
-def to_trimesh(verts: ArrayLike, faces: FacesLike) -> trimesh.Trimesh:
-    """Triangulate a polygon mesh into a :class:`trimesh.Trimesh` (for viewing or export).
-
-    Uses :func:`triangulate_faces`: faces convex in their maximal-projection plane become the
-    fan ``(c0, c_j, c_{j+1})``, non-convex ones are ear-clipped, and every triangle keeps the
-    polygon's orientation.  The mesh is built with ``process=False`` so the vertex order, and
-    hence per-vertex data, is kept.
-
-    Args:
-        verts: ``(V, 3)`` vertex positions (tensor or array).
-        faces: anything :func:`~torch_polylap.faces.as_faces` accepts.
-
-    Returns:
-        A ``trimesh.Trimesh`` with ``V`` vertices and ``sum_f (k_f - 2)`` triangles, face
-        ``f``'s consecutive and in face order.
-
-    Raises:
-        ValueError: ``verts`` is not of shape ``(V, 3)`` or ``faces`` cannot be interpreted.
-    """
-    import trimesh
-
-    v = verts_numpy(verts)
-    return trimesh.Trimesh(vertices=v, faces=triangulate_faces(v, faces), process=False)

@@ -1,16 +1,21 @@
 """Differentiable sparse solves and generalized eigenpairs for the operators of this package.
 
-:mod:`.factor` (SuperLU and CHOLMOD factorizations, cached on the operator), :mod:`.solves`
-(``solve``, ``dirichlet_solve``), :mod:`.derivatives` (eigenvalue and eigenvector
-derivatives), :mod:`.eigenpairs` (``eigs`` and its measured route rule).
+:mod:`.factor` (SuperLU and CHOLMOD factorizations, cached on the operator), :mod:`.cg`
+(conjugate gradients), :mod:`.solve_op` (the solve as a ``torch.library`` operator),
+:mod:`.solves` (``solve``, ``dirichlet_solve``), :mod:`.derivatives` (eigenvalue and
+eigenvector derivatives), :mod:`.lanczos` (block Lanczos), :mod:`.eigenpairs` (``eigs`` and
+its measured route rule).  The rest of the package imports from here, never from the modules.
 """
 
+from .cg import ConvergenceError as ConvergenceError
+from .derivatives import top_eigenpair as top_eigenpair
 from .eigenpairs import eigs
 from .eigenpairs import eigs_route as eigs_route
 from .factor import CholeskyFactorization as CholeskyFactorization
 from .factor import Factorization as Factorization
+from .factor import cholespy_available as cholespy_available
+from .factor import qdldl_available as qdldl_available
 from .factor import spd_splu as spd_splu
-from .solves import ConvergenceError as ConvergenceError
 from .solves import dirichlet_solve, solve
 
 __all__ = ["solve", "dirichlet_solve", "eigs"]

@@ -13,11 +13,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from ..sparse import (
-    sampled_gradient,
-    to_scipy,
-)
-from .factor import _Held
+from ..sparse import to_scipy
+from ..sparse.construct import sampled_gradient
+from .factor import Held
 
 _SECOND_ORDER_MESSAGE = (
     "torch_polylap.eigs: second derivatives of eigenvalues and eigenvectors (create_graph=True "
@@ -27,7 +25,7 @@ _SECOND_ORDER_MESSAGE = (
 )
 
 
-class _Eigenvalues(torch.autograd.Function):
+class Eigenvalues(torch.autograd.Function):
     """Eigenvalues ``mu`` of ``L phi = mu M phi`` with the first-order perturbation gradient."""
 
     @staticmethod
@@ -37,8 +35,8 @@ class _Eigenvalues(torch.autograd.Function):
         m_values: torch.Tensor,
         evals: torch.Tensor,
         evecs: torch.Tensor,
-        held_l: _Held,
-        held_m: _Held,
+        held_l: Held,
+        held_m: Held,
     ) -> torch.Tensor:
         ctx.save_for_backward(evals, evecs)
         ctx.operators = (held_l.A, held_m.A)
@@ -159,7 +157,7 @@ def _eigenvector_adjoint(
     return project_solve(g - MPhi @ (Phi.T @ g)), nearest
 
 
-class _Eigenvectors(torch.autograd.Function):
+class Eigenvectors(torch.autograd.Function):
     """Eigenvectors of ``L phi = mu M phi`` (``M``-orthonormal, sign fixed) with the adjoint
     gradient (see :func:`eigs`)."""
 
@@ -170,8 +168,8 @@ class _Eigenvectors(torch.autograd.Function):
         m_values: torch.Tensor,
         evals: torch.Tensor,
         evecs: torch.Tensor,
-        held_l: _Held,
-        held_m: _Held,
+        held_l: Held,
+        held_m: Held,
     ) -> torch.Tensor:
         ctx.save_for_backward(evals, evecs)
         ctx.operators = (held_l.A, held_m.A)

@@ -13,16 +13,16 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from ..lanczos import block_lanczos
 from ..sparse import (
     SparseOperator,
     as_operator,
     sparse_values,
     to_scipy,
 )
-from .derivatives import EIGENVECTOR_GAP_RTOL, _Eigenvalues, _Eigenvectors
-from .factor import CholeskyFactorization, _cholespy_available, _Held, spd_splu
-from .solves import ConvergenceError
+from .cg import ConvergenceError
+from .derivatives import EIGENVECTOR_GAP_RTOL, Eigenvalues, Eigenvectors
+from .factor import CholeskyFactorization, Held, cholespy_available, spd_splu
+from .lanczos import block_lanczos
 
 # Route thresholds of eigs, measured by benchmarks/bench_eigs_routes.py (see eigs_route).
 _DENSE_EIGS_SIZE = 200
@@ -57,9 +57,9 @@ def _check_symmetric(A: SparseOperator, S: sp.csr_matrix, name: str) -> None:
         f"{abs(D.data[worst]) / size:.3g} to max |{name}|; "
         f"{int((np.abs(D.data) > _SYMMETRY_RTOL * size).sum())} such entries). eigs solves "
         "the symmetric generalized problem only. If the asymmetry is round-off, symmetrize "
-        f"with 0.5 * ({name} + {name}.T) and declare it with "
-        "torch_polylap.sparse.mark_symmetric; a non-symmetric problem needs "
-        "scipy.sparse.linalg.eigs."
+        f"with 0.5 * ({name} + {name}.T), or build it with "
+        "torch_polylap.sparse.operator_from_parts(..., symmetric=True); a non-symmetric "
+        "problem needs scipy.sparse.linalg.eigs."
     )
 
 
@@ -132,7 +132,7 @@ def spd_block_solver(
     faster per column than SuperLU's (``benchmarks/README.md``), whose own multi-column solve
     is slower still than one column at a time (so the fallback loops over columns).
     """
-    if not _cholespy_available():
+    if not cholespy_available():
         lu = spd_splu(sp.csc_matrix(S))
         return lambda B: np.stack([lu.solve(np.ascontiguousarray(b)) for b in B.T], axis=1)
     factor = CholeskyFactorization(S, torch.device(device))
@@ -170,7 +170,7 @@ def _shifted_vector_solver(
 ) -> Callable[[np.ndarray], np.ndarray]:
     """``x (n,) -> S^{-1} x`` for a sparse SPD ``S``, one column per call (ARPACK's step):
     CHOLMOD when ``cholespy`` is installed, SuperLU otherwise."""
-    if not _cholespy_available():
+    if not cholespy_available():
         lu = spd_splu(sp.csc_matrix(S))
         return lu.solve
     factor = CholeskyFactorization(S, torch.device(device)).factor
@@ -520,7 +520,7 @@ def eigs(
     shift = sigma if sigma is not None else -1e-6 * scale
     result = None
     diagonal = shift < 0 and _is_diagonal(Ms)
-    route = eigs_route(n, k, diagonal, _cholespy_available())
+    route = eigs_route(n, k, diagonal, cholespy_available())
     if route == "dense":
         result = scipy.linalg.eigh(Ls.toarray(), Ms.toarray(), subset_by_index=(0, k - 1))
     elif route == "lanczos":
@@ -539,7 +539,7 @@ def eigs(
     l_values, m_values = sparse_values(L), sparse_values(M)
     evals_t = torch.from_numpy(evals).to(l_values)
     evecs_t = torch.from_numpy(evecs).to(l_values)
-    mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
+    mu = Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, Held(L), Held(M))
     if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
-        evecs_t = _Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
+        evecs_t = Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, Held(L), Held(M))
     return mu, evecs_t

@@ -13,11 +13,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from ..sparse import (
-    SparseOperator,
-    solver_cache,
-    to_scipy,
-)
+from ..sparse import SparseOperator, to_scipy
+from ..sparse.construct import solver_cache
 
 
 def spd_splu(S: sp.csc_matrix) -> spla.SuperLU:
@@ -38,8 +35,8 @@ class Factorization:
     where that breaks down or is inaccurate (a zero or tiny pivot of an indefinite or
     non-symmetric matrix), SuperLU with partial pivoting, which solves any non-singular matrix.
     Built from ``A``'s values at one point in time and cached on ``A`` by
-    :func:`torch_polylap.sparse.solver_cache`, which checks the values' storage and version
-    counter before reusing it. ``check`` refuses a numerically singular ``A`` (one extra
+    :func:`torch_polylap.sparse.construct.solver_cache`, which checks the values' storage and
+    version counter before reusing it. ``check`` refuses a numerically singular ``A`` (one extra
     solve); a caller that handles ill-conditioning itself (damped Gauss-Newton) passes False.
     """
 
@@ -224,7 +221,7 @@ def _finite(X: torch.Tensor) -> torch.Tensor:
     return X
 
 
-def _cholespy_available() -> bool:
+def cholespy_available() -> bool:
     try:
         import cholespy  # noqa: F401
     except ImportError:
@@ -232,7 +229,7 @@ def _cholespy_available() -> bool:
     return True
 
 
-def _qdldl_available() -> bool:
+def qdldl_available() -> bool:
     try:
         import qdldl  # noqa: F401
     except ImportError:
@@ -274,7 +271,7 @@ def spd_factorization(
     is installed (on ``A``'s device), else SuperLU on the CPU."""
     return (
         CholeskyFactorization(A, check=check)
-        if _cholespy_available()
+        if cholespy_available()
         else Factorization(A, check=check)
     )
 
@@ -282,13 +279,15 @@ def spd_factorization(
 Factor = Factorization | CholeskyFactorization | LDLFactorization
 
 
-def _factorization(A: SparseOperator, backend: str) -> Factor:
+def cached_factorization(A: SparseOperator, backend: str) -> Factor:
+    """The factorization of ``A`` for ``backend`` (``"cholesky"``, ``"ldl"``, else SuperLU),
+    built once and kept in ``A``'s solver cache for every later solve with the same values."""
     kinds: dict[str, type[Factor]] = {"cholesky": CholeskyFactorization, "ldl": LDLFactorization}
     kind = kinds.get(backend, Factorization)
     return solver_cache(A, backend, lambda: kind(A))
 
 
-class _Held:
+class Held:
     """A sparse operator passed to an autograd.Function as a plain object: autograd and
     torch.func must see only its value array as the differentiable input."""
 

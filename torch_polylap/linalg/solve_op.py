@@ -14,10 +14,21 @@ from typing import Any
 
 import torch
 
-from ..sparse import operator_from_parts
+from ..sparse import SparseOperator, operator_from_parts
 from ..sparse.autograd import sampled_op
+from .cg import cg_solve
+from .factor import cached_factorization
 
-__all__ = ["solve_op"]
+__all__ = ["solve_op", "solve_values"]
+
+
+def solve_values(
+    A: SparseOperator, B: torch.Tensor, backend: str, tol: float, max_iter: int
+) -> torch.Tensor:
+    """``A^{-1} B`` for ``(n, c)`` ``B``, no autograd."""
+    if backend == "cg":
+        return cg_solve(A, B.detach(), tol, max_iter)
+    return cached_factorization(A, backend).solve(B)
 
 
 @torch.library.custom_op("torch_polylap::solve", mutates_args=())
@@ -32,11 +43,9 @@ def solve_op(
     max_iter: int,
 ) -> torch.Tensor:
     """``A^{-1} B`` for ``A`` ``(n, n)`` on CSR indices ``crow``, ``col``; ``B`` ``(n, c)``."""
-    from .solves import _solve_values
-
     n = crow.numel() - 1
     A = operator_from_parts(crow, col, values, (n, n), symmetric=symmetric)
-    return _solve_values(A, B, backend, tol, max_iter)
+    return solve_values(A, B, backend, tol, max_iter)
 
 
 @solve_op.register_fake

@@ -10,185 +10,17 @@ backward solve and by later solves with the same values.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 
 from ..checks import check_index_or_mask
-from ..sparse import (
-    SparseOperator,
-    as_operator,
-    sampled_gradient,
-    sparse_values,
-    submatrix,
-)
-from ..sparse.construct import csr_indices
+from ..sparse import SparseOperator, as_operator, sparse_values, submatrix
+from ..sparse.construct import csr_indices, sampled_gradient
 from ..tracing import tracing
-from .factor import _cholespy_available, _factorization, _Held, _qdldl_available
-from .solve_op import solve_op
-
-
-class ConvergenceError(ValueError):
-    """An iterative solver stopped without reaching its tolerance.
-
-    A :class:`ValueError` (as the non-convergence of :func:`solve` with ``backend="cg"`` and of
-    :func:`eigs` always was), so existing ``except ValueError`` handlers still catch it; the
-    message names the residual reached and the iterations spent.
-
-    Attributes:
-        iterations: iterations (or attempts) spent.
-        residual: the relative residual reached (``|B - A X| / |B|``, the worst column), or NaN
-            where it does not apply.
-    """
-
-    def __init__(self, message: str, iterations: int, residual: float = float("nan")) -> None:
-        super().__init__(message)
-        self.iterations = iterations
-        self.residual = residual
-
-
-class CGResult(NamedTuple):
-    """What :func:`conjugate_gradients` reached."""
-
-    X: torch.Tensor
-    converged: bool
-    iterations: int
-    residual: float  # true relative residual |B - A X| / |B|, the worst column
-    curvature: float | None  # p^T A p / (|p|^2 max|A_ii|) <= 0 met, None if never
-
-
-def conjugate_gradients(
-    A: torch.Tensor,
-    B: torch.Tensor,
-    precondition: Callable[[torch.Tensor], torch.Tensor],
-    tol: float,
-    max_iter: int,
-) -> CGResult:
-    """Preconditioned conjugate gradients on every column of ``(n, c)`` ``B`` at once.
-
-    ``A`` is SPD (anything with ``A @ X``), ``precondition`` applies an SPD approximation of
-    ``A^{-1}`` to an ``(n, c)`` block (no autograd). Convergence is judged on the true residual
-    ``B - A X``: the updated residual of the recurrence drifts away from it when ``A`` is
-    singular or badly conditioned (on a Laplacian alone with ``B`` outside its range it reached
-    the tolerance while ``|B - A X| / |B|`` was 20 and ``|X|`` 1e16), so each time the
-    recurrence claims convergence the true residual is computed (one product) and the
-    iteration restarted from it if it is not there yet, or stopped when the restart did not
-    halve it (no further progress is possible). A search direction ``p`` with
-    ``p^T A p <= 0`` proves that ``A`` is not positive definite and stops at once.
-    """
-    X = torch.zeros_like(B)
-    R = B.clone()
-    Z = precondition(R)
-    P = Z.clone()
-    rz = (R * Z).sum(0)
-    tiny = torch.finfo(B.dtype).tiny
-    b_norm = torch.linalg.vector_norm(B, dim=0)
-    target = tol * b_norm
-    scale = float(A.diagonal().abs().max()) if B.shape[0] else 1.0
-    last_true = float("inf")
-
-    def relative(R: torch.Tensor) -> float:
-        r = torch.linalg.vector_norm(R, dim=0) / b_norm.clamp_min(tiny)
-        return float(r.max()) if r.numel() else 0.0
-
-    for iteration in range(max_iter):
-        if bool((torch.linalg.vector_norm(R, dim=0) <= target).all()):
-            R = B - A @ X
-            true = relative(R)
-            if true <= tol:
-                return CGResult(X, True, iteration, true, None)
-            if true > 0.5 * last_true:
-                return CGResult(X, False, iteration, true, None)
-            last_true = true
-            Z = precondition(R)
-            P = Z.clone()
-            rz = (R * Z).sum(0)
-        AP = A @ P
-        pAp = (P * AP).sum(0)
-        active = rz > 0
-        if bool((active & (pAp <= 0)).any()):
-            j = int(torch.nonzero(active & (pAp <= 0))[0, 0])
-            curvature = float(pAp[j]) / max(float((P[:, j] ** 2).sum()) * scale, tiny)
-            return CGResult(X, False, iteration, relative(B - A @ X), curvature)
-        # converged (or zero) columns have rz = 0: keep them where they are instead of 0 / 0
-        alpha = torch.where(active, rz / pAp.clamp_min(tiny), 0.0)
-        X = X + alpha * P
-        R = R - alpha * AP
-        Z = precondition(R)
-        rz_new = (R * Z).sum(0)
-        P = Z + torch.where(active, rz_new / rz.clamp_min(tiny), 0.0) * P
-        rz = rz_new
-    true = relative(B - A @ X)
-    return CGResult(X, true <= tol, max_iter, true, None)
-
-
-def preconditioned_cg(
-    A: torch.Tensor,
-    B: torch.Tensor,
-    precondition: Callable[[torch.Tensor], torch.Tensor],
-    tol: float,
-    max_iter: int,
-) -> tuple[torch.Tensor, bool]:
-    """``X`` and whether every column reached the relative residual ``tol`` within
-    ``max_iter`` iterations (see :func:`conjugate_gradients`)."""
-    result = conjugate_gradients(A, B, precondition, tol, max_iter)
-    return result.X, result.converged
-
-
-_CURVATURE_ROUNDOFF = 1e-8
-
-
-def _cg(A: torch.Tensor, B: torch.Tensor, tol: float, max_iter: int) -> torch.Tensor:
-    """Jacobi-preconditioned conjugate gradients (SPD ``A``); raises when it does not converge."""
-    Ad = A.detach()
-    diag = Ad.diagonal()
-    if bool((diag <= 0).any()):
-        i = int(torch.nonzero(diag <= 0)[0, 0])
-        raise ValueError(
-            f"solve: backend='cg' needs a symmetric positive definite matrix, but diagonal "
-            f"entry {i} is {float(diag[i]):g} (a positive definite matrix has a positive "
-            "diagonal); for a non-singular indefinite matrix use backend='splu'."
-        )
-    inv_diag = (1.0 / diag)[:, None]
-    result = conjugate_gradients(Ad, B, lambda R: inv_diag * R, tol, max_iter)
-    if result.converged:
-        return result.X
-    if result.curvature is not None:
-        # round-off in p^T A p is a few eps relative; well beyond that, A is indefinite
-        indefinite = result.curvature < -_CURVATURE_ROUNDOFF
-        what = (
-            "indefinite: if it is non-singular, use backend='splu'"
-            if indefinite
-            else "singular, or indefinite: a Laplacian alone has the constants in its kernel, "
-            "solve with M0 + h L or fix values with torch_polylap.dirichlet_solve; a "
-            "non-singular indefinite matrix needs backend='splu'"
-        )
-        raise ValueError(
-            f"solve: backend='cg' needs a symmetric positive definite matrix, but this one is "
-            f"not positive definite: a search direction p has p^T A p = {result.curvature:.3g} "
-            f"|p|^2 max|A_ii| (iteration {result.iterations}), so A is {what}."
-        )
-    stopped = "it stopped making progress" if result.iterations < max_iter else "max_iter"
-    raise ConvergenceError(
-        f"solve: conjugate gradients did not converge: relative residual |B - A X| / |B| = "
-        f"{result.residual:.3g} after {result.iterations} iterations ({stopped}), tolerance "
-        f"{tol:g}. A is singular with B outside its range (e.g. a Laplacian without a mass "
-        "term or Dirichlet values: solve with M0 + h L or torch_polylap.dirichlet_solve), or "
-        "too badly conditioned for CG: pass a larger max_iter, or use a direct solver "
-        "(backend='cholesky' or 'splu').",
-        result.iterations,
-        result.residual,
-    )
-
-
-def _solve_values(
-    A: SparseOperator, B: torch.Tensor, backend: str, tol: float, max_iter: int
-) -> torch.Tensor:
-    """``A^{-1} B`` for ``(n, c)`` ``B``, no autograd."""
-    if backend == "cg":
-        return _cg(A, B.detach(), tol, max_iter)
-    return _factorization(A, backend).solve(B)
+from .cg import ConvergenceError as ConvergenceError
+from .factor import Held, cached_factorization, cholespy_available, qdldl_available
+from .solve_op import solve_op, solve_values
 
 
 def _solve(
@@ -199,8 +31,8 @@ def _solve(
         crow, col = csr_indices(A)
         return solve_op(values, crow, col, B, A.symmetric, backend, tol, max_iter)
     if not (torch.is_grad_enabled() and (values.requires_grad or B.requires_grad)):
-        return _solve_values(A, B, backend, tol, max_iter)
-    return _Solve.apply(values, B, _Held(A), backend, tol, max_iter)
+        return solve_values(A, B, backend, tol, max_iter)
+    return _Solve.apply(values, B, Held(A), backend, tol, max_iter)
 
 
 class _Solve(torch.autograd.Function):
@@ -212,12 +44,12 @@ class _Solve(torch.autograd.Function):
 
     @staticmethod
     def forward(
-        values: torch.Tensor, B: torch.Tensor, held: _Held, backend: str, tol: float, max_iter: int
+        values: torch.Tensor, B: torch.Tensor, held: Held, backend: str, tol: float, max_iter: int
     ) -> torch.Tensor:
         # `values` here is the plain tensor even under torch.func, whose wrapped tensors have no
         # storage for the factorization cache to check
         A = held.A.with_values(values, share_cache=True)
-        return _solve_values(A, B, backend, tol, max_iter)
+        return solve_values(A, B, backend, tol, max_iter)
 
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
@@ -231,7 +63,7 @@ class _Solve(torch.autograd.Function):
         backend = ctx.options[0]
         if not torch.is_grad_enabled() and backend != "cg":
             # first-order backward: reuse the factorization for A^T directly
-            gB = _factorization(ctx.A, backend).solve(G, transpose=True)
+            gB = cached_factorization(ctx.A, backend).solve(G, transpose=True)
         else:
             # A^T = A for the SPD matrices solve() takes (CG needs it anyway)
             A = ctx.A.with_values(values, share_cache=True)
@@ -307,7 +139,7 @@ def solve(
     if B.dtype != A.dtype:
         raise ValueError(f"solve: A has dtype {A.dtype} but B has {B.dtype}; convert one of them.")
     if backend == "auto":
-        if A.symmetric and _cholespy_available():
+        if A.symmetric and cholespy_available():
             backend = "cholesky"
         else:
             backend = "splu" if A.device.type == "cpu" else "cg"
@@ -321,7 +153,7 @@ def solve(
                 "solve: backend='ldl' factors a symmetric operator on the CPU (M0 + h L, a "
                 "Dirichlet block of L); use backend='splu' or 'cg' otherwise."
             )
-        if not _qdldl_available():
+        if not qdldl_available():
             raise ValueError(
                 "solve: backend='ldl' needs the optional package qdldl "
                 "(pip install 'torch_polylap[ldl]'); use backend='cholesky' or 'splu' without it."
@@ -332,7 +164,7 @@ def solve(
                 "solve: backend='cholesky' needs a symmetric operator (M0 + h L, a Dirichlet "
                 "block of L, or one built with symmetric=True); use backend='splu' otherwise."
             )
-        if not _cholespy_available():
+        if not cholespy_available():
             raise ValueError(
                 "solve: backend='cholesky' needs the optional package cholespy "
                 "(pip install 'torch_polylap[cholmod]'); use backend='splu' or 'cg' without it."

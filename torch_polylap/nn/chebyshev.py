@@ -26,7 +26,8 @@ import math
 import torch
 from torch import nn
 
-from ..sparse import as_operator, identity, mark_symmetric
+from ..sparse import as_operator, identity
+from ..sparse.construct import mark_symmetric
 from .spectrum import masses_of
 
 __all__ = ["chebyshev_operator", "chebyshev_filter", "ChebyshevFilter"]

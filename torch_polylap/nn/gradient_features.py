@@ -42,7 +42,8 @@ from ..checks import check_verts
 from ..faces import FacesLike, PolygonFaces, as_faces
 from ..kernels.frames import stable_norm
 from ..measures import vector_area
-from ..sparse import SparseOperator, operator_from_parts, pattern_of, sparse_values
+from ..sparse import SparseOperator, operator_from_parts, sparse_values
+from ..sparse.construct import pattern_of
 from ..topology import Topology, get_topology
 
 __all__ = [

@@ -4,11 +4,43 @@
 tensors whose algebra (``@``, ``+``, ``*``, ``.T``, ``.to``) keeps O(nnz) gradients.  CSR
 plumbing -- patterns, unions, transposes, sampled products, block diagonals, submatrices, the
 per-operator solver cache, scipy conversion -- lives in this package and nowhere else.
+
+What is exported here is what users build, combine and convert operators with.  The plumbing
+the rest of the package shares (the solver cache, sampled gradients, patterns, symmetry marks,
+eliminating fixed rows) is imported from the modules :mod:`.construct`, :mod:`.operator` and
+:mod:`.pattern` by the package itself and is not part of the public API.
 """
 
-from . import construct, operator, pattern
-from .construct import *  # noqa: F403  (the names are listed once, in each module's __all__)
-from .operator import *  # noqa: F403
-from .pattern import *  # noqa: F403
+from .construct import (
+    as_operator,
+    block_diag,
+    diag,
+    from_coo,
+    from_scipy,
+    identity,
+    operator_from_parts,
+    sparse_values,
+    spmm,
+    submatrix,
+    to_scipy,
+    to_torch_sparse,
+)
+from .operator import SparseOperator, UnsupportedOperation, is_operator
 
-__all__ = [*construct.__all__, *operator.__all__, *pattern.__all__]
+__all__ = [
+    "SparseOperator",
+    "UnsupportedOperation",
+    "is_operator",
+    "as_operator",
+    "operator_from_parts",
+    "from_coo",
+    "from_scipy",
+    "to_scipy",
+    "to_torch_sparse",
+    "sparse_values",
+    "block_diag",
+    "diag",
+    "identity",
+    "spmm",
+    "submatrix",
+]

@@ -11,8 +11,8 @@ import torch
 from scipy.sparse.csgraph import connected_components, depth_first_order
 
 from ..faces import PolygonFaces
-from ..sparse import SparsityPattern
 from ..sparse.construct import diagonal_pattern
+from ..sparse.pattern import SparsityPattern
 from ..tracing import run_eagerly, tracing
 from .analysis import _twins, half_edge_vertices
 from .groups import DegreeGroup, GroupChunk, whole_group
@@ -26,7 +26,7 @@ class TopologyView:
     Attributes:
         groups: the :class:`~torch_polylap.topology.DegreeGroup` list on that device.
         crow, col: the CSR pattern of ``L`` on that device.
-        pattern: the :class:`~torch_polylap.sparse.SparsityPattern` that every operator
+        pattern: the :class:`~torch_polylap.sparse.pattern.SparsityPattern` that every operator
             assembled on this topology and device shares.
         face_indices: the packed face indices on that device (what a compiled graph checks
             its faces against).
@@ -257,7 +257,8 @@ class Topology:
 
     def on(self, device: torch.device | str) -> TopologyView:
         """The :class:`TopologyView` on ``device``: index tensors copied there once, and one
-        :class:`~torch_polylap.sparse.SparsityPattern` per device for the topology's lifetime,
+        :class:`~torch_polylap.sparse.pattern.SparsityPattern`
+        per device for the topology's lifetime,
         so the operators of every step share its cached transposes and unions (``M0 + t * L``
         computes the union of patterns once). Take it once per call and pass it down."""
         device = torch.device(device)

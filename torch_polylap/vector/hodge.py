@@ -55,7 +55,8 @@ from typing import NamedTuple
 
 import torch
 
-from ..calculus import _corner_gradients, divergence, gradient_operator
+from ..calculus import corner_gradients as _corner_gradients
+from ..calculus import divergence, gradient_operator
 from ..checks import check_verts
 from ..faces import FacesLike
 from ..kernels.frames import stable_norm
