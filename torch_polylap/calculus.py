@@ -41,6 +41,7 @@ from .topology import DegreeGroup, Topology, get_topology
 
 __all__ = [
     "face_gradient",
+    "corner_gradients",
     "gradient_operator",
     "divergence",
     "HeatGeodesicSolver",
@@ -137,6 +138,35 @@ def face_gradient(verts: torch.Tensor, faces: MeshFaces, u: torch.Tensor) -> tor
         uc = u[grp.corners_t]  # (k, F_k) or (k, F_k, C)
         grad = torch.einsum("dkf,kf...->fd...", w, uc)
         out = out.index_copy(0, grp.face_ids, grad)
+    return out
+
+
+def corner_gradients(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
+    """The weights of the face gradient (1): ``(N, 3)``, one row per corner in the packed order
+    of ``faces.indices``, the row of corner ``i`` of face ``f`` being
+    ``w_{f,i} = (g_i x a_f) / |a_f|^2``, so that ``grad_f u = sum_{i in f} u_i w_{f,i}``.
+
+    On a triangle ``w_{f,i}`` is the gradient of the linear hat function of corner ``i``; on
+    any polygon the rows of a face sum to zero (constants have no gradient) and reproduce the
+    tangent part of ``w`` for linear ``u = w . x`` (AW11 Lemma 1).  These are the entries of
+    :func:`gradient_operator`, per corner rather than summed per vertex, for constructions
+    that need them face by face (finite elements on a refinement, per-face tensors).
+    Differentiable in ``verts``.
+
+    Example:
+        >>> import torch, torch_polylap as tp
+        >>> verts, faces = tp.shapes.quad_sphere(2)
+        >>> w = tp.corner_gradients(verts, faces).reshape(-1, 4, 3)
+        >>> bool(w.sum(1).abs().max() < 1e-12)
+        True
+    """
+    topo = _topology(verts, faces)
+    offsets = topo.faces.offsets.to(verts.device)
+    out = verts.new_zeros(topo.faces.num_corners, 3)
+    for grp, w, _ in _corner_gradients(verts, topo):
+        k = grp.corners_t.shape[0]
+        corner = offsets[grp.face_ids][None, :] + torch.arange(k, device=verts.device)[:, None]
+        out = out.index_copy(0, corner.reshape(-1), w.permute(1, 2, 0).reshape(-1, 3))
     return out
 
 
