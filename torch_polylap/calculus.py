@@ -260,7 +260,7 @@ class _Corners(NamedTuple):
 
 class HeatGeodesicSolver:
     """Geodesic distances by the heat method (Crane, Weischedel and Wardetzky 2013, Alg. 1),
-    with the AW11 polygon Laplacian, for repeated queries on one mesh.
+    with a polygon Laplacian (AW11 by default), for repeated queries on one mesh.
 
     1. Heat flow ``(M0 + t L) u = M0 delta``, ``delta`` the indicator of the sources (Crane et
        al.'s single backward-Euler step, with the lumped mass ``M0``).
@@ -301,6 +301,10 @@ class HeatGeodesicSolver:
         poisson_lam: the stabilizer weight of the Poisson step's Laplacian; default 0.1, which
             keeps it positive definite on the non-constant functions while staying close to the
             pure least-squares fit ``G^T A_F G`` (see :data:`POISSON_LAM`).
+        method: the polygon Laplacian of both steps: ``"aw11"`` (default), ``"plms"`` or
+            ``"degoes"`` (see :func:`~torch_polylap.laplacian`; ``lam`` and ``poisson_lam``
+            are each method's own stabilizer weight, ignored by ``"plms"``).  The gradient and
+            divergence of steps 2 and 3 are (1) whatever the method.
         backend: how the two systems are solved: ``"ldl"`` (QDLDL's ``L D L^T``, CPU, the
             optional ``qdldl``), or a backend of :func:`~torch_polylap.solve` (``"cholesky"``,
             ``"splu"``, ``"cg"``, ``"auto"``).  The default ``"auto"`` takes ``"ldl"`` on the
@@ -323,12 +327,14 @@ class HeatGeodesicSolver:
         *,
         poisson_lam: Lam = POISSON_LAM,
         backend: str = "auto",
+        method: str = "aw11",
     ) -> None:
         self.topology = _topology(verts, faces)
         self.verts = verts
         self.backend = _geodesic_backend(backend, verts.device, self.topology.num_verts)
-        L, M0 = laplacian(verts, self.topology, lam)
-        L_poisson, _ = laplacian(verts, self.topology, poisson_lam)
+        self.method = method
+        L, M0 = laplacian(verts, self.topology, lam, method=method)
+        L_poisson, _ = laplacian(verts, self.topology, poisson_lam, method=method)
         if t is None:
             t = T_FACTOR * mean_edge_length(verts, self.topology) ** 2
         elif not bool(torch.as_tensor(t) > 0):
@@ -501,9 +507,12 @@ def heat_geodesic_distance(
     *,
     poisson_lam: Lam = POISSON_LAM,
     backend: str = "auto",
+    method: str = "aw11",
 ) -> torch.Tensor:
     """Geodesic distance from ``sources`` by the heat method (Crane et al. 2013), ``(V,)`` for
     one query or ``(V, Q)`` for a list of ``Q`` queries; see :class:`HeatGeodesicSolver`, which
     reuses its factorizations across calls."""
-    solver = HeatGeodesicSolver(verts, faces, t, lam, poisson_lam=poisson_lam, backend=backend)
+    solver = HeatGeodesicSolver(
+        verts, faces, t, lam, poisson_lam=poisson_lam, backend=backend, method=method
+    )
     return solver.distance(sources)
