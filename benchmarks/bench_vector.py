@@ -1,30 +1,36 @@
-"""Benchmark ``tp.vector``: the connection Laplacian's build and vector heat transport.
+"""Benchmark ``tp.vector``: the connection Laplacian beside ``L``, and vector heat queries.
 
-    python benchmarks/bench_vector.py [--n 130] [--repeat 3] [--json PATH]
+    python benchmarks/bench_vector.py [--sizes 130,408] [--repeat 3] [--json PATH]
 
-1. Build time of ``tp.vector.connection_laplacian`` beside ``tp.laplacian`` on the equi-angular
-   cube sphere ``tp.shapes.quad_sphere(n)`` (``6 n^2`` quads: 101,400 for ``n = 130``), first
-   call (topology and pattern caches cold) and repeated calls (warm), forward only and forward
-   plus backward of a scalar loss on the values.
-2. Parallel transport of one tangent vector from one source with ``tp.vector.VectorHeatSolver``
-   beside potpourri3d's ``PolygonMeshHeatSolver.transport_tangent_vectors`` (when installed),
-   on the same mesh in the same run: solver build and one query, then one more query, with the
-   mean angle error against the exact great-circle transport (vertices within 0.9 pi of the
-   source).
+1. Build and re-assembly of ``tp.vector.connection_laplacian`` beside ``tp.laplacian`` on the
+   equi-angular cube spheres ``tp.shapes.quad_sphere(n)`` (``6 n^2`` quads: 101,400 for
+   ``n = 130``, 998,784 for ``n = 408``). *Build*: the first call on a new faces tensor (the
+   topology, the exploded mesh and the sparsity pattern are computed and cached). *Re-assembly*:
+   a later call with new vertex positions (the caches hit; only the values are computed), the
+   cost of every training step. Forward plus backward of a scalar loss on the values too, up
+   to ``--backward-max`` faces.
+2. Vector heat queries on the first size with ``tp.vector.VectorHeatSolver`` beside
+   potpourri3d's ``PolygonMeshHeatSolver`` (when installed): solver build, then one parallel
+   transport of one vector from one source and one log map, each per query, with the mean
+   angle error of the transport against the exact great-circle transport (vertices within
+   0.9 pi of the source). potpourri3d's polygon solver has no log map.
 
-Everything on one thread (``torch.set_num_threads(1)``; potpourri3d is single-threaded); best of
-``--repeat`` rounds that alternate the methods (other processes only ever add time). The load
-average is printed with the numbers, since the machine may be shared.
+Everything on one thread (``torch.set_num_threads(1)``; potpourri3d is single-threaded). Each
+quantity is the median of ``--repeat`` rounds that alternate the methods (builds run once per
+round on a fresh faces tensor). ``/proc/loadavg`` is recorded before and after every section,
+since the machine may be shared: compare ratios within one run, not absolute times across runs.
+The rows are kept in a dict (``--json`` writes it) and printed as a Markdown table.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
+import statistics
 import time
 from collections.abc import Callable
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -38,39 +44,82 @@ try:
 except ImportError:  # the comparison is optional
     pp3d = None
 
+Row = dict[str, object]
 
-def best(fn: Callable[[], object], repeat: int) -> tuple[float, object]:
-    """The smallest wall time of ``repeat`` calls, and the last result."""
-    times, out = [], None
+
+def loadavg() -> str:
+    """The 1, 5 and 15 minute load averages."""
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:  # not Linux
+        return "n/a"
+
+
+def timed(fn: Callable[[], object]) -> tuple[float, object]:
+    t0 = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t0, out
+
+
+def operator_rows(n: int, repeat: int, backward_max: int) -> list[Row]:
+    """Build and re-assembly of ``L`` and of the connection Laplacian, interleaved."""
+    verts, faces = tp.shapes.quad_sphere(n)
+    size = f"{faces.shape[0]:,} quads"
+    builds: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
+        "tp.laplacian": lambda v, f: tp.laplacian(v, f)[0].values(),
+        "tp.vector.connection_laplacian": lambda v, f: tp.vector.connection_laplacian(v, f)[
+            0
+        ].values(),
+    }
+    g = torch.Generator().manual_seed(0)
+    times: dict[tuple[str, str], list[float]] = {}
+    load_before = loadavg()
     for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), out
+        moved = verts + 1e-3 * torch.randn(verts.shape, generator=g, dtype=verts.dtype)
+        for name, build in builds.items():
+            fresh = faces.clone()  # a new tensor: the topology cache misses
+            elapsed, _ = timed(lambda b=build, f=fresh: b(verts, f))
+            times.setdefault((name, "build"), []).append(elapsed)
+            elapsed, _ = timed(lambda b=build, f=fresh, m=moved: b(m, f))
+            times.setdefault((name, "re-assembly"), []).append(elapsed)
+            if faces.shape[0] <= backward_max:
+
+                def step(
+                    b: Callable = build, f: torch.Tensor = fresh, m: torch.Tensor = moved
+                ) -> None:
+                    v = m.clone().requires_grad_(True)
+                    (b(v, f) ** 2).sum().backward()
+
+                elapsed, _ = timed(step)
+                times.setdefault((name, "re-assembly fwd+bwd"), []).append(elapsed)
+            del fresh
+    load_after = loadavg()
+    rows = []
+    for (name, what), values in times.items():
+        rows.append(
+            {
+                "section": "operator",
+                "mesh": size,
+                "method": name,
+                "quantity": what,
+                "seconds": statistics.median(values),
+                "rounds": len(values),
+                "load before": load_before,
+                "load after": load_after,
+            }
+        )
+    for what in ("build", "re-assembly", "re-assembly fwd+bwd"):
+        pair = [r for r in rows if r["quantity"] == what]
+        if len(pair) == 2:
+            ratio = float(pair[1]["seconds"]) / float(pair[0]["seconds"])  # type: ignore[arg-type]
+            pair[1]["vs L"] = f"{ratio:.1f}x"
+    return rows
 
 
-def build_times(verts: torch.Tensor, faces: torch.Tensor, repeat: int) -> dict[str, float]:
-    """Cold and warm builds of ``L`` and of the connection Laplacian, forward and backward."""
-    out = {}
-    for name, build in (
-        ("laplacian", lambda v, f: tp.laplacian(v, f)[0]),
-        ("connection_laplacian", lambda v, f: tp.vector.connection_laplacian(v, f)[0]),
-    ):
-        fresh = faces.clone()  # a new tensor: the topology cache misses
-        t0 = time.perf_counter()
-        build(verts, fresh)
-        out[f"{name} cold"] = time.perf_counter() - t0
-        out[f"{name} warm"], _ = best(lambda b=build, f=fresh: b(verts, f), repeat)
-
-        def forward_backward(b: Callable = build, f: torch.Tensor = fresh) -> None:
-            v = verts.clone().requires_grad_(True)
-            (b(v, f).values() ** 2).sum().backward()
-
-        out[f"{name} warm fwd+bwd"], _ = best(forward_backward, repeat)
-    return out
-
-
-def transport_times(verts: torch.Tensor, faces: torch.Tensor, repeat: int) -> dict[str, float]:
+def query_rows(n: int, repeat: int) -> list[Row]:
+    """Solver build, transport and log map per query, beside potpourri3d."""
+    verts, faces = tp.shapes.quad_sphere(n)
+    size = f"{faces.shape[0]:,} quads"
     source = 0
     vector = torch.linalg.cross(verts[source], torch.tensor([0.3, 0.5, 0.8], dtype=verts.dtype))
     exact = tp.vector.minimal_rotation(
@@ -84,61 +133,105 @@ def transport_times(verts: torch.Tensor, faces: torch.Tensor, repeat: int) -> di
         cos = (X * Y).sum(1) / (X.norm(dim=1) * Y.norm(dim=1))
         return float(torch.arccos(cos.clamp(-1, 1))[keep].mean())
 
-    out: dict[str, float] = {}
-    runs: dict[str, tuple[Callable[[], object], Callable[[object], torch.Tensor]]] = {
-        "torch_polylap": (
-            lambda: tp.vector.VectorHeatSolver(verts, faces),
-            lambda s: s.transport(source, vector),
-        )
+    runs: dict[str, dict[str, Callable]] = {
+        "tp.vector.VectorHeatSolver": {
+            "build": lambda: tp.vector.VectorHeatSolver(verts, faces.clone()),
+            "transport": lambda s: s.transport(source, vector),
+            "log map": lambda s: s.log_map(source),
+        }
     }
     if pp3d is not None:
         V, F = verts.numpy(), faces.numpy()
 
-        def pp_query(s: object) -> torch.Tensor:
-            bx, by, _ = s.get_tangent_frames()
-            c = s.transport_tangent_vectors(
+        def pp_transport(s: object) -> torch.Tensor:
+            bx, by, _ = s.get_tangent_frames()  # type: ignore[attr-defined]
+            c = s.transport_tangent_vectors(  # type: ignore[attr-defined]
                 [source], [[vector.numpy() @ bx[0], vector.numpy() @ by[0]]]
             )
             return torch.from_numpy(c[:, :1] * bx + c[:, 1:] * by)
 
-        runs["potpourri3d"] = (lambda: pp3d.PolygonMeshHeatSolver(V, F), pp_query)
-    totals: dict[str, list[float]] = {k: [] for k in runs}
-    queries: dict[str, list[float]] = {k: [] for k in runs}
+        runs["potpourri3d.PolygonMeshHeatSolver"] = {
+            "build": lambda: pp3d.PolygonMeshHeatSolver(V, F),
+            "transport": pp_transport,
+        }
+    times: dict[tuple[str, str], list[float]] = {}
+    errors: dict[str, float] = {}
+    load_before = loadavg()
     for _ in range(repeat):  # alternate the methods round by round
-        for name, (build, query) in runs.items():
-            t0 = time.perf_counter()
-            solver = build()
-            X = query(solver)
-            totals[name].append(time.perf_counter() - t0)
-            t0 = time.perf_counter()
-            query(solver)
-            queries[name].append(time.perf_counter() - t0)
-            out[f"{name} error"] = error(X)
-    for name in runs:
-        out[f"{name} build+query"] = min(totals[name])
-        out[f"{name} query"] = min(queries[name])
-    return out
+        for name, run in runs.items():
+            elapsed, solver = timed(run["build"])
+            times.setdefault((name, "solver build"), []).append(elapsed)
+            # the first query pays the factorizations (cached on the operators)
+            elapsed, X = timed(lambda r=run, s=solver: r["transport"](s))
+            times.setdefault((name, "first transport (factors)"), []).append(elapsed)
+            errors[name] = error(X)
+            elapsed, _ = timed(lambda r=run, s=solver: r["transport"](s))
+            times.setdefault((name, "transport per query"), []).append(elapsed)
+            if "log map" in run:
+                run["log map"](solver)  # the scalar geodesic systems' factorizations
+                elapsed, _ = timed(lambda r=run, s=solver: r["log map"](s))
+                times.setdefault((name, "log map per query"), []).append(elapsed)
+            del solver
+    load_after = loadavg()
+    rows: list[Row] = []
+    for (name, what), values in times.items():
+        row: Row = {
+            "section": "vector heat",
+            "mesh": size,
+            "method": name,
+            "quantity": what,
+            "seconds": statistics.median(values),
+            "rounds": len(values),
+            "load before": load_before,
+            "load after": load_after,
+        }
+        if what == "transport per query":
+            row["mean angle error (rad)"] = f"{errors[name]:.2g}"
+        rows.append(row)
+    return rows
+
+
+def markdown(rows: list[Row]) -> str:
+    keys: list[str] = []
+    for row in rows:
+        keys += [k for k in row if k not in keys]
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    for row in rows:
+        cells = []
+        for k in keys:
+            v = row.get(k, "")
+            cells.append(f"{v:.3g}" if isinstance(v, float) else str(v))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--n", type=int, default=130, help="cube sphere resolution (6 n^2 quads)")
+    parser.add_argument(
+        "--sizes",
+        default="130,408",
+        help="cube sphere resolutions n (6 n^2 quads), comma-separated; queries on the first",
+    )
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--backward-max", type=int, default=200_000, help="faces")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    verts, faces = tp.shapes.quad_sphere(args.n)
-    load = os.getloadavg()
-    results = {"faces": faces.shape[0], "verts": verts.shape[0]}
-    results.update(build_times(verts, faces, args.repeat))
-    results.update(transport_times(verts, faces, args.repeat))
-    results["loadavg before, after"] = [load[0], os.getloadavg()[0]]
-    print(f"cube sphere n = {args.n}: {faces.shape[0]} quads, {verts.shape[0]} vertices")
-    print(f"CPU: {cpu_model()} ({platform.machine()}), 1 thread; load average {load[0]:.2f}")
-    print("| quantity | value |\n|---|---|")
-    for key, value in results.items():
-        text = f"{value:.3g}" if isinstance(value, float) else str(value)
-        print(f"| {key} | {text} |")
+    sizes = [int(s) for s in args.sizes.split(",")]
+    results: dict[str, object] = {
+        "cpu": f"{cpu_model()} ({platform.machine()}), 1 thread",
+        "torch": torch.__version__,
+        "potpourri3d": version("potpourri3d") if pp3d else "absent",
+        "rows": [],
+    }
+    rows: list[Row] = []
+    for n in sizes:
+        rows += operator_rows(n, args.repeat, args.backward_max)
+    rows += query_rows(sizes[0], args.repeat)
+    results["rows"] = rows
+    print(f"CPU: {results['cpu']}; torch {results['torch']}; potpourri3d {results['potpourri3d']}")
+    print(f"medians of {args.repeat} interleaved rounds; load = /proc/loadavg (1, 5, 15 min)\n")
+    print(markdown(rows))
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=1))
 

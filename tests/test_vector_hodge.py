@@ -288,3 +288,44 @@ def test_bad_input_is_refused_by_name():
         warnings.simplefilter("ignore")
         with pytest.raises(ValueError, match="oriented"):
             tv.HodgeDecomposition(verts, flipped)
+
+
+# ---------------------------------------------------------------- the per-corner gradient weights
+
+
+def test_corner_gradients_are_the_hat_gradients_on_triangles():
+    """On triangles the rows are the gradients of the linear hat functions: libigl's ``grad``
+    (an independent finite-element route), entry by entry."""
+    igl = pytest.importorskip("igl", reason="libigl not installed: pip install libigl")
+    verts, faces = noisy_torus()
+    tri = torch.cat((faces[:, [0, 1, 2]], faces[:, [0, 2, 3]]))
+    w = tp.corner_gradients(verts, tri).reshape(-1, 3, 3)  # (F, corner, component)
+    G = igl.grad(verts.numpy(), tri.numpy()).toarray()  # rows: x of every face, then y, then z
+    F = tri.shape[0]
+    ref = np.stack([G[d * F + np.arange(F)[:, None], tri.numpy()] for d in range(3)], -1)
+    np.testing.assert_allclose(w.numpy(), ref, atol=1e-12)
+
+
+def test_corner_gradients_reproduce_linear_functions_on_polygons():
+    """On every polygon, planar or not (AW11 Lemma 1): the rows of a face sum to zero and
+    ``sum_i w_i x_i^T`` is the projector on the plane orthogonal to the face's vector area
+    (computed here by the shoelace sum); and they are the entries of ``face_gradient``."""
+    verts, faces = noisy_torus()
+    mixed = [f.tolist() for f in faces[:20]] + [[0, 1, 2], [3, 4, 5, 6, 7]]
+    w = tp.corner_gradients(verts, mixed)
+    start = 0
+    for face in mixed:
+        x = verts[face].numpy()
+        rows = w[start : start + len(face)].numpy()
+        start += len(face)
+        a = 0.5 * np.cross(x, np.roll(x, -1, axis=0)).sum(0)
+        n = a / np.linalg.norm(a)
+        np.testing.assert_allclose(rows.sum(0), 0.0, atol=1e-12)
+        np.testing.assert_allclose(rows.T @ x, np.eye(3) - np.outer(n, n), atol=1e-12)
+    u = torch.randn(verts.shape[0], generator=torch.Generator().manual_seed(1), dtype=verts.dtype)
+    grad = tp.face_gradient(verts, mixed, u)
+    sizes = torch.tensor([len(f) for f in mixed])
+    face = torch.repeat_interleave(torch.arange(len(mixed)), sizes)
+    corners = torch.tensor([i for f in mixed for i in f])
+    summed = torch.zeros_like(grad).index_add(0, face, u[corners, None] * w)
+    torch.testing.assert_close(summed, grad)

@@ -42,6 +42,7 @@ from .topology import DegreeGroup, Topology, get_topology
 
 __all__ = [
     "face_gradient",
+    "corner_gradients",
     "gradient_operator",
     "divergence",
     "HeatGeodesicSolver",
@@ -73,7 +74,7 @@ POISSON_LAM = 0.1
 LDL_MAX_VERTS = 40_000
 
 
-def corner_gradients(
+def grouped_corner_gradients(
     verts: torch.Tensor, topo: Topology
 ) -> Iterator[tuple[DegreeGroup, torch.Tensor, torch.Tensor]]:
     """Per degree group: ``(grp, w (3, k, F_k), area (F_k,))`` with ``w_i = (g_i x a_f) / |a_f|^2``
@@ -134,10 +135,39 @@ def face_gradient(verts: torch.Tensor, faces: MeshFaces, u: torch.Tensor) -> tor
         )
     u = u.to(verts.dtype)
     out = verts.new_zeros((topo.num_faces, 3) + tuple(u.shape[1:]))
-    for grp, w, _ in corner_gradients(verts, topo):
+    for grp, w, _ in grouped_corner_gradients(verts, topo):
         uc = u[grp.corners_t]  # (k, F_k) or (k, F_k, C)
         grad = torch.einsum("dkf,kf...->fd...", w, uc)
         out = out.index_copy(0, grp.face_ids, grad)
+    return out
+
+
+def corner_gradients(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
+    """The weights of the face gradient (1): ``(N, 3)``, one row per corner in the packed order
+    of ``faces.indices``, the row of corner ``i`` of face ``f`` being
+    ``w_{f,i} = (g_i x a_f) / |a_f|^2``, so that ``grad_f u = sum_{i in f} u_i w_{f,i}``.
+
+    On a triangle ``w_{f,i}`` is the gradient of the linear hat function of corner ``i``; on
+    any polygon the rows of a face sum to zero (constants have no gradient) and reproduce the
+    tangent part of ``w`` for linear ``u = w . x`` (AW11 Lemma 1).  These are the entries of
+    :func:`gradient_operator`, per corner rather than summed per vertex, for constructions
+    that need them face by face (finite elements on a refinement, per-face tensors).
+    Differentiable in ``verts``.
+
+    Examples:
+        >>> import torch, torch_polylap as tp
+        >>> verts, faces = tp.shapes.quad_sphere(2)
+        >>> w = tp.corner_gradients(verts, faces).reshape(-1, 4, 3)
+        >>> bool(w.sum(1).abs().max() < 1e-12)
+        True
+    """
+    topo = _topology(verts, faces)
+    offsets = topo.faces.offsets.to(verts.device)
+    out = verts.new_zeros(topo.faces.num_corners, 3)
+    for grp, w, _ in grouped_corner_gradients(verts, topo):
+        k = grp.corners_t.shape[0]
+        corner = offsets[grp.face_ids][None, :] + torch.arange(k, device=verts.device)[:, None]
+        out = out.index_copy(0, corner.reshape(-1), w.permute(1, 2, 0).reshape(-1, 3))
     return out
 
 
@@ -149,7 +179,7 @@ def gradient_operator(verts: torch.Tensor, faces: MeshFaces) -> SparseOperator:
     faces: they are computed on the first call and kept with the topology, so later calls on
     the same faces only evaluate the per-corner weights."""
     topo = _topology(verts, faces)
-    parts = list(corner_gradients(verts, topo))
+    parts = list(grouped_corner_gradients(verts, topo))
     pattern, order = _gradient_layout(topo, [grp for grp, _, _ in parts], verts.device)
     values = torch.cat([verts.new_zeros(0)] + [w.reshape(-1) for _, w, _ in parts])
     return operator_on(pattern, values.index_select(0, order))
@@ -159,8 +189,8 @@ def _gradient_layout(
     topo: Topology, groups: Sequence[DegreeGroup], device: torch.device
 ) -> tuple[SparsityPattern, torch.Tensor]:
     """The CSR pattern of the gradient operator and, for the weights concatenated in the order
-    of :func:`corner_gradients` (component, corner, face per degree group), the permutation
-    that sorts them into it; cached on the topology per device."""
+    of :func:`grouped_corner_gradients` (component, corner, face per degree group), the
+    permutation that sorts them into it; cached on the topology per device."""
     key = ("gradient_operator", torch.device(device))
     cached = topo.derived.get(key)
     if cached is None:
@@ -201,7 +231,7 @@ def divergence(verts: torch.Tensor, faces: MeshFaces, field: torch.Tensor) -> to
         )
     field = field.to(verts.dtype)
     out = verts.new_zeros((topo.num_verts,) + tuple(field.shape[2:]))
-    for grp, w, area in corner_gradients(verts, topo):
+    for grp, w, area in grouped_corner_gradients(verts, topo):
         X = field[grp.face_ids]  # (F_k, 3) or (F_k, 3, C)
         flux = torch.einsum("dkf,f,fd...->kf...", w, area, X)
         out = out.index_add(0, grp.corners_t.reshape(-1), flux.flatten(0, 1), alpha=-1)
@@ -231,7 +261,7 @@ class _Corners(NamedTuple):
 
 class HeatGeodesicSolver:
     """Geodesic distances by the heat method (Crane, Weischedel and Wardetzky 2013, Alg. 1),
-    with the AW11 polygon Laplacian, for repeated queries on one mesh.
+    with a polygon Laplacian (AW11 by default), for repeated queries on one mesh.
 
     1. Heat flow ``(M0 + t L) u = M0 delta``, ``delta`` the indicator of the sources (Crane et
        al.'s single backward-Euler step, with the lumped mass ``M0``).
@@ -272,6 +302,10 @@ class HeatGeodesicSolver:
         poisson_lam: the stabilizer weight of the Poisson step's Laplacian; default 0.1, which
             keeps it positive definite on the non-constant functions while staying close to the
             pure least-squares fit ``G^T A_F G`` (see :data:`POISSON_LAM`).
+        method: the polygon Laplacian of both steps: ``"aw11"`` (default), ``"plms"`` or
+            ``"degoes"`` (see :func:`~torch_polylap.laplacian`; ``lam`` and ``poisson_lam``
+            are each method's own stabilizer weight, ignored by ``"plms"``).  The gradient and
+            divergence of steps 2 and 3 are (1) whatever the method.
         backend: how the two systems are solved: ``"ldl"`` (QDLDL's ``L D L^T``, CPU, the
             optional ``qdldl``), or a backend of :func:`~torch_polylap.solve` (``"cholesky"``,
             ``"splu"``, ``"cg"``, ``"auto"``).  The default ``"auto"`` takes ``"ldl"`` on the
@@ -294,12 +328,14 @@ class HeatGeodesicSolver:
         *,
         poisson_lam: Lam = POISSON_LAM,
         backend: str = "auto",
+        method: str = "aw11",
     ) -> None:
         self.topology = _topology(verts, faces)
         self.verts = verts
         self.backend = _geodesic_backend(backend, verts.device, self.topology.num_verts)
-        L, M0 = laplacian(verts, self.topology, lam)
-        L_poisson, _ = laplacian(verts, self.topology, poisson_lam)
+        self.method = method
+        L, M0 = laplacian(verts, self.topology, lam, method=method)
+        L_poisson, _ = laplacian(verts, self.topology, poisson_lam, method=method)
         if t is None:
             t = T_FACTOR * mean_edge_length(verts, self.topology) ** 2
         elif not bool(torch.as_tensor(t) > 0):
@@ -310,7 +346,7 @@ class HeatGeodesicSolver:
         self.poisson_operator = L_poisson + self._pin(L_poisson)
         self._corners = [
             _Corners(grp.face_ids, grp.corners_t, w.double(), w * area)
-            for grp, w, area in corner_gradients(verts, self.topology)
+            for grp, w, area in grouped_corner_gradients(verts, self.topology)
         ]
         self.num_components, labels = self.topology.connected_components()
         self.labels = labels.to(verts.device)
@@ -472,9 +508,12 @@ def heat_geodesic_distance(
     *,
     poisson_lam: Lam = POISSON_LAM,
     backend: str = "auto",
+    method: str = "aw11",
 ) -> torch.Tensor:
     """Geodesic distance from ``sources`` by the heat method (Crane et al. 2013), ``(V,)`` for
     one query or ``(V, Q)`` for a list of ``Q`` queries; see :class:`HeatGeodesicSolver`, which
     reuses its factorizations across calls."""
-    solver = HeatGeodesicSolver(verts, faces, t, lam, poisson_lam=poisson_lam, backend=backend)
+    solver = HeatGeodesicSolver(
+        verts, faces, t, lam, poisson_lam=poisson_lam, backend=backend, method=method
+    )
     return solver.distance(sources)

@@ -117,7 +117,7 @@ def laplacian(
         ``M0.diagonal()``, the value array ``tp.sparse.sparse_values(L)`` (see
         :mod:`torch_polylap.sparse`).
 
-    Example:
+    Examples:
         A unit square: ``L`` is symmetric with zero row sums, ``M0`` shares the area evenly.
 
         >>> import torch, torch_polylap as tp

@@ -82,7 +82,7 @@ def quad_grid(
     Returns:
         ``verts`` ``((n + 1) (m + 1), 3)`` and ``faces`` ``(n m, 4)`` int64.
 
-    Example:
+    Examples:
         >>> verts, faces = quad_grid(2, 3, bump=0.1)
         >>> verts.shape, faces.shape, faces[0].tolist()
         (torch.Size([12, 3]), torch.Size([6, 4]), [0, 4, 5, 1])
@@ -149,7 +149,7 @@ def quad_cube(
     Returns:
         ``verts`` ``(6 n^2 + 2, 3)`` and ``faces`` ``(6 n^2, 4)`` int64.
 
-    Example:
+    Examples:
         >>> verts, faces = quad_cube(1)
         >>> verts.shape, faces.shape, float(verts.abs().max())
         (torch.Size([8, 3]), torch.Size([6, 4]), 1.0)
@@ -187,7 +187,7 @@ def quad_sphere(
     Returns:
         ``verts`` ``(6 n^2 + 2, 3)`` and ``faces`` ``(6 n^2, 4)`` int64, outward oriented.
 
-    Example:
+    Examples:
         >>> verts, faces = quad_sphere(3, radius=2.0)
         >>> torch.allclose(verts.norm(dim=1), torch.full((56,), 2.0, dtype=torch.float64))
         True
@@ -231,7 +231,7 @@ def torus(
     Returns:
         ``verts`` ``(n_u n_v, 3)`` and ``faces`` ``(n_u n_v, 4)`` int64, outward oriented.
 
-    Example:
+    Examples:
         >>> verts, faces = torus(8, 4, major=2.0, minor=0.5)
         >>> verts.shape, faces.shape
         (torch.Size([32, 3]), torch.Size([32, 4]))
@@ -284,7 +284,7 @@ def schwarz_lantern(
         ``2 pi / sides`` about ``z`` maps vertex ``(i, j)`` to ``(i, j + 1)``. The quad version
         has ``(rings - 2) * sides`` quads and ``2 * sides`` triangles.
 
-    Example:
+    Examples:
         >>> verts, faces = schwarz_lantern(6, 4)
         >>> verts.shape, sorted({len(f) for f in faces}), len(faces)
         (torch.Size([24, 3]), [3, 4], 24)

@@ -106,7 +106,8 @@ class VectorLinear(nn.Module):
     """``y_o = sum_i (a_oi + b_oi J) x_i``: channel mixing by complex weights.
 
     Args:
-        in_channels, out_channels: ``C_in``, ``C_out``.
+        in_channels: ``C_in``.
+        out_channels: ``C_out``.
 
     Shapes: ``(V, C_in, 2) -> (V, C_out, 2)``.  No bias: a fixed vector would pick a direction
     and break the equivariance.

@@ -8,7 +8,8 @@
 - :class:`VectorHeatSolver`: parallel transport and the logarithmic map by the vector heat
   method of Sharp, Soliman and Crane 2019, prefactored (:mod:`.heat`).
 - :func:`shape_operator`, :func:`principal_curvatures`: the derivative of the vertex normals
-  through the polygon face gradient (:mod:`.curvature`).
+  through the polygon face gradient, with second-order normals from a jet fit
+  (:func:`fitted_frames`, :mod:`.curvature`).
 - :class:`HodgeDecomposition`: exact, co-exact and harmonic parts of a tangent field,
   orthogonal to round-off, on the virtual refinement of the polygons (:mod:`.hodge`).
 - :func:`smoothest_field`: the globally smoothest ``n``-direction field of Knoeppel et al. 2013
@@ -21,7 +22,7 @@ positions.  ``docs/vector.md`` has the mathematics and the measurements.
 """
 
 from .connection import connection_laplacian, vector_mass
-from .curvature import face_shape_operator, principal_curvatures, shape_operator
+from .curvature import face_shape_operator, fitted_frames, principal_curvatures, shape_operator
 from .fields import smoothest_field
 from .heat import VectorHeatSolver
 from .hodge import HodgeDecomposition, HodgeParts, virtual_refinement
@@ -34,6 +35,7 @@ __all__ = [
     "VectorHeatSolver",
     "connection_laplacian",
     "face_shape_operator",
+    "fitted_frames",
     "minimal_rotation",
     "principal_curvatures",
     "shape_operator",

@@ -45,8 +45,10 @@ from ..checks import Lam, check_verts
 from ..faces import FacesLike, PolygonFaces
 from ..kernels import check_method
 from ..operators import laplacian
-from ..sparse import SparseOperator, diag, operator_from_parts, sparse_values
+from ..sparse import SparseOperator, diag, sparse_values
 from ..sparse.construct import csr_indices
+from ..sparse.operator import operator_on
+from ..sparse.pattern import SparsityPattern
 from ..topology import Topology, build_topology, get_topology
 from .transport import TangentFrames, corner_transport, tangent_frames
 
@@ -70,11 +72,12 @@ def _exploded(topo: Topology) -> Topology:
 
 def _block_layout(
     topo: Topology, blocks: torch.Tensor, device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, SparsityPattern, torch.Tensor]:
     """For the exploded Laplacian ``blocks`` (entries = corner pairs of one face):
-    ``(row corner, column corner, crow, col, inverse)`` with ``crow, col`` the ``(2V, 2V)``
+    ``(row corner, column corner, pattern, inverse)`` with ``pattern`` the ``(2V, 2V)``
     interleaved CSR pattern and ``inverse`` sending the four real entries of every corner pair
-    (order ``xx, xy, yx, yy``) to their place in it; cached per topology and device."""
+    (order ``xx, xy, yx, yy``) to their place in it; cached per topology and device, so that
+    the operators of every call share one pattern and its cached transposes and unions."""
     key = ("vector.connection", torch.device(device))
     cached = topo.derived.get(key)
     if cached is None:
@@ -91,7 +94,8 @@ def _block_layout(
         urow = torch.div(unique, size, rounding_mode="floor")
         crow = torch.zeros(size + 1, dtype=torch.int64, device=device)
         crow[1:] = torch.cumsum(torch.bincount(urow, minlength=size), 0)
-        cached = (row_x, col_x, crow, unique - urow * size, inverse)
+        pattern = SparsityPattern(crow, unique - urow * size, (size, size))
+        cached = (row_x, col_x, pattern, inverse)
         topo.derived[key] = cached
     return cached
 
@@ -161,7 +165,7 @@ def connection_laplacian(
         ValueError: bad input as for :func:`~torch_polylap.laplacian`; a vertex whose normal
             points against one of its faces' normals (a fold), naming both.
 
-    Example:
+    Examples:
         On the unit sphere the smallest eigenvalues of ``A X = mu M X`` approach
         ``l (l + 1) - 1``: 1 six times, then 5 ten times.
 
@@ -183,14 +187,13 @@ def connection_laplacian(
         tangent_frames(verts, topo) if frames is None else _checked_frames(frames, topo.num_verts)
     )
     blocks, mass = _face_blocks(verts, topo, lam, method)
-    row_x, col_x, crow, col, inverse = _block_layout(topo, blocks, verts.device)
+    row_x, col_x, pattern, inverse = _block_layout(topo, blocks, verts.device)
     z = corner_transport(verts, topo.faces, topo, frames)
     if symmetry != 1:
         z = z**symmetry
     entry = sparse_values(blocks) * (z[row_x].conj() * z[col_x])
     re, im = entry.real, entry.imag
     parts = torch.stack((re, -im, im, re), 1).reshape(-1)
-    values = parts.new_zeros(col.numel()).index_add(0, inverse, parts)
-    size = 2 * topo.num_verts
-    A = operator_from_parts(crow, col, values, (size, size), symmetric=True)
+    values = parts.new_zeros(pattern.nnz).index_add(0, inverse, parts)
+    A = operator_on(pattern, values, symmetric=True)
     return A, vector_mass(mass), frames

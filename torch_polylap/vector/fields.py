@@ -35,7 +35,8 @@ def smoothest_field(
         verts: ``(V, 3)`` vertex positions.
         faces: faces in any accepted form, or a :class:`~torch_polylap.topology.Topology`.
         symmetry: ``n``: 1 (vector field), 2 (line field), 4 (cross field), any ``n >= 1``.
-        lam, method: the scalar Laplacian's blocks (see :func:`~torch_polylap.laplacian`).
+        lam: the scalar Laplacian's stabilizer weight (see :func:`~torch_polylap.laplacian`).
+        method: the scalar Laplacian's construction (see :func:`~torch_polylap.laplacian`).
 
     Returns:
         ``directions`` ``(V, 3)``: one unit tangent vector per vertex, the representative

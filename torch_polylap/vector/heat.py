@@ -42,6 +42,7 @@ import torch
 from ..calculus import POISSON_LAM, HeatGeodesicSolver
 from ..checks import Lam, check_index_or_mask, check_verts
 from ..faces import FacesLike
+from ..kernels import check_method
 from ..linalg import solve
 from ..nn.gradient_features import vertex_gradient_operators
 from ..sparse import diag
@@ -57,7 +58,7 @@ SourceLike = int | torch.Tensor | Sequence[int]
 
 class VectorHeatSolver:
     """Parallel transport and the logarithmic map by the vector heat method (Sharp, Soliman and
-    Crane 2019), with the AW11 polygon Laplacian, prefactored for repeated queries.
+    Crane 2019), with a polygon Laplacian (AW11 by default), prefactored for repeated queries.
 
     Both system matrices, ``M + t A`` (``(2V, 2V)``, the connection Laplacian of
     :func:`~torch_polylap.vector.connection_laplacian`) and the scalar ``M0 + t L`` (held by
@@ -77,6 +78,14 @@ class VectorHeatSolver:
         lam: the stabilizer weight of the Laplacians (see :func:`~torch_polylap.laplacian`).
         poisson_lam: the Poisson step's weight for the log map's radius (see
             :class:`~torch_polylap.HeatGeodesicSolver`).
+        method: the polygon Laplacian whose face blocks build both the connection Laplacian
+            ``A`` and the scalar ``L``: ``"aw11"`` (default), ``"plms"`` or ``"degoes"`` (see
+            :func:`~torch_polylap.laplacian` and
+            :func:`~torch_polylap.vector.connection_laplacian`).
+
+    Raises:
+        ValueError: an unknown ``method``, a non-positive ``t``, or bad input as for
+            :func:`~torch_polylap.vector.connection_laplacian`.
 
     Attributes:
         frames: the :class:`~torch_polylap.vector.TangentFrames` in which ``log_map``'s
@@ -92,13 +101,18 @@ class VectorHeatSolver:
         lam: Lam = 1.0,
         *,
         poisson_lam: Lam = POISSON_LAM,
+        method: str = "aw11",
     ) -> None:
         check_verts(verts)
+        check_method(method)
         self.topology = get_topology(faces, verts.shape[0])
         self.verts = verts
-        self.geodesic = HeatGeodesicSolver(verts, self.topology, t, lam, poisson_lam=poisson_lam)
+        self.method = method
+        self.geodesic = HeatGeodesicSolver(
+            verts, self.topology, t, lam, poisson_lam=poisson_lam, method=method
+        )
         self.t = self.geodesic.t
-        A, M, self.frames = connection_laplacian(verts, self.topology, lam)
+        A, M, self.frames = connection_laplacian(verts, self.topology, lam, method=method)
         mass = M.diagonal()
         system = M + self.t * A
         # isolated vertices have an empty row and column: a unit diagonal keeps the system

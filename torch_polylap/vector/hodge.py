@@ -55,8 +55,7 @@ from typing import NamedTuple
 
 import torch
 
-from ..calculus import corner_gradients as _corner_gradients
-from ..calculus import divergence, gradient_operator
+from ..calculus import corner_gradients, divergence, gradient_operator
 from ..checks import check_verts
 from ..faces import FacesLike
 from ..kernels.frames import stable_norm
@@ -181,7 +180,7 @@ class HodgeDecomposition:
     Raises:
         ValueError: a non-manifold or inconsistently oriented mesh, or bad ``verts``.
 
-    Example:
+    Examples:
         The gradient of a function is its own exact part:
 
         >>> import torch, torch_polylap as tp
@@ -213,10 +212,8 @@ class HodgeDecomposition:
     def _hat_gradients(self) -> torch.Tensor:
         """``(T, 3, 3)``: ``[t, p]`` the gradient on triangle ``t`` of the hat function of its
         corner ``p``."""
-        ((grp, w, _),) = _corner_gradients(self.refined_verts, self._ref.topology)
-        # one degree group (triangles); its faces are the refinement's in order
-        out = w.permute(2, 1, 0)  # (T_k, 3 corners, 3 components)
-        return torch.empty_like(out).index_copy(0, grp.face_ids.to(out.device), out)
+        # the refinement's corners are packed triangle by triangle
+        return corner_gradients(self.refined_verts, self._ref.topology).reshape(-1, 3, 3)
 
     def _cr_laplacian(self) -> SparseOperator:
         hat = self._hat
