@@ -111,7 +111,7 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
     n = pf.num_corners
     off = pf.offsets.to(verts.device)
     sizes = pf.sizes.to(verts.device)
-    row_len = torch.repeat_interleave(sizes, sizes)
+    row_len = sizes[pf.corner_face.to(verts.device)]
     crow = torch.zeros(n + 1, dtype=torch.int64, device=verts.device)
     torch.cumsum(row_len, 0, out=crow[1:])
     col = torch.empty(int(crow[-1]), dtype=torch.int64, device=verts.device)

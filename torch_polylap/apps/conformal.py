@@ -451,13 +451,8 @@ def angle_distortion(uv: torch.Tensor, verts: torch.Tensor, faces: MeshFaces) ->
         raise ValueError(f"uv must have shape ({verts.shape[0]}, 2), got {tuple(uv.shape)}.")
     topo = get_topology(faces, verts.shape[0])
     pf = topo.faces.to(verts.device)
-    pos = torch.arange(pf.num_corners, device=verts.device)
-    first = torch.repeat_interleave(pf.offsets[:-1], pf.sizes)
-    last = torch.repeat_interleave(pf.offsets[1:] - 1, pf.sizes)
-    nxt = pf.indices[torch.where(pos == last, first, pos + 1)]
-    prv = pf.indices[torch.where(pos == first, last, pos - 1)]
-    cur = pf.indices
-    normals = face_normals(verts, topo)[torch.repeat_interleave(pf.sizes)]
+    nxt, prv, cur = pf.indices[pf.next_corner], pf.indices[pf.prev_corner], pf.indices
+    normals = face_normals(verts, topo)[pf.corner_face]
     theta_3d = _interior_angle(verts[prv] - verts[cur], verts[nxt] - verts[cur], normals)
     uv = uv.to(verts.dtype)
     theta_2d = _interior_angle(uv[prv] - uv[cur], uv[nxt] - uv[cur], None)

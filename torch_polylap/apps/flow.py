@@ -166,7 +166,7 @@ def _centroid(X: torch.Tensor, topo: Topology) -> torch.Tensor:
     """Area-weighted centroid ``sum_p m_p x_p / sum_p m_p`` (lumped masses, AW11 eq. 10)."""
     areas = face_areas(X, topo)
     faces = topo.faces.to(X.device)
-    share = (areas / faces.sizes.to(areas.dtype)).repeat_interleave(faces.sizes)
+    share = (areas / faces.sizes.to(areas.dtype))[faces.corner_face]
     m = X.new_zeros(X.shape[0]).index_add(0, faces.indices, share)
     return (m[:, None] * X).sum(0) / m.sum()
 

@@ -61,11 +61,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run, compute=compute)
 
 
-def corner_faces(faces: PolygonFaces) -> torch.Tensor:
-    """``(N,)`` the face of every packed corner."""
-    return torch.repeat_interleave(torch.arange(faces.num_faces), faces.sizes)
-
-
 def compute(args: argparse.Namespace) -> Result:
     from ..apps.conformal import angle_distortion, conformal_energy, conformal_parameterization
 
@@ -88,7 +83,7 @@ def compute(args: argparse.Namespace) -> Result:
     dist = angle_distortion(uv, verts, topo)
     # per-face mean |angle error| in degrees (the corners are packed face by face)
     face_err = torch.zeros(faces.num_faces, dtype=uv.dtype).index_add_(
-        0, corner_faces(faces), dist.per_corner.abs()
+        0, faces.corner_face, dist.per_corner.abs()
     ) / faces.sizes.to(uv.dtype)
     face_err_deg = face_err * 180 / math.pi
     flat = torch.cat([uv, torch.zeros_like(uv[:, :1])], 1)

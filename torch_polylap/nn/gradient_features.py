@@ -64,7 +64,7 @@ def _faces_and_topology(verts: torch.Tensor, faces: MeshFaces) -> tuple[PolygonF
 def _corner_sums(face_values: torch.Tensor, faces: PolygonFaces, num_verts: int) -> torch.Tensor:
     """``(V, ...)`` sum over the faces around each vertex of ``face_values (F, ...)``."""
     idx = faces.indices.to(face_values.device)
-    per_corner = face_values.repeat_interleave(faces.sizes.to(face_values.device), 0)
+    per_corner = face_values[faces.corner_face.to(face_values.device)]
     out = face_values.new_zeros((num_verts,) + tuple(face_values.shape[1:]))
     return out.index_add(0, idx, per_corner)
 
@@ -135,9 +135,9 @@ def vertex_gradient_operators(
             )
     device = verts.device
     G = gradient_operator(verts, topo)  # (3F, V), row 3 f + c
-    sizes, offsets = faces_.sizes.to(device), faces_.offsets.to(device)
-    indices = faces_.indices.to(device)
-    face, col, w = _face_gradient_entries(G, sizes, offsets)  # w (N, 3): grad_f of hat u
+    on_device = faces_.to(device)
+    sizes, offsets, indices = on_device.sizes, on_device.offsets, on_device.indices
+    face, col, w = _face_gradient_entries(G, on_device)  # w (N, 3): grad_f of hat u
 
     area = stable_norm(vector_area(verts, topo), 1)  # (F,)
     vert_area = _corner_sums(area, faces_, n)
@@ -166,13 +166,14 @@ def vertex_gradient_operators(
 
 
 def _face_gradient_entries(
-    G: SparseOperator, sizes: torch.Tensor, offsets: torch.Tensor
+    G: SparseOperator, faces: PolygonFaces
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(face (N,), column (N,), w (N, 3))``: the face gradients ``w = grad_f`` of the hat
     functions of the columns, from the ``(3F, V)`` operator ``G`` of
     :func:`~torch_polylap.calculus.gradient_operator` (differentiable in its values)."""
     pattern = pattern_of(G)
     g_col, g_val = pattern.col, sparse_values(G)
+    sizes, offsets, face = faces.sizes, faces.offsets, faces.corner_face
     # Faces are simple polygons (the topology refuses a repeated vertex), so every row 3 f + c
     # holds the k_f distinct corners of face f, sorted: row 3 f + c starts at 3 offsets[f] + c k_f.
     if g_val.numel() != 3 * int(sizes.sum()):
@@ -180,7 +181,6 @@ def _face_gradient_entries(
             f"vertex_gradient_operators: the face gradient operator has {g_val.numel()} entries, "
             f"expected 3 per corner ({3 * int(sizes.sum())})."
         )
-    face = torch.repeat_interleave(torch.arange(sizes.numel(), device=sizes.device), sizes)
     j = torch.arange(face.numel(), device=sizes.device) - offsets[face]
     first = 3 * offsets[face] + j
     pos = first[:, None] + sizes[face][:, None] * torch.arange(3, device=sizes.device)

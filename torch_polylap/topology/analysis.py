@@ -20,20 +20,14 @@ from .report import TopologyReport
 
 def half_edge_vertices(faces: PolygonFaces) -> tuple[torch.Tensor, torch.Tensor]:
     """``(src, dst)``, each ``(N,)``: half-edge ``h`` runs from corner ``h`` to the next corner."""
-    pos = torch.arange(faces.num_corners, device=faces.device)
-    last = torch.repeat_interleave(faces.offsets[1:] - 1, faces.sizes)
-    first = torch.repeat_interleave(faces.offsets[:-1], faces.sizes)
-    nxt = torch.where(pos == last, first, pos + 1)
-    return faces.indices, faces.indices[nxt]
+    return faces.indices, faces.indices[faces.next_corner]
 
 
 # -- what the report finds -------------------------------------------------------------------
 
 
 def _analyse(
-    idx: np.ndarray,
-    offsets: np.ndarray,
-    sizes: np.ndarray,
+    faces: PolygonFaces,
     num_verts: int,
     edges: np.ndarray,
     edge_uses: np.ndarray,
@@ -43,9 +37,9 @@ def _analyse(
     """The :class:`TopologyReport` of a mesh, O(N) for a clean one (``N`` corners).
 
     The costlier searches (a graph over corners for non-manifold vertices, orientability,
-    duplicates) run only when a cheap test has already found a defect.
+    duplicates) run only when a cheap test has already found a defect. ``faces`` is on the CPU.
     """
-    nxt, prv = _next_prev(offsets, sizes)
+    idx, nxt, prv = (t.numpy() for t in (faces.indices, faces.next_corner, faces.prev_corner))
     forward = idx < idx[nxt]
     heavy = edge_uses > 2
     fwd_count = np.bincount(he_edge[forward], minlength=edge_uses.size)
@@ -62,11 +56,11 @@ def _analyse(
     mis[both_back] = mis[both_back][:, ::-1]
     non_orientable, dups = 0, np.zeros(0, np.int64)
     if misoriented.any():
-        he_face = np.repeat(np.arange(sizes.size, dtype=np.int64), sizes)
+        he_face = faces.corner_face.numpy()
         _, bad_face, comp = _orientation(nxt, forward, he_face, he_edge, edge_uses)
         non_orientable = int(np.unique(comp[bad_face]).size)
     if heavy.any() or misoriented.any():
-        dups = duplicate_faces(PolygonFaces(torch.from_numpy(idx), offsets=offsets))[0]
+        dups = duplicate_faces(faces)[0]
     return TopologyReport(
         non_manifold_edges=edges[heavy],
         non_manifold_vertices=np.flatnonzero(bad_vertex),
@@ -75,15 +69,6 @@ def _analyse(
         duplicate_faces=dups,
         isolated_vertices=np.flatnonzero(valence == 0),
     )
-
-
-def _next_prev(offsets: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(N,)`` next and previous corner of every corner within its face (packed order)."""
-    pos = np.arange(offsets[-1], dtype=np.int64)
-    nxt, prv = pos + 1, pos - 1
-    nxt[offsets[1:] - 1] = offsets[:-1]
-    prv[offsets[:-1]] = offsets[1:] - 1
-    return nxt, prv
 
 
 def _twins(he_edge: np.ndarray, edge_uses: np.ndarray, itype: type = np.int64) -> np.ndarray:
@@ -219,10 +204,8 @@ def orientation_flips(
     ``2 F`` nodes and ``2 E_interior`` edges (linear in practice).
     """
     pf = as_faces(faces)
-    idx, sizes, offsets = (t.cpu().numpy() for t in (pf.indices, pf.sizes, pf.offsets))
+    idx, nxt, he_face = (t.cpu().numpy() for t in (pf.indices, pf.next_corner, pf.corner_face))
     edges, edge_uses, he_edge = edge_incidence(pf, num_verts)
-    nxt, _ = _next_prev(offsets, sizes)
-    he_face = np.repeat(np.arange(sizes.size, dtype=np.int64), sizes)
     return _orientation(nxt, idx < idx[nxt], he_face, he_edge, edge_uses)
 
 
@@ -236,11 +219,10 @@ def edge_incidence(
     its pair sort; this is the light version for repairs, which need no pattern.
     """
     pf = as_faces(faces)
-    idx, sizes, offsets = (t.cpu().numpy() for t in (pf.indices, pf.sizes, pf.offsets))
+    idx, nxt = pf.indices.cpu().numpy(), pf.next_corner.cpu().numpy()
     if idx.size == 0:
         return np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
     nv = np.int64(max(int(idx.max()) + 1, num_verts or 0, 1))
-    nxt, _ = _next_prev(offsets, sizes)
     a, b = idx, idx[nxt]
     keys, he_edge, uses = np.unique(
         np.minimum(a, b) * nv + np.maximum(a, b), return_inverse=True, return_counts=True

@@ -134,7 +134,7 @@ def build_topology(
     edge_uses = uses_pair[is_edge]
 
     valence = np.bincount(idx, minlength=num_verts)
-    report = _analyse(idx, offsets, sizes, num_verts, edges, edge_uses, he_edge, valence)
+    report = _analyse(own, num_verts, edges, edge_uses, he_edge, valence)
     if warn and not report.is_clean:
         warn_outside_package(
             f"the mesh ({num_verts} vertices, {sizes.size} faces) is not a consistently oriented "
