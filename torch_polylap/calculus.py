@@ -35,6 +35,7 @@ from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
 from .linalg import solve
 from .linalg.factor import _qdldl_available
+from .measures import mean_edge_length
 from .operators import laplacian
 from .sparse import SparseOperator, SparsityPattern, diag, operator_on
 from .topology import DegreeGroup, Topology, get_topology
@@ -207,12 +208,6 @@ def divergence(verts: torch.Tensor, faces: MeshFaces, field: torch.Tensor) -> to
     return out
 
 
-def mean_edge_length(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
-    """Mean length of the mesh's undirected edges (a 0-dim tensor, differentiable)."""
-    edges = topo.edges.to(verts.device)
-    return torch.linalg.vector_norm(verts[edges[:, 1]] - verts[edges[:, 0]], dim=1).mean()
-
-
 SourcesLike = torch.Tensor | Sequence[int] | Sequence[torch.Tensor | Sequence[int]]
 
 
@@ -300,7 +295,7 @@ class HeatGeodesicSolver:
         L, M0 = laplacian(verts, self.topology, lam)
         L_poisson, _ = laplacian(verts, self.topology, poisson_lam)
         if t is None:
-            t = T_FACTOR * mean_edge_length(verts, self.topology) ** 2
+            t = T_FACTOR * mean_edge_length(verts, self.topology, validate=False) ** 2
         elif not bool(torch.as_tensor(t) > 0):
             raise ValueError(f"HeatGeodesicSolver: t must be a positive heat time, got {t}.")
         self.t = t

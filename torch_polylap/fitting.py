@@ -19,7 +19,7 @@ import torch
 from .checks import check_positive_int, check_verts
 from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
-from .measures import face_nonplanarity, face_normals
+from .measures import edge_lengths, face_nonplanarity, face_normals
 from .topology import Topology, get_topology
 
 __all__ = ["nearest_neighbors", "chamfer_distance", "sample_points", "mesh_quality"]
@@ -468,14 +468,11 @@ def mesh_quality(verts: torch.Tensor, faces: MeshFaces) -> dict[str, float]:
             aspects.append(lengths.amax(0) / lengths.amin(0))
             nonconvex += int((~convex).any(0).sum())
         nonplanar = face_nonplanarity(verts, topo)
-        edges = topo.edges.to(verts.device)
-        edge_len = torch.linalg.vector_norm(verts[edges[:, 0]] - verts[edges[:, 1]], dim=1)
+        edge_len = edge_lengths(verts, topo, validate=False)
         # |n1 + n2|^2 = 2 + 2 n1.n2 < 2 exactly when the two unit normals are more than 90 deg apart
         he_edge = topo.half_edge_edge.to(verts.device)
-        he_face = torch.repeat_interleave(
-            torch.arange(topo.num_faces, device=verts.device), topo.faces.sizes.to(verts.device)
-        )
-        normal_sum = verts.new_zeros(edges.shape[0], 3).index_add(
+        he_face = topo.faces.corner_face.to(verts.device)
+        normal_sum = verts.new_zeros(edge_len.shape[0], 3).index_add(
             0, he_edge, face_normals(verts, topo)[he_face]
         )
         interior = topo.edge_faces.to(verts.device) == 2

@@ -149,11 +149,6 @@ def json_output(name: str, data: dict[str, Any]) -> Output:
     return text_output(name, lambda: json.dumps(data, indent=2) + "\n")
 
 
-def mean_edge_length(verts: torch.Tensor, edges: torch.Tensor) -> float:
-    """Mean length of the ``(E, 2)`` edges."""
-    return float(torch.linalg.vector_norm(verts[edges[:, 0]] - verts[edges[:, 1]], dim=1).mean())
-
-
 def add_mesh_argument(parser: argparse.ArgumentParser, default: Path = DEFAULT_MESH) -> None:
     parser.add_argument(
         "mesh",

@@ -11,7 +11,7 @@ import torch
 from tqdm import tqdm
 
 from ..assembly import MeshFaces
-from ..measures import face_areas
+from ..measures import face_areas, mean_edge_length
 from ..operators import laplacian, strong_laplacian
 from ..topology import Topology, get_topology
 from .common import (
@@ -22,7 +22,6 @@ from .common import (
     execute,
     figure_output,
     load_mesh,
-    mean_edge_length,
     mesh_output,
     method_label,
     positive_float,
@@ -99,7 +98,7 @@ def compute(args: argparse.Namespace) -> Result:
 
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
-    dt = args.dt if args.dt is not None else 0.1 * mean_edge_length(verts, topo.edges) ** 2
+    dt = args.dt if args.dt is not None else 0.1 * float(mean_edge_length(verts, topo)) ** 2
     normalize = None if args.normalize == "none" else args.normalize
     if normalize == "volume":  # checked here: a failing step below means a singularity
         _require_closed_oriented(topo, "normalize='volume'", "Use --normalize area or none.")
