@@ -15,8 +15,8 @@ from collections.abc import Iterator
 
 import torch
 
+from ._typing import MeshFaces
 from .checks import check_verts, warn_outside_package
-from .faces import FacesLike
 from .kernels import BlockKernel
 from .kernels.aw11 import aw11_entries, row_sums
 from .kernels.frames import gather_corners
@@ -31,8 +31,6 @@ __all__ = [
     "face_groups",
     "raise_bad_input",
 ]
-
-MeshFaces = FacesLike | Topology
 
 
 # A float32 face whose kernel bounds the relative error of its block above this is evaluated

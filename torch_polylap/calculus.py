@@ -30,8 +30,8 @@ from typing import NamedTuple
 
 import torch
 
+from ._typing import MeshFaces
 from .checks import Lam, check_index_or_mask, check_verts
-from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
 from .linalg import solve
 from .linalg.factor import _qdldl_available
@@ -48,7 +48,6 @@ __all__ = [
     "heat_geodesic_distance",
 ]
 
-MeshFaces = FacesLike | Topology
 
 # Default heat time t = T_FACTOR * h^2 (h the mean edge length; Crane et al. use factor 1) and
 # default stabilizer weight of the Poisson step, from the mean relative error from one source

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import torch
 
-from .assembly import MeshFaces, face_groups
+from ._typing import MeshFaces
+from .assembly import face_groups
 from .checks import Lam, check_lam
 from .kernels import block_kernel
 from .kernels.aw11 import row_sums

@@ -16,15 +16,13 @@ from typing import Any
 
 import torch
 
+from ._typing import MeshFaces
 from .checks import check_positive_int, check_verts
-from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
 from .measures import edge_lengths, face_nonplanarity, face_normals
 from .topology import Topology, get_topology
 
 __all__ = ["nearest_neighbors", "chamfer_distance", "sample_points", "mesh_quality"]
-
-MeshFaces = FacesLike | Topology
 
 
 def _check_points(points: torch.Tensor, name: str) -> None:

@@ -66,7 +66,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .assembly import MeshFaces
+from ._typing import MeshFaces
 from .batch import PolygonMeshes
 from .checks import check_verts
 from .faces import FacesLike, PolygonFaces, as_faces

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import torch
 
-from .assembly import MeshFaces, face_groups
+from ._typing import MeshFaces
+from .assembly import face_groups
 from .checks import Lam, check_lam, check_verts
 from .kernels.frames import corner_terms, gather_corners, plane_basis, stable_norm
 from .topology import get_topology

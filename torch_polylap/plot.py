@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 import torch
 
+from ._typing import ArrayLike
 from .checks import check_verts_array
 from .faces import FacesLike, as_faces
 from .measures import vector_area
@@ -38,7 +39,6 @@ __all__ = [
     "save_figure",
 ]
 
-ArrayLike = torch.Tensor | np.ndarray | Sequence[float]
 # light direction for the gray shading of meshes drawn without values
 # cyclic permutations of (x, y, z) that put the "up" axis last (matplotlib's vertical)
 _UP = {"x": [1, 2, 0], "y": [2, 0, 1], "z": [0, 1, 2]}

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..checks import check_verts
 from ..kernels import check_method
 from ..linalg import dirichlet_solve, solve

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..checks import check_index_or_mask, check_verts
 from ..kernels import check_method
 from ..kernels.frames import corner_terms, gather_corners

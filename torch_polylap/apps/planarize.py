@@ -50,7 +50,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..checks import check_index_or_mask, check_verts
 from ..linalg.factor import CholeskyFactorization, _cholespy_available, spd_splu
 from ..measures import face_nonplanarity, mean_edge_length, planarity_energy

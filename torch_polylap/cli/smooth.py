@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import torch
 from tqdm import tqdm
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..measures import face_areas, mean_edge_length
 from ..operators import laplacian, strong_laplacian
 from ..topology import Topology, get_topology

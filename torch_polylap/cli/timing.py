@@ -17,7 +17,7 @@ from typing import TypeVar
 
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..operators import laplacian
 from ..topology import Topology, build_topology
 

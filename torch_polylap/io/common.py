@@ -21,6 +21,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
+from .._typing import ArrayLike
 from ..checks import check_verts_array
 
 __all__ = [
@@ -31,7 +32,6 @@ __all__ = [
 ]
 
 PathLike = str | os.PathLike
-ArrayLike = torch.Tensor | np.ndarray
 
 
 class SkippedContentWarning(UserWarning):

@@ -37,9 +37,10 @@ import math
 import torch
 from torch import nn
 
+from .._typing import MeshFaces
 from ..calculus import gradient_operator
 from ..checks import check_verts
-from ..faces import FacesLike, PolygonFaces, as_faces
+from ..faces import PolygonFaces, as_faces
 from ..kernels.frames import stable_norm
 from ..measures import vector_area
 from ..sparse import SparseOperator, operator_from_parts, pattern_of, sparse_values
@@ -51,8 +52,6 @@ __all__ = [
     "spatial_gradient_features",
     "SpatialGradientFeatures",
 ]
-
-MeshFaces = FacesLike | Topology
 
 
 def _faces_and_topology(verts: torch.Tensor, faces: MeshFaces) -> tuple[PolygonFaces, Topology]:

@@ -26,17 +26,15 @@ from __future__ import annotations
 
 import torch
 
+from .._typing import MeshFaces
 from ..calculus import face_gradient
 from ..checks import check_verts
-from ..faces import FacesLike
 from ..kernels.frames import stable_norm
 from ..measures import vector_area
-from ..topology import Topology, get_topology
+from ..topology import get_topology
 from .transport import TangentFrames, minimal_rotation, tangent_frames
 
 __all__ = ["face_shape_operator", "shape_operator", "principal_curvatures"]
-
-MeshFaces = FacesLike | Topology
 
 
 def face_shape_operator(
