@@ -21,7 +21,7 @@ from ..sparse import (
     to_scipy,
 )
 from .derivatives import EIGENVECTOR_GAP_RTOL, _Eigenvalues, _Eigenvectors
-from .factor import CholeskyFactorization, _cholespy_available, _Held, spd_splu
+from .factor import CholeskyFactorization, _cholespy_available, _OpaqueOperator, spd_splu
 from .solves import ConvergenceError
 
 # Route thresholds of eigs, measured by benchmarks/bench_eigs_routes.py (see eigs_route).
@@ -539,7 +539,8 @@ def eigs(
     l_values, m_values = sparse_values(L), sparse_values(M)
     evals_t = torch.from_numpy(evals).to(l_values)
     evecs_t = torch.from_numpy(evecs).to(l_values)
-    mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
+    opaque = _OpaqueOperator(L), _OpaqueOperator(M)
+    mu = _Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, *opaque)
     if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
-        evecs_t = _Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, _Held(L), _Held(M))
+        evecs_t = _Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, *opaque)
     return mu, evecs_t

@@ -288,9 +288,10 @@ def _factorization(A: SparseOperator, backend: str) -> Factor:
     return solver_cache(A, backend, lambda: kind(A))
 
 
-class _Held:
-    """A sparse operator passed to an autograd.Function as a plain object: autograd and
-    torch.func must see only its value array as the differentiable input."""
+class _OpaqueOperator:
+    """A sparse operator ``A`` wrapped so that an autograd.Function receives it as a plain
+    object: autograd and torch.func must see only its value array as the differentiable
+    input."""
 
     __slots__ = ("A",)
 

@@ -25,7 +25,7 @@ from ..sparse import (
 )
 from ..sparse.construct import csr_indices
 from ..tracing import tracing
-from .factor import _cholespy_available, _factorization, _Held, _qdldl_available
+from .factor import _cholespy_available, _factorization, _OpaqueOperator, _qdldl_available
 from .solve_op import solve_op
 
 
@@ -200,7 +200,7 @@ def _solve(
         return solve_op(values, crow, col, B, A.symmetric, backend, tol, max_iter)
     if not (torch.is_grad_enabled() and (values.requires_grad or B.requires_grad)):
         return _solve_values(A, B, backend, tol, max_iter)
-    return _Solve.apply(values, B, _Held(A), backend, tol, max_iter)
+    return _Solve.apply(values, B, _OpaqueOperator(A), backend, tol, max_iter)
 
 
 class _Solve(torch.autograd.Function):
@@ -212,7 +212,12 @@ class _Solve(torch.autograd.Function):
 
     @staticmethod
     def forward(
-        values: torch.Tensor, B: torch.Tensor, held: _Held, backend: str, tol: float, max_iter: int
+        values: torch.Tensor,
+        B: torch.Tensor,
+        held: _OpaqueOperator,
+        backend: str,
+        tol: float,
+        max_iter: int,
     ) -> torch.Tensor:
         # `values` here is the plain tensor even under torch.func, whose wrapped tensors have no
         # storage for the factorization cache to check
