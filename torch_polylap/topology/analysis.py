@@ -9,6 +9,8 @@ functions here directly.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.sparse as sp
 import torch
@@ -16,6 +18,28 @@ from scipy.sparse.csgraph import connected_components
 
 from ..faces import FacesLike, PolygonFaces, as_faces
 from .report import TopologyReport
+
+
+class OrientationFlips(NamedTuple):
+    """What :func:`orientation_flips` finds; unpacks as ``flip, non_orientable, component``."""
+
+    flip: np.ndarray
+    """``(F,)`` bool: reverse these faces."""
+    non_orientable: np.ndarray
+    """``(F,)`` bool: faces in a component without a consistent orientation."""
+    component: np.ndarray
+    """``(F,)`` int64: a component label per face (not consecutive)."""
+
+
+class EdgeIncidence(NamedTuple):
+    """The edges of faces; unpacks as ``edges, uses, he_edge``."""
+
+    edges: np.ndarray
+    """``(E, 2)`` int64 sorted pairs ``p < q``."""
+    uses: np.ndarray
+    """``(E,)`` int64 how many half-edges lie on each edge."""
+    he_edge: np.ndarray
+    """``(N,)`` int64 the edge of every half-edge (packed order)."""
 
 
 def half_edge_vertices(faces: PolygonFaces) -> tuple[torch.Tensor, torch.Tensor]:
@@ -155,8 +179,8 @@ def _orientation(
     he_face: np.ndarray,
     he_edge: np.ndarray,
     edge_uses: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(flip, non_orientable, component)``, each ``(F,)``; see :func:`orientation_flips`."""
+) -> OrientationFlips:
+    """See :func:`orientation_flips`."""
     num_faces = int(he_face[-1]) + 1 if he_face.size else 0
     twin = _twins(he_edge, edge_uses)
     h = np.flatnonzero(twin > np.arange(twin.size))  # each interior edge once
@@ -183,12 +207,10 @@ def _orientation(
     n_all = np.bincount(component, minlength=m)
     flip ^= (2 * n_flip > n_all)[component]
     flip &= ~non_orientable
-    return flip, non_orientable, component
+    return OrientationFlips(flip, non_orientable, component)
 
 
-def orientation_flips(
-    faces: FacesLike, num_verts: int | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def orientation_flips(faces: FacesLike, num_verts: int | None = None) -> OrientationFlips:
     """Which faces to reverse for a consistent orientation, per edge-connected component.
 
     Faces are linked across every edge used by exactly two faces (edges used by 3+ faces
@@ -209,9 +231,7 @@ def orientation_flips(
     return _orientation(nxt, idx < idx[nxt], he_face, he_edge, edge_uses)
 
 
-def edge_incidence(
-    faces: FacesLike, num_verts: int | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def edge_incidence(faces: FacesLike, num_verts: int | None = None) -> EdgeIncidence:
     """``(edges (E, 2), uses (E,), he_edge (N,))`` of any faces, by one sort of the half-edges.
 
     ``edges`` are sorted pairs ``p < q``, ``uses`` how many half-edges lie on each, ``he_edge``
@@ -221,14 +241,17 @@ def edge_incidence(
     pf = as_faces(faces)
     idx, nxt = pf.indices.cpu().numpy(), pf.next_corner.cpu().numpy()
     if idx.size == 0:
-        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        none = np.zeros(0, np.int64)
+        return EdgeIncidence(none.reshape(0, 2), none, none)
     nv = np.int64(max(int(idx.max()) + 1, num_verts or 0, 1))
     a, b = idx, idx[nxt]
     keys, he_edge, uses = np.unique(
         np.minimum(a, b) * nv + np.maximum(a, b), return_inverse=True, return_counts=True
     )
     lo = keys // nv
-    return np.stack([lo, keys - lo * nv], 1), uses.astype(np.int64), he_edge.reshape(-1)
+    return EdgeIncidence(
+        np.stack([lo, keys - lo * nv], 1), uses.astype(np.int64), he_edge.reshape(-1)
+    )
 
 
 def duplicate_faces(faces: FacesLike) -> tuple[np.ndarray, np.ndarray]:
