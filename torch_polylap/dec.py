@@ -38,7 +38,7 @@ def local_laplacians(
     :func:`~torch_polylap.laplacian`), which sum to its ``L`` the same way.
     """
     lam = check_lam(lam)
-    kernel = block_kernel(method, lam, geometric)
+    kernel = block_kernel(method, lam, geometric=geometric)
     verts_t = verts.t().contiguous()
     out = []
     for _, grp, x in face_groups(verts, faces):

@@ -11,6 +11,7 @@ planar, convex, well-shaped, unfolded faces.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -137,6 +138,7 @@ def _one_direction(
     y_normals: torch.Tensor | None,
     weights: torch.Tensor | None,
     norm: int,
+    *,
     abs_cosine: bool,
     chunk_size: int,
     backend: str,
@@ -205,9 +207,9 @@ def chamfer_distance(
     batch_reduction: str | None = "mean",
     point_reduction: str | None = "mean",
     norm: int = 2,
+    *,
     single_directional: bool = False,
     abs_cosine: bool = True,
-    *,
     chunk_size: int = 2048,
     backend: str = "auto",
 ) -> tuple[Any, Any]:
@@ -295,14 +297,13 @@ def chamfer_distance(
             with_normals = x_normals is not None and y_normals is not None
             return zero, (zero if with_normals else None)
     nx, ny = x_lengths.tolist(), y_lengths.tolist()
-    forward = _one_direction(
-        x, y, nx, ny, x_normals, y_normals, weights, norm, abs_cosine, chunk_size, backend
+    one_direction = functools.partial(
+        _one_direction, abs_cosine=abs_cosine, chunk_size=chunk_size, backend=backend
     )
+    forward = one_direction(x, y, nx, ny, x_normals, y_normals, weights, norm)
     directions = [(forward, x_lengths)]
     if not single_directional:
-        backward = _one_direction(
-            y, x, ny, nx, y_normals, x_normals, weights, norm, abs_cosine, chunk_size, backend
-        )
+        backward = one_direction(y, x, ny, nx, y_normals, x_normals, weights, norm)
         directions.append((backward, y_lengths))
     if point_reduction is None:
         if single_directional:

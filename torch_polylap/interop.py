@@ -211,6 +211,7 @@ def _laplacian_edges(verts: torch.Tensor, faces: PolygonFaces) -> dict[str, torc
 def _pyg_attributes(
     verts: torch.Tensor,
     faces: PolygonFaces,
+    *,
     triangles: bool,
     triangulate: bool,
     with_laplacian: bool,
@@ -297,8 +298,9 @@ def to_pyg(
     except ImportError as err:
         raise ImportError(_PYG_INSTALL) from err
     triangles = all(bool((f.sizes == 3).all()) for f in faces_list)
+    options = {"triangles": triangles, "triangulate": triangulate, "with_laplacian": laplacian}
     data = [
-        Data(pos=v, **_pyg_attributes(v, f, triangles, triangulate, laplacian))
+        Data(pos=v, **_pyg_attributes(v, f, **options))
         for v, f in zip(verts_list, faces_list, strict=True)
     ]
     return data[0] if batch is None else Batch.from_data_list(data)

@@ -24,10 +24,11 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ._typing import MeshFaces
 from .assembly import (
     _BAD_INPUT,
     FLOAT32_INACCURATE,
-    MeshFaces,
+    FlaggedAssembly,
     assemble,
     assemble_flagged,
 )
@@ -46,7 +47,7 @@ __all__ = [
 ]
 
 
-def _checked_lam(lam: Lam, validate: bool = True) -> Lam:
+def _checked_lam(lam: Lam, *, validate: bool = True) -> Lam:
     """``lam`` checked finite and >= 0; a tensor only with ``validate`` (reading it syncs;
     traced or vmapped, the check of its value is an in-graph assertion instead)."""
     if isinstance(lam, torch.Tensor) and functional():
@@ -130,14 +131,16 @@ def laplacian(
             non-finite coordinates or zero-area faces, naming the vertex or face.
     """
     _check_layout(layout)
-    lam = _checked_lam(lam, validate)
+    lam = _checked_lam(lam, validate=validate)
     check_method(method)
     if isinstance(verts, torch.Tensor) and verts.dim() == 3:
-        return _laplacian_batch(verts, faces, lam, layout, validate, method)
+        return _laplacian_batch(verts, faces, lam, layout=layout, validate=validate, method=method)
     verts = check_verts(verts, finite=False)
     topo = topology_of(faces, verts)
     view = topo.on(verts.device)
-    values, masses = assemble(verts, view, topo, block_kernel(method, lam), True, validate)
+    values, masses = assemble(
+        verts, view, topo, block_kernel(method, lam), want_mass=True, validate=validate
+    )
     assert masses is not None
     M0 = operator_on(view.diagonal, masses, symmetric=True, layout=layout)
     return _operator(view, values, layout), M0
@@ -147,6 +150,7 @@ def _laplacian_batch(
     verts: torch.Tensor,
     faces: MeshFaces,
     lam: Lam,
+    *,
     layout: torch.layout,
     validate: bool,
     method: str,
@@ -163,25 +167,25 @@ def _laplacian_batch(
     view = topo.on(verts.device)
     kernel = block_kernel(method, lam)
 
-    def one(
-        v: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor]:
+    def one(v: torch.Tensor) -> FlaggedAssembly:
         with torch.autocast(v.device.type, enabled=False):
-            return assemble_flagged(v, view, topo, kernel, True)
+            return assemble_flagged(v, view, topo, kernel, want_mass=True)
 
     values, masses, ok, accurate = torch.func.vmap(one)(verts)
     if validate and not require(ok, _BAD_INPUT):
         # name the mesh and the element: the one-mesh assembly's message
         bad = int(torch.nonzero(~ok)[0, 0])
         try:
-            assemble(verts[bad].detach(), view, topo, kernel, False, True)
+            assemble(verts[bad].detach(), view, topo, kernel, want_mass=False, validate=True)
         except ValueError as err:
             raise ValueError(f"mesh {bad} of the batch: {err}") from None
     if validate and not require(accurate, FLOAT32_INACCURATE):
         if functional():
             raise ValueError(FLOAT32_INACCURATE)
         # eagerly, mesh by mesh: the one-mesh assembly evaluates such faces in float64
-        pairs = [assemble(v, view, topo, kernel, True, True) for v in verts.unbind(0)]
+        pairs = [
+            assemble(v, view, topo, kernel, want_mass=True, validate=True) for v in verts.unbind(0)
+        ]
         values = torch.stack([p[0] for p in pairs])
         masses = torch.stack([p[1] for p in pairs if p[1] is not None])
     assert masses is not None
@@ -204,10 +208,11 @@ def planarity_laplacian(
     nothing.
     """
     verts = check_verts(verts, finite=False)
-    lam = _checked_lam(lam, validate)
+    lam = _checked_lam(lam, validate=validate)
     topo = topology_of(faces, verts)
     view = topo.on(verts.device)
-    values, _ = assemble(verts, view, topo, block_kernel("aw11", lam, False), False, validate)
+    kernel = block_kernel("aw11", lam, geometric=False)
+    values, _ = assemble(verts, view, topo, kernel, want_mass=False, validate=validate)
     return _operator(view, values, layout)
 
 

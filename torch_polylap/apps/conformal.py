@@ -339,9 +339,9 @@ def conformal_parameterization(
     faces: MeshFaces,
     pins: torch.Tensor | list[int] | None = None,
     pin_uv: torch.Tensor | None = None,
+    *,
     free_boundary: bool = False,
     lam: float = 1.0,
-    *,
     method: str = "aw11",
 ) -> torch.Tensor:
     """Flat conformal map of a disk-like polygon mesh minimizing ``E_C`` (AW11 sec. 5.2).

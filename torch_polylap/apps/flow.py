@@ -181,11 +181,11 @@ def mean_curvature_flow(
     dt: float,
     steps: int,
     lam: float | torch.Tensor = 1.0,
+    *,
     frozen: bool = False,
     normalize: str | None = None,
     return_trajectory: bool = False,
     progress: bool = False,
-    *,
     fixed: torch.Tensor | None = None,
     method: str = "aw11",
 ) -> torch.Tensor:

@@ -259,6 +259,7 @@ def planarize(
     tol: float = 1e-4,
     max_iter: int | None = None,
     fixed: torch.Tensor | list[int] | None = None,
+    *,
     progress: bool = False,
     history_size: int = 20,
     check_every: int = 5,

@@ -253,13 +253,14 @@ def load_mesh(
 ) -> tuple[torch.Tensor, PolygonFaces, Path, str]:
     """``(verts, faces, path, label)`` of the mesh argument or the command's default mesh."""
     path = Path(args.mesh) if args.mesh else args.default_mesh
-    verts, faces = read_mesh_quietly(path, not args.mesh, dtype=dtype, device=device)
+    verts, faces = read_mesh_quietly(path, embedded=not args.mesh, dtype=dtype, device=device)
     label = path.name + ("" if args.mesh else " (embedded default mesh)")
     return verts, faces, path, label
 
 
 def read_mesh_quietly(
     path: Path,
+    *,
     embedded: bool,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,

@@ -128,7 +128,7 @@ def _figure(
     """The mesh and its conformal image, faces colored by their mean angle error."""
     from ..plot import new_figure, plot_mesh, plot_uv
 
-    fig, (ax3, ax2) = new_figure(1, 2, [True, False], panel_size=4.5)
+    fig, (ax3, ax2) = new_figure(1, 2, three_d=[True, False], panel_size=4.5)
     hi = float(np.nanmax(face_err_deg.numpy())) or 1.0
     common: dict[str, Any] = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
     plot_mesh(verts, faces, face_err_deg, ax=ax3, title="input", colorbar=False, up=up, **common)

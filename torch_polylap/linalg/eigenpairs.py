@@ -82,7 +82,7 @@ def _is_diagonal(S: sp.csr_matrix) -> bool:
     return bool((coo.row == coo.col).all()) and bool((S.diagonal() > 0).all())
 
 
-def eigs_route(n: int, k: int, diagonal_mass: bool, cholmod: bool = True) -> str:
+def eigs_route(n: int, k: int, *, diagonal_mass: bool, cholmod: bool = True) -> str:
     """The route :func:`eigs` takes for ``k`` eigenpairs of an ``n x n`` problem: ``"dense"``,
     ``"arpack"`` or ``"lanczos"`` (``diagonal_mass``: ``M`` is diagonal and the shift negative,
     so ``L - shift M`` has a Cholesky factorization; ``cholmod``: ``cholespy`` is installed).
@@ -191,6 +191,7 @@ def _eigs_arpack(
     sigma: float | None,
     scale: float,
     tol: float,
+    *,
     diagonal_mass: bool = False,
     device: torch.device | str = "cpu",
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -520,13 +521,13 @@ def eigs(
     shift = sigma if sigma is not None else -1e-6 * scale
     result = None
     diagonal = shift < 0 and _is_diagonal(Ms)
-    route = eigs_route(n, k, diagonal, _cholespy_available())
+    route = eigs_route(n, k, diagonal_mass=diagonal, cholmod=_cholespy_available())
     if route == "dense":
         result = scipy.linalg.eigh(Ls.toarray(), Ms.toarray(), subset_by_index=(0, k - 1))
     elif route == "lanczos":
         result = _eigs_block_lanczos(Ls, Ms.diagonal(), k, shift, tol or 1e-10, L.device)
     if result is None:
-        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol, diagonal, L.device)
+        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol, diagonal_mass=diagonal, device=L.device)
     if route != "dense":
         result = _verified(result, Ls, Ms, scale, tol, L.device)
     evals, evecs = result

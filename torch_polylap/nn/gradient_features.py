@@ -33,6 +33,7 @@ meshes:
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -48,10 +49,22 @@ from ..topology import Topology, get_topology
 
 __all__ = [
     "vertex_tangent_frames",
+    "VertexFrames",
     "vertex_gradient_operators",
     "spatial_gradient_features",
     "SpatialGradientFeatures",
 ]
+
+
+class VertexFrames(NamedTuple):
+    """Orthonormal frames per vertex, each ``(V, 3)``; unpacks as ``normal, e_x, e_y``."""
+
+    normal: torch.Tensor
+    """The unit normal."""
+    e_x: torch.Tensor
+    """The first tangent axis."""
+    e_y: torch.Tensor
+    """The second tangent axis, ``normal x e_x``."""
 
 
 def _faces_and_topology(verts: torch.Tensor, faces: MeshFaces) -> tuple[PolygonFaces, Topology]:
@@ -68,10 +81,8 @@ def _corner_sums(face_values: torch.Tensor, faces: PolygonFaces, num_verts: int)
     return out.index_add(0, idx, per_corner)
 
 
-def vertex_tangent_frames(
-    verts: torch.Tensor, faces: MeshFaces
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-vertex orthonormal frames ``(normal, e_x, e_y)``, each ``(V, 3)``.
+def vertex_tangent_frames(verts: torch.Tensor, faces: MeshFaces) -> VertexFrames:
+    """Per-vertex orthonormal frames :class:`VertexFrames` ``(normal, e_x, e_y)``, each ``(V, 3)``.
 
     ``normal`` is the normalized sum of the vector areas of the faces around the vertex (the
     area-weighted face normals).  ``e_x`` is the projection onto the tangent plane of the
@@ -93,7 +104,7 @@ def vertex_tangent_frames(
     e_x = ref - (ref * normal).sum(1, keepdim=True) * normal
     e_x = e_x / stable_norm(e_x, 1, keepdim=True)  # |n . ref| <= 1/sqrt(3): no cancellation
     e_y = torch.linalg.cross(normal, e_x, dim=1)
-    return normal, e_x, e_y
+    return VertexFrames(normal, e_x, e_y)
 
 
 def vertex_gradient_operators(
@@ -225,7 +236,7 @@ class SpatialGradientFeatures(nn.Module):
             ``False``: a real ``A``.
     """
 
-    def __init__(self, channels: int, with_rotations: bool = True) -> None:
+    def __init__(self, channels: int, *, with_rotations: bool = True) -> None:
         super().__init__()
         bound = 1.0 / math.sqrt(channels)
         self.weight_re = nn.Parameter(torch.empty(channels, channels).uniform_(-bound, bound))
