@@ -101,11 +101,13 @@ def bench_routes(n_target: int, k: int, repeat: int, dense_max: int, generalized
             Ls, k=k, M=Ms, sigma=shift, which="LM", tol=0
         )
         contenders["arpack_cholmod"] = lambda: arpack_cholmod(Ls, Ms, k, shift)
-    contenders["arpack"] = lambda: linalg.eigenpairs._eigs_arpack(Ls, Ms, k, None, scale, 0.0, True)
+    contenders["arpack"] = lambda: linalg.eigenpairs._eigs_arpack(
+        Ls, Ms, k, None, scale, 0.0, diagonal_mass=True
+    )
     contenders["lanczos"] = lambda: linalg.eigenpairs._eigs_block_lanczos(
         Ls, Ms.diagonal(), k, shift, 1e-10, torch.device("cpu")
     )
-    out = {"verts": n, "k": k, "route": linalg.eigs_route(n, k, True, True)}
+    out = {"verts": n, "k": k, "route": linalg.eigs_route(n, k, diagonal_mass=True, cholmod=True)}
     out.update(interleaved(contenders, rounds(n, repeat)))
     return out
 
@@ -129,7 +131,11 @@ def bench_precompute(n_target: int, k: int, repeat: int) -> dict:
         Lt, Mt = robust_laplacian.mesh_laplacian(Vn, tris)
         spla.eigsh(Lt, k=k, M=Mt, sigma=1e-8, which="LM")
 
-    out = {"verts": V.shape[0], "k": k, "route": linalg.eigs_route(len(V), k, True, True)}
+    out = {
+        "verts": V.shape[0],
+        "k": k,
+        "route": linalg.eigs_route(len(V), k, diagonal_mass=True, cholmod=True),
+    }
     out.update(interleaved({"ours": ours, "robust_laplacian": pipeline}, rounds(len(V), repeat)))
     out["ratio"] = out["ours"] / out["robust_laplacian"]
     return out

@@ -169,7 +169,7 @@ def run_case(kind, family, level, repeat, case=None) -> dict | None:
     if case is None:
         return None
     verts, faces, source, exact = case
-    h = float(tp.calculus.mean_edge_length(verts, tp.get_topology(faces, verts.shape[0])))
+    h = float(tp.mean_edge_length(verts, faces))
     methods = {
         "ours": ours(verts, faces, source),
         "ours_t=h^2,lam=1": ours(verts, faces, source, t=h * h, poisson_lam=1.0),

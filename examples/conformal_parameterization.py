@@ -148,7 +148,7 @@ def main() -> int:
         "| angle error mean / rms / max (deg) |",
         "|---|---|---|---|---|---|",
     ]
-    fig, axes = new_figure(len(meshes), 3, False, panel_size=3.6)
+    fig, axes = new_figure(len(meshes), 3, three_d=False, panel_size=3.6)
     panels = []
     for m, (name, (V, F)) in enumerate(meshes.items()):
         tess = {"polygons": None, "fan from corner 0": fan(F, 0), "fan from corner 1": fan(F, 1)}

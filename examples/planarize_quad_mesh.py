@@ -60,7 +60,7 @@ def main() -> int:
     before = torch.log10(tp.face_nonplanarity(V, F).clamp_min(1e-8))
     after = torch.log10(tp.face_nonplanarity(res.verts, F).clamp_min(1e-8))
     clim = (float(torch.minimum(before.min(), after.min())), float(before.max()))
-    fig, axes = new_figure(1, 2, True, panel_size=4.5)
+    fig, axes = new_figure(1, 2, three_d=True, panel_size=4.5)
     up = "y"  # the OBJ models here are y-up
     common = dict(cmap="viridis", clim=clim, label="log10 non-planarity", up=up)
     plot_mesh(V, F, before, ax=axes[0], title="input", **common)

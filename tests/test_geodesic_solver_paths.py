@@ -17,8 +17,8 @@ from conftest import DATA, hex_pent_mesh
 from meshes import load, shared_path
 
 import torch_polylap as tp
-from torch_polylap.calculus import mean_edge_length
 from torch_polylap.linalg.factor import LDLFactorization
+from torch_polylap.measures import mean_edge_length
 
 pytest.importorskip("qdldl", reason="the 'ldl' backend needs the optional qdldl")
 

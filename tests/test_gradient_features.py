@@ -91,7 +91,7 @@ def test_rotating_the_frames_rotates_the_gradients_and_keeps_the_features(with_r
     assert torch.allclose(rx @ x, c * (gx @ x) + s * (gy @ x), atol=1e-13)
     assert torch.allclose(ry @ x, -s * (gx @ x) + c * (gy @ x), atol=1e-13)
     torch.manual_seed(0)
-    layer = tnn.SpatialGradientFeatures(3, with_rotations).double()
+    layer = tnn.SpatialGradientFeatures(3, with_rotations=with_rotations).double()
     out = layer(x, gx, gy)
     assert out.shape == x.shape and out.abs().max() > 1e-3
     assert torch.allclose(layer(x, rx, ry), out, atol=1e-13)

@@ -61,10 +61,10 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
     L, M0 = _mesh_operators("mixedFaring.off")
     k = 40
     # the route rule sends this size to ARPACK: force block Lanczos, which must not fall back
-    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: "lanczos")
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: "lanczos")
     calls = []
     # ARPACK must not be used
-    monkeypatch.setattr(linalg.eigenpairs, "_eigs_arpack", lambda *a: calls.append(a))
+    monkeypatch.setattr(linalg.eigenpairs, "_eigs_arpack", lambda *a, **kw: calls.append(a))
     evals, evecs = tp.eigs(L, M0, k)
     assert not calls
     Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
@@ -83,7 +83,7 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
 @pytest.mark.parametrize("route", ["arpack", "lanczos"])
 def test_sparse_eigs_count_components(route, monkeypatch):
     """Three copies of a 2310-vertex mesh: three zero eigenvalues, found by each sparse route."""
-    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: route)
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: route)
     V, F = tp.read_mesh(DATA / "mixedFaring.off", dtype=torch.float64)
     n = V.shape[0]
     blocks = [tp.laplacian(V + 10.0 * i, F) for i in range(3)]
@@ -140,12 +140,12 @@ def test_sparse_eigs_are_accurate_to_round_off_on_a_sphere():
     ],
 )
 def test_eigs_route_picks_each_route_in_its_range(n, k, cholmod, route):
-    assert linalg.eigs_route(n, k, True, cholmod) == route
+    assert linalg.eigs_route(n, k, diagonal_mass=True, cholmod=cholmod) == route
 
 
 def test_eigs_route_needs_a_diagonal_mass_for_lanczos():
-    assert linalg.eigs_route(100_000, 64, False) == "arpack"
-    assert linalg.eigs_route(300, 64, False) == "dense"
+    assert linalg.eigs_route(100_000, 64, diagonal_mass=False) == "arpack"
+    assert linalg.eigs_route(300, 64, diagonal_mass=False) == "dense"
 
 
 @pytest.mark.parametrize("route", ["dense", "arpack", "lanczos", "arpack-generalized"])
@@ -162,7 +162,7 @@ def test_every_route_matches_lapack(route, cholmod, monkeypatch):
     k = 64
     if route == "arpack-generalized":  # a non-diagonal M goes through ARPACK's generalized mode
         monkeypatch.setattr(linalg.eigenpairs, "_is_diagonal", lambda S: False)
-    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: route.split("-")[0])
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: route.split("-")[0])
     evals, evecs = tp.eigs(L, M0, k)
     Ld, Md = L.to_dense().numpy(), M0.to_dense().numpy()
     ref = scipy.linalg.eigh(Ld, Md, eigvals_only=True, subset_by_index=(0, k - 1))

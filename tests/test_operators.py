@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -316,14 +317,41 @@ def test_float32_matches_float64():
     assert torch.allclose(dense(L32).double(), dense(L64), atol=1e-5 * dense(L64).abs().max())
 
 
-def test_coo_layout_equals_csr(mixed):
+def test_operators_report_the_csr_layout_they_store(mixed):
     V, F = mixed
-    Lc, Mc = tp.laplacian(V, F, layout=torch.sparse_coo)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # the default path does not warn
+        L, M = tp.laplacian(V, F)
+        P = tp.planarity_laplacian(V, F)
+        lap = tp.PolygonLaplacian()
+    for A in (L, M, P, lap(V, F)[0]):
+        assert A.layout == torch.sparse_csr and A.is_sparse_csr and not A.is_sparse
+        # the reported layout is the storage: scipy's CSR arrays of the same matrix
+        ref = tp.sparse.to_scipy(A).tocsr()
+        ref.sort_indices()
+        assert torch.equal(A.crow_indices(), torch.from_numpy(ref.indptr).long())
+        assert torch.equal(A.col_indices(), torch.from_numpy(ref.indices).long())
+
+
+def test_layout_argument_is_deprecated_and_still_honoured(mixed):
+    V, F = mixed
     L, M = tp.laplacian(V, F)
+    with pytest.warns(DeprecationWarning, match=r"laplacian\(layout=...\) is deprecated"):
+        Lc, Mc = tp.laplacian(V, F, layout=torch.sparse_coo)
     assert Lc.layout == torch.sparse_coo and Lc.is_coalesced()
     assert torch.equal(dense(Lc), dense(L)) and torch.equal(dense(Mc), dense(M))
     X = torch.randn(V.shape[0], 2, **D64)
     assert torch.allclose(tp.sparse.spmm(Lc, X), tp.sparse.spmm(L, X))
+    # the replacement the warning names gives the same operator
+    coo = L.to_sparse_coo()
+    assert coo.layout == torch.sparse_coo and torch.equal(dense(coo), dense(Lc))
+    with pytest.warns(DeprecationWarning, match="PolygonLaplacian"):
+        lap = tp.PolygonLaplacian(layout=torch.sparse_coo)
+    assert lap(V, F)[0].layout == torch.sparse_coo
+    with pytest.warns(DeprecationWarning, match="planarity_laplacian"):
+        assert tp.planarity_laplacian(V, F, layout=torch.sparse_coo).layout == torch.sparse_coo
+    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match="layout must be"):
+        tp.laplacian(V, F, layout=torch.strided)
 
 
 def test_scipy_roundtrip(mixed):

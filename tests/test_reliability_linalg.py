@@ -71,7 +71,7 @@ def test_eigs_finds_every_copy_of_forty_disjoint_spots():
     V, F = _spot()
     L, M0 = tp.laplacian(*_copies(V, F, 40))
     reference = np.sort(np.repeat(_spectrum(V, F), 40))
-    assert linalg.eigs_route(L.shape[0], 128, True, True) == "lanczos"
+    assert linalg.eigs_route(L.shape[0], 128, diagonal_mass=True, cholmod=True) == "lanczos"
     evals, evecs = tp.eigs(L, M0, 128)
     _assert_eigenpairs(evals, evecs, L, M0, reference)
 
@@ -82,7 +82,7 @@ def test_eigs_finds_every_copy_of_forty_disjoint_spots():
 def test_eigs_on_disjoint_copies_has_full_multiplicities(route, count, k, seed, monkeypatch):
     """Multiplicities above the Lanczos block of 8 on either sparse route (forced), against
     one copy's dense spectrum repeated ``count`` times."""
-    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: route)
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: route)
     V, F = _spot()
     V = V * (1.0 + 0.1 * np.random.default_rng(seed).random())  # scale: another spectrum
     L, M0 = tp.laplacian(*_copies(V, F, count))
@@ -96,7 +96,7 @@ def test_eigs_on_disjoint_copies_has_full_multiplicities(route, count, k, seed, 
 def test_eigs_on_symmetric_shapes_match_lapack(route, shape, monkeypatch):
     """The cube's and the cube sphere's octahedral symmetry gives eigenvalues of multiplicity
     2, 3 and 6 (and near-multiplicities on the sphere); each route against dense LAPACK."""
-    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: route)
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: route)
     V, F = quad_cube(6) if shape == "cube" else quad_sphere(6)
     L, M0 = tp.laplacian(V, F)
     reference = scipy.linalg.eigh(L.to_dense().numpy(), M0.to_dense().numpy(), eigvals_only=True)
@@ -123,7 +123,7 @@ def test_eigs_completes_a_route_that_missed_eigenpairs(mass, monkeypatch):
     ARPACK made to drop three from the middle of its answer (on 5 copies of Spot, so that the
     dropped ones are copies of a repeated eigenvalue), with a diagonal mass and with a
     non-diagonal SPD one (scipy's generalized shift-invert path)."""
-    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a: "arpack")
+    monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: "arpack")
     monkeypatch.setattr(
         linalg.eigenpairs, "_eigs_arpack", _dropping(linalg.eigenpairs._eigs_arpack, 3)
     )

@@ -19,6 +19,8 @@ MEASURES = {
     "vector_area": tp.vector_area,
     "face_areas": tp.face_areas,
     "face_normals": tp.face_normals,
+    "edge_lengths": tp.edge_lengths,
+    "mean_edge_length": tp.mean_edge_length,
     "face_nonplanarity": tp.face_nonplanarity,
     "face_planarity_energy": tp.face_planarity_energy,
     "planarity_energy": tp.planarity_energy,

@@ -13,6 +13,8 @@ import pytest
 import scipy.sparse as sp
 import torch
 from conftest import DATA, mixed_mesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import torch_polylap as tp
 from torch_polylap.shapes import quad_grid
@@ -35,10 +37,34 @@ def test_polygon_faces_accessors():
     assert faces.num_faces == 2 and faces.num_corners == 7 and len(faces) == 2
     assert faces[1].tolist() == [2, 1, 3, 4] and faces[-1].tolist() == [2, 1, 3, 4]
     assert faces.flipped().tolist() == [[2, 1, 0], [4, 3, 1, 2]]
-    assert faces.face_ids().tolist() == [0, 0, 0, 1, 1, 1, 1]
+    assert faces.corner_face.tolist() == [0, 0, 0, 1, 1, 1, 1]
     assert "degrees=[3, 4]" in repr(faces)
     with pytest.raises(IndexError):
         faces[2]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(3, 9), max_size=12))
+def test_corner_maps_walk_each_face_cyclically(degrees):
+    # faces with arbitrary vertex ids; the reference walks each face as a Python list
+    faces = tp.PolygonFaces(torch.arange(sum(degrees)) * 7 % 101, sizes=degrees)
+    nxt, prv, face = faces.next_corner, faces.prev_corner, faces.corner_face
+    start = 0
+    for f, k in enumerate(degrees):
+        ring = list(range(start, start + k))
+        assert nxt[ring].tolist() == ring[1:] + ring[:1]
+        assert prv[ring].tolist() == ring[-1:] + ring[:-1]
+        assert face[ring].tolist() == [f] * k
+        start += k
+    assert faces.next_corner is nxt  # computed once
+    moved = faces.to("cpu")
+    assert torch.equal(moved.next_corner, nxt) and torch.equal(moved.corner_face, face)
+
+
+def test_face_ids_is_a_deprecated_alias():
+    faces = tp.as_faces([[0, 1, 2], [2, 1, 3, 4]])
+    with pytest.warns(DeprecationWarning, match="corner_face"):
+        assert torch.equal(faces.face_ids(), faces.corner_face)
 
 
 @pytest.mark.parametrize(

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
+from typing import NamedTuple
 
 import torch
 
+from ._typing import MeshFaces
 from .checks import check_verts, warn_outside_package
-from .faces import FacesLike
 from .kernels import BlockKernel
 from .kernels.aw11 import aw11_entries, row_sums
 from .kernels.frames import gather_corners
@@ -28,11 +29,10 @@ __all__ = [
     "FLOAT32_TOLERANCE",
     "assemble",
     "assemble_flagged",
+    "FlaggedAssembly",
     "face_groups",
     "raise_bad_input",
 ]
-
-MeshFaces = FacesLike | Topology
 
 
 # A float32 face whose kernel bounds the relative error of its block above this is evaluated
@@ -48,6 +48,7 @@ def assemble(
     view: TopologyView,
     topo: Topology,
     kernel: BlockKernel,
+    *,
     want_mass: bool,
     validate: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -75,8 +76,12 @@ def assemble(
     """
     with torch.autocast(verts.device.type, enabled=False):
         if functional():
-            return _assemble_functional(verts, view, topo, kernel, want_mass, validate)
-        return _assemble_chunked(verts, view, topo, kernel, want_mass, validate)
+            return _assemble_functional(
+                verts, view, topo, kernel, want_mass=want_mass, validate=validate
+            )
+        return _assemble_chunked(
+            verts, view, topo, kernel, want_mass=want_mass, validate=validate
+        )
 
 
 def _assemble_chunked(
@@ -84,6 +89,7 @@ def _assemble_chunked(
     view: TopologyView,
     topo: Topology,
     kernel: BlockKernel,
+    *,
     want_mass: bool,
     validate: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -91,7 +97,9 @@ def _assemble_chunked(
     scale, unscale = _normalizer(verts)
     verts_t = verts.t().contiguous() * scale
     mixed = validate and verts.dtype == torch.float32
-    parts = _scatter(verts_t, view, topo, kernel, want_mass, mixed, None)
+    parts = _scatter(
+        verts_t, view, topo, kernel, want_mass=want_mass, mixed=mixed, verts_t64=None
+    )
     values, masses_n, degenerate, ill = parts
     masses = _unscaled(masses_n, unscale)
     if not validate:
@@ -111,12 +119,18 @@ def _assemble_chunked(
     if not worst <= FLOAT32_TOLERANCE:
         # rare: faces too ill-conditioned for float32; assembled again, those in float64
         values, masses_n, _, _ = _scatter(
-            verts_t, view, topo, kernel, want_mass, mixed, verts_t.double()
+            verts_t,
+            view,
+            topo,
+            kernel,
+            want_mass=want_mass,
+            mixed=mixed,
+            verts_t64=verts_t.double(),
         )
         masses = _unscaled(masses_n, unscale)
         checks[1] = bool(_output_ok(values, masses_n, masses))
     if not (checks[0] and checks[1]):
-        raise_bad_input(verts, topo, kernel, (masses_n, masses), mixed)
+        raise_bad_input(verts, topo, kernel, (masses_n, masses), mixed=mixed)
     return values, masses
 
 
@@ -145,6 +159,7 @@ def _scatter(
     view: TopologyView,
     topo: Topology,
     kernel: BlockKernel,
+    *,
     want_mass: bool,
     mixed: bool,
     verts_t64: torch.Tensor | None,
@@ -278,13 +293,14 @@ def _assemble_functional(
     view: TopologyView,
     topo: Topology,
     kernel: BlockKernel,
+    *,
     want_mass: bool,
     validate: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`assemble` for traced and transformed code (see :func:`assemble_flagged`); the
     checks are an in-graph assertion when traced, a batch-wide check under vmap, and under
     the other torch.func transforms the eager error that names the vertex or face."""
-    values, masses, ok, accurate = assemble_flagged(verts, view, topo, kernel, want_mass)
+    values, masses, ok, accurate = assemble_flagged(verts, view, topo, kernel, want_mass=want_mass)
     if validate:
         if not require(ok, BAD_INPUT):
             raise_bad_input(verts, topo, kernel)
@@ -293,17 +309,30 @@ def _assemble_functional(
     return values, masses
 
 
+class FlaggedAssembly(NamedTuple):
+    """What :func:`assemble_flagged` returns; unpacks as ``values, masses, ok, accurate``."""
+
+    values: torch.Tensor
+    """``(nnz,)`` the values on the view's pattern."""
+    masses: torch.Tensor | None
+    """``(V,)`` the lumped masses, or ``None`` when not asked for."""
+    ok: torch.Tensor
+    """0-dim bool: every check passed."""
+    accurate: torch.Tensor
+    """0-dim bool: every face's expected relative error stays within
+    :data:`FLOAT32_TOLERANCE` (always true in float64)."""
+
+
 def assemble_flagged(
     verts: torch.Tensor,
     view: TopologyView,
     topo: Topology,
     kernel: BlockKernel,
+    *,
     want_mass: bool,
-) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor]:
-    """``(values, masses, ok, accurate)``: the assembly out of place, one pass per group; a
-    0-dim bool saying whether every check passed, and one saying whether every face's
-    expected relative error stays within :data:`FLOAT32_TOLERANCE` (always true in float64).
-    No error is raised here: batches check theirs together.
+) -> FlaggedAssembly:
+    """The assembly out of place, one pass per group, with its checks as 0-dim flags (see
+    :class:`FlaggedAssembly`). No error is raised here: batches check theirs together.
 
     In place updates of a value array from batched blocks fail under vmap, and a loop over
     chunks would unroll into the traced graph (thousands of nodes at a million faces, which
@@ -334,7 +363,7 @@ def assemble_flagged(
     masses_n, masses = masses, _unscaled(masses, unscale)
     ok = _input_ok(verts, degenerate) & _output_ok(values, masses_n, masses)
     all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
-    return values, masses, ok, all_accurate
+    return FlaggedAssembly(values, masses, ok, all_accurate)
 
 
 FLOAT32_INACCURATE = (
@@ -357,6 +386,7 @@ def raise_bad_input(
     topo: Topology,
     kernel: BlockKernel | None = None,
     masses: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None),
+    *,
     mixed: bool = False,
 ) -> None:
     """Raise the ValueError that names the first non-finite vertex, zero-area or too small

@@ -448,7 +448,7 @@ class PolygonMeshes:
             out = torch.full((len(self), f_max, k_max), -1, dtype=torch.int64)
             for i, f in enumerate(conn.faces):
                 if f.num_faces:
-                    face = f.face_ids()
+                    face = f.corner_face
                     corner = torch.arange(f.num_corners) - f.offsets[face]
                     out[i, face, corner] = f.indices
             return out.to(self.device)
@@ -595,7 +595,7 @@ class PolygonMeshes:
         def make() -> tuple[torch.Tensor, torch.Tensor]:
             topo = self.topology()
             he_edge = topo.half_edge_edge
-            he_face = topo.faces.face_ids()
+            he_face = topo.faces.corner_face
             order = torch.argsort(he_edge, stable=True)
             uses = topo.edge_faces
             first = torch.cumsum(uses, 0) - uses

@@ -30,10 +30,11 @@ from typing import NamedTuple
 
 import torch
 
+from ._typing import MeshFaces
 from .checks import Lam, check_index_or_mask, check_verts
-from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
 from .linalg import qdldl_available, solve
+from .measures import mean_edge_length
 from .operators import laplacian
 from .sparse import SparseOperator, diag
 from .sparse.operator import operator_on
@@ -49,7 +50,6 @@ __all__ = [
     "heat_geodesic_distance",
 ]
 
-MeshFaces = FacesLike | Topology
 
 # Default heat time t = T_FACTOR * h^2 (h the mean edge length; Crane et al. use factor 1) and
 # default stabilizer weight of the Poisson step, from the mean relative error from one source
@@ -238,12 +238,6 @@ def divergence(verts: torch.Tensor, faces: MeshFaces, field: torch.Tensor) -> to
     return out
 
 
-def mean_edge_length(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
-    """Mean length of the mesh's undirected edges (a 0-dim tensor, differentiable)."""
-    edges = topo.edges.to(verts.device)
-    return torch.linalg.vector_norm(verts[edges[:, 1]] - verts[edges[:, 0]], dim=1).mean()
-
-
 SourcesLike = torch.Tensor | Sequence[int] | Sequence[torch.Tensor | Sequence[int]]
 
 
@@ -337,7 +331,7 @@ class HeatGeodesicSolver:
         L, M0 = laplacian(verts, self.topology, lam, method=method)
         L_poisson, _ = laplacian(verts, self.topology, poisson_lam, method=method)
         if t is None:
-            t = T_FACTOR * mean_edge_length(verts, self.topology) ** 2
+            t = T_FACTOR * mean_edge_length(verts, self.topology, validate=False) ** 2
         elif not bool(torch.as_tensor(t) > 0):
             raise ValueError(f"HeatGeodesicSolver: t must be a positive heat time, got {t}.")
         self.t = t

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import torch
 
-from .assembly import MeshFaces, face_groups
+from ._typing import MeshFaces
+from .assembly import face_groups
 from .checks import Lam, check_lam
 from .kernels import block_kernel
 from .kernels.aw11 import row_sums
@@ -37,7 +38,7 @@ def local_laplacians(
     :func:`~torch_polylap.laplacian`), which sum to its ``L`` the same way.
     """
     lam = check_lam(lam)
-    kernel = block_kernel(method, lam, geometric)
+    kernel = block_kernel(method, lam, geometric=geometric)
     verts_t = verts.t().contiguous()
     out = []
     for _, grp, x in face_groups(verts, faces):
@@ -111,7 +112,7 @@ def one_form_inner_product(verts: torch.Tensor, faces: MeshFaces, lam: Lam = 1.0
     n = pf.num_corners
     off = pf.offsets.to(verts.device)
     sizes = pf.sizes.to(verts.device)
-    row_len = torch.repeat_interleave(sizes, sizes)
+    row_len = sizes[pf.corner_face.to(verts.device)]
     crow = torch.zeros(n + 1, dtype=torch.int64, device=verts.device)
     torch.cumsum(row_len, 0, out=crow[1:])
     col = torch.empty(int(crow[-1]), dtype=torch.int64, device=verts.device)

@@ -8,10 +8,13 @@ Python sequences and numpy arrays all convert to this one form through :func:`as
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterable, Sequence
 
 import numpy as np
 import torch
+
+from .tracing import tracing
 
 __all__ = ["PolygonFaces", "as_faces", "FacesLike"]
 
@@ -26,10 +29,12 @@ class PolygonFaces:
         offsets: ``(F + 1,)`` start of each face in ``indices``; ``offsets[-1] == N``.
 
     Only the index arrays are stored (int64, CPU unless moved with :meth:`to`); geometry lives
-    in a separate ``verts`` tensor, so one ``PolygonFaces`` serves many vertex positions.
+    in a separate ``verts`` tensor, so one ``PolygonFaces`` serves many vertex positions. The
+    corner maps (:attr:`corner_face`, :attr:`next_corner`, :attr:`prev_corner`) are computed
+    on first use and kept: treat the index tensors as read-only.
     """
 
-    __slots__ = ("indices", "offsets", "_sizes")
+    __slots__ = ("indices", "offsets", "_sizes", "_corner_face", "_corner_cycle")
 
     def __init__(
         self,
@@ -62,6 +67,8 @@ class PolygonFaces:
         self.indices = idx
         self.offsets = off
         self._sizes = sz
+        self._corner_face: torch.Tensor | None = None
+        self._corner_cycle: tuple[torch.Tensor, torch.Tensor] | None = None
 
     @property
     def sizes(self) -> torch.Tensor:
@@ -100,6 +107,7 @@ class PolygonFaces:
         out.indices = self.indices.to(device)
         out.offsets = self.offsets.to(device)
         out._sizes = self._sizes.to(device)
+        out._corner_face = out._corner_cycle = None
         return out
 
     def tolist(self) -> list[list[int]]:
@@ -117,18 +125,58 @@ class PolygonFaces:
             return None
         return self.indices.view(self.num_faces, k)
 
+    @property
+    def corner_face(self) -> torch.Tensor:
+        """``(N,)`` the face each packed corner belongs to (computed once, then kept)."""
+        face = self._corner_face
+        if face is None:
+            face = torch.repeat_interleave(
+                torch.arange(self.num_faces, device=self.device), self._sizes
+            )
+            if not tracing():  # a traced value must not outlive its graph
+                self._corner_face = face
+        return face
+
+    @property
+    def next_corner(self) -> torch.Tensor:
+        """``(N,)`` the packed position of the next corner within the same face, in cyclic
+        order (the last corner of a face is followed by its first): half-edge ``c`` runs from
+        vertex ``indices[c]`` to ``indices[next_corner[c]]``."""
+        return self._cycle()[0]
+
+    @property
+    def prev_corner(self) -> torch.Tensor:
+        """``(N,)`` the packed position of the previous corner within the same face (the
+        inverse permutation of :attr:`next_corner`)."""
+        return self._cycle()[1]
+
+    def _cycle(self) -> tuple[torch.Tensor, torch.Tensor]:
+        cycle = self._corner_cycle
+        if cycle is None:
+            pos = torch.arange(self.num_corners, device=self.device)
+            nxt, prv = pos + 1, pos - 1
+            first, last = self.offsets[:-1], self.offsets[1:] - 1
+            nxt[last] = first
+            prv[first] = last
+            cycle = (nxt, prv)
+            if not tracing():
+                self._corner_cycle = cycle
+        return cycle
+
     def face_ids(self) -> torch.Tensor:
-        """``(N,)`` the face each corner belongs to."""
-        return torch.repeat_interleave(
-            torch.arange(self.num_faces, device=self.device), self._sizes
+        """Deprecated alias of :attr:`corner_face`."""
+        warnings.warn(
+            "PolygonFaces.face_ids() is deprecated; use the property PolygonFaces.corner_face.",
+            DeprecationWarning,
+            stacklevel=2,
         )
+        return self.corner_face
 
     def flipped(self) -> PolygonFaces:
         """The same faces with reversed orientation (corner order reversed within each face)."""
-        n = self.num_corners
-        start = torch.repeat_interleave(self.offsets[:-1], self._sizes)
-        end = torch.repeat_interleave(self.offsets[1:], self._sizes)
-        pos = torch.arange(n, device=self.device)
+        face = self.corner_face
+        start, end = self.offsets[:-1][face], self.offsets[1:][face]
+        pos = torch.arange(self.num_corners, device=self.device)
         return PolygonFaces(self.indices[start + end - 1 - pos], sizes=self._sizes)
 
 

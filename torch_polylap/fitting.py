@@ -11,20 +11,19 @@ planar, convex, well-shaped, unfolded faces.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
 import torch
 
+from ._typing import MeshFaces
 from .checks import check_positive_int, check_verts
-from .faces import FacesLike
 from .kernels.frames import corner_terms, gather_corners
-from .measures import face_nonplanarity, face_normals
+from .measures import edge_lengths, face_nonplanarity, face_normals
 from .topology import Topology, get_topology
 
 __all__ = ["nearest_neighbors", "chamfer_distance", "sample_points", "mesh_quality"]
-
-MeshFaces = FacesLike | Topology
 
 
 def _check_points(points: torch.Tensor, name: str) -> None:
@@ -139,6 +138,7 @@ def _one_direction(
     y_normals: torch.Tensor | None,
     weights: torch.Tensor | None,
     norm: int,
+    *,
     abs_cosine: bool,
     chunk_size: int,
     backend: str,
@@ -207,9 +207,9 @@ def chamfer_distance(
     batch_reduction: str | None = "mean",
     point_reduction: str | None = "mean",
     norm: int = 2,
+    *,
     single_directional: bool = False,
     abs_cosine: bool = True,
-    *,
     chunk_size: int = 2048,
     backend: str = "auto",
 ) -> tuple[Any, Any]:
@@ -297,14 +297,13 @@ def chamfer_distance(
             with_normals = x_normals is not None and y_normals is not None
             return zero, (zero if with_normals else None)
     nx, ny = x_lengths.tolist(), y_lengths.tolist()
-    forward = _one_direction(
-        x, y, nx, ny, x_normals, y_normals, weights, norm, abs_cosine, chunk_size, backend
+    one_direction = functools.partial(
+        _one_direction, abs_cosine=abs_cosine, chunk_size=chunk_size, backend=backend
     )
+    forward = one_direction(x, y, nx, ny, x_normals, y_normals, weights, norm)
     directions = [(forward, x_lengths)]
     if not single_directional:
-        backward = _one_direction(
-            y, x, ny, nx, y_normals, x_normals, weights, norm, abs_cosine, chunk_size, backend
-        )
+        backward = one_direction(y, x, ny, nx, y_normals, x_normals, weights, norm)
         directions.append((backward, y_lengths))
     if point_reduction is None:
         if single_directional:
@@ -468,14 +467,11 @@ def mesh_quality(verts: torch.Tensor, faces: MeshFaces) -> dict[str, float]:
             aspects.append(lengths.amax(0) / lengths.amin(0))
             nonconvex += int((~convex).any(0).sum())
         nonplanar = face_nonplanarity(verts, topo)
-        edges = topo.edges.to(verts.device)
-        edge_len = torch.linalg.vector_norm(verts[edges[:, 0]] - verts[edges[:, 1]], dim=1)
+        edge_len = edge_lengths(verts, topo, validate=False)
         # |n1 + n2|^2 = 2 + 2 n1.n2 < 2 exactly when the two unit normals are more than 90 deg apart
         he_edge = topo.half_edge_edge.to(verts.device)
-        he_face = torch.repeat_interleave(
-            torch.arange(topo.num_faces, device=verts.device), topo.faces.sizes.to(verts.device)
-        )
-        normal_sum = verts.new_zeros(edges.shape[0], 3).index_add(
+        he_face = topo.faces.corner_face.to(verts.device)
+        normal_sum = verts.new_zeros(edge_len.shape[0], 3).index_add(
             0, he_edge, face_normals(verts, topo)[he_face]
         )
         interior = topo.edge_faces.to(verts.device) == 2

@@ -67,7 +67,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from .assembly import MeshFaces
+from ._typing import MeshFaces
 from .atomic import atomic_write
 from .batch import PolygonMeshes
 from .checks import check_verts, check_verts_array
@@ -285,6 +285,7 @@ def _laplacian_edges(verts: torch.Tensor, faces: PolygonFaces) -> dict[str, torc
 def _pyg_attributes(
     verts: torch.Tensor,
     faces: PolygonFaces,
+    *,
     triangles: bool,
     triangulate: bool,
     with_laplacian: bool,
@@ -371,8 +372,9 @@ def to_pyg(
     except ImportError as err:
         raise ImportError(_PYG_INSTALL) from err
     triangles = all(bool((f.sizes == 3).all()) for f in faces_list)
+    options = {"triangles": triangles, "triangulate": triangulate, "with_laplacian": laplacian}
     data = [
-        Data(pos=v, **_pyg_attributes(v, f, triangles, triangulate, laplacian))
+        Data(pos=v, **_pyg_attributes(v, f, **options))
         for v, f in zip(verts_list, faces_list, strict=True)
     ]
     return data[0] if batch is None else Batch.from_data_list(data)

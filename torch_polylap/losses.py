@@ -100,6 +100,7 @@ def laplacian_smoothing(
     meshes: MeshesLike,
     method: SmoothingMethod = "uniform",
     lam: Lam = 1.0,
+    *,
     frozen_weights: bool = False,
     reduction: Reduction = "mean",
 ) -> torch.Tensor:
@@ -303,6 +304,7 @@ class LaplacianSmoothingLoss(nn.Module):
         self,
         method: SmoothingMethod = "uniform",
         lam: float = 1.0,
+        *,
         frozen_weights: bool = False,
         reduction: Reduction = "mean",
     ) -> None:
@@ -317,7 +319,11 @@ class LaplacianSmoothingLoss(nn.Module):
 
     def forward(self, meshes: MeshesLike) -> torch.Tensor:
         return laplacian_smoothing(
-            meshes, self.method, self.lam, self.frozen_weights, self.reduction
+            meshes,
+            self.method,
+            self.lam,
+            frozen_weights=self.frozen_weights,
+            reduction=self.reduction,
         )
 
     def extra_repr(self) -> str:

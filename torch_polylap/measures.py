@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import torch
 
-from .assembly import MeshFaces, face_groups
+from ._typing import MeshFaces
+from .assembly import face_groups
 from .checks import Lam, check_lam, check_verts
 from .kernels.frames import corner_terms, gather_corners, plane_basis, stable_norm
 from .topology import get_topology
@@ -20,6 +21,8 @@ __all__ = [
     "vector_area",
     "face_areas",
     "face_normals",
+    "edge_lengths",
+    "mean_edge_length",
     "mass",
     "face_nonplanarity",
     "face_planarity_energy",
@@ -70,6 +73,30 @@ def face_areas(verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True) 
     """``(F,)`` face areas ``|f| = |a_f|`` (area of the maximal projection); ``validate`` as
     for :func:`mass`."""
     return stable_norm(vector_area(verts, faces, validate=validate), 1)
+
+
+def edge_lengths(verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True) -> torch.Tensor:
+    """``(E,)`` lengths ``|x_q - x_p|`` of the undirected edges, in the order of
+    :attr:`Topology.edges <torch_polylap.topology.Topology.edges>`; ``validate`` as for
+    :func:`mass`.
+
+    >>> import torch, torch_polylap as tp
+    >>> square = torch.tensor([[0.0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0]])
+    >>> tp.edge_lengths(square, [[0, 1, 2, 3]]).tolist()
+    [2.0, 1.0, 1.0, 2.0]
+    """
+    check_verts(verts, finite=validate)
+    edges = get_topology(faces, verts.shape[0]).edges.to(verts.device)
+    return torch.linalg.vector_norm(verts[edges[:, 1]] - verts[edges[:, 0]], dim=1)
+
+
+def mean_edge_length(
+    verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True
+) -> torch.Tensor:
+    """Mean length ``h`` of the undirected edges, a 0-dim tensor differentiable in ``verts``:
+    the mesh's length scale (the heat method's default time is ``4 h^2``); ``validate`` as
+    for :func:`mass`."""
+    return edge_lengths(verts, faces, validate=validate).mean()
 
 
 def face_normals(verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True) -> torch.Tensor:

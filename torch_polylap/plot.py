@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 import torch
 
+from ._typing import ArrayLike
 from .checks import check_verts_array
 from .faces import FacesLike, as_faces
 from .measures import vector_area
@@ -38,7 +39,6 @@ __all__ = [
     "save_figure",
 ]
 
-ArrayLike = torch.Tensor | np.ndarray | Sequence[float]
 # light direction for the gray shading of meshes drawn without values
 # cyclic permutations of (x, y, z) that put the "up" axis last (matplotlib's vertical)
 _UP = {"x": [1, 2, 0], "y": [2, 0, 1], "z": [0, 1, 2]}
@@ -114,6 +114,7 @@ def plot_mesh(
     title: str | None = None,
     cmap: str = "viridis",
     clim: tuple[float, float] | None = None,
+    *,
     colorbar: bool = True,
     label: str | None = None,
     elev: float = 20.0,
@@ -191,6 +192,7 @@ def plot_meshes(
     panels: Sequence[Mapping[str, Any]],
     path: str | os.PathLike | None = None,
     ncols: int | None = None,
+    *,
     shared_clim: bool = False,
     suptitle: str | None = None,
     panel_size: float = 4.0,
@@ -302,6 +304,7 @@ def plot_lines(
     title: str | None = None,
     xlabel: str | None = None,
     ylabel: str | None = None,
+    *,
     logy: bool = False,
     marker: str = "o",
 ) -> Axes:
@@ -328,7 +331,7 @@ def plot_lines(
 
 
 def new_figure(
-    nrows: int, ncols: int, three_d: Sequence[bool] | bool, panel_size: float = 4.0
+    nrows: int, ncols: int, *, three_d: Sequence[bool] | bool, panel_size: float = 4.0
 ) -> tuple[Figure, list[Axes]]:
     """A figure with an ``nrows x ncols`` grid of axes, 3D where ``three_d`` says so (one flag,
     or one per panel in row-major order), sized ``panel_size`` inches per panel."""

@@ -1,7 +1,7 @@
 """Repairs for meshes as people download them, polygons kept as polygons.
 
-Every function takes ``(verts, faces)`` and returns ``(verts, faces, report)``: the new vertex
-positions (same type as given: tensor or array), the new faces as
+Every function takes ``(verts, faces)`` and returns a :class:`Repaired` ``(verts, faces,
+report)``: the new vertex positions (same type as given: tensor or array), the new faces as
 :class:`~torch_polylap.PolygonFaces`, and a :class:`RepairReport` saying what changed, with
 index maps so that per-vertex and per-face data can follow:
 
@@ -27,6 +27,7 @@ polygon arrays with numpy/scipy, vectorized (no loop over faces or vertices):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -41,6 +42,7 @@ from .topology import duplicate_faces, orientation_flips
 
 __all__ = [
     "RepairReport",
+    "Repaired",
     "orient_faces",
     "weld_vertices",
     "remove_degenerate_faces",
@@ -107,9 +109,18 @@ class RepairReport:
         return "; ".join(parts + list(self.notes))
 
 
-def orient_faces(
-    verts: VertsLike, faces: FacesLike
-) -> tuple[VertsLike, PolygonFaces, RepairReport]:
+class Repaired(NamedTuple):
+    """What every repair returns; unpacks as ``verts, faces, report``."""
+
+    verts: VertsLike
+    """``(V', 3)`` the new vertex positions, a tensor or an array as given."""
+    faces: PolygonFaces
+    """The new faces."""
+    report: RepairReport
+    """What changed, with the index maps for per-vertex and per-face data."""
+
+
+def orient_faces(verts: VertsLike, faces: FacesLike) -> Repaired:
     """Reverse faces so that every edge shared by two faces is traversed both ways.
 
     Each component (faces linked through edges used by exactly two faces) is oriented
@@ -135,12 +146,10 @@ def orient_faces(
         non_orientable_faces=np.flatnonzero(bad),
         non_orientable_components=int(np.unique(comp[bad]).size),
     )
-    return verts, out, report
+    return Repaired(verts, out, report)
 
 
-def weld_vertices(
-    verts: VertsLike, faces: FacesLike, tol: float = 1e-9
-) -> tuple[VertsLike, PolygonFaces, RepairReport]:
+def weld_vertices(verts: VertsLike, faces: FacesLike, tol: float = 1e-9) -> Repaired:
     """Merge vertices closer than ``tol`` times the bounding-box diagonal.
 
     Welding is transitive (chains of close vertices become one vertex). Each merged vertex
@@ -194,12 +203,10 @@ def weld_vertices(
         changed_faces=changed,
         notes=(f"{n - source.size} vertex(es) merged", *notes),
     )
-    return _take(verts, source), out, report
+    return Repaired(_take(verts, source), out, report)
 
 
-def remove_degenerate_faces(
-    verts: VertsLike, faces: FacesLike
-) -> tuple[VertsLike, PolygonFaces, RepairReport]:
+def remove_degenerate_faces(verts: VertsLike, faces: FacesLike) -> Repaired:
     """Collapse repeated consecutive corners, then drop faces that still repeat a vertex, have
     fewer than three corners, or have zero vector area.
 
@@ -240,12 +247,10 @@ def remove_degenerate_faces(
             f"{repeats.size} repeating a vertex, {zero.size} of zero area removed",
         ),
     )
-    return verts, out, report
+    return Repaired(verts, out, report)
 
 
-def remove_duplicate_faces(
-    verts: VertsLike, faces: FacesLike
-) -> tuple[VertsLike, PolygonFaces, RepairReport]:
+def remove_duplicate_faces(verts: VertsLike, faces: FacesLike) -> Repaired:
     """Drop faces repeating an earlier face's vertex cycle up to rotation and reflection
     (see :func:`torch_polylap.topology.duplicate_faces`); the first occurrence stays."""
     pf = _faces(faces)
@@ -268,12 +273,10 @@ def remove_duplicate_faces(
         face_map,
         notes=notes if dup.size else (),
     )
-    return verts, out, report
+    return Repaired(verts, out, report)
 
 
-def remove_unreferenced_vertices(
-    verts: VertsLike, faces: FacesLike
-) -> tuple[VertsLike, PolygonFaces, RepairReport]:
+def remove_unreferenced_vertices(verts: VertsLike, faces: FacesLike) -> Repaired:
     """Drop vertices no face uses (they get zero mass and empty rows of ``L``)."""
     pf = _faces(faces)
     n = _num_verts(verts, pf)
@@ -285,7 +288,7 @@ def remove_unreferenced_vertices(
     out = PolygonFaces(torch.from_numpy(vertex_map[idx]), sizes=pf.sizes)
     ident_f = np.arange(pf.num_faces)
     report = RepairReport("remove_unreferenced_vertices", source, vertex_map, ident_f, ident_f)
-    return _take(verts, source), out, report
+    return Repaired(_take(verts, source), out, report)
 
 
 # -- helpers ----------------------------------------------------------------------------------

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .assembly import MeshFaces
+from ._typing import MeshFaces
 from .atomic import atomic_write
 from .kernels import check_method
 from .linalg import eigs, solve

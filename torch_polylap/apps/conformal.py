@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..checks import check_verts
 from ..kernels import check_method
 from ..linalg import dirichlet_solve, solve, top_eigenpair
@@ -338,9 +338,9 @@ def conformal_parameterization(
     faces: MeshFaces,
     pins: torch.Tensor | list[int] | None = None,
     pin_uv: torch.Tensor | None = None,
+    *,
     free_boundary: bool = False,
     lam: float = 1.0,
-    *,
     method: str = "aw11",
 ) -> torch.Tensor:
     """Flat conformal map of a disk-like polygon mesh minimizing ``E_C`` (AW11 sec. 5.2).
@@ -450,13 +450,8 @@ def angle_distortion(uv: torch.Tensor, verts: torch.Tensor, faces: MeshFaces) ->
         raise ValueError(f"uv must have shape ({verts.shape[0]}, 2), got {tuple(uv.shape)}.")
     topo = get_topology(faces, verts.shape[0])
     pf = topo.faces.to(verts.device)
-    pos = torch.arange(pf.num_corners, device=verts.device)
-    first = torch.repeat_interleave(pf.offsets[:-1], pf.sizes)
-    last = torch.repeat_interleave(pf.offsets[1:] - 1, pf.sizes)
-    nxt = pf.indices[torch.where(pos == last, first, pos + 1)]
-    prv = pf.indices[torch.where(pos == first, last, pos - 1)]
-    cur = pf.indices
-    normals = face_normals(verts, topo)[torch.repeat_interleave(pf.sizes)]
+    nxt, prv, cur = pf.indices[pf.next_corner], pf.indices[pf.prev_corner], pf.indices
+    normals = face_normals(verts, topo)[pf.corner_face]
     theta_3d = _interior_angle(verts[prv] - verts[cur], verts[nxt] - verts[cur], normals)
     uv = uv.to(verts.dtype)
     theta_2d = _interior_angle(uv[prv] - uv[cur], uv[nxt] - uv[cur], None)

@@ -22,7 +22,7 @@ from typing import Literal, NamedTuple, overload
 import numpy as np
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..checks import check_index_or_mask, check_verts
 from ..kernels import check_method
 from ..kernels.frames import corner_terms, gather_corners
@@ -231,7 +231,7 @@ def _centroid(X: torch.Tensor, topo: Topology) -> torch.Tensor:
     """Area-weighted centroid ``sum_p m_p x_p / sum_p m_p`` (lumped masses, AW11 eq. 10)."""
     areas = face_areas(X, topo)
     faces = topo.faces.to(X.device)
-    share = (areas / faces.sizes.to(areas.dtype)).repeat_interleave(faces.sizes)
+    share = (areas / faces.sizes.to(areas.dtype))[faces.corner_face]
     m = X.new_zeros(X.shape[0]).index_add(0, faces.indices, share)
     return (m[:, None] * X).sum(0) / m.sum()
 
@@ -247,11 +247,11 @@ def mean_curvature_flow(
     dt: float,
     steps: int,
     lam: float | torch.Tensor = ...,
+    *,
     frozen: bool = ...,
     normalize: str | None = ...,
     return_trajectory: bool = ...,
     progress: bool = ...,
-    *,
     fixed: torch.Tensor | None = ...,
     method: str = ...,
     stop_at_singularity: bool = ...,
@@ -268,11 +268,11 @@ def mean_curvature_flow(
     dt: float,
     steps: int,
     lam: float | torch.Tensor = ...,
+    *,
     frozen: bool = ...,
     normalize: str | None = ...,
     return_trajectory: bool = ...,
     progress: bool = ...,
-    *,
     fixed: torch.Tensor | None = ...,
     method: str = ...,
     stop_at_singularity: bool = ...,
@@ -288,11 +288,11 @@ def mean_curvature_flow(
     dt: float,
     steps: int,
     lam: float | torch.Tensor = 1.0,
+    *,
     frozen: bool = False,
     normalize: str | None = None,
     return_trajectory: bool = False,
     progress: bool = False,
-    *,
     fixed: torch.Tensor | None = None,
     method: str = "aw11",
     stop_at_singularity: bool = False,

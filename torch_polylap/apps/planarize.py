@@ -50,10 +50,10 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..checks import check_index_or_mask, check_verts
 from ..linalg import CholeskyFactorization, cholespy_available, spd_splu
-from ..measures import face_nonplanarity, planarity_energy
+from ..measures import face_nonplanarity, mean_edge_length, planarity_energy
 from ..topology import Topology, get_topology
 
 __all__ = ["planarize", "PlanarizeResult"]
@@ -259,6 +259,7 @@ def planarize(
     tol: float = 1e-4,
     max_iter: int | None = None,
     fixed: torch.Tensor | list[int] | None = None,
+    *,
     progress: bool = False,
     history_size: int = 20,
     check_every: int = 5,
@@ -325,8 +326,7 @@ def planarize(
     run = _gauss_newton if method == "gauss-newton" else _lbfgs
     work = torch.float64 if method == "gauss-newton" else verts.dtype
     y0 = (x0.to(work) - center.to(work)) / scale
-    edges = topo.edges.to(verts.device)
-    h = float(torch.linalg.vector_norm(y0[edges[:, 0]] - y0[edges[:, 1]], dim=1).mean())
+    h = float(mean_edge_length(y0, topo, validate=False))
     bar = None
     if progress:
         from tqdm.auto import tqdm

@@ -25,7 +25,7 @@ import math
 import numpy as np
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..checks import check_index_or_mask
 from ..kernels import check_method
 from ..linalg import solve

@@ -149,11 +149,6 @@ def json_output(name: str, data: dict[str, Any]) -> Output:
     return text_output(name, lambda: json.dumps(data, indent=2) + "\n")
 
 
-def mean_edge_length(verts: torch.Tensor, edges: torch.Tensor) -> float:
-    """Mean length of the ``(E, 2)`` edges."""
-    return float(torch.linalg.vector_norm(verts[edges[:, 0]] - verts[edges[:, 1]], dim=1).mean())
-
-
 def add_mesh_argument(parser: argparse.ArgumentParser, default: Path = DEFAULT_MESH) -> None:
     parser.add_argument(
         "mesh",
@@ -258,13 +253,14 @@ def load_mesh(
 ) -> tuple[torch.Tensor, PolygonFaces, Path, str]:
     """``(verts, faces, path, label)`` of the mesh argument or the command's default mesh."""
     path = Path(args.mesh) if args.mesh else args.default_mesh
-    verts, faces = read_mesh_quietly(path, not args.mesh, dtype=dtype, device=device)
+    verts, faces = read_mesh_quietly(path, embedded=not args.mesh, dtype=dtype, device=device)
     label = path.name + ("" if args.mesh else " (embedded default mesh)")
     return verts, faces, path, label
 
 
 def read_mesh_quietly(
     path: Path,
+    *,
     embedded: bool,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,

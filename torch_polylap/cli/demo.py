@@ -94,7 +94,7 @@ def compute(args: argparse.Namespace) -> Result:
             "Thin-plate bending",
             "5.4",
             "(Python API: torch_polylap.apps.plate_bending)",
-            lambda: plate(not args.no_plot, args.method),
+            lambda: plate(with_plot=not args.no_plot, method=args.method),
         )
     )
     sections: list[_Section] = []
@@ -134,13 +134,13 @@ def _bound(sub_args: argparse.Namespace) -> Callable[[], Result]:
     return lambda: sub_args.compute(sub_args)
 
 
-def plate(with_plot: bool, method: str = "aw11") -> Result:
+def plate(*, with_plot: bool, method: str = "aw11") -> Result:
     """Simply supported unit-square plate under unit load on a Voronoi polygon mesh, against
     Navier's solution (AW11 sec. 5.4, Fig. 6-7), for three values of lambda, with the Laplacian
     of ``method`` (``"plms"`` ignores lambda: the three errors are equal)."""
     from ..apps.plate import navier_deflection, plate_bending, plate_error
 
-    verts, faces = read_mesh_quietly(PLATE_MESH, True)
+    verts, faces = read_mesh_quietly(PLATE_MESH, embedded=True)
     # the polyLaplace grid covers [-1/2, 1/2]^2; Navier's solution is for [0, 1]^2
     verts = verts + torch.tensor([0.5, 0.5, 0.0], dtype=verts.dtype)
     topo = get_topology(faces, verts.shape[0])
@@ -179,7 +179,7 @@ def _plate_figure(
 ) -> Figure:
     from ..plot import new_figure, plot_mesh
 
-    fig, (ax1, ax2) = new_figure(1, 2, True, panel_size=4.5)
+    fig, (ax1, ax2) = new_figure(1, 2, three_d=True, panel_size=4.5)
     # exaggerate the deflection so that the shape is visible next to the unit square
     shown = verts.clone()
     shown[:, 2] = -u * (0.3 / float(u.max()))

@@ -61,11 +61,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run, compute=compute)
 
 
-def corner_faces(faces: PolygonFaces) -> torch.Tensor:
-    """``(N,)`` the face of every packed corner."""
-    return torch.repeat_interleave(torch.arange(faces.num_faces), faces.sizes)
-
-
 def compute(args: argparse.Namespace) -> Result:
     from ..apps.conformal import angle_distortion, conformal_energy, conformal_parameterization
 
@@ -88,7 +83,7 @@ def compute(args: argparse.Namespace) -> Result:
     dist = angle_distortion(uv, verts, topo)
     # per-face mean |angle error| in degrees (the corners are packed face by face)
     face_err = torch.zeros(faces.num_faces, dtype=uv.dtype).index_add_(
-        0, corner_faces(faces), dist.per_corner.abs()
+        0, faces.corner_face, dist.per_corner.abs()
     ) / faces.sizes.to(uv.dtype)
     face_err_deg = face_err * 180 / math.pi
     flat = torch.cat([uv, torch.zeros_like(uv[:, :1])], 1)
@@ -133,7 +128,7 @@ def _figure(
     """The mesh and its conformal image, faces colored by their mean angle error."""
     from ..plot import new_figure, plot_mesh, plot_uv
 
-    fig, (ax3, ax2) = new_figure(1, 2, [True, False], panel_size=4.5)
+    fig, (ax3, ax2) = new_figure(1, 2, three_d=[True, False], panel_size=4.5)
     hi = float(np.nanmax(face_err_deg.numpy())) or 1.0
     common: dict[str, Any] = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
     plot_mesh(verts, faces, face_err_deg, ax=ax3, title="input", colorbar=False, up=up, **common)

@@ -140,7 +140,7 @@ def _figure(
 
     before = face_nonplanarity(verts, topo)
     after = face_nonplanarity(res.verts, topo)
-    fig, axes = new_figure(1, 3, [True, True, False], panel_size=4.0)
+    fig, axes = new_figure(1, 3, three_d=[True, True, False], panel_size=4.0)
     clim = (0.0, float(before.max()) or 1.0)
     for ax, x, values, title in (
         (axes[0], verts, before, f"input, max {res.nonplanarity_before[0]:.2e}"),

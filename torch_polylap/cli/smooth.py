@@ -14,7 +14,7 @@ from ..apps.flow import (
     mean_curvature_flow,
     scale_free_mean_curvature,
 )
-from ..measures import face_areas
+from ..measures import face_areas, mean_edge_length
 from ..topology import get_topology
 from .common import (
     Result,
@@ -24,7 +24,6 @@ from .common import (
     execute,
     figure_output,
     load_mesh,
-    mean_edge_length,
     mesh_output,
     method_label,
     positive_float,
@@ -86,7 +85,7 @@ def compute(args: argparse.Namespace) -> Result:
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
     default_dt = args.dt is None
-    dt = 0.1 * mean_edge_length(verts, topo.edges) ** 2 if default_dt else args.dt
+    dt = 0.1 * float(mean_edge_length(verts, topo)) ** 2 if default_dt else args.dt
     start = time.perf_counter()
     flow = mean_curvature_flow(
         verts,

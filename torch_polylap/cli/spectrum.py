@@ -141,7 +141,7 @@ def _figure(
     # skip the constant eigenfunction (mu_0 = 0) when there is more than one pair
     first = 1 if evals.numel() > 1 else 0
     picks = list(range(first, min(first + show, evals.numel())))
-    fig, axes = new_figure(1, len(picks) + 1, [True] * len(picks) + [False], panel_size=3.2)
+    fig, axes = new_figure(1, len(picks) + 1, three_d=[True] * len(picks) + [False], panel_size=3.2)
     for ax, i in zip(axes, picks, strict=False):
         phi = evecs[:, i]
         bound = float(phi.abs().max())

@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 import torch
 
-from ..assembly import MeshFaces
+from .._typing import MeshFaces
 from ..operators import laplacian
 from ..timing import timed
 from ..topology import Topology, build_topology

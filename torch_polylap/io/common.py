@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .._typing import ArrayLike
 from ..checks import check_verts_array
 
 __all__ = ["MeshAttributes", "SkippedContentWarning"]
 
 PathLike = str | os.PathLike
-ArrayLike = torch.Tensor | np.ndarray
 
 
 class SkippedContentWarning(UserWarning):

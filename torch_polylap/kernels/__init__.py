@@ -23,14 +23,20 @@ import torch
 from ..topology import DegreeGroup
 from .aw11 import aw11_entries
 from .degoes import degoes_entries
+from .entries import BlockEntries, FaceEntries
 from .frames import gather_coordinates, gather_corners
 from .plms import plms_entries
 
-__all__ = ["METHODS", "BlockEntries", "BlockKernel", "check_method", "block_kernel", "thin_error"]
+__all__ = [
+    "METHODS",
+    "BlockEntries",
+    "FaceEntries",
+    "BlockKernel",
+    "check_method",
+    "block_kernel",
+    "thin_error",
+]
 
-# (off-diagonal entries (P, F), corner masses (k, F), areas (F,), squared sizes (F,),
-#  expected relative errors in units of eps (F,))
-BlockEntries = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 BlockKernel = Callable[[torch.Tensor, DegreeGroup, torch.Tensor], BlockEntries]
 
 METHODS = ("aw11", "plms", "degoes")
@@ -43,7 +49,9 @@ def check_method(method: object) -> str:
     return method
 
 
-def block_kernel(method: str, lam: float | torch.Tensor, geometric: bool = True) -> BlockKernel:
+def block_kernel(
+    method: str, lam: float | torch.Tensor, *, geometric: bool = True
+) -> BlockKernel:
     """The per-chunk block kernel of ``method`` for the shared assembly.
 
     The kernel maps ``(verts_t (3, V), group, corners_t (k, F))`` to the off-diagonal entries
@@ -66,15 +74,19 @@ def block_kernel(method: str, lam: float | torch.Tensor, geometric: bool = True)
                 if grp.k == 4
                 else gather_corners(verts_t, corners_t)
             )
-            off, area, size2 = aw11_entries(x, grp, lam, geometric)
-            return off, (area / grp.k).expand(grp.k, -1), area, size2, thin_error(area, size2)
+            return _with_masses(aw11_entries(x, grp, lam, geometric=geometric), grp.k)
         x = gather_corners(verts_t, corners_t)
         if method == "plms":
             return plms_entries(x, grp.pair_i, grp.pair_j)
-        off, area, size2 = degoes_entries(x, grp.pair_i, grp.pair_j, lam)
-        return off, (area / grp.k).expand(grp.k, -1), area, size2, thin_error(area, size2)
+        return _with_masses(degoes_entries(x, grp.pair_i, grp.pair_j, lam), grp.k)
 
     return kernel
+
+
+def _with_masses(e: FaceEntries, k: int) -> BlockEntries:
+    """The block entries of a method whose faces share their area evenly among the corners."""
+    corner_mass = (e.area / k).expand(k, -1)
+    return BlockEntries(e.off, corner_mass, e.area, e.size2, thin_error(e.area, e.size2))
 
 
 def thin_error(area: torch.Tensor, size2: torch.Tensor) -> torch.Tensor:

@@ -17,20 +17,21 @@ from collections.abc import Sequence
 
 import torch
 
+from ..checks import Lam
 from ..topology import DegreeGroup
+from .entries import FaceEntries
 from .frames import corner_terms, stabilizer_factors
 
 __all__ = ["aw11_entries", "quad_entries", "polygon_entries", "row_sums"]
-
-Lam = float | torch.Tensor
 
 
 def aw11_entries(
     x: torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     grp: DegreeGroup,
     lam: Lam,
+    *,
     geometric: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> FaceEntries:
     """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of every face of one degree group.
 
     Args:
@@ -48,9 +49,9 @@ def aw11_entries(
     """
     if grp.k == 4:
         xyz = x if isinstance(x, tuple) else x.unbind(0)
-        return quad_entries((xyz[0], xyz[1], xyz[2]), lam, geometric)
+        return quad_entries((xyz[0], xyz[1], xyz[2]), lam, geometric=geometric)
     assert isinstance(x, torch.Tensor)
-    return polygon_entries(x, grp.pair_i, grp.pair_j, lam, geometric)
+    return polygon_entries(x, grp.pair_i, grp.pair_j, lam, geometric=geometric)
 
 
 def row_sums(off: torch.Tensor, grp: DegreeGroup) -> torch.Tensor:
@@ -77,8 +78,9 @@ def _cross_dot(
 def quad_entries(
     xyz: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     lam: float | torch.Tensor,
+    *,
     geometric: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> FaceEntries:
     """Off-diagonal entries of ``L_f`` for quadrilaterals in closed form.
 
     Quads dominate real meshes, so they get a scalar kernel: every quantity is an ``(F,)`` row
@@ -156,7 +158,7 @@ def quad_entries(
             torch.addcmul(rows[4], wt0, t2),
             torch.addcmul(rows[5], wt3, t0, value=-1),
         ]
-    return torch.stack(rows), (0.5 * a2_norm) * size2, size2
+    return FaceEntries(torch.stack(rows), (0.5 * a2_norm) * size2, size2)
 
 
 def polygon_entries(
@@ -164,8 +166,9 @@ def polygon_entries(
     pair_i: torch.Tensor,
     pair_j: torch.Tensor,
     lam: float | torch.Tensor,
+    *,
     geometric: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> FaceEntries:
     """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of every face of one degree ``k``.
 
     ``L_f = G G^T / |f| + lambda d^T Pi d`` (AW11 eq. 3 and 9), evaluated in a per-face scaled
@@ -216,4 +219,4 @@ def polygon_entries(
         off = lam * stab if off is None else off + lam * stab
     elif off is None:
         off = x.new_zeros(pair_i.numel(), x.shape[2])
-    return off, area_scaled * size2, size2
+    return FaceEntries(off, area_scaled * size2, size2)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import torch
 
+from .entries import FaceEntries
 from .frames import corner_terms
 
 __all__ = ["degoes_entries"]
@@ -38,7 +39,7 @@ def degoes_entries(
     pair_i: torch.Tensor,
     pair_j: torch.Tensor,
     lam: float | torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> FaceEntries:
     """Off-diagonal entries ``(L_f)_ij``, ``i < j``, of dGBD20's ``D^T M_f D`` for one degree group.
 
     Evaluated in the scaled frame of :func:`~torch_polylap.kernels.aw11.polygon_entries` (edges and
@@ -79,4 +80,4 @@ def degoes_entries(
         q = q.index_put((h, h), q[h, h] - 1.0).index_put((h, (h + 1) % k), q[h, (h + 1) % k] + 1.0)
         stab = (q.index_select(1, pair_i) * q.index_select(1, pair_j)).sum(0)
         off = off + lam * stab
-    return off, area * size2, size2
+    return FaceEntries(off, area * size2, size2)

@@ -30,7 +30,7 @@ __all__ = [
 ]
 
 
-def stable_norm(a: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:
+def stable_norm(a: torch.Tensor, dim: int, *, keepdim: bool = False) -> torch.Tensor:
     """Euclidean norm along ``dim`` without under- or overflow: ``s |a / s|`` with ``s`` the
     largest magnitude.  The vector area of a face at scale ``1e-150`` has components near
     ``1e-300``, whose squares underflow to zero in a plain norm (``1e150``: overflow)."""

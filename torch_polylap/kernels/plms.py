@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import torch
 
+from .entries import BlockEntries
 from .frames import face_frame
 
 __all__ = ["virtual_vertex_weights", "plms_entries", "error_factor"]
@@ -157,9 +158,7 @@ def _weights_and_heights(Y: Vec, z: Vec, n: Vec) -> tuple[torch.Tensor, torch.Te
     return torch.addcmul(v + 1.0 / k, factor, h_out), height2
 
 
-def plms_entries(
-    x: torch.Tensor, pair_i: torch.Tensor, pair_j: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def plms_entries(x: torch.Tensor, pair_i: torch.Tensor, pair_j: torch.Tensor) -> BlockEntries:
     """Off-diagonal entries of ``L_f = P^T L_fan P`` and the lumped corner masses (PLMS sec. 3).
 
     The fan triangle ``i`` is ``(y_i, y_{i+1}, z)``. Its cotangents give ``L_fan``'s entries
@@ -225,7 +224,7 @@ def plms_entries(
     m_corner = third + torch.roll(third, 1, dims=0)
     mass = (m_corner + third.sum(0) * w) * size2
     error = error_factor(area_scaled.detach(), height2.detach())
-    return off, mass, area_scaled * size2, size2, error
+    return BlockEntries(off, mass, area_scaled * size2, size2, error)
 
 
 def error_factor(thinness: torch.Tensor, height2: torch.Tensor) -> torch.Tensor:

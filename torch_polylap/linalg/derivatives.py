@@ -13,9 +13,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from ..sparse import to_scipy
+from ..sparse import SparseOperator, to_scipy
 from ..sparse.construct import sampled_gradient
-from .factor import Held
+from .factor import OpaqueOperator
 
 _SECOND_ORDER_MESSAGE = (
     "torch_polylap.eigs: second derivatives of eigenvalues and eigenvectors (create_graph=True "
@@ -25,7 +25,33 @@ _SECOND_ORDER_MESSAGE = (
 )
 
 
-class Eigenvalues(torch.autograd.Function):
+class _EigenpairFunction(torch.autograd.Function):
+    """What the eigenpair Functions share: the forward saves the eigenpairs ``evals`` ``(k,)``,
+    ``evecs`` ``(n, k)`` and the operators ``L``, ``M`` for the backward, which refuses second
+    derivatives. Inputs ``(l_values, m_values, evals, evecs, opaque_l, opaque_m)``: autograd
+    differentiates only the value arrays."""
+
+    @staticmethod
+    def _save(
+        ctx: Any,
+        evals: torch.Tensor,
+        evecs: torch.Tensor,
+        opaque_l: OpaqueOperator,
+        opaque_m: OpaqueOperator,
+    ) -> None:
+        ctx.save_for_backward(evals, evecs)
+        ctx.operators = (opaque_l.A, opaque_m.A)
+
+    @staticmethod
+    def _saved(ctx: Any) -> tuple[torch.Tensor, torch.Tensor, SparseOperator, SparseOperator]:
+        """``(evals, evecs, L, M)`` as the forward saved them."""
+        if torch.is_grad_enabled():
+            raise RuntimeError(_SECOND_ORDER_MESSAGE)
+        evals, evecs = ctx.saved_tensors
+        return evals, evecs, *ctx.operators
+
+
+class Eigenvalues(_EigenpairFunction):
     """Eigenvalues ``mu`` of ``L phi = mu M phi`` with the first-order perturbation gradient."""
 
     @staticmethod
@@ -35,22 +61,19 @@ class Eigenvalues(torch.autograd.Function):
         m_values: torch.Tensor,
         evals: torch.Tensor,
         evecs: torch.Tensor,
-        held_l: Held,
-        held_m: Held,
+        opaque_l: OpaqueOperator,
+        opaque_m: OpaqueOperator,
     ) -> torch.Tensor:
-        ctx.save_for_backward(evals, evecs)
-        ctx.operators = (held_l.A, held_m.A)
+        _EigenpairFunction._save(ctx, evals, evecs, opaque_l, opaque_m)
         return evals.clone()
 
     @staticmethod
     def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        if torch.is_grad_enabled():
-            raise RuntimeError(_SECOND_ORDER_MESSAGE)
-        evals, evecs = ctx.saved_tensors
+        evals, evecs, L, M = _EigenpairFunction._saved(ctx)
         grads = []
         for A, weights, needed in (
-            (ctx.operators[0], g, ctx.needs_input_grad[0]),
-            (ctx.operators[1], -g * evals, ctx.needs_input_grad[1]),
+            (L, g, ctx.needs_input_grad[0]),
+            (M, -g * evals, ctx.needs_input_grad[1]),
         ):
             # sum_i w_i phi_i phi_i^T, sampled on the pattern: O(nnz * k)
             grads.append(sampled_gradient(A, evecs * weights, evecs) if needed else None)
@@ -157,7 +180,7 @@ def _eigenvector_adjoint(
     return project_solve(g - MPhi @ (Phi.T @ g)), nearest
 
 
-class Eigenvectors(torch.autograd.Function):
+class Eigenvectors(_EigenpairFunction):
     """Eigenvectors of ``L phi = mu M phi`` (``M``-orthonormal, sign fixed) with the adjoint
     gradient (see :func:`eigs`)."""
 
@@ -168,22 +191,18 @@ class Eigenvectors(torch.autograd.Function):
         m_values: torch.Tensor,
         evals: torch.Tensor,
         evecs: torch.Tensor,
-        held_l: Held,
-        held_m: Held,
+        opaque_l: OpaqueOperator,
+        opaque_m: OpaqueOperator,
     ) -> torch.Tensor:
-        ctx.save_for_backward(evals, evecs)
-        ctx.operators = (held_l.A, held_m.A)
+        _EigenpairFunction._save(ctx, evals, evecs, opaque_l, opaque_m)
         return evecs.clone()
 
     @staticmethod
     def backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        if torch.is_grad_enabled():
-            raise RuntimeError(_SECOND_ORDER_MESSAGE)
+        evals_t, evecs_t, L, M = _EigenpairFunction._saved(ctx)
         need_l, need_m = ctx.needs_input_grad[:2]
         if not (need_l or need_m):
             return None, None, None, None, None, None
-        evals_t, evecs_t = ctx.saved_tensors
-        L, M = ctx.operators
         evals = evals_t.detach().cpu().double().numpy()
         Phi = evecs_t.detach().cpu().double().numpy()
         Gn = G.detach().cpu().double().numpy()

@@ -21,7 +21,7 @@ from ..sparse import (
 )
 from .cg import ConvergenceError
 from .derivatives import EIGENVECTOR_GAP_RTOL, Eigenvalues, Eigenvectors
-from .factor import CholeskyFactorization, Held, cholespy_available, spd_splu
+from .factor import CholeskyFactorization, OpaqueOperator, cholespy_available, spd_splu
 from .lanczos import block_lanczos
 
 # Route thresholds of eigs, measured by benchmarks/bench_eigs_routes.py (see eigs_route).
@@ -82,7 +82,7 @@ def _is_diagonal(S: sp.csr_matrix) -> bool:
     return bool((coo.row == coo.col).all()) and bool((S.diagonal() > 0).all())
 
 
-def eigs_route(n: int, k: int, diagonal_mass: bool, cholmod: bool = True) -> str:
+def eigs_route(n: int, k: int, *, diagonal_mass: bool, cholmod: bool = True) -> str:
     """The route :func:`eigs` takes for ``k`` eigenpairs of an ``n x n`` problem: ``"dense"``,
     ``"arpack"`` or ``"lanczos"`` (``diagonal_mass``: ``M`` is diagonal and the shift negative,
     so ``L - shift M`` has a Cholesky factorization; ``cholmod``: ``cholespy`` is installed).
@@ -191,6 +191,7 @@ def _eigs_arpack(
     sigma: float | None,
     scale: float,
     tol: float,
+    *,
     diagonal_mass: bool = False,
     device: torch.device | str = "cpu",
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -520,13 +521,13 @@ def eigs(
     shift = sigma if sigma is not None else -1e-6 * scale
     result = None
     diagonal = shift < 0 and _is_diagonal(Ms)
-    route = eigs_route(n, k, diagonal, cholespy_available())
+    route = eigs_route(n, k, diagonal_mass=diagonal, cholmod=cholespy_available())
     if route == "dense":
         result = scipy.linalg.eigh(Ls.toarray(), Ms.toarray(), subset_by_index=(0, k - 1))
     elif route == "lanczos":
         result = _eigs_block_lanczos(Ls, Ms.diagonal(), k, shift, tol or 1e-10, L.device)
     if result is None:
-        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol, diagonal, L.device)
+        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol, diagonal_mass=diagonal, device=L.device)
     if route != "dense":
         result = _verified(result, Ls, Ms, scale, tol, L.device)
     evals, evecs = result
@@ -539,7 +540,8 @@ def eigs(
     l_values, m_values = sparse_values(L), sparse_values(M)
     evals_t = torch.from_numpy(evals).to(l_values)
     evecs_t = torch.from_numpy(evecs).to(l_values)
-    mu = Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, Held(L), Held(M))
+    opaque = OpaqueOperator(L), OpaqueOperator(M)
+    mu = Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, *opaque)
     if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
-        evecs_t = Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, Held(L), Held(M))
+        evecs_t = Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, *opaque)
     return mu, evecs_t

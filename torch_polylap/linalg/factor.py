@@ -40,7 +40,7 @@ class Factorization:
     solve); a caller that handles ill-conditioning itself (damped Gauss-Newton) passes False.
     """
 
-    def __init__(self, A: torch.Tensor, check: bool = True) -> None:
+    def __init__(self, A: torch.Tensor, *, check: bool = True) -> None:
         S = sp.csc_matrix(to_scipy(A).astype(np.float64))
         try:
             self.lu = spd_splu(S)
@@ -57,7 +57,7 @@ class Factorization:
         if problem is not None:
             raise ValueError(_singular_message(A, problem))
 
-    def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
+    def solve(self, B: torch.Tensor, *, transpose: bool = False) -> torch.Tensor:
         X = self.lu.solve(
             np.ascontiguousarray(B.detach().cpu().numpy(), dtype=np.float64),
             trans="T" if transpose else "N",
@@ -93,6 +93,7 @@ class CholeskyFactorization:
         self,
         A: torch.Tensor | sp.spmatrix,
         device: torch.device | None = None,
+        *,
         check: bool = True,
     ) -> None:
         from cholespy import CholeskySolverD, MatrixType
@@ -132,7 +133,7 @@ class CholeskyFactorization:
             X[:, start : start + step] = out
         return X
 
-    def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
+    def solve(self, B: torch.Tensor, *, transpose: bool = False) -> torch.Tensor:
         B64 = B.detach().to(device=self.device, dtype=torch.float64).contiguous()
         return _finite(self._solve64(B64)).to(B)
 
@@ -151,7 +152,7 @@ class LDLFactorization:
     ``b^T A^{-1} b <= 0``, which is not positive definite.
     """
 
-    def __init__(self, A: torch.Tensor, check: bool = True) -> None:
+    def __init__(self, A: torch.Tensor, *, check: bool = True) -> None:
         import qdldl
 
         S = to_scipy(A).astype(np.float64, copy=False)
@@ -176,7 +177,7 @@ class LDLFactorization:
         if problem is not None:
             raise ValueError(_not_positive_definite_message(A, problem))
 
-    def solve(self, B: torch.Tensor, transpose: bool = False) -> torch.Tensor:
+    def solve(self, B: torch.Tensor, *, transpose: bool = False) -> torch.Tensor:
         # A^T = A: ``transpose`` changes nothing
         rhs = B.detach().cpu().numpy().astype(np.float64, copy=False)
         X = np.empty(rhs.shape)
@@ -265,7 +266,7 @@ def _not_positive_definite_message(A: torch.Tensor | sp.spmatrix, detail: str) -
 
 
 def spd_factorization(
-    A: SparseOperator, check: bool = True
+    A: SparseOperator, *, check: bool = True
 ) -> Factorization | CholeskyFactorization:
     """An uncached factorization of a symmetric positive definite ``A``: CHOLMOD when cholespy
     is installed (on ``A``'s device), else SuperLU on the CPU."""
@@ -287,9 +288,10 @@ def cached_factorization(A: SparseOperator, backend: str) -> Factor:
     return solver_cache(A, backend, lambda: kind(A))
 
 
-class Held:
-    """A sparse operator passed to an autograd.Function as a plain object: autograd and
-    torch.func must see only its value array as the differentiable input."""
+class OpaqueOperator:
+    """A sparse operator ``A`` wrapped so that an autograd.Function receives it as a plain
+    object: autograd and torch.func must see only its value array as the differentiable
+    input."""
 
     __slots__ = ("A",)
 

@@ -19,7 +19,7 @@ from ..sparse import SparseOperator, as_operator, sparse_values, submatrix
 from ..sparse.construct import csr_indices, sampled_gradient
 from ..tracing import tracing
 from .cg import ConvergenceError as ConvergenceError
-from .factor import Held, cached_factorization, cholespy_available, qdldl_available
+from .factor import OpaqueOperator, cached_factorization, cholespy_available, qdldl_available
 from .solve_op import solve_op, solve_values
 
 
@@ -32,7 +32,7 @@ def _solve(
         return solve_op(values, crow, col, B, A.symmetric, backend, tol, max_iter)
     if not (torch.is_grad_enabled() and (values.requires_grad or B.requires_grad)):
         return solve_values(A, B, backend, tol, max_iter)
-    return _Solve.apply(values, B, Held(A), backend, tol, max_iter)
+    return _Solve.apply(values, B, OpaqueOperator(A), backend, tol, max_iter)
 
 
 class _Solve(torch.autograd.Function):
@@ -44,7 +44,12 @@ class _Solve(torch.autograd.Function):
 
     @staticmethod
     def forward(
-        values: torch.Tensor, B: torch.Tensor, held: Held, backend: str, tol: float, max_iter: int
+        values: torch.Tensor,
+        B: torch.Tensor,
+        held: OpaqueOperator,
+        backend: str,
+        tol: float,
+        max_iter: int,
     ) -> torch.Tensor:
         # `values` here is the plain tensor even under torch.func, whose wrapped tensors have no
         # storage for the factorization cache to check

@@ -14,6 +14,7 @@ from .chebyshev import ChebyshevFilter, chebyshev_filter, chebyshev_operator
 from .diffusion import LearnedDiffusion
 from .gradient_features import (
     SpatialGradientFeatures,
+    VertexFrames,
     spatial_gradient_features,
     vertex_gradient_operators,
     vertex_tangent_frames,
@@ -33,6 +34,7 @@ __all__ = [
     "chebyshev_operator",
     "chebyshev_filter",
     "vertex_tangent_frames",
+    "VertexFrames",
     "vertex_gradient_operators",
     "spatial_gradient_features",
     "SpatialGradientFeatures",

@@ -125,6 +125,7 @@ class ChebyshevFilter(nn.Module):
         out_channels: int,
         K: int = 3,
         normalization: str = "sym",
+        *,
         bias: bool = True,
     ) -> None:
         super().__init__()

@@ -33,13 +33,15 @@ meshes:
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import nn
 
+from .._typing import MeshFaces
 from ..calculus import gradient_operator
 from ..checks import check_verts
-from ..faces import FacesLike, PolygonFaces, as_faces
+from ..faces import PolygonFaces, as_faces
 from ..kernels.frames import stable_norm
 from ..measures import vector_area
 from ..sparse import SparseOperator, operator_from_parts, sparse_values
@@ -48,12 +50,22 @@ from ..topology import Topology, get_topology
 
 __all__ = [
     "vertex_tangent_frames",
+    "VertexFrames",
     "vertex_gradient_operators",
     "spatial_gradient_features",
     "SpatialGradientFeatures",
 ]
 
-MeshFaces = FacesLike | Topology
+
+class VertexFrames(NamedTuple):
+    """Orthonormal frames per vertex, each ``(V, 3)``; unpacks as ``normal, e_x, e_y``."""
+
+    normal: torch.Tensor
+    """The unit normal."""
+    e_x: torch.Tensor
+    """The first tangent axis."""
+    e_y: torch.Tensor
+    """The second tangent axis, ``normal x e_x``."""
 
 
 def _faces_and_topology(verts: torch.Tensor, faces: MeshFaces) -> tuple[PolygonFaces, Topology]:
@@ -65,15 +77,13 @@ def _faces_and_topology(verts: torch.Tensor, faces: MeshFaces) -> tuple[PolygonF
 def _corner_sums(face_values: torch.Tensor, faces: PolygonFaces, num_verts: int) -> torch.Tensor:
     """``(V, ...)`` sum over the faces around each vertex of ``face_values (F, ...)``."""
     idx = faces.indices.to(face_values.device)
-    per_corner = face_values.repeat_interleave(faces.sizes.to(face_values.device), 0)
+    per_corner = face_values[faces.corner_face.to(face_values.device)]
     out = face_values.new_zeros((num_verts,) + tuple(face_values.shape[1:]))
     return out.index_add(0, idx, per_corner)
 
 
-def vertex_tangent_frames(
-    verts: torch.Tensor, faces: MeshFaces
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-vertex orthonormal frames ``(normal, e_x, e_y)``, each ``(V, 3)``.
+def vertex_tangent_frames(verts: torch.Tensor, faces: MeshFaces) -> VertexFrames:
+    """Per-vertex orthonormal frames :class:`VertexFrames` ``(normal, e_x, e_y)``, each ``(V, 3)``.
 
     ``normal`` is the normalized sum of the vector areas of the faces around the vertex (the
     area-weighted face normals).  ``e_x`` is the projection onto the tangent plane of the
@@ -95,7 +105,7 @@ def vertex_tangent_frames(
     e_x = ref - (ref * normal).sum(1, keepdim=True) * normal
     e_x = e_x / stable_norm(e_x, 1, keepdim=True)  # |n . ref| <= 1/sqrt(3): no cancellation
     e_y = torch.linalg.cross(normal, e_x, dim=1)
-    return normal, e_x, e_y
+    return VertexFrames(normal, e_x, e_y)
 
 
 def vertex_gradient_operators(
@@ -136,9 +146,9 @@ def vertex_gradient_operators(
             )
     device = verts.device
     G = gradient_operator(verts, topo)  # (3F, V), row 3 f + c
-    sizes, offsets = faces_.sizes.to(device), faces_.offsets.to(device)
-    indices = faces_.indices.to(device)
-    face, col, w = _face_gradient_entries(G, sizes, offsets)  # w (N, 3): grad_f of hat u
+    on_device = faces_.to(device)
+    sizes, offsets, indices = on_device.sizes, on_device.offsets, on_device.indices
+    face, col, w = _face_gradient_entries(G, on_device)  # w (N, 3): grad_f of hat u
 
     area = stable_norm(vector_area(verts, topo), 1)  # (F,)
     vert_area = _corner_sums(area, faces_, n)
@@ -167,13 +177,14 @@ def vertex_gradient_operators(
 
 
 def _face_gradient_entries(
-    G: SparseOperator, sizes: torch.Tensor, offsets: torch.Tensor
+    G: SparseOperator, faces: PolygonFaces
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(face (N,), column (N,), w (N, 3))``: the face gradients ``w = grad_f`` of the hat
     functions of the columns, from the ``(3F, V)`` operator ``G`` of
     :func:`~torch_polylap.calculus.gradient_operator` (differentiable in its values)."""
     pattern = pattern_of(G)
     g_col, g_val = pattern.col, sparse_values(G)
+    sizes, offsets, face = faces.sizes, faces.offsets, faces.corner_face
     # Faces are simple polygons (the topology refuses a repeated vertex), so every row 3 f + c
     # holds the k_f distinct corners of face f, sorted: row 3 f + c starts at 3 offsets[f] + c k_f.
     if g_val.numel() != 3 * int(sizes.sum()):
@@ -181,7 +192,6 @@ def _face_gradient_entries(
             f"vertex_gradient_operators: the face gradient operator has {g_val.numel()} entries, "
             f"expected 3 per corner ({3 * int(sizes.sum())})."
         )
-    face = torch.repeat_interleave(torch.arange(sizes.numel(), device=sizes.device), sizes)
     j = torch.arange(face.numel(), device=sizes.device) - offsets[face]
     first = 3 * offsets[face] + j
     pos = first[:, None] + sizes[face][:, None] * torch.arange(3, device=sizes.device)
@@ -227,7 +237,7 @@ class SpatialGradientFeatures(nn.Module):
             ``False``: a real ``A``.
     """
 
-    def __init__(self, channels: int, with_rotations: bool = True) -> None:
+    def __init__(self, channels: int, *, with_rotations: bool = True) -> None:
         super().__init__()
         bound = 1.0 / math.sqrt(channels)
         self.weight_re = nn.Parameter(torch.empty(channels, channels).uniform_(-bound, bound))

@@ -44,13 +44,16 @@ class DiffusionBlock(nn.Module):
         width: int,
         mode: str = "spectral",
         dropout: float = 0.0,
+        *,
         gradient_features: bool = False,
         gradient_rotations: bool = True,
     ) -> None:
         super().__init__()
         self.diffusion = LearnedDiffusion(width, mode)
         self.gradient = (
-            SpatialGradientFeatures(width, gradient_rotations) if gradient_features else None
+            SpatialGradientFeatures(width, with_rotations=gradient_rotations)
+            if gradient_features
+            else None
         )
         self.mlp = nn.Sequential(
             nn.Linear((3 if gradient_features else 2) * width, width),
@@ -117,6 +120,7 @@ class DiffusionNetLike(nn.Module):
         hks_features: int = 16,
         task: str = "classification",
         dropout: float = 0.0,
+        *,
         gradient_features: bool = False,
         gradient_rotations: bool = True,
     ) -> None:
@@ -132,7 +136,13 @@ class DiffusionNetLike(nn.Module):
         self.lift = nn.Linear(in_channels + hks_features, width)
         self.gradient_features = gradient_features
         self.blocks = nn.ModuleList(
-            DiffusionBlock(width, mode, dropout, gradient_features, gradient_rotations)
+            DiffusionBlock(
+                width,
+                mode,
+                dropout,
+                gradient_features=gradient_features,
+                gradient_rotations=gradient_rotations,
+            )
             for _ in range(num_blocks)
         )
         self.head = nn.Linear(width, out_channels)

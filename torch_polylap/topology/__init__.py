@@ -28,7 +28,14 @@ The index work runs in numpy on the CPU (its ``argsort`` is several times faster
 ``torch.sort`` there); the resulting index tensors are copied to each device once, on demand.
 """
 
-from .analysis import duplicate_faces, edge_incidence, half_edge_vertices, orientation_flips
+from .analysis import (
+    EdgeIncidence,
+    OrientationFlips,
+    duplicate_faces,
+    edge_incidence,
+    half_edge_vertices,
+    orientation_flips,
+)
 from .build import build_topology
 from .cache import clear_topology_cache, get_topology, set_topology_cache_limits, topology_of
 from .groups import DegreeGroup, GroupChunk
@@ -48,6 +55,8 @@ __all__ = [
     "set_topology_cache_limits",
     "duplicate_faces",
     "orientation_flips",
+    "OrientationFlips",
     "edge_incidence",
+    "EdgeIncidence",
     "half_edge_vertices",
 ]

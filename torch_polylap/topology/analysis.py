@@ -9,6 +9,8 @@ functions here directly.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.sparse as sp
 import torch
@@ -18,22 +20,38 @@ from ..faces import FacesLike, PolygonFaces, as_faces
 from .report import TopologyReport
 
 
+class OrientationFlips(NamedTuple):
+    """What :func:`orientation_flips` finds; unpacks as ``flip, non_orientable, component``."""
+
+    flip: np.ndarray
+    """``(F,)`` bool: reverse these faces."""
+    non_orientable: np.ndarray
+    """``(F,)`` bool: faces in a component without a consistent orientation."""
+    component: np.ndarray
+    """``(F,)`` int64: a component label per face (not consecutive)."""
+
+
+class EdgeIncidence(NamedTuple):
+    """The edges of faces; unpacks as ``edges, uses, he_edge``."""
+
+    edges: np.ndarray
+    """``(E, 2)`` int64 sorted pairs ``p < q``."""
+    uses: np.ndarray
+    """``(E,)`` int64 how many half-edges lie on each edge."""
+    he_edge: np.ndarray
+    """``(N,)`` int64 the edge of every half-edge (packed order)."""
+
+
 def half_edge_vertices(faces: PolygonFaces) -> tuple[torch.Tensor, torch.Tensor]:
     """``(src, dst)``, each ``(N,)``: half-edge ``h`` runs from corner ``h`` to the next corner."""
-    pos = torch.arange(faces.num_corners, device=faces.device)
-    last = torch.repeat_interleave(faces.offsets[1:] - 1, faces.sizes)
-    first = torch.repeat_interleave(faces.offsets[:-1], faces.sizes)
-    nxt = torch.where(pos == last, first, pos + 1)
-    return faces.indices, faces.indices[nxt]
+    return faces.indices, faces.indices[faces.next_corner]
 
 
 # -- what the report finds -------------------------------------------------------------------
 
 
 def _analyse(
-    idx: np.ndarray,
-    offsets: np.ndarray,
-    sizes: np.ndarray,
+    faces: PolygonFaces,
     num_verts: int,
     edges: np.ndarray,
     edge_uses: np.ndarray,
@@ -43,9 +61,9 @@ def _analyse(
     """The :class:`TopologyReport` of a mesh, O(N) for a clean one (``N`` corners).
 
     The costlier searches (a graph over corners for non-manifold vertices, orientability,
-    duplicates) run only when a cheap test has already found a defect.
+    duplicates) run only when a cheap test has already found a defect. ``faces`` is on the CPU.
     """
-    nxt, prv = _next_prev(offsets, sizes)
+    idx, nxt, prv = (t.numpy() for t in (faces.indices, faces.next_corner, faces.prev_corner))
     forward = idx < idx[nxt]
     heavy = edge_uses > 2
     fwd_count = np.bincount(he_edge[forward], minlength=edge_uses.size)
@@ -62,11 +80,11 @@ def _analyse(
     mis[both_back] = mis[both_back][:, ::-1]
     non_orientable, dups = 0, np.zeros(0, np.int64)
     if misoriented.any():
-        he_face = np.repeat(np.arange(sizes.size, dtype=np.int64), sizes)
+        he_face = faces.corner_face.numpy()
         _, bad_face, comp = _orientation(nxt, forward, he_face, he_edge, edge_uses)
         non_orientable = int(np.unique(comp[bad_face]).size)
     if heavy.any() or misoriented.any():
-        dups = duplicate_faces(PolygonFaces(torch.from_numpy(idx), offsets=offsets))[0]
+        dups = duplicate_faces(faces)[0]
     return TopologyReport(
         non_manifold_edges=edges[heavy],
         non_manifold_vertices=np.flatnonzero(bad_vertex),
@@ -75,15 +93,6 @@ def _analyse(
         duplicate_faces=dups,
         isolated_vertices=np.flatnonzero(valence == 0),
     )
-
-
-def _next_prev(offsets: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(N,)`` next and previous corner of every corner within its face (packed order)."""
-    pos = np.arange(offsets[-1], dtype=np.int64)
-    nxt, prv = pos + 1, pos - 1
-    nxt[offsets[1:] - 1] = offsets[:-1]
-    prv[offsets[:-1]] = offsets[1:] - 1
-    return nxt, prv
 
 
 def _twins(he_edge: np.ndarray, edge_uses: np.ndarray, itype: type = np.int64) -> np.ndarray:
@@ -170,8 +179,8 @@ def _orientation(
     he_face: np.ndarray,
     he_edge: np.ndarray,
     edge_uses: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(flip, non_orientable, component)``, each ``(F,)``; see :func:`orientation_flips`."""
+) -> OrientationFlips:
+    """See :func:`orientation_flips`."""
     num_faces = int(he_face[-1]) + 1 if he_face.size else 0
     twin = _twins(he_edge, edge_uses)
     h = np.flatnonzero(twin > np.arange(twin.size))  # each interior edge once
@@ -198,12 +207,10 @@ def _orientation(
     n_all = np.bincount(component, minlength=m)
     flip ^= (2 * n_flip > n_all)[component]
     flip &= ~non_orientable
-    return flip, non_orientable, component
+    return OrientationFlips(flip, non_orientable, component)
 
 
-def orientation_flips(
-    faces: FacesLike, num_verts: int | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def orientation_flips(faces: FacesLike, num_verts: int | None = None) -> OrientationFlips:
     """Which faces to reverse for a consistent orientation, per edge-connected component.
 
     Faces are linked across every edge used by exactly two faces (edges used by 3+ faces
@@ -219,16 +226,12 @@ def orientation_flips(
     ``2 F`` nodes and ``2 E_interior`` edges (linear in practice).
     """
     pf = as_faces(faces)
-    idx, sizes, offsets = (t.cpu().numpy() for t in (pf.indices, pf.sizes, pf.offsets))
+    idx, nxt, he_face = (t.cpu().numpy() for t in (pf.indices, pf.next_corner, pf.corner_face))
     edges, edge_uses, he_edge = edge_incidence(pf, num_verts)
-    nxt, _ = _next_prev(offsets, sizes)
-    he_face = np.repeat(np.arange(sizes.size, dtype=np.int64), sizes)
     return _orientation(nxt, idx < idx[nxt], he_face, he_edge, edge_uses)
 
 
-def edge_incidence(
-    faces: FacesLike, num_verts: int | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def edge_incidence(faces: FacesLike, num_verts: int | None = None) -> EdgeIncidence:
     """``(edges (E, 2), uses (E,), he_edge (N,))`` of any faces, by one sort of the half-edges.
 
     ``edges`` are sorted pairs ``p < q``, ``uses`` how many half-edges lie on each, ``he_edge``
@@ -236,17 +239,19 @@ def edge_incidence(
     its pair sort; this is the light version for repairs, which need no pattern.
     """
     pf = as_faces(faces)
-    idx, sizes, offsets = (t.cpu().numpy() for t in (pf.indices, pf.sizes, pf.offsets))
+    idx, nxt = pf.indices.cpu().numpy(), pf.next_corner.cpu().numpy()
     if idx.size == 0:
-        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        none = np.zeros(0, np.int64)
+        return EdgeIncidence(none.reshape(0, 2), none, none)
     nv = np.int64(max(int(idx.max()) + 1, num_verts or 0, 1))
-    nxt, _ = _next_prev(offsets, sizes)
     a, b = idx, idx[nxt]
     keys, he_edge, uses = np.unique(
         np.minimum(a, b) * nv + np.maximum(a, b), return_inverse=True, return_counts=True
     )
     lo = keys // nv
-    return np.stack([lo, keys - lo * nv], 1), uses.astype(np.int64), he_edge.reshape(-1)
+    return EdgeIncidence(
+        np.stack([lo, keys - lo * nv], 1), uses.astype(np.int64), he_edge.reshape(-1)
+    )
 
 
 def duplicate_faces(faces: FacesLike) -> tuple[np.ndarray, np.ndarray]:

@@ -60,7 +60,9 @@ def build_topology(
     # One block per degree; inside a block every per-pair array is laid out (P, F_k), the
     # layout in which the kernels produce the per-face entries.
     degrees = np.unique(sizes)
-    blocks = [_degree_block(k, idx, sizes, offsets, degrees.size == 1) for k in degrees.tolist()]
+    blocks = [
+        _degree_block(k, idx, sizes, offsets, uniform=degrees.size == 1) for k in degrees.tolist()
+    ]
     all_keys = np.empty(sum(pi.size * fid.size for _, fid, _, pi, _ in blocks), np.int64)
     start = 0
     for _, fid, corners_t, pi, pj in blocks:
@@ -134,7 +136,7 @@ def build_topology(
     edge_uses = uses_pair[is_edge]
 
     valence = np.bincount(idx, minlength=num_verts)
-    report = _analyse(idx, offsets, sizes, num_verts, edges, edge_uses, he_edge, valence)
+    report = _analyse(own, num_verts, edges, edge_uses, he_edge, valence)
     if warn and not report.is_clean:
         warn_outside_package(
             f"the mesh ({num_verts} vertices, {sizes.size} faces) is not a consistently oriented "

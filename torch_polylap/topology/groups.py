@@ -8,6 +8,7 @@ them into :class:`GroupChunk` runs that carry the scatter positions into the CSR
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -81,10 +82,25 @@ class DegreeGroup:
         )
 
 
+class _DegreeBlock(NamedTuple):
+    """The faces of one degree ``k`` as numpy arrays, before they become a
+    :class:`DegreeGroup`."""
+
+    k: int
+    face_ids: np.ndarray
+    """``(F_k,)`` the faces' indices in the mesh."""
+    corners_t: np.ndarray
+    """``(k, F_k)`` their vertex indices, corner-major."""
+    pair_i: np.ndarray
+    """``(P,)`` the first corner of each pair ``i < j``."""
+    pair_j: np.ndarray
+    """``(P,)`` the second corner of each pair."""
+
+
 def _degree_block(
-    k: int, idx: np.ndarray, sizes: np.ndarray, offsets: np.ndarray, uniform: bool
-) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(k, face_ids (F_k,), corners_t (k, F_k), pair_i (P,), pair_j (P,))`` of one degree."""
+    k: int, idx: np.ndarray, sizes: np.ndarray, offsets: np.ndarray, *, uniform: bool
+) -> _DegreeBlock:
+    """The :class:`_DegreeBlock` of degree ``k``; ``uniform``: every face has degree ``k``."""
     if uniform:
         fid = np.arange(sizes.size, dtype=np.int64)
         corners_t = np.ascontiguousarray(idx.reshape(-1, k).T)
@@ -92,7 +108,7 @@ def _degree_block(
         fid = np.flatnonzero(sizes == k).astype(np.int64)
         corners_t = idx[offsets[fid][None, :] + np.arange(k)[:, None]]
     pi, pj = np.triu_indices(k, 1)
-    return k, fid, corners_t, pi.astype(np.int64), pj.astype(np.int64)
+    return _DegreeBlock(k, fid, corners_t, pi.astype(np.int64), pj.astype(np.int64))
 
 
 def _write_pair_keys(

@@ -41,8 +41,9 @@ from __future__ import annotations
 
 import torch
 
+from .._typing import MeshFaces
 from ..checks import Lam, check_verts
-from ..faces import FacesLike, PolygonFaces
+from ..faces import PolygonFaces
 from ..kernels import check_method
 from ..operators import laplacian
 from ..sparse import SparseOperator, diag, sparse_values
@@ -53,8 +54,6 @@ from ..topology import Topology, build_topology, get_topology
 from .transport import TangentFrames, corner_transport, tangent_frames
 
 __all__ = ["connection_laplacian", "vector_mass"]
-
-MeshFaces = FacesLike | Topology
 
 
 def _exploded(topo: Topology) -> Topology:

@@ -46,17 +46,15 @@ from __future__ import annotations
 
 import torch
 
+from .._typing import MeshFaces
 from ..calculus import face_gradient
 from ..checks import check_verts
-from ..faces import FacesLike
 from ..kernels.frames import stable_norm
 from ..measures import vector_area
 from ..topology import Topology, get_topology
 from .transport import TangentFrames, minimal_rotation, tangent_frames
 
 __all__ = ["face_shape_operator", "fitted_frames", "shape_operator", "principal_curvatures"]
-
-MeshFaces = FacesLike | Topology
 
 # Tikhonov weight of the jet's quadratic coefficients, per neighbour, in units of the ring's
 # radius (the fit's entries are O(1) per neighbour; the fit runs in float64), well above the

@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import torch
 
+from .._typing import MeshFaces
 from ..checks import Lam
 from ..linalg import eigs
-from .connection import MeshFaces, connection_laplacian
+from .connection import connection_laplacian
 
 __all__ = ["smoothest_field"]
 

@@ -39,20 +39,19 @@ from collections.abc import Sequence
 
 import torch
 
+from .._typing import MeshFaces
 from ..calculus import POISSON_LAM, HeatGeodesicSolver
 from ..checks import Lam, check_index_or_mask, check_verts
-from ..faces import FacesLike
 from ..kernels import check_method
 from ..linalg import solve
 from ..nn.gradient_features import vertex_gradient_operators
 from ..sparse import diag
-from ..topology import Topology, get_topology
+from ..topology import get_topology
 from .connection import connection_laplacian
 from .transport import TangentFrames, to_ambient, to_tangent
 
 __all__ = ["VectorHeatSolver"]
 
-MeshFaces = FacesLike | Topology
 SourceLike = int | torch.Tensor | Sequence[int]
 
 

@@ -55,9 +55,9 @@ from typing import NamedTuple
 
 import torch
 
+from .._typing import MeshFaces
 from ..calculus import corner_gradients, divergence, gradient_operator
 from ..checks import check_verts
-from ..faces import FacesLike
 from ..kernels.frames import stable_norm
 from ..linalg import dirichlet_solve
 from ..measures import vector_area
@@ -67,8 +67,6 @@ from ..topology import Topology, build_topology, get_topology
 from ..topology.analysis import half_edge_vertices
 
 __all__ = ["HodgeDecomposition", "HodgeParts", "virtual_refinement"]
-
-MeshFaces = FacesLike | Topology
 
 
 class HodgeParts(NamedTuple):
