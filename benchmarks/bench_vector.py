@@ -2,6 +2,8 @@
 
     python benchmarks/bench_vector.py [--n 130] [--repeat 3] [--json PATH]
 
+Writes ``benchmarks/results/vector.json`` (or ``--json PATH``).
+
 1. Build time of ``tp.vector.connection_laplacian`` beside ``tp.laplacian`` on the equi-angular
    cube sphere ``tp.shapes.quad_sphere(n)`` (``6 n^2`` quads: 101,400 for ``n = 130``), first
    call (topology and pattern caches cold) and repeated calls (warm), forward only and forward
@@ -20,7 +22,6 @@ average is printed with the numbers, since the machine may be shared.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -29,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import cpu_model
+from common import cpu_model, run_meta, table_data, write_results
 
 import torch_polylap as tp
 
@@ -124,9 +125,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--n", type=int, default=130, help="cube sphere resolution (6 n^2 quads)")
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/vector.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    meta = run_meta()
     verts, faces = tp.shapes.quad_sphere(args.n)
     load = os.getloadavg()
     results = {"faces": faces.shape[0], "verts": verts.shape[0]}
@@ -136,11 +138,13 @@ def main() -> None:
     print(f"cube sphere n = {args.n}: {faces.shape[0]} quads, {verts.shape[0]} vertices")
     print(f"CPU: {cpu_model()} ({platform.machine()}), 1 thread; load average {load[0]:.2f}")
     print("| quantity | value |\n|---|---|")
+    body = []
     for key, value in results.items():
         text = f"{value:.3g}" if isinstance(value, float) else str(value)
         print(f"| {key} | {text} |")
-    if args.json is not None:
-        args.json.write_text(json.dumps(results, indent=1))
+        body.append([key, text])
+    tables = {"vector": table_data(["quantity", "value"], body)}
+    write_results("vector", {"n": args.n, **results, "tables": tables}, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":
