@@ -266,5 +266,5 @@ def peak_rss_growth(step: Callable[[], object]) -> dict:
         "method": "VmHWM after clear_refs" if exact else "ru_maxrss since start",
         "rss_baseline_bytes": baseline,
         "rss_peak_bytes": peak,
-        "rss_delta_bytes": None if baseline is None else peak - baseline,
+        "rss_delta_bytes": None if baseline is None or peak is None else peak - baseline,
     }
