@@ -803,7 +803,9 @@ def report_tables(text: str) -> dict:
         heading, _, body = section.partition("\n")
         key = next((k for h, k in TABLES.items() if heading.startswith(h)), None)
         if key and "|" in body:
-            out[key] = table_from_markdown(body.split("\n\n* ")[0])
+            table = table_from_markdown(body.split("\n\n* ")[0])
+            if table["rows"]:
+                out[key] = table
     return out
 
 

@@ -141,6 +141,8 @@ def main() -> None:
     body = []
     for key, value in results.items():
         text = f"{value:.3g}" if isinstance(value, float) else str(value)
+        if isinstance(value, list):
+            text = ", ".join(f"{v:.3g}" for v in value)
         print(f"| {key} | {text} |")
         body.append([key, text])
     tables = {"vector": table_data(["quantity", "value"], body)}

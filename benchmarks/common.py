@@ -83,6 +83,16 @@ PEERS = {
 }
 
 
+# environment variables that change what a run measures, recorded with it
+ENVIRONMENT = (
+    "POLYLAP_SHARED_MESHES",
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "CUDA_VISIBLE_DEVICES",
+)
+
+
 def bench_grid(
     n: int,
     m: int | None = None,
@@ -126,6 +136,15 @@ def _load() -> list[float]:
         return []
 
 
+def _env(name: str) -> str:
+    """An environment variable's value; a path relative to the repository (no machine's own
+    directories in a committed file)."""
+    value = os.environ[name]
+    if name == "POLYLAP_SHARED_MESHES":
+        return os.path.relpath(value, Path(__file__).resolve().parents[1])
+    return value
+
+
 def _version(dist: str) -> str | None:
     try:
         return importlib.metadata.version(dist)
@@ -137,8 +156,9 @@ def run_meta(argv: Sequence[str] | None = None, threads: int | None = None) -> d
     """The metadata header of a results file, taken at the start of a run.
 
     Records the machine (CPU model from ``/proc/cpuinfo``, cores), OS, the versions of Python,
-    torch, numpy, scipy and torch_polylap, torch's thread count, the 1/5/15-minute load average
-    before the run, the UTC date and the command line (``argv``, default ``sys.argv``).
+    torch, numpy, scipy and torch_polylap, torch's thread count, the variables of
+    :data:`ENVIRONMENT` that are set, the 1/5/15-minute load average before the run, the UTC
+    date and the command line (``argv``, default ``sys.argv``).
     ``threads`` is the thread count the timed code runs with, where the script pins one (default:
     torch's current count).
     :func:`write_results` adds the load average after the run and the peer libraries used.
@@ -153,6 +173,7 @@ def run_meta(argv: Sequence[str] | None = None, threads: int | None = None) -> d
             **{d: _version(d) for d in ("torch", "numpy", "scipy", "torch_polylap")},
         },
         "threads": torch.get_num_threads() if threads is None else threads,
+        "environment": {k: _env(k) for k in ENVIRONMENT if k in os.environ},
         "load_before": _load(),
     }
 

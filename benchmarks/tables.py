@@ -80,6 +80,8 @@ def render_run(name: str, results: Path = RESULTS) -> str:
         parts.append(", ".join(soft))
     if meta.get("threads") is not None:
         parts.append(f"{meta['threads']} thread{'s' if meta['threads'] != 1 else ''}")
+    if meta.get("environment"):
+        parts.append(" ".join(f"{k}={v}" for k, v in meta["environment"].items()))
     before, after = meta.get("load_before"), meta.get("load_after")
     loads = [
         " ".join(f"{x:g}" for x in values) + f" {when}"
