@@ -18,7 +18,8 @@ medians of ``--repeat`` rounds (fewer above 10k vertices, see ``rounds``).
   fan-triangulated mesh + scipy ``eigsh(L, M=M, sigma=1e-8, which="LM")`` (``pip install
   robust-laplacian``).
 
-Prints Markdown tables; ``--json`` writes the numbers.
+Prints Markdown tables and writes ``benchmarks/results/eigs_routes.json`` (``routes``) or
+``benchmarks/results/eigs_precompute.json`` (``precompute``), or ``--json PATH``.
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -41,20 +41,24 @@ import scipy.linalg  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 import scipy.sparse.linalg as spla  # noqa: E402
 import torch  # noqa: E402
-from common import markdown_table, pinned_threads  # noqa: E402
+from common import (  # noqa: E402
+    bench_grid,
+    markdown_table,
+    pinned_threads,
+    run_meta,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp  # noqa: E402
 import torch_polylap.linalg as linalg  # noqa: E402
-from torch_polylap.shapes import quad_grid  # noqa: E402
 
 ROUTES = ("dense", "arpack_superlu", "arpack_cholmod", "arpack", "lanczos")
 
 
 def grid_mesh(verts: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """A non-planar ``n x n`` quad grid with about ``verts`` vertices
-    (``torch_polylap.shapes.quad_grid``)."""
-    n = max(2, round(verts**0.5) - 1)
-    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y))
+    """The benchmark grid (``common.bench_grid``) with about ``verts`` vertices."""
+    return bench_grid(max(2, round(verts**0.5) - 1))
 
 
 def rounds(n: int, repeat: int) -> int:
@@ -154,13 +158,14 @@ def main() -> None:
         default=30000,
         help="largest size to time ARPACK's generalized mode at (it lost everywhere below)",
     )
-    parser.add_argument("--json", type=Path)
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/eigs_<mode>.json")
     args = parser.parse_args()
+    meta = run_meta(threads=1)
     with pinned_threads(1):
-        run(args)
+        run(args, meta)
 
 
-def run(args: argparse.Namespace) -> None:
+def run(args: argparse.Namespace, meta: dict) -> None:
     sizes = args.sizes or (
         [500, 1000, 3000, 10000, 30000, 100000]
         if args.mode == "routes"
@@ -211,9 +216,10 @@ def run(args: argparse.Namespace) -> None:
         "(2 above 10k vertices, 1 above 30k)\n"
     )
     print(markdown_table(header, rows))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2))
+    name = "eigs_routes" if args.mode == "routes" else "eigs_precompute"
+    sections = {"repeat": args.repeat, "results": results}
+    sections["tables"] = {args.mode: table_data(header, rows)}
+    write_results(name, sections, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":

@@ -23,26 +23,23 @@ and the median seconds (over ``--repeat`` rounds that alternate the methods, so 
 of a shared machine falls on all of them alike) of building the solver plus one query
 ("total") and of one more query on the built solver ("query"), in wall-clock time and in the
 process's CPU time (which other processes inflate less), with the ratios ours / potpourri3d.
-The load average is read before and after. Prints a Markdown table; ``--json`` writes the
-numbers (default ``benchmarks/results/geodesics.json``). ``POLYLAP_SHARED_MESHES`` overrides
+The load average is read before and after. Prints a Markdown table and writes the numbers
+to ``benchmarks/results/geodesics.json`` (or ``--json PATH``). ``POLYLAP_SHARED_MESHES`` overrides
 where the meshes are.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import time
 import warnings
 from collections.abc import Callable
-from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import cpu_model
+from common import run_meta, table_from_markdown, write_results
 
 import torch_polylap as tp
 
@@ -241,10 +238,10 @@ def main() -> None:
     # potpourri3d solves on one thread; torch's two-thread kernels also stall whenever another
     # process holds a core of a shared machine, which made timings swing tenfold.
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    default_json = Path(__file__).resolve().parent / "results" / "geodesics.json"
-    parser.add_argument("--json", type=Path, default=default_json)
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/geodesics.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    meta = run_meta()
     if not MESHES.is_dir():
         raise SystemExit(f"{MESHES} not found: the refinement families live outside the repo.")
     if pp3d is None:
@@ -275,18 +272,9 @@ def main() -> None:
     load_after = load_average()
     print(table)
     print(f"load average before: {load_before}, after: {load_after}")
-    meta = {
-        "cpu": cpu_model(),
-        "threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "potpourri3d": version("potpourri3d") if pp3d is not None else None,
-        "repeat": args.repeat,
-        "statistic": "median",
-        "load_average": {"before": load_before, "after": load_after},
-    }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps({"meta": meta, "rows": rows, "table": table}, indent=1))
+    sections = {"repeat": args.repeat, "statistic": "median", "rows": rows}
+    sections["tables"] = {"geodesics": table_from_markdown(table)}
+    write_results("geodesics", sections, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":

@@ -15,14 +15,13 @@
 Ours is timed twice: "first" builds the topology from a fresh faces tensor (what a one-off call
 costs), "cached" reuses it (what every step of a loop over changing positions costs). Peers
 build from scratch every time (they have no cache). Median of ``--repeat`` samples after a
-warm-up, one thread. Prints Markdown tables with the ratios peer / ours; writes JSON (default
-``benchmarks/results/gradient.json``).
+warm-up, one thread. Prints Markdown tables with the ratios peer / ours; writes
+``benchmarks/results/gradient.json`` (or ``--json PATH``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import warnings
 from pathlib import Path
@@ -30,7 +29,16 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 import torch
-from common import cpu_model, fmt_time, markdown_table, median_time, pinned_threads
+from common import (
+    bench_grid,
+    fmt_time,
+    markdown_table,
+    median_time,
+    pinned_threads,
+    run_meta,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp
 
@@ -56,7 +64,7 @@ def ours(verts: torch.Tensor, faces: torch.Tensor | tp.PolygonFaces, repeat: int
 def triangle_row(n: int, repeat: int) -> tuple[list[str], dict]:
     import igl
 
-    verts, quads = tp.shapes.quad_grid(n, bump=0.2)
+    verts, quads = bench_grid(n)
     q = quads.numpy()
     tris = np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
     tris_t = torch.from_numpy(tris)
@@ -125,17 +133,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--grid", type=int, default=707)
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument(
-        "--json", type=Path, default=ROOT / "benchmarks" / "results" / "gradient.json"
-    )
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/gradient.json")
     args = parser.parse_args()
-    report: dict = {"cpu": cpu_model(), "torch": torch.__version__, "real": {}}
-    print(f"CPU: {report['cpu']}, torch {torch.__version__}, float64, 1 thread\n")
+    meta = run_meta(threads=1)
+    report: dict = {"repeat": args.repeat, "real": {}, "tables": {}}
+    print(f"torch {torch.__version__}, float64, 1 thread\n")
     with pinned_threads(1):
         row, report["grid"] = triangle_row(args.grid, args.repeat)
         header = ["mesh", "igl.grad", "ours first", "ours cached", "igl / first"]
         header += ["igl / cached", "max rel diff", "ours on the quads (first / cached)"]
         print(markdown_table(header, [row]), "\n")
+        report["tables"]["triangles"] = table_data(header, [row])
         real = SHARED / "real"
         rows = []
         if real.is_dir():
@@ -146,10 +154,10 @@ def main() -> None:
             header = ["mesh", "lagrange", "ours first", "ours cached", "lagrange / first"]
             header += ["lagrange / cached", "max rel diff"]
             print(markdown_table(header, rows))
+            report["tables"]["polygons"] = table_data(header, rows)
         else:
             print(f"(no real meshes at {real}: set POLYLAP_SHARED_MESHES)")
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(report, indent=1))
+    write_results("gradient", report, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":

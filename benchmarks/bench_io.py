@@ -42,7 +42,6 @@ import argparse
 import contextlib
 import io
 import itertools
-import json
 import multiprocessing
 import os
 import platform
@@ -57,7 +56,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import cpu_model, fmt_time, markdown_table, median_time, pinned_threads
+from common import (
+    bench_grid,
+    cpu_model,
+    fmt_time,
+    markdown_table,
+    median_time,
+    pinned_threads,
+    run_meta,
+    table_from_markdown,
+    write_results,
+)
 
 import torch_polylap as tp
 from torch_polylap.faces import PolygonFaces
@@ -419,14 +428,9 @@ def quietly(fn: Callable[[], object]) -> object:
 
 
 def quad_grid(n: int) -> Mesh:
-    """``(n+1)^2`` vertices on the unit square lifted by a bump: ``n^2`` quads, 17-digit coords."""
-    s = np.linspace(0.0, 1.0, n + 1)
-    xs, ys = np.meshgrid(s, s, indexing="ij")
-    zs = 0.05 * np.sin(7 * xs) * np.cos(5 * ys)
-    verts = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], 1)
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1)
-    return verts, quads.reshape(-1).astype(np.int64), np.full(n * n, 4, dtype=np.int64)
+    """The benchmark grid (``common.bench_grid``) as flat arrays: ``n^2`` quads, 17-digit coords."""
+    verts, faces = bench_grid(n)
+    return verts.numpy(), faces.reshape(-1).numpy(), np.full(n * n, 4, dtype=np.int64)
 
 
 def mixed_mesh() -> Mesh:
@@ -781,6 +785,30 @@ def report(results: dict, libs: list[Library]) -> str:
     return "\n".join(out)
 
 
+# the report's headings, and the names of their tables in the results file
+TABLES = {
+    "Correctness": "correctness",
+    "Malformed": "malformed",
+    "Read times on real meshes": "read_real",
+    "Read times on the quad grid": "read_grid",
+    "Raw library call": "raw_grid",
+    "Write times": "write",
+}
+
+
+def report_tables(text: str) -> dict:
+    """The tables of :func:`report`'s Markdown, by the names of :data:`TABLES`."""
+    out = {}
+    for section in text.split("\n### ")[1:]:
+        heading, _, body = section.partition("\n")
+        key = next((k for h, k in TABLES.items() if heading.startswith(h)), None)
+        if key and "|" in body:
+            table = table_from_markdown(body.split("\n\n* ")[0])
+            if table["rows"]:
+                out[key] = table
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--grid", type=int, default=1000, help="quad grid n (n^2 faces); 0: none")
@@ -792,8 +820,9 @@ def main(argv: list[str] | None = None) -> None:
         "--write-real", nargs="*", default=["rockerArm.obj", "lion_vase_poly.off"],
         help="real meshes also timed as writers (in every format)",
     )  # fmt: skip
-    parser.add_argument("--json", type=Path, help="write every number here")
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/io.json")
     args = parser.parse_args(argv)
+    meta = run_meta(threads=1)
     warnings.simplefilter("ignore", SkippedContentWarning)
 
     libs = [lib for lib in LIBRARIES if lib.available]
@@ -855,10 +884,10 @@ def main(argv: list[str] | None = None) -> None:
                 results["grid_read"].append(row)
                 path.unlink()
     results["machine"]["load_after"] = os.getloadavg()[0]
-    print(report(results, libs))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=1, default=str))
+    text = report(results, libs)
+    print(text)
+    results["tables"] = report_tables(text)
+    write_results("io", results, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":

@@ -18,16 +18,16 @@ product for (4).  Every time is the median of ``--repeat`` samples after a warm-
 Run from the repository root::
 
     python benchmarks/bench_laplacian.py                 # 10k, 100k, 1M faces + real meshes
-    python benchmarks/bench_laplacian.py --sizes 100 316 --repeat 1 --json results.json
+    python benchmarks/bench_laplacian.py --sizes 100 316 --repeat 1 --json /tmp/smoke.json
 
-Progress goes to stderr; the report (Markdown tables) goes to stdout.
+Progress goes to stderr; the report (Markdown tables) goes to stdout; the numbers to
+``benchmarks/results/laplacian.json`` (or ``--json PATH``).
 """
 
 from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import json
 import multiprocessing
 import os
 import platform
@@ -40,18 +40,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-# Benchmark the checkout this file lives in, installed or not.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import common
 import igl
 import numpy as np
 import scipy
 import torch
-from common import cpu_model, markdown_table, peak_rss_growth, synchronizer
+from common import (
+    bench_grid,
+    cpu_model,
+    markdown_table,
+    peak_rss_growth,
+    run_meta,
+    synchronizer,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp
-from torch_polylap.shapes import quad_grid
 
 DEFAULT_SIZES = (100, 316, 1000)
 # ../shared beside the repository holds the real meshes (see ../shared/data/meshes/README.md)
@@ -109,11 +114,11 @@ class Mesh:
 
 def grid_mesh(n: int) -> Mesh:
     """An ``n x n`` quad grid of the unit square lifted to ``z = 0.05 sin(7x) cos(5y)``
-    (``torch_polylap.shapes.quad_grid``).
+    (``common.bench_grid``).
 
     The lift makes the quads non-planar, so the AW11 stabilizer is exercised on every face.
     """
-    verts, faces = quad_grid(n, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y))
+    verts, faces = bench_grid(n)
     return Mesh(f"grid {n}x{n}", verts.numpy(), faces, tp.as_faces(faces))
 
 
@@ -303,7 +308,7 @@ def fmt_mb(num_bytes: int | None) -> str:
     return "–" if num_bytes is None else f"{num_bytes / 2**20:,.0f}"
 
 
-def timing_table(results: list[dict]) -> str:
+def timing_table(results: list[dict]) -> dict:
     header = [
         "mesh",
         "F",
@@ -345,10 +350,10 @@ def timing_table(results: list[dict]) -> str:
                 fmt_mb(mem.get("rss_peak_bytes")),
             ]
         )
-    return markdown_table(header, rows)
+    return table_data(header, rows)
 
 
-def ratio_table(results: list[dict]) -> str:
+def ratio_table(results: list[dict]) -> dict:
     header = ["mesh"] + [
         name if t is None else f"{name} (≤ {t:g})" for name, (_, _, t) in RATIOS.items()
     ]
@@ -356,10 +361,10 @@ def ratio_table(results: list[dict]) -> str:
         [r["name"]] + [fmt_ratio(r["ratios"][name], t) for name, (_, _, t) in RATIOS.items()]
         for r in results
     ]
-    return markdown_table(header, rows)
+    return table_data(header, rows)
 
 
-def scaling_table(grids: list[dict]) -> str:
+def scaling_table(grids: list[dict]) -> dict:
     keys = {
         "first": "first",
         "re-asm": "reassembly",
@@ -377,7 +382,7 @@ def scaling_table(grids: list[dict]) -> str:
             growth = per_face / (base["seconds"][key] / base["faces"])
             cells.append(f"{per_face * 1e6:.3g} (×{growth:.2f})")
         rows.append(cells)
-    return markdown_table(header, rows)
+    return table_data(header, rows)
 
 
 def cpu_counters() -> tuple[float, float] | None:
@@ -427,8 +432,21 @@ def environment(args: argparse.Namespace, device: torch.device) -> dict:
     }
 
 
+def md(t: dict) -> str:
+    return markdown_table(t["columns"], t["rows"])
+
+
+def tables(grids: list[dict], reals: list[dict]) -> dict:
+    """The report's tables (``timings``, ``ratios``, ``scaling`` for the grids)."""
+    out = {"timings": timing_table(grids + reals), "ratios": ratio_table(grids + reals)}
+    if grids:
+        out["scaling"] = scaling_table(grids)
+    return out
+
+
 def report(env: dict, checks: dict, grids: list[dict], reals: list[dict]) -> str:
     """The Markdown report printed to stdout."""
+    tables_ = tables(grids, reals)
     lines = [
         f"Machine: {env['cpu']}, {env['cpu_count']} cores, torch {env['torch']} with "
         f"{env['torch_threads']} threads; device {env['device']}"
@@ -459,23 +477,22 @@ def report(env: dict, checks: dict, grids: list[dict], reals: list[dict]) -> str
             else f"FAIL ({check['message']})"
         )
         lines.append(f"Correctness: {check['mesh']} (non-orientable) {verdict}")
-    results = grids + reals
     lines += [
         "",
         "### Timings (ms)",
         "",
-        timing_table(results),
+        md(tables_["timings"]),
         "",
         "### Ratios (✓ meets the target)",
         "",
-        ratio_table(results),
+        md(tables_["ratios"]),
     ]
     if grids:
         lines += [
             "",
             "### Time per face on the grids (growth relative to the smallest)",
             "",
-            scaling_table(grids),
+            md(tables_["scaling"]),
         ]
     memories = [g["memory"] for g in grids if g.get("memory")]
     if memories:
@@ -541,7 +558,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=True,
         help="measure peak fwd+bwd memory per grid in a fresh process (default: on)",
     )
-    parser.add_argument("--json", type=Path, metavar="PATH", help="also write all numbers here")
+    parser.add_argument(
+        "--json", type=Path, metavar="PATH", help="default: benchmarks/results/laplacian.json"
+    )
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be at least 1")
@@ -562,6 +581,7 @@ def main(argv: list[str] | None = None) -> int:
     dtype = getattr(torch, args.dtype)
     started = time.perf_counter()
     counters = cpu_counters()
+    meta = run_meta()
     env = environment(args, device)
 
     sizes = sorted(args.sizes)
@@ -592,20 +612,18 @@ def main(argv: list[str] | None = None) -> int:
     for skip in skipped:
         print(f"\nSkipped {skip['mesh']}: {skip['reason']}")
     progress(f"total time {elapsed:.1f} s")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        payload: dict[str, Any] = {
-            "environment": env,
-            "checks": checks,
-            "grids": grids,
-            "real": reals,
-            "skipped": skipped,
-            "targets": {name: t for name, (_, _, t) in RATIOS.items()},
-            "memory_target_bytes": MEMORY_TARGET_BYTES,
-            "total_seconds": elapsed,
-        }
-        args.json.write_text(json.dumps(payload, indent=2))
-        progress(f"wrote {args.json}")
+    payload: dict[str, Any] = {
+        "environment": env,
+        "checks": checks,
+        "grids": grids,
+        "real": reals,
+        "skipped": skipped,
+        "targets": {name: t for name, (_, _, t) in RATIOS.items()},
+        "memory_target_bytes": MEMORY_TARGET_BYTES,
+        "total_seconds": elapsed,
+        "tables": tables(grids, reals),
+    }
+    write_results("laplacian", payload, meta=meta, path=args.json)
     return 0
 
 

@@ -37,24 +37,26 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import gc
-import json
 import multiprocessing
-import platform
 import sys
 import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-# Benchmark the checkout this file lives in, installed or not.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import common
 import numpy as np
 import torch
-from common import cpu_model, markdown_table, peak_rss_growth, pinned_threads
+from common import (
+    RESULTS,
+    markdown_table,
+    peak_rss_growth,
+    pinned_threads,
+    run_meta,
+    table_data,
+    write_results,
+)
 
-import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes, per_mesh_mean
 from torch_polylap.losses import laplacian_smoothing
 from torch_polylap.shapes import quad_sphere
@@ -62,7 +64,6 @@ from torch_polylap.shapes import quad_sphere
 # the plain-torch baseline builds a torch sparse matrix: silence torch's "beta" notices
 warnings.filterwarnings("ignore", message="Sparse (CSR tensor support|invariant checks)")
 
-RESULTS = Path(__file__).resolve().parent / "results"
 MIN_SAMPLE_SECONDS = 0.05
 
 
@@ -330,9 +331,10 @@ def report(env: dict, data: dict) -> str:
         else "torch cot frozen, cached pattern"
     )
     out = [
-        f"torch {env['torch']}, {env['threads']} threads, {env['dtype']}, {env['cpu']}; "
-        f"median of {env['repeat']}; baseline: {data['baseline']} (on the triangulated meshes)"
+        f"{env['threads']} threads, {env['dtype']}; median of {env['repeat']}; "
+        f"baseline: {data['baseline']} (on the triangulated meshes)"
     ]
+    data["tables"] = {}
     for case in data["cases"]:
         out.append(
             f"\n#### {case['name']}: {case['num_quads']:,} quads, {case['num_verts']:,} vertices "
@@ -349,7 +351,10 @@ def report(env: dict, data: dict) -> str:
             rows.append(
                 [step, f"{seconds * 1e3:.1f}", f"{seconds / case['seconds'][base]:.2f}", mb]
             )
-        out.append(markdown_table(["fwd+bwd", "ms", f"/ {base}", "peak MB"], rows))
+        header = ["fwd+bwd", "ms", f"/ {base}", "peak MB"]
+        out.append(markdown_table(header, rows))
+        key = "batch" if case["name"].startswith("batch") else "big"
+        data["tables"][key] = table_data(header, rows)
         if case["check"]:
             c = case["check"]
             out.append(
@@ -382,7 +387,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="peak memory per step in fresh processes (default on)",
     )
     p.add_argument("--threads", type=int, default=0, help="torch threads; 0 keeps torch's default")
-    p.add_argument("--json", type=Path, default=RESULTS / "losses.json")
+    p.add_argument("--json", type=Path, help=f"default {RESULTS / 'losses.json'}")
     return p.parse_args(argv)
 
 
@@ -393,26 +398,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
-    cpu = cpu_model()
-    env = {
-        "cpu": cpu,
-        "cpu_count": multiprocessing.cpu_count(),
-        "threads": torch.get_num_threads(),
-        "dtype": args.dtype,
-        "repeat": args.repeat,
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "torch_polylap": tp.__version__,
-        "args": {k: str(v) for k, v in vars(args).items()},
-    }
+    meta = run_meta()
+    env = {"threads": torch.get_num_threads(), "dtype": args.dtype, "repeat": args.repeat}
     start = time.perf_counter()
     data = run(args)
     env["total_seconds"] = time.perf_counter() - start
     print(report(env, data))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"environment": env, **data}, indent=2))
-        progress(f"wrote {args.json}")
+    write_results("losses", {"environment": env, **data}, meta=meta, path=args.json)
     return 0
 
 

@@ -17,20 +17,19 @@ For ``method`` in ``aw11`` (Alexa and Wardetzky 2011, ``lam = 1``), ``plms`` (Bu
   flat map can make zero; smaller is better, the peers share the same mesh.
 
 Prints one Markdown table per application (rows: meshes, columns: methods) and writes the numbers
-as JSON (default ``benchmarks/results/method_applications.json``).
+to ``benchmarks/results/method_applications.json`` (or ``--json PATH``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import warnings
 from pathlib import Path
 
 import torch
-from common import cpu_model, markdown_table
+from common import markdown_table, run_meta, table_data, write_results
 
 import torch_polylap as tp
 
@@ -40,6 +39,7 @@ SHARED = Path(os.environ.get("POLYLAP_SHARED_MESHES", ROOT.parent / "shared" / "
 SPHERES = ("hex", "quad", "voronoi", "concave")
 GRIDS = ("quad", "str_hex", "irr_poly")
 FLOW_TIME, FLOW_STEPS = 0.05, 100
+KEYS = ("curvature", "flow", "plate", "conformal")  # the results file's table names
 
 
 def read(path: Path) -> tuple[torch.Tensor, tp.PolygonFaces]:
@@ -95,7 +95,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--levels", type=int, nargs="+", default=[3, 4])
     parser.add_argument(
-        "--json", type=Path, default=ROOT / "benchmarks" / "results" / "method_applications.json"
+        "--json", type=Path, help="default benchmarks/results/method_applications.json"
     )
     args = parser.parse_args()
     if not SHARED.is_dir():
@@ -103,6 +103,7 @@ def main() -> None:
             f"the refinement families are not here: {SHARED} (set POLYLAP_SHARED_MESHES)"
         )
     torch.set_num_threads(1)
+    meta = run_meta()
     tables: dict[str, dict[str, dict[str, float]]] = {
         "mean curvature: mean | |H|/2 - 1 | on the unit sphere": {},
         f"mean-curvature flow: relative radius error at t = {FLOW_TIME}": {},
@@ -130,14 +131,16 @@ def main() -> None:
                 verts = verts + torch.tensor([0.5, 0.5, 0.0], dtype=verts.dtype)
             name = f"grid {family}_{level} ({verts.shape[0]} v)"
             plate[name] = {m: plate_error(verts, faces, m) for m in METHODS}
-    print(f"CPU: {cpu_model()}, torch {torch.__version__}, float64, 1 thread\n")
-    for title, rows in tables.items():
+    print(f"torch {torch.__version__}, float64, 1 thread\n")
+    rendered = {}
+    for key, (title, rows) in zip(KEYS, tables.items(), strict=True):
         print(f"### {title}\n")
         body = [[name] + [f"{rows[name][m]:.3g}" for m in METHODS] for name in rows]
         print(markdown_table(["mesh", *METHODS], body))
         print()
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(tables, indent=1))
+        rendered[key] = table_data(["mesh", *METHODS], body)
+    sections = {"levels": args.levels, "errors": tables, "tables": rendered}
+    write_results("method_applications", sections, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":

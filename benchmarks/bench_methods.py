@@ -10,8 +10,8 @@ For a non-planar ``n x n`` quad grid (``--grid n``, default 1000: 1M quads) and 
 
 Ratios are libigl's time over ours for PLMS, and each method's re-assembly over AW11's. Times are
 the median of ``--repeat`` samples after a warm-up (first assembly: one sample per repeat, each
-on a new faces tensor). Prints a Markdown table; writes JSON (``--json``, default
-``benchmarks/results/methods.json``).
+on a new faces tensor). Prints a Markdown table; writes ``benchmarks/results/methods.json``
+(or ``--json PATH``).
 
     python benchmarks/bench_methods.py                  # 1M-quad grid + real meshes
     python benchmarks/bench_methods.py --grid 300 --repeat 3
@@ -20,17 +20,23 @@ on a new faces tensor). Prints a Markdown table; writes JSON (``--json``, defaul
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import cpu_model, markdown_table, median_time, pinned_threads
+from common import (
+    bench_grid,
+    markdown_table,
+    median_time,
+    pinned_threads,
+    run_meta,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp
-from torch_polylap.shapes import quad_grid
 
 METHODS = ("aw11", "plms", "degoes")
 TITLES = {"aw11": "AW11", "plms": "PLMS", "degoes": "dGBD20"}
@@ -69,7 +75,7 @@ def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
     return row
 
 
-def table(rows: list[dict]) -> str:
+def table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
     header = [
         "mesh",
         "faces",
@@ -93,7 +99,7 @@ def table(rows: list[dict]) -> str:
                 f"{r['degoes_cached'] / r['aw11_cached']:.2f}",
             ]
         )
-    return markdown_table(header, body)
+    return header, body
 
 
 def main() -> None:
@@ -101,20 +107,21 @@ def main() -> None:
     parser.add_argument("--grid", type=int, default=1000, help="n of the n x n quad grid")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--real-dir", type=Path, default=ROOT.parent / "shared/data/meshes/real")
-    parser.add_argument("--json", type=Path, default=ROOT / "benchmarks/results/methods.json")
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/methods.json")
     args = parser.parse_args()
+    meta = run_meta(threads=1)
     with pinned_threads(1):
         rows = run(args)
-    print(f"CPU: {cpu_model()}, torch {torch.__version__}, 1 thread, median of {args.repeat}\n")
-    print(table(rows))
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"cpu": cpu_model(), "torch": torch.__version__, "threads": 1, "repeat": args.repeat}
-    args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    header, body = table(rows)
+    print(f"torch {torch.__version__}, 1 thread, median of {args.repeat}\n")
+    print(markdown_table(header, body))
+    sections = {"repeat": args.repeat, "tables": {"methods": table_data(header, body)}}
+    write_results("methods", {**sections, "rows": rows}, meta=meta, path=args.json)
 
 
 def run(args: argparse.Namespace) -> list[dict]:
     rows = []
-    verts, faces = quad_grid(args.grid, bump=0.2)  # non-planar quads
+    verts, faces = bench_grid(args.grid)
     print(f"grid {args.grid}x{args.grid}", file=sys.stderr)
     rows.append(bench_mesh(f"quad grid {args.grid}^2", verts, faces, args.repeat))
     if args.real_dir.exists():

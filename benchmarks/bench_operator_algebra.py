@@ -21,35 +21,33 @@ Run from the repository root::
     python benchmarks/bench_operator_algebra.py                       # 100k and 1M quads
     python benchmarks/bench_operator_algebra.py --grids 100 --repeat 2  # a quick look
 
-Markdown to stdout, JSON to ``--json`` (default ``benchmarks/results/operator_algebra.json``).
+Markdown to stdout; writes ``benchmarks/results/operator_algebra.json`` (or ``--json PATH``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import torch
-from common import cpu_model, peak_rss_growth, pinned_threads
+from common import (
+    bench_grid,
+    markdown_table,
+    peak_rss_growth,
+    pinned_threads,
+    run_meta,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp
-from torch_polylap.shapes import quad_grid
 from torch_polylap.sparse import operator_from_parts, sparse_values
 
 Expr = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
-
-
-def grid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n x n`` quads on the unit square, bumped out of plane (``torch_polylap.shapes``)."""
-    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(6 * x) * torch.cos(5 * y))
 
 
 def implicit_by_hand(L: torch.Tensor, M0: torch.Tensor, t: float) -> torch.Tensor:
@@ -137,7 +135,7 @@ def native_attempt(verts: torch.Tensor, topo) -> str:
 
 
 def run_grid(n: int, repeat: int) -> dict:
-    verts, faces = grid(n)
+    verts, faces = bench_grid(n)
     topo = tp.build_topology(faces, verts.shape[0])
     rows = []
     for name, ours, by_hand in EXPRESSIONS:
@@ -161,6 +159,7 @@ def run_grid(n: int, repeat: int) -> dict:
         print(f"  {n * n} quads  {name:34s} {row['time_ratio']:.2f}x", file=sys.stderr)
         rows.append(row)
     return {
+        "n": n,
         "quads": n * n,
         "vertices": verts.shape[0],
         "nnz": topo.nnz,
@@ -169,27 +168,30 @@ def run_grid(n: int, repeat: int) -> dict:
     }
 
 
-def markdown(results: list[dict], header: str) -> str:
-    lines = [header, ""]
+def tables(results: list[dict]) -> dict:
+    """One table per grid (``n<grid n>``), and ``native``: what torch's own autograd did."""
+    header = ["expression", "ours ms", "by hand ms", "time ratio", "ours peak MB"]
+    header += ["by hand peak MB", "memory ratio"]
+    out = {}
     for grid in results:
-        lines += [
-            f"### {grid['quads']:,} quads ({grid['vertices']:,} vertices, "
-            f"nnz(L) = {grid['nnz']:,})",
-            "",
-            f"torch native (`torch.sparse_csr_tensor(...) @ X`, backward): {grid['native']}",
-            "",
-            "| expression | ours ms | by hand ms | time ratio | ours peak MB | by hand peak MB "
-            "| memory ratio |",
-            "|---|--:|--:|--:|--:|--:|--:|",
+        body = [
+            [
+                f"`{r['expression']}`",
+                f"{r['ours_ms']:.1f}",
+                f"{r['by_hand_ms']:.1f}",
+                f"{r['time_ratio']:.2f}",
+                f"{r['ours_peak_mb']:.0f}",
+                f"{r['by_hand_peak_mb']:.0f}",
+                f"{r['memory_ratio']:.2f}",
+            ]
+            for r in grid["rows"]
         ]
-        for r in grid["rows"]:
-            lines.append(
-                f"| `{r['expression']}` | {r['ours_ms']:.1f} | {r['by_hand_ms']:.1f} | "
-                f"{r['time_ratio']:.2f} | {r['ours_peak_mb']:.0f} | {r['by_hand_peak_mb']:.0f} | "
-                f"{r['memory_ratio']:.2f} |"
-            )
-        lines.append("")
-    return "\n".join(lines)
+        out[f"n{grid['n']}"] = table_data(header, body)
+    native = [
+        [f"{g['quads']:,}", f"{g['vertices']:,}", f"{g['nnz']:,}", g["native"]] for g in results
+    ]
+    out["native"] = table_data(["quads", "vertices", "nnz(L)", "torch native backward"], native)
+    return out
 
 
 def main() -> None:
@@ -200,31 +202,18 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3, help="timed steps per method")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument(
-        "--json", type=Path, default=Path("benchmarks/results/operator_algebra.json")
+        "--json", type=Path, help="default benchmarks/results/operator_algebra.json"
     )
     args = parser.parse_args()
+    meta = run_meta(threads=args.threads)
     with pinned_threads(args.threads):
         results = [run_grid(n, args.repeat) for n in args.grids]
-    header = (
-        f"Operator algebra, forward + backward of one step; {cpu_model()}, {args.threads} "
-        f"thread(s), torch {torch.__version__}, float64, median of {args.repeat}"
-    )
-    print(markdown(results, header))
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(
-        json.dumps(
-            {
-                "machine": cpu_model(),
-                "platform": platform.platform(),
-                "torch": torch.__version__,
-                "threads": args.threads,
-                "repeat": args.repeat,
-                "grids": results,
-            },
-            indent=2,
-        )
-    )
-
+    rendered = tables(results)
+    print(f"{args.threads} thread(s), torch {torch.__version__}, float64, median of {args.repeat}")
+    for key, t in rendered.items():
+        print(f"\n### {key}\n\n{markdown_table(t['columns'], t['rows'])}")
+    sections = {"repeat": args.repeat, "grids": results, "tables": rendered}
+    write_results("operator_algebra", sections, meta=meta, path=args.json)
 
 if __name__ == "__main__":
     main()

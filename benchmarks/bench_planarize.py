@@ -44,10 +44,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -61,7 +59,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 import torch
-from common import cpu_model, markdown_table
+from common import markdown_table, run_meta, table_data, write_results
 from shapeup import ShapeUp
 
 import torch_polylap as tp
@@ -292,7 +290,8 @@ def e(x: float) -> str:
     return f"{x:.2e}"
 
 
-def report(records: list[dict], tol: float) -> None:
+def report(records: list[dict], tol: float) -> dict:
+    """Print the two tables and return them (``tolerance``, ``budgets``) for the results."""
     print(f"\nTo max non-planarity {tol:g}, one thread each:\n")
     positions = all("positions_solve" in r for r in records)
     body = []
@@ -321,26 +320,25 @@ def report(records: list[dict], tol: float) -> None:
                 else []
             )
         )
-    print(
-        markdown_table(
-            [
-                "mesh",
-                "V",
-                "max before",
-                "ours: iters, s",
-                "ours: max after",
-                "ours: disp max / area",
-                "L-BFGS: iters, s, max",
-                "Shape-Up (vectorized): iters, s, max",
-                "Shape-Up: disp max / area",
-                "Shape-Up at ours' time: iters: max",
-                "max ratio at equal time (SU/ours)",
-                "time to tol (SU/ours)",
-            ]
-            + (["GN solved in the positions (old): iters, s"] if positions else []),
-            body,
-        )
+    header = (
+        [
+            "mesh",
+            "V",
+            "max before",
+            "ours: iters, s",
+            "ours: max after",
+            "ours: disp max / area",
+            "L-BFGS: iters, s, max",
+            "Shape-Up (vectorized): iters, s, max",
+            "Shape-Up: disp max / area",
+            "Shape-Up at ours' time: iters: max",
+            "max ratio at equal time (SU/ours)",
+            "time to tol (SU/ours)",
+        ]
+        + (["GN solved in the positions (old): iters, s"] if positions else [])
     )
+    print(markdown_table(header, body))
+    tables = {"tolerance": table_data(header, body)}
     print("\nAt equal iteration budgets: largest non-planarity (seconds):\n")
     body = []
     for r in records:
@@ -356,19 +354,17 @@ def report(records: list[dict], tol: float) -> None:
                     e(li["vectorized_difference"]) if li else "–",
                 ]
             )
-    print(
-        markdown_table(
-            [
-                "mesh",
-                "iterations",
-                "ours (Gauss-Newton)",
-                "Shape-Up, vectorized",
-                "Shape-Up, libigl",
-                "libigl - vectorized (positions / diag)",
-            ],
-            body,
-        )
-    )
+    header = [
+        "mesh",
+        "iterations",
+        "ours (Gauss-Newton)",
+        "Shape-Up, vectorized",
+        "Shape-Up, libigl",
+        "libigl - vectorized (positions / diag)",
+    ]
+    print(markdown_table(header, body))
+    tables["budgets"] = table_data(header, body)
+    return tables
 
 
 def main() -> int:
@@ -389,11 +385,10 @@ def main() -> int:
     )
     ap.add_argument("--igl-max-seconds", type=float, default=120.0)
     ap.add_argument("--igl-max-vertices", type=int, default=10000)
-    ap.add_argument(
-        "--json", type=Path, default=Path(__file__).parent / "results" / "planarize.json"
-    )
+    ap.add_argument("--json", type=Path, help="default benchmarks/results/planarize.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
+    meta = run_meta()
     os.environ["OMP_NUM_THREADS"] = "1"
     if not have_igl(args):
         print(f"no libigl 2.4.1 interpreter at {args.igl_python}: libigl skipped", file=sys.stderr)
@@ -403,17 +398,9 @@ def main() -> int:
     ShapeUp(warm_v.numpy(), warm_f.numpy()).run(2)
 
     records = [bench_mesh(n, V, F, args) for n, V, F in load_meshes(args.meshes, args.real_dir)]
-    report(records, args.tol)
-    env = {
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "cpu": cpu_model(),
-        "cpus": os.cpu_count(),
-        "threads": 1,
-    }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps({"tol": args.tol, "env": env, "meshes": records}, indent=2))
-    print(f"\nwrote {args.json}", file=sys.stderr)
+    tables = report(records, args.tol)
+    sections = {"tol": args.tol, "meshes": records, "tables": tables}
+    write_results("planarize", sections, meta=meta, path=args.json)
     return 0
 
 

@@ -15,13 +15,12 @@ Measured on non-planar quad grids (n x n quads) with ``A = M0 + h L``:
   (robust-laplacian's ``mesh_laplacian`` on the fan-triangulated mesh, then scipy shift-invert
   ``eigsh``), when ``robust_laplacian`` is installed.
 
-Prints a Markdown report; ``--json`` writes the numbers.
+Prints a Markdown report and writes ``benchmarks/results/solve.json`` (or ``--json PATH``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from collections.abc import Callable
@@ -31,10 +30,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
-from common import markdown_table, median_time
+from common import bench_grid, markdown_table, median_time, run_meta, table_data, write_results
 
 import torch_polylap as tp
-from torch_polylap.shapes import quad_grid
 from torch_polylap.sparse import operator_from_parts, sparse_values
 
 SWORD = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "real"
@@ -48,11 +46,6 @@ def timed(fn: Callable[[], object], repeat: int) -> float:
     return median_time(fn, repeat)
 
 
-def grid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n x n`` non-planar quads (``torch_polylap.shapes.quad_grid``)."""
-    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y))
-
-
 def implicit_matrix(L: torch.Tensor, M0: torch.Tensor, h: float) -> torch.Tensor:
     crow, col = L.crow_indices(), L.col_indices()
     row = torch.repeat_interleave(torch.arange(L.shape[0]), crow.diff())
@@ -63,7 +56,7 @@ def implicit_matrix(L: torch.Tensor, M0: torch.Tensor, h: float) -> torch.Tensor
 
 
 def bench_solve(n: int, repeat: int) -> dict:
-    verts, faces = grid(n)
+    verts, faces = bench_grid(n)
     L, M0 = tp.laplacian(verts, faces)
     B = torch.randn(
         verts.shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0)
@@ -100,7 +93,7 @@ def bench_solve(n: int, repeat: int) -> dict:
 
 
 def bench_eigs(n: int, k: int, repeat: int) -> dict:
-    verts, faces = grid(n)
+    verts, faces = bench_grid(n)
     L, M0 = tp.laplacian(verts, faces)
     Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
     shift = -1e-8 * abs(Ls).max() / Ms.diagonal().max()
@@ -160,10 +153,12 @@ def main() -> None:
         "--precompute-k", type=int, default=128, help="0 skips the sword precompute"
     )
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--json", type=Path)
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/solve.json")
     args = parser.parse_args()
+    meta = run_meta()
 
-    report = {"solve": [], "eigs": [], "precompute": None}
+    report: dict = {"repeat": args.repeat, "solve": [], "eigs": [], "precompute": None}
+    tables = report["tables"] = {}
     lines = [
         f"torch {torch.__version__}, {torch.get_num_threads()} threads, float64; "
         f"median of {args.repeat}.",
@@ -194,6 +189,7 @@ def main() -> None:
         "backward / forward",
     ]
     lines += ["### solve, A = M0 + 0.01 L, B (V, 3)", "", markdown_table(header, rows)]
+    tables["solve"] = table_data(header, rows)
     rows = []
     for n in args.eig_sizes:
         r = bench_eigs(n, args.k, args.repeat)
@@ -208,29 +204,21 @@ def main() -> None:
         )
     header = ["F", "ours", "scipy eigsh", "ratio"]
     lines += ["", f"### eigs, k = {args.k}", "", markdown_table(header, rows)]
+    tables["eigs"] = table_data(header, rows)
     pre = bench_precompute(args.precompute_k, args.repeat) if args.precompute_k > 0 else None
     report["precompute"] = pre
     if pre is not None:
-        lines += [
-            "",
-            f"### precompute on sword-quad-dominant.obj ({pre['verts']:,} vertices), "
-            f"k = {pre['k']}",
-            "",
-        ]
-        lines.append(f"- ours (polygon L, M0, eigs): {pre['ours_polygon']:.2f} s")
-        lines.append(f"- scipy eigsh on the polygon L alone: {pre['scipy_eigsh_polygon_L']:.2f} s")
+        header = ["mesh", "V", "k", "ours (L, M0, eigs)", "scipy eigsh on our L"]
+        row = [SWORD.name, f"{pre['verts']:,}", str(pre["k"]), f"{pre['ours_polygon']:.2f} s"]
+        row.append(f"{pre['scipy_eigsh_polygon_L']:.2f} s")
         if "robust_laplacian_pipeline" in pre:
-            ratio = pre["ours_polygon"] / pre["robust_laplacian_pipeline"]
-            lines.append(
-                "- triangle pipeline (robust-laplacian + eigsh): "
-                f"{pre['robust_laplacian_pipeline']:.2f} s; "
-                f"ours / pipeline = {ratio:.2f} (target <= 0.5)"
-            )
+            header += ["robust-laplacian + eigsh", "ours / robust-laplacian"]
+            row.append(f"{pre['robust_laplacian_pipeline']:.2f} s")
+            row.append(f"{pre['ours_polygon'] / pre['robust_laplacian_pipeline']:.2f}")
+        lines += ["", "### spectral precompute", "", markdown_table(header, [row])]
+        tables["precompute"] = table_data(header, [row])
     print("\n".join(lines))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2))
-
+    write_results("solve", report, meta=meta, path=args.json)
 
 if __name__ == "__main__":
     main()

@@ -1,8 +1,8 @@
 """A training step as PyTorch users write it, eager against torch.compile, and batches.
 
 Step: ``L, M0 = lap(X, faces)``, a smoothing-and-spectral loss, ``loss.backward()`` (the
-optimizer step is left out: torch's optimizers break the graph themselves). Meshes are quad
-grids (``tp.shapes.quad_grid``) of about 10k, 100k and 1M faces, lightly perturbed.
+optimizer step is left out: torch's optimizers break the graph themselves). Meshes are the
+benchmark grid (``common.bench_grid``) of about 10k, 100k and 1M faces, lightly perturbed.
 
 * eager vs ``torch.compile(fullgraph=True)`` (inductor): the compiled step's first call (trace
   and compile, on a cold topology cache) and the steady state, timed interleaved (eager,
@@ -10,23 +10,29 @@ grids (``tp.shapes.quad_grid``) of about 10k, 100k and 1M faces, lightly perturb
 * a fixed-topology batch ``(B, V, 3)`` against ``B`` single-mesh steps in a loop (eager),
   interleaved, medians.
 
-Run from this folder: ``python bench_training_step.py [--sizes 10000 100000 1000000]
-[--batch 8] [--repeats 5] [--json results/training_step.json]``. One thread (``--threads``).
+``python benchmarks/bench_training_step.py [--sizes 10000 100000 1000000] [--batch 8]
+[--repeats 5]`` writes ``benchmarks/results/training_step.json`` (or ``--json PATH``). One thread
+(``--threads``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import torch
-from common import cpu_model, peak_rss_growth, pinned_threads
+from common import (
+    bench_grid,
+    markdown_table,
+    peak_rss_growth,
+    pinned_threads,
+    run_meta,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp
 
@@ -35,10 +41,7 @@ DEVICE = torch.device("cpu")
 
 def _grid(faces: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     n = max(2, round(math.sqrt(faces)))
-    verts, quads = tp.shapes.quad_grid(n, n)
-    g = torch.Generator().manual_seed(seed)
-    verts = verts.double() + 0.02 / n * torch.randn(verts.shape, generator=g, dtype=torch.float64)
-    return verts.to(DEVICE), torch.as_tensor(quads).to(DEVICE)
+    return bench_grid(n, noise=0.02 / n, seed=seed, device=DEVICE)
 
 
 def _step_fn(lap: tp.PolygonLaplacian, X: torch.Tensor, faces: torch.Tensor):
@@ -132,6 +135,39 @@ def batch_vs_loop(faces: int, batch: int, repeats: int) -> dict:
     }
 
 
+def tables(steps: list[dict], batches: list[dict]) -> dict:
+    """The two tables of the README, from the measurements."""
+
+    def mb(x: float | None) -> str:
+        return "-" if x is None else f"{x:.0f}"
+
+    header = ["faces", "eager step", "compiled step", "compiled / eager"]
+    header += ["first compiled call", "peak memory growth eager / compiled (MB)"]
+    body = [
+        [
+            f"{s['faces']:,}",
+            f"{s['eager_s'] * 1e3:.0f} ms",
+            f"{s['compiled_s'] * 1e3:.0f} ms",
+            f"{s['compiled_over_eager']:.2f}x",
+            f"{s['compile_first_call_s']:.0f} s",
+            f"{mb(s['peak_growth_eager_mb'])} / {mb(s['peak_growth_compiled_mb'])}",
+        ]
+        for s in steps
+    ]
+    bheader = ["faces per mesh", "batch", "batched", "loop of single meshes", "batch / loop"]
+    bbody = [
+        [
+            f"{b['faces']:,}",
+            str(b["batch"]),
+            f"{b['batched_s'] * 1e3:.0f} ms",
+            f"{b['loop_s'] * 1e3:.0f} ms",
+            f"{b['batched_over_loop']:.2f}x",
+        ]
+        for b in batches
+    ]
+    return {"compile": table_data(header, body), "batch": table_data(bheader, bbody)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
@@ -139,35 +175,21 @@ def main() -> None:
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1_000, 10_000])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/training_step.json")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
     global DEVICE
     DEVICE = torch.device(args.device)
     torch._dynamo.config.trace_autograd_ops = True  # backward() inside the compiled graph
-    load_before = os.getloadavg()
+    meta = run_meta(threads=args.threads)
     with pinned_threads(args.threads):
         steps = [eager_vs_compiled(n, args.repeats) for n in args.sizes]
         batches = [batch_vs_loop(n, args.batch, args.repeats) for n in args.batch_sizes]
-    result = {
-        "machine": {
-            "cpu": cpu_model(),
-            "cores": os.cpu_count(),
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "torch_polylap": tp.__version__,
-            "threads": args.threads,
-            "load_before": load_before,
-            "load_after": os.getloadavg(),
-        },
-        "eager_vs_compiled": steps,
-        "batch_vs_loop": batches,
-    }
-    print(json.dumps(result, indent=1))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1) + "\n")
-
+    result = {"eager_vs_compiled": steps, "batch_vs_loop": batches}
+    result["tables"] = tables(steps, batches)
+    for t in result["tables"].values():
+        print(markdown_table(t["columns"], t["rows"]), "\n")
+    write_results("training_step", result, meta=meta, path=args.json)
 
 if __name__ == "__main__":
     main()

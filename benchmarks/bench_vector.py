@@ -25,17 +25,15 @@ The rows are kept in a dict (``--json`` writes it) and printed as a Markdown tab
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import time
 from collections.abc import Callable
-from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import cpu_model
+from common import cpu_model, run_meta, table_from_markdown, write_results
 
 import torch_polylap as tp
 
@@ -214,27 +212,21 @@ def main() -> None:
     )
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--backward-max", type=int, default=200_000, help="faces")
-    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/vector.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    meta = run_meta(threads=1)
     sizes = [int(s) for s in args.sizes.split(",")]
-    results: dict[str, object] = {
-        "cpu": f"{cpu_model()} ({platform.machine()}), 1 thread",
-        "torch": torch.__version__,
-        "potpourri3d": version("potpourri3d") if pp3d else "absent",
-        "rows": [],
-    }
     rows: list[Row] = []
     for n in sizes:
         rows += operator_rows(n, args.repeat, args.backward_max)
     rows += query_rows(sizes[0], args.repeat)
-    results["rows"] = rows
-    print(f"CPU: {results['cpu']}; torch {results['torch']}; potpourri3d {results['potpourri3d']}")
+    print(f"CPU: {cpu_model()} ({platform.machine()}), 1 thread; torch {torch.__version__}")
     print(f"medians of {args.repeat} interleaved rounds; load = /proc/loadavg (1, 5, 15 min)\n")
-    print(markdown(rows))
-    if args.json is not None:
-        args.json.write_text(json.dumps(results, indent=1))
-
+    text = markdown(rows)
+    print(text)
+    tables = {"vector": table_from_markdown(text)}
+    write_results("vector", {"rows": rows, "tables": tables}, meta=meta, path=args.json)
 
 if __name__ == "__main__":
     main()

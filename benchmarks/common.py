@@ -1,16 +1,36 @@
-"""What the benchmark scripts share: the CPU's name, the peak resident memory of one step
-(Linux ``/proc``; an upper bound from ``ru_maxrss`` elsewhere), and the timing and table
+"""What the benchmark scripts share: the benchmark grid, the results file with its metadata
+header (:func:`run_meta`, :func:`write_results`), the CPU's name, the peak resident memory of one
+step (Linux ``/proc``; an upper bound from ``ru_maxrss`` elsewhere), and the timing and table
 helpers of the ``polylap`` command (median timing, thread pinning, Markdown tables), imported
-from the package (:mod:`torch_polylap.cli.timing`) rather than kept here as a second copy.
-Imported by the ``bench_*.py`` scripts (run from this folder, or with it on ``sys.path``)."""
+from the package rather than kept here as a second copy.
+Imported by the ``bench_*.py`` scripts (run from this folder, or with it on ``sys.path``).
+
+A results file ``benchmarks/results/<name>.json`` is committed data: ``benchmarks/tables.py``
+renders the tables of ``benchmarks/README.md`` from it. Its layout::
+
+    {"benchmark": name, "meta": run_meta(...), "tables": {table: {"columns": [...],
+     "rows": [[...], ...]}}, ...further sections of raw numbers}
+"""
 
 from __future__ import annotations
 
 import ctypes
+import datetime
 import gc
+import importlib.metadata
+import json
+import os
 import platform
+import re
 import resource
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+
+# the scripts import the package of the checkout they live in, installed or not
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torch_polylap.timing import (
     DEFAULT_THREADS,
@@ -23,7 +43,13 @@ from torch_polylap.timing import (
 )
 
 __all__ = [
+    "RESULTS",
+    "bench_grid",
     "cpu_model",
+    "run_meta",
+    "table_data",
+    "table_from_markdown",
+    "write_results",
     "rss_bytes",
     "reset_peak_rss",
     "trim_heap",
@@ -36,6 +62,171 @@ __all__ = [
     "synchronizer",
     "timed",
 ]
+
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+# distributions whose version a results file records when their module was imported by the run
+PEERS = {
+    "igl": "libigl",
+    "potpourri3d": "potpourri3d",
+    "robust_laplacian": "robust-laplacian",
+    "lagrange": "adobe-lagrange",
+    "cholespy": "cholespy",
+    "qdldl": "qdldl",
+    "trimesh": "trimesh",
+    "plyfile": "plyfile",
+    "meshio": "meshio",
+    "openmesh": "openmesh",
+    "pytorch3d": "pytorch3d",
+    "sksparse": "scikit-sparse",
+}
+
+
+# environment variables that change what a run measures, recorded with it
+ENVIRONMENT = (
+    "POLYLAP_SHARED_MESHES",
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "CUDA_VISIBLE_DEVICES",
+)
+
+
+def bench_grid(
+    n: int,
+    m: int | None = None,
+    *,
+    noise: float = 0.0,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The benchmarks' quad grid: ``n x m`` quads on the unit square lifted to
+    ``z = 0.05 sin(7x) cos(5y)``, so that no quad is planar (the AW11 stabilizer works on every
+    face). Built by ``torch_polylap.shapes.quad_grid``; every script takes its grid from here.
+
+    Args:
+        n: quads along ``x`` (``n^2`` quads for a square grid: 100, 316, 1000 give 10k, 100k, 1M).
+        m: quads along ``y``; ``None`` means ``n``.
+        noise: standard deviation of Gaussian noise added to every coordinate (0: none), for
+            the scripts that need random variants of the grid.
+        seed: seed of that noise.
+        dtype: dtype of the vertices.
+        device: device of both tensors.
+
+    Returns:
+        ``verts`` ``((n + 1) (m + 1), 3)`` and ``faces`` ``(n m, 4)`` int64.
+    """
+    from torch_polylap.shapes import quad_grid
+
+    verts, faces = quad_grid(
+        n, m, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y)
+    )
+    if noise:
+        g = torch.Generator().manual_seed(seed)
+        verts = verts + noise * torch.randn(verts.shape, generator=g, dtype=verts.dtype)
+    return verts.to(device=device, dtype=dtype), faces.to(device)
+
+
+def _load() -> list[float]:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
+def _env(name: str) -> str:
+    """An environment variable's value; a path relative to the repository (no machine's own
+    directories in a committed file)."""
+    value = os.environ[name]
+    if name == "POLYLAP_SHARED_MESHES":
+        return os.path.relpath(value, Path(__file__).resolve().parents[1])
+    return value
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def run_meta(argv: Sequence[str] | None = None, threads: int | None = None) -> dict:
+    """The metadata header of a results file, taken at the start of a run.
+
+    Records the machine (CPU model from ``/proc/cpuinfo``, cores), OS, the versions of Python,
+    torch, numpy, scipy and torch_polylap, torch's thread count, the variables of
+    :data:`ENVIRONMENT` that are set, the 1/5/15-minute load average before the run, the UTC
+    date and the command line (``argv``, default ``sys.argv``).
+    ``threads`` is the thread count the timed code runs with, where the script pins one (default:
+    torch's current count).
+    :func:`write_results` adds the load average after the run and the peer libraries used.
+    """
+    return {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join(["python", *(sys.argv if argv is None else argv)]),
+        "machine": {"cpu": cpu_model(), "cores": os.cpu_count()},
+        "os": platform.platform(),
+        "versions": {
+            "python": platform.python_version(),
+            **{d: _version(d) for d in ("torch", "numpy", "scipy", "torch_polylap")},
+        },
+        "threads": torch.get_num_threads() if threads is None else threads,
+        "environment": {k: _env(k) for k in ENVIRONMENT if k in os.environ},
+        "load_before": _load(),
+    }
+
+
+def table_data(columns: Sequence[object], rows: Sequence[Sequence[object]]) -> dict:
+    """A table as a results file stores it (cells as printed), for ``benchmarks/tables.py``."""
+    return {"columns": [str(c) for c in columns], "rows": [[str(c) for c in r] for r in rows]}
+
+
+def table_from_markdown(text: str) -> dict:
+    """:func:`table_data` of a Markdown table a script built by hand (header, rule, rows)."""
+    lines = [line.strip() for line in text.strip().splitlines() if line.strip().startswith("|")]
+
+    def cells(line: str) -> list[str]:
+        return [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line[1:-1])]
+
+    return table_data(cells(lines[0]), [cells(line) for line in lines[2:]])
+
+
+def write_results(
+    name: str,
+    sections: dict,
+    argv: Sequence[str] | None = None,
+    *,
+    meta: dict | None = None,
+    path: Path | None = None,
+) -> Path:
+    """Write ``benchmarks/results/<name>.json`` (or ``path``) atomically and return its path.
+
+    Args:
+        name: the benchmark's name, e.g. ``"laplacian"`` for ``bench_laplacian.py``.
+        sections: the results; a ``"tables"`` entry maps table names to :func:`table_data` dicts,
+            which ``benchmarks/tables.py`` renders into the README.
+        argv: the command line (default ``sys.argv``); used only when ``meta`` is None.
+        meta: the header :func:`run_meta` returned at the start of the run (so that its load
+            average is the one before the run); None takes it now.
+        path: where to write instead of the default.
+
+    Values JSON cannot hold (paths, numpy scalars) are written as their ``str``.
+    """
+    meta = dict(run_meta(argv) if meta is None else meta)
+    meta["load_after"] = _load()
+    meta["peers"] = {
+        dist: _version(dist) for module, dist in PEERS.items() if module in sys.modules
+    }
+    target = RESULTS / f"{name}.json" if path is None else Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(target.name + ".tmp")
+    text = json.dumps({"benchmark": name, "meta": meta, **sections}, indent=1, default=str)
+    tmp.write_text(text + "\n")
+    tmp.replace(target)
+    print(f"wrote {target}", file=sys.stderr)
+    return target
 
 
 def cpu_model() -> str:
@@ -96,5 +287,5 @@ def peak_rss_growth(step: Callable[[], object]) -> dict:
         "method": "VmHWM after clear_refs" if exact else "ru_maxrss since start",
         "rss_baseline_bytes": baseline,
         "rss_peak_bytes": peak,
-        "rss_delta_bytes": None if baseline is None else peak - baseline,
+        "rss_delta_bytes": None if baseline is None or peak is None else peak - baseline,
     }

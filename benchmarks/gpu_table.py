@@ -5,30 +5,30 @@ Run by ``benchmarks/gpu_check.sh`` on a CUDA machine (about 2-4 minutes)::
 
     python3 benchmarks/gpu_table.py --json gpu_table.json
 
-Markdown to stdout; ``--json`` writes the numbers.  Times are medians of ``--repeat`` runs after
-one warm-up, with ``torch.cuda.synchronize()`` around every timed CUDA step.
+Markdown to stdout; writes ``benchmarks/results/gpu_table.json`` (or ``--json PATH``). Times
+are medians of ``--repeat`` runs after one warm-up, with ``torch.cuda.synchronize()``
+around every timed CUDA step.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import torch
-from common import markdown_table, median_time, synchronizer
+from common import (
+    bench_grid,
+    markdown_table,
+    median_time,
+    run_meta,
+    synchronizer,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp
-from torch_polylap.shapes import quad_grid
-
-
-def grid(n: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n x n`` non-planar quads (``torch_polylap.shapes.quad_grid``)."""
-    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(6 * x) * torch.cos(5 * y), dtype=dtype)
 
 
 def steps(verts: torch.Tensor, faces: torch.Tensor, k: int) -> dict[str, Callable[[], object]]:
@@ -68,7 +68,7 @@ def main() -> None:
     parser.add_argument("--eigs-grid", type=int, default=300, help="grid for eigs (90k quads)")
     parser.add_argument("--k", type=int, default=16)
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/gpu_table.json")
     parser.add_argument(
         "--device", default="cuda", help="the accelerator (cpu only to try the script itself)"
     )
@@ -76,10 +76,11 @@ def main() -> None:
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         sys.exit("gpu_table: no CUDA device")
     cuda, cpu = torch.device(args.device), torch.device("cpu")
+    meta = run_meta()
     rows = []
     for dtype in (torch.float32, torch.float64):
         for n in sorted({args.grid, args.eigs_grid}):
-            verts, faces = grid(n, dtype)
+            verts, faces = bench_grid(n, dtype=dtype)
             per_device = {dev: steps(verts.to(dev), faces, args.k) for dev in (cpu, cuda)}
             for name in per_device[cuda]:
                 if name.startswith("eigs") != (n == args.eigs_grid):
@@ -115,8 +116,9 @@ def main() -> None:
         for r in rows
     ]
     print(markdown_table(header, body))
-    if args.json is not None:
-        args.json.write_text(json.dumps(rows, indent=2))
+    meta["device"] = name
+    sections = {"repeat": args.repeat, "rows": rows, "tables": {"gpu": table_data(header, body)}}
+    write_results("gpu_table", sections, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":

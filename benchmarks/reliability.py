@@ -21,16 +21,15 @@ Categories and references:
 * ``PLY, non-integral indices``: a face list with a fractional index; must refuse.
 * ``free-boundary map, not a disk``: a grid with holes; must refuse.
 
-Run from this folder: ``python reliability.py [--cases 40] [--json results/reliability.json]``.
+``python benchmarks/reliability.py [--cases 40] [--seed 0]`` writes
+``benchmarks/results/reliability.json`` (or ``--json PATH``).
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
-import json
 import math
-import os
 import tempfile
 import warnings
 from collections.abc import Callable
@@ -39,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 import torch
+from common import bench_grid, markdown_table, run_meta, table_data, write_results
 
 import torch_polylap as tp
 
@@ -58,16 +58,10 @@ def _classify(run: Callable[[], bool]) -> Outcome:
     return "valid" if right else "silent wrong"
 
 
-def _grid(n: int, m: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-    verts, faces = tp.shapes.quad_grid(n, m)
-    g = torch.Generator().manual_seed(seed)
-    return verts.double() + 0.05 * torch.randn(verts.shape, generator=g, dtype=torch.float64), (
-        torch.as_tensor(faces)
-    )
-
-
 def eigs_repeated(rng: np.random.Generator) -> bool:
-    verts, faces = _grid(int(rng.integers(3, 6)), int(rng.integers(3, 6)), int(rng.integers(99)))
+    verts, faces = bench_grid(
+        int(rng.integers(3, 6)), int(rng.integers(3, 6)), noise=0.05, seed=int(rng.integers(99))
+    )
     copies = int(rng.integers(5, 30))
     V = verts.shape[0]
     all_verts = torch.cat([verts + 10.0 * c for c in range(copies)])
@@ -82,7 +76,7 @@ def eigs_repeated(rng: np.random.Generator) -> bool:
 
 
 def eigs_non_symmetric(rng: np.random.Generator) -> bool:
-    verts, faces = _grid(6, 6, int(rng.integers(99)))
+    verts, faces = bench_grid(6, 6, noise=0.05, seed=int(rng.integers(99)))
     L, M0 = tp.laplacian(verts, faces)
     w = torch.from_numpy(rng.uniform(0.5, 2.0, verts.shape[0]))
     tp.eigs(L * w[:, None], M0, 4)
@@ -90,7 +84,7 @@ def eigs_non_symmetric(rng: np.random.Generator) -> bool:
 
 
 def solve_singular(rng: np.random.Generator) -> bool:
-    verts, faces = _grid(8, 8, int(rng.integers(99)))
+    verts, faces = bench_grid(8, 8, noise=0.05, seed=int(rng.integers(99)))
     L, M0 = tp.laplacian(verts, faces)
     A = L if rng.random() < 0.5 else L - float(rng.uniform(5, 50)) * M0
     b = torch.from_numpy(rng.standard_normal(verts.shape[0]))
@@ -99,7 +93,7 @@ def solve_singular(rng: np.random.Generator) -> bool:
 
 
 def float32_scales(rng: np.random.Generator) -> bool:
-    verts, faces = _grid(5, 5, int(rng.integers(99)))
+    verts, faces = bench_grid(5, 5, noise=0.05, seed=int(rng.integers(99)))
     s = 10.0 ** float(rng.uniform(-30, 30))
     L64, M64 = tp.laplacian(verts, faces)
     L32, M32 = tp.laplacian((verts * s).float(), faces)
@@ -128,7 +122,7 @@ def float32_thin(rng: np.random.Generator) -> bool:
 
 
 def measures_non_finite(rng: np.random.Generator) -> bool:
-    verts, faces = _grid(4, 4, int(rng.integers(99)))
+    verts, faces = bench_grid(4, 4, noise=0.05, seed=int(rng.integers(99)))
     verts[int(rng.integers(verts.shape[0])), int(rng.integers(3))] = float(
         rng.choice([math.nan, math.inf, -math.inf])
     )
@@ -158,7 +152,7 @@ def ply_fractional(rng: np.random.Generator) -> bool:
 
 def free_boundary_not_a_disk(rng: np.random.Generator) -> bool:
     n = int(rng.integers(6, 10))
-    verts, faces = tp.shapes.quad_grid(n, n)
+    verts, faces = bench_grid(n, n)
     holes = rng.choice(len(faces), size=int(rng.integers(1, 4)), replace=False)
     keep = [f for i, f in enumerate(torch.as_tensor(faces).tolist()) if i not in set(holes)]
     tp.apps.conformal_parameterization(verts.double(), keep, free_boundary=True)
@@ -183,9 +177,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cases", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/reliability.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    meta = run_meta()
     rows = {}
     for name, case in CATEGORIES.items():
         rng = np.random.default_rng(args.seed)
@@ -193,22 +188,12 @@ def main() -> None:
         for _ in range(args.cases):
             counts[_classify(functools.partial(case, rng))] += 1
         rows[name] = counts
-    print("| category | cases | error | warned | valid | silent wrong |")
-    print("|---|---|---|---|---|---|")
-    for name, c in rows.items():
-        print(
-            f"| {name} | {sum(c.values())} | {c['error']} | {c['warned']} | {c['valid']} | "
-            f"{c['silent wrong']} |"
-        )
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        meta = {
-            "torch": torch.__version__,
-            "torch_polylap": tp.__version__,
-            "seed": args.seed,
-            "load": os.getloadavg(),
-        }
-        args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
+    header = ["category", "cases", "error", "warned", "valid", "silent wrong"]
+    body = [[name, sum(c.values()), *c.values()] for name, c in rows.items()]
+    print(markdown_table(header, body))
+    sections = {"seed": args.seed, "cases": args.cases, "rows": rows}
+    sections["tables"] = {"reliability": table_data(header, body)}
+    write_results("reliability", sections, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":
