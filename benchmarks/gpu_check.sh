@@ -18,9 +18,9 @@ print('torch', torch.__version__, '|', torch.cuda.get_device_name())" || exit 2
 
 # CUDA tests: every test whose name says cuda -- the [cuda] case of each test that takes the
 # `device` fixture of tests/conftest.py (operators, products, solves, eigs, nn layers, losses,
-# apps, calculus, gradient features, vector; about 200 with the compile tests), skipped on
-# machines without a GPU -- and the compile tests (the inductor step included). The slowest
-# are listed, to keep this step inside its limit.
+# apps, calculus, gradient features, vector: about 190), skipped on machines without a GPU --
+# and the 20-odd compile tests (the inductor step included). The slowest are listed, to keep
+# this step inside its limit.
 timeout 420 python3 -m pytest -q -p no:cacheprovider --runslow --durations=15 \
     -k "cuda or compile" tests 2>&1 | tee "$out/gpu_tests.log"
 tests_rc=${PIPESTATUS[0]}
