@@ -89,6 +89,7 @@ def assert_directional_derivative(f, X: torch.Tensor, rtol: float, seed: int = 3
     Xg = X.clone().requires_grad_(True)
     (grad,) = torch.autograd.grad(f(Xg), Xg)
     d = torch.randn(X.shape, generator=torch.Generator().manual_seed(seed), dtype=X.dtype)
+    d = d.to(X.device)  # the same direction on every device
     h = 1e-6
     fd = (f(X + h * d) - f(X - h * d)) / (2 * h)
     assert torch.isclose((grad * d).sum(), fd, rtol=rtol), ((grad * d).sum(), fd)

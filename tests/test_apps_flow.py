@@ -41,7 +41,7 @@ def semi_implicit_sphere(r2: float, dt: float, steps: int) -> float:
     return r * r
 
 
-def test_round_sphere_shrinks_at_the_mean_curvature_rate():
+def test_round_sphere_shrinks_at_the_mean_curvature_rate(device):
     dt, steps = 0.02, 5
     expected = semi_implicit_sphere(1.0, dt, steps)
     # the scheme tends to r^2 = 1 - 4 t at first order in dt
@@ -51,7 +51,9 @@ def test_round_sphere_shrinks_at_the_mean_curvature_rate():
     errors = []
     for name in ("quad_2.obj", "quad_3.obj"):
         verts, faces = unit_sphere(name)
+        verts = verts.to(device)
         X = mean_curvature_flow(verts, faces, dt, steps, lam=1.0)
+        assert X.device == verts.device
         # the shape stays round, so the squared radius is the area ratio
         r2 = float(tp.face_areas(X, faces).sum() / tp.face_areas(verts, faces).sum())
         radii = (X - X.mean(0)).norm(dim=1)
@@ -121,10 +123,11 @@ def test_flat_mesh_with_fixed_boundary_is_a_fixed_point_and_stays_in_its_plane()
     assert float(offsets.abs().max()) < 1e-12
 
 
-def test_flow_is_differentiable_in_the_initial_positions():
+def test_flow_is_differentiable_in_the_initial_positions(device):
     verts, faces = hex_pent_mesh()
+    verts = verts.to(device)
     gen = torch.Generator().manual_seed(0)
-    weights = torch.randn(verts.shape, generator=gen, dtype=torch.float64)
+    weights = torch.randn(verts.shape, generator=gen, dtype=torch.float64).to(device)
 
     def loss(X):
         return (mean_curvature_flow(X, faces, 0.05, 3, lam=2.0) * weights).sum()

@@ -99,9 +99,11 @@ def test_progress_bar_and_errors(capsys):
 
 
 @pytest.mark.parametrize("method", ["gauss-newton", "lbfgs"])
-def test_both_methods_planarize_a_perturbed_grid(method):
+def test_both_methods_planarize_a_perturbed_grid(method, device):
     V, F = _perturbed_grid()
+    V, F = V.to(device), F.to(device)
     res = planarize(V, F, tol=1e-6, method=method, max_iter=1000)
+    assert res.verts.device == V.device
     assert res.method == method and res.converged and res.message == "converged"
     assert float(tp.face_nonplanarity(res.verts, F).max()) < 1e-6
     assert res.displacement[1] < 0.02
@@ -153,11 +155,12 @@ def test_warns_when_it_cannot_converge():
 
 
 @pytest.mark.parametrize("method", ["gauss-newton", "lbfgs"])
-def test_fixed_boundary_stays_put_exactly(method):
+def test_fixed_boundary_stays_put_exactly(method, device):
     V, F = quad_grid(8, bump=0.3, seed=5)
     boundary = tp.get_topology(F, V.shape[0]).boundary_vertices
+    V = V.to(device)
     res = planarize(V, F, fixed=boundary, method=method, max_iter=2000)
-    assert res.converged
+    assert res.converged and res.verts.device == V.device
     assert torch.equal(res.verts[boundary], V[boundary])
 
 

@@ -39,14 +39,14 @@ def _great_circle(verts: torch.Tensor, source: int) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("name", ["irr_poly_3", "str_hex_3", "voronoi_3", "concave_3", "quad_3"])
-def test_face_gradient_is_exact_for_linear_functions_on_planar_polygons(name):
+def test_face_gradient_is_exact_for_linear_functions_on_planar_polygons(name, device):
     verts, faces = load(DATA / "grid" / f"{name}.obj")
-    verts = _tilt(verts)
-    w = torch.tensor([0.3, -1.2, 0.7], dtype=torch.float64)
+    verts = _tilt(verts).to(device)
+    w = torch.tensor([0.3, -1.2, 0.7], dtype=torch.float64, device=device)
     normal = tp.face_normals(verts, faces)
     tangential = w - (normal @ w)[:, None] * normal  # the part of w in each face's plane
     grad = tp.face_gradient(verts, faces, verts @ w + 2.5)
-    assert torch.allclose(grad, tangential, atol=1e-12)
+    assert grad.device == verts.device and torch.allclose(grad, tangential, atol=1e-12)
 
 
 def test_face_gradient_of_linear_function_on_nonplanar_faces_is_tangent_to_projection_plane():
@@ -79,15 +79,16 @@ def test_face_gradient_checks_shape():
         tp.face_gradient(verts, faces, torch.zeros(5, dtype=torch.float64))
 
 
-def test_gradient_operator_matches_face_gradient_and_its_transpose_gives_divergence():
+def test_gradient_operator_matches_face_gradient_and_its_transpose_gives_divergence(device):
     verts, faces = load(DATA / "sphere" / "voronoi_3.obj")
+    verts = verts.to(device)
     gen = torch.Generator().manual_seed(1)
-    u = torch.randn(verts.shape[0], 3, dtype=torch.float64, generator=gen)
+    u = torch.randn(verts.shape[0], 3, dtype=torch.float64, generator=gen).to(device)
     G = tp.gradient_operator(verts, faces)
     nf = tp.face_areas(verts, faces).shape[0]
     assert isinstance(G, tp.sparse.SparseOperator) and G.shape == (3 * nf, verts.shape[0])
     torch.testing.assert_close((G @ u).view(nf, 3, 3), tp.face_gradient(verts, faces, u))
-    X = torch.randn(nf, 3, dtype=torch.float64, generator=gen)
+    X = torch.randn(nf, 3, dtype=torch.float64, generator=gen).to(device)
     area = tp.face_areas(verts, faces)
     torch.testing.assert_close(
         -(G.T @ (area[:, None] * X).reshape(-1)), tp.divergence(verts, faces, X)
@@ -104,25 +105,27 @@ def test_gradient_operator_values_are_differentiable():
 
 
 @pytest.mark.parametrize("mesh", ["mixed", "sphere"])
-def test_divergence_is_negative_adjoint_of_gradient(mesh):
+def test_divergence_is_negative_adjoint_of_gradient(mesh, device):
     if mesh == "mixed":
         verts, faces = mixed_mesh()
     else:
         verts, faces = load(DATA / "sphere" / "hex_3.obj")
+    verts = verts.to(device)
     gen = torch.Generator().manual_seed(2)
     area = tp.face_areas(verts, faces)
-    u = torch.randn(verts.shape[0], 2, dtype=torch.float64, generator=gen)
-    X = torch.randn(area.shape[0], 3, 2, dtype=torch.float64, generator=gen)
+    u = torch.randn(verts.shape[0], 2, dtype=torch.float64, generator=gen).to(device)
+    X = torch.randn(area.shape[0], 3, 2, dtype=torch.float64, generator=gen).to(device)
     lhs = (area[:, None, None] * X * tp.face_gradient(verts, faces, u)).sum((0, 1))
     rhs = -(tp.divergence(verts, faces, X) * u).sum(0)
     torch.testing.assert_close(lhs, rhs)
 
 
-def test_face_gradient_gradcheck():
+def test_face_gradient_gradcheck(device):
     verts, faces = hex_pent_mesh()
     u = torch.randn(verts.shape[0], dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     X = torch.randn(len(faces), 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
-    v = verts.clone().requires_grad_(True)
+    u, X = u.to(device), X.to(device)
+    v = verts.to(device, copy=True).requires_grad_(True)
     u.requires_grad_(True)
     assert torch.autograd.gradcheck(lambda v, u: tp.face_gradient(v, faces, u), (v, u))
     assert torch.autograd.gradcheck(lambda v, X: tp.divergence(v, faces, X), (v, X))

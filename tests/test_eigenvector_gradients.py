@@ -37,11 +37,11 @@ def _sign_invariant(evecs: torch.Tensor, M0: torch.Tensor, w: torch.Tensor) -> t
 
 
 @pytest.mark.parametrize("mesh", sorted(MESHES))
-def test_gradcheck_to_vertices(mesh, one_thread):
+def test_gradcheck_to_vertices(mesh, one_thread, device):
     V, F = MESHES[mesh]()
-    V = V.to(torch.float64)
+    V = V.to(device, torch.float64)
     k = 5
-    w = _weights(V.shape[0], k)
+    w = _weights(V.shape[0], k).to(device)
 
     def dependent(X):
         return _sign_dependent(tp.eigs(*tp.laplacian(X, F), k)[1], w)
@@ -85,16 +85,16 @@ def test_operator_from_parts_and_m_orthonormality_are_consistent(one_thread):
     assert grad.abs().max() < 1e-9
 
 
-def test_matches_finite_differences_on_the_sparse_route(one_thread):
+def test_matches_finite_differences_on_the_sparse_route(one_thread, device):
     """500 vertices: eigs runs block Lanczos, not LAPACK; central differences agree."""
     V, F = quad_grid(21, bump=0.3, seed=7)
-    w = _weights(V.shape[0], 6, seed=4)
+    w = _weights(V.shape[0], 6, seed=4).to(device)
 
     def f(X):
         L, M0 = tp.laplacian(X, F)
         return _sign_invariant(tp.eigs(L, M0, 6)[1], M0, w)
 
-    assert_directional_derivative(f, V.to(torch.float64), rtol=1e-5)
+    assert_directional_derivative(f, V.to(device, torch.float64), rtol=1e-5)
 
 
 def test_heat_kernel_signature_gradient_reaches_the_vertices(one_thread):

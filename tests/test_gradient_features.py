@@ -39,20 +39,21 @@ def interior(V, F) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("which", [0, 1])
-def test_gradient_of_a_linear_function_is_exact_on_a_planar_mesh(which):
+def test_gradient_of_a_linear_function_is_exact_on_a_planar_mesh(which, device):
     V, F = planar_meshes()[which]
+    inside = interior(V, F).to(device)
+    V, F = V.to(device), F.to(device) if torch.is_tensor(F) else F
     normal, e_x, e_y = tnn.vertex_tangent_frames(V, F)
     plane_normal = tp.face_normals(V, F)[0]
     # orthonormal frames, normal of the plane
     frame = torch.stack([normal, e_x, e_y], 1)  # (V, 3, 3)
-    eye = torch.eye(3, **D64).expand_as(frame)
+    eye = torch.eye(3, **D64, device=device).expand_as(frame)
     assert torch.allclose(frame @ frame.transpose(1, 2), eye, atol=1e-13)
     assert torch.allclose(normal, plane_normal.expand_as(normal), atol=1e-13)
     grad_x, grad_y = tnn.vertex_gradient_operators(V, F)
     assert isinstance(grad_x, tp.sparse.SparseOperator) and grad_x.shape == (V.shape[0],) * 2
-    w = torch.tensor([[0.7, -1.3, 0.4], [-0.2, 0.5, 2.0]], **D64).T  # two linear functions
-    u = V @ w + torch.tensor([1.0, -3.0], **D64)
-    inside = interior(V, F)
+    w = torch.tensor([[0.7, -1.3, 0.4], [-0.2, 0.5, 2.0]], **D64, device=device).T  # two linear
+    u = V @ w + torch.tensor([1.0, -3.0], **D64, device=device)
     assert inside.sum() >= 5
     # the part of w in the plane, in each vertex's frame; exact at interior (here: all) vertices
     assert torch.allclose((grad_x @ u)[inside], (e_x @ w)[inside], atol=1e-12)
@@ -78,10 +79,11 @@ def test_gradient_of_a_smooth_function_converges_on_a_curved_mesh():
 
 
 @pytest.mark.parametrize("with_rotations", [True, False])
-def test_rotating_the_frames_rotates_the_gradients_and_keeps_the_features(with_rotations):
+def test_rotating_the_frames_rotates_the_gradients_and_keeps_the_features(with_rotations, device):
     V, F = mixed_mesh()
+    V = V.to(device)
     _, e_x, e_y = tnn.vertex_tangent_frames(V, F)
-    theta = torch.linspace(0.3, 5.0, V.shape[0], **D64)[:, None]
+    theta = torch.linspace(0.3, 5.0, V.shape[0], **D64, device=device)[:, None]
     c, s = torch.cos(theta), torch.sin(theta)
     f_x, f_y = c * e_x + s * e_y, -s * e_x + c * e_y
     gx, gy = tnn.vertex_gradient_operators(V, F)
@@ -91,7 +93,7 @@ def test_rotating_the_frames_rotates_the_gradients_and_keeps_the_features(with_r
     assert torch.allclose(rx @ x, c * (gx @ x) + s * (gy @ x), atol=1e-13)
     assert torch.allclose(ry @ x, -s * (gx @ x) + c * (gy @ x), atol=1e-13)
     torch.manual_seed(0)
-    layer = tnn.SpatialGradientFeatures(3, with_rotations=with_rotations).double()
+    layer = tnn.SpatialGradientFeatures(3, with_rotations=with_rotations).double().to(device)
     out = layer(x, gx, gy)
     assert out.shape == x.shape and out.abs().max() > 1e-3
     assert torch.allclose(layer(x, rx, ry), out, atol=1e-13)
@@ -118,20 +120,20 @@ def test_block_diagonal_batch_equals_the_meshes_one_by_one():
     assert torch.allclose(py.to_dense(), grad_y.to_dense(), atol=1e-14)
 
 
-def test_gradcheck_of_the_layer_and_the_operators():
+def test_gradcheck_of_the_layer_and_the_operators(device):
     V, F = mixed_mesh()
     gen = torch.Generator().manual_seed(3)
-    x = torch.randn(V.shape[0], 3, **D64, generator=gen).requires_grad_(True)
-    w_re = (0.5 * torch.randn(3, 3, **D64, generator=gen)).requires_grad_(True)
-    w_im = (0.5 * torch.randn(3, 3, **D64, generator=gen)).requires_grad_(True)
-    verts = V.clone().requires_grad_(True)
+    x = torch.randn(V.shape[0], 3, **D64, generator=gen).to(device).requires_grad_(True)
+    w_re = (0.5 * torch.randn(3, 3, **D64, generator=gen)).to(device).requires_grad_(True)
+    w_im = (0.5 * torch.randn(3, 3, **D64, generator=gen)).to(device).requires_grad_(True)
+    verts = V.to(device, copy=True).requires_grad_(True)
 
     def features(x, w_re, w_im, verts):
         gx, gy = tnn.vertex_gradient_operators(verts, F)
         return tnn.spatial_gradient_features(gx @ x, gy @ x, w_re, w_im)
 
     assert torch.autograd.gradcheck(features, (x, w_re, w_im, verts), fast_mode=True)
-    gy = torch.randn(V.shape[0], 3, **D64, generator=gen).requires_grad_(True)
+    gy = torch.randn(V.shape[0], 3, **D64, generator=gen).to(device).requires_grad_(True)
     assert torch.autograd.gradcheck(tnn.spatial_gradient_features, (x, gy, w_re))  # real A
 
 

@@ -23,24 +23,24 @@ def implicit_matrix(V, F, h=0.1, lam=1.0):
 
 
 @pytest.mark.parametrize("backend", ["splu", "cg", "cholesky"])
-def test_solve_matches_dense(backend):
+def test_solve_matches_dense(backend, device):
     V, F = quad_grid(6, bump=0.3, seed=2)
-    A = implicit_matrix(V, F)
-    B = torch.randn(V.shape[0], 3, generator=torch.Generator().manual_seed(0), **D64)
+    A = implicit_matrix(V.to(device), F)
+    B = torch.randn(V.shape[0], 3, generator=torch.Generator().manual_seed(0), **D64).to(device)
     X = tp.solve(A, B, backend=backend, tol=1e-12)
     ref = torch.linalg.solve(A.to_dense(), B)
-    assert torch.allclose(X, ref, rtol=1e-9, atol=1e-10)
+    assert X.device == B.device and torch.allclose(X, ref, rtol=1e-9, atol=1e-10)
     x = tp.solve(A, B[:, 0], backend=backend, tol=1e-12)
     assert x.shape == (V.shape[0],) and torch.allclose(x, ref[:, 0], rtol=1e-9, atol=1e-10)
 
 
 @pytest.mark.parametrize("backend", ["splu", "cg", "cholesky"])
-def test_gradcheck_solve_values_and_rhs(backend):
+def test_gradcheck_solve_values_and_rhs(backend, device):
     V, F = mixed_mesh()
-    A = implicit_matrix(V, F, h=0.3)
+    A = implicit_matrix(V.to(device), F, h=0.3)
     crow, col = A.crow_indices(), A.col_indices()
     values = A.values().detach().clone().requires_grad_(True)
-    B = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(1), **D64)
+    B = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(1), **D64).to(device)
     B.requires_grad_(True)
 
     def f(v, B):
@@ -58,9 +58,10 @@ def test_gradcheck_solve_values_and_rhs(backend):
         assert torch.autograd.gradcheck(f, (values, B))
 
 
-def test_solve_gradient_reaches_vertex_positions():
+def test_solve_gradient_reaches_vertex_positions(device):
     """d/dX of a loss through (M0 + h L)^{-1} b matches finite differences."""
     V, F = quad_grid(4, bump=0.3, seed=5)
+    V, F = V.to(device), F.to(device)
     topo = tp.build_topology(F, V.shape[0])
     b = torch.sin(3 * V[:, 0]) + V[:, 1]
 
@@ -125,9 +126,9 @@ def test_singular_system_is_a_clear_error():
         tp.solve(L, torch.ones(V.shape[0]))
 
 
-def test_dirichlet_solve_reproduces_linear_functions():
+def test_dirichlet_solve_reproduces_linear_functions(device):
     """Linear precision: harmonic interpolation of linear boundary data is that linear function."""
-    V, F = tp.read_mesh(DATA / "grid" / "quad_3.obj")
+    V, F = tp.read_mesh(DATA / "grid" / "quad_3.obj", device=device)
     topo = tp.build_topology(F, V.shape[0])
     L, _ = tp.laplacian(V, topo, 2.0)
     boundary = topo.boundary_vertices
@@ -135,20 +136,22 @@ def test_dirichlet_solve_reproduces_linear_functions():
     X = tp.dirichlet_solve(L, torch.zeros_like(u), boundary, u[boundary])
     assert torch.allclose(X, u, atol=1e-11)
     assert torch.equal(X[boundary], u[boundary])
-    mask = torch.zeros(V.shape[0], dtype=torch.bool)
+    mask = torch.zeros(V.shape[0], dtype=torch.bool, device=device)
     mask[boundary] = True
     X2 = tp.dirichlet_solve(
-        L, torch.zeros(V.shape[0], 2, **D64), mask, torch.stack([u, u], 1)[mask]
+        L, torch.zeros(V.shape[0], 2, **D64, device=device), mask, torch.stack([u, u], 1)[mask]
     )
     assert torch.allclose(X2[:, 1], u, atol=1e-11)
 
 
-def test_gradcheck_dirichlet_solve():
+def test_gradcheck_dirichlet_solve(device):
     V, F = hex_pent_mesh()
+    V = V.to(device)
     topo = tp.build_topology(F, V.shape[0])
     boundary = topo.boundary_vertices
-    b = torch.randn(V.shape[0], generator=torch.Generator().manual_seed(4), **D64)
+    b = torch.randn(V.shape[0], generator=torch.Generator().manual_seed(4), **D64).to(device)
     g = torch.randn(boundary.numel(), generator=torch.Generator().manual_seed(5), **D64)
+    g = g.to(device)
 
     def f(X, b, g):
         L, M0 = tp.laplacian(X, topo)
@@ -158,33 +161,37 @@ def test_gradcheck_dirichlet_solve():
     assert torch.autograd.gradcheck(f, args)
 
 
-def test_eigs_match_dense_and_are_m_orthonormal():
-    V, F = tp.read_mesh(DATA / "spot_control_mesh.obj")
+def test_eigs_match_dense_and_are_m_orthonormal(device):
+    V, F = tp.read_mesh(DATA / "spot_control_mesh.obj", device=device)
     L, M0 = tp.laplacian(V, F)
     evals, evecs = tp.eigs(L, M0, 10)
-    ref = scipy.linalg.eigh(L.to_dense().numpy(), M0.to_dense().numpy(), eigvals_only=True)[:10]
-    np.testing.assert_allclose(evals.numpy(), ref, rtol=1e-8, atol=1e-10)
+    assert evals.device == evecs.device == V.device
+    ref = scipy.linalg.eigh(
+        L.to_dense().cpu().numpy(), M0.to_dense().cpu().numpy(), eigvals_only=True
+    )[:10]
+    np.testing.assert_allclose(evals.cpu().numpy(), ref, rtol=1e-8, atol=1e-10)
     gram = evecs.T @ (M0.to_dense() @ evecs)
-    assert torch.allclose(gram, torch.eye(10, **D64), atol=1e-10)
+    assert torch.allclose(gram, torch.eye(10, **D64, device=device), atol=1e-10)
     residual = L.to_dense() @ evecs - (M0.to_dense() @ evecs) * evals
     assert residual.abs().max() < 1e-9 * evals.max()
     assert abs(evals[0]) < 1e-10  # constants
 
 
-def test_eigs_counts_components():
+def test_eigs_counts_components(device):
     V1, F1 = quad_grid(4, bump=0.2)
     V2, F2 = mixed_mesh()
-    V = torch.cat([V1, V2 + 5.0])
+    V = torch.cat([V1, V2 + 5.0]).to(device)
     F = [f.tolist() for f in F1] + [[i + V1.shape[0] for i in f] for f in F2]
     L, M0 = tp.laplacian(V, F)
     evals, _ = tp.eigs(L, M0, 4)
     assert (evals[:2].abs() < 1e-9).all() and evals[2] > 1e-3
 
 
-def test_eigenvalue_gradient_matches_finite_differences():
+def test_eigenvalue_gradient_matches_finite_differences(device):
     V, F = quad_grid(5, bump=0.3, seed=11)  # irregular: simple eigenvalues
+    V = V.to(device)
     topo = tp.build_topology(F, V.shape[0])
-    weights = torch.tensor([0.0, 1.0, -0.5, 2.0], **D64)
+    weights = torch.tensor([0.0, 1.0, -0.5, 2.0], **D64, device=device)
 
     def spectrum(X):
         L, M0 = tp.laplacian(X, topo, 1.5)

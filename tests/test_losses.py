@@ -80,9 +80,10 @@ def triangle_grid():
     return v, tris
 
 
-def test_polygon_smoothing_on_triangles_is_the_cotan_weighted_mean():
+def test_polygon_smoothing_on_triangles_is_the_cotan_weighted_mean(device):
     v, tris = triangle_grid()
     expected = cotan_smoothing(v.numpy(), tris.numpy()).mean()
+    v, tris = v.to(device), tris.to(device)
     for frozen in (False, True):
         out = losses.laplacian_smoothing((v, tris), "polygon", frozen_weights=frozen)
         assert abs(float(out) - expected) < 1e-12
@@ -220,9 +221,10 @@ ALL_LOSSES = {
 
 
 @pytest.mark.parametrize("name", sorted(ALL_LOSSES))
-def test_batch_loss_is_mean_of_single_mesh_losses(name):
+def test_batch_loss_is_mean_of_single_mesh_losses(name, device):
     fn = ALL_LOSSES[name]
     verts, faces = batch()
+    verts = [v.to(device) for v in verts]
     singles = torch.stack([fn((v, f)) for v, f in zip(verts, faces, strict=True)])
     torch.testing.assert_close(fn(PolygonMeshes(verts, faces)), singles.mean())
 
@@ -246,9 +248,10 @@ def tiny_mesh():
 
 # frozen weights are deliberately not the derivative of the loss (tested against fixed weights)
 @pytest.mark.parametrize("name", sorted(set(ALL_LOSSES) - {"polygon_frozen"}))
-def test_gradcheck_on_a_mixed_polygon_mesh(name):
+def test_gradcheck_on_a_mixed_polygon_mesh(name, device):
     fn = ALL_LOSSES[name]
     v, pf = tiny_mesh()
+    v = v.to(device)
     assert torch.autograd.gradcheck(
         lambda x: fn((x, pf)), (v.clone().requires_grad_(True),), eps=1e-6, atol=1e-6
     )
@@ -264,9 +267,9 @@ def thin_mesh(dtype: torch.dtype, aspect: float):
 
 @pytest.mark.parametrize(("dtype", "aspect"), [(torch.float64, 1e6), (torch.float32, 1e3)])
 @pytest.mark.parametrize("name", sorted(ALL_LOSSES))
-def test_thin_faces_give_finite_values_and_gradients(name, dtype, aspect):
+def test_thin_faces_give_finite_values_and_gradients(name, dtype, aspect, device):
     v, f = thin_mesh(dtype, aspect)
-    x = v.clone().requires_grad_(True)
+    x = v.to(device, copy=True).requires_grad_(True)
     out = ALL_LOSSES[name]((x, f))
     (g,) = torch.autograd.grad(out, x)
     assert out.dtype == dtype and g.dtype == dtype

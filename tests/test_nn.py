@@ -194,13 +194,14 @@ def test_spectrum_from_polygon_meshes_uses_the_disk_cache(batch, tmp_path):
     assert torch.equal(first.vert_to_mesh, spectrum.vert_to_mesh)
 
 
-def test_diffusion_gradcheck():
-    V, F = tp.read_mesh(DATA / "dodecahedron_poly.obj", dtype=torch.float64)
+def test_diffusion_gradcheck(device):
+    V, F = tp.read_mesh(DATA / "dodecahedron_poly.obj", dtype=torch.float64, device=device)
     L, M0 = tp.laplacian(V, F)
     evals, evecs = tp.eigs(L, M0, 6)
     spectrum = tnn.Spectrum.from_meshes([(evals, evecs, M0)])
-    x = torch.randn(20, 2, generator=torch.Generator().manual_seed(4), **D64, requires_grad=True)
-    t = torch.tensor([0.05, 0.3], **D64, requires_grad=True)
+    x = torch.randn(20, 2, generator=torch.Generator().manual_seed(4), **D64).to(device)
+    x.requires_grad_(True)
+    t = torch.tensor([0.05, 0.3], **D64, device=device, requires_grad=True)
     assert torch.autograd.gradcheck(lambda x, t: spectrum.heat_diffusion(x, t), (x, t))
     # fast mode (random directions): every perturbed evaluation costs two sparse factorizations
     assert torch.autograd.gradcheck(
@@ -208,15 +209,16 @@ def test_diffusion_gradcheck():
     )
     # the module's parameters (raw times behind a softplus) receive gradients too
     for mode in ("spectral", "implicit"):
-        layer = tnn.LearnedDiffusion(2, mode=mode).double()
+        layer = tnn.LearnedDiffusion(2, mode=mode).double().to(device)
         layer(x.detach(), spectrum, L, M0).pow(2).sum().backward()
         assert torch.isfinite(layer.raw_times.grad).all() and (layer.raw_times.grad != 0).all()
 
 
-def test_implicit_diffusion_differentiates_vertex_positions():
+def test_implicit_diffusion_differentiates_vertex_positions(device):
     V, F = mixed_mesh()
+    V = V.to(device)
     x = torch.stack([V[:, 0], V[:, 1] ** 2], 1)
-    times = torch.tensor([0.1, 0.4], **D64)
+    times = torch.tensor([0.1, 0.4], **D64, device=device)
 
     def f(X):
         L, M0 = tp.laplacian(X, F)
@@ -234,7 +236,7 @@ def dense_chebyshev(L, M0, K, normalization):
         lam_max = (S.abs()).sum(1).max()
     else:
         lam_max = (Ld / m[:, None]).abs().sum(1).max()
-    lam, U = torch.linalg.eigh(2 * S / lam_max - torch.eye(len(m), **D64))
+    lam, U = torch.linalg.eigh(2 * S / lam_max - torch.eye(len(m), **D64, device=m.device))
     assert lam.min() >= -1 - 1e-12 and lam.max() <= 1 + 1e-12  # Gershgorin: spectrum in [-1, 1]
     polys = [
         U @ torch.diag(torch.cos(k * torch.arccos(lam.clamp(-1, 1)))) @ U.t() for k in range(K)
@@ -245,24 +247,23 @@ def dense_chebyshev(L, M0, K, normalization):
 
 
 @pytest.mark.parametrize("normalization", ["sym", "rw"])
-def test_chebyshev_filter_is_the_dense_polynomial(normalization):
+def test_chebyshev_filter_is_the_dense_polynomial(normalization, device):
     V, F = quad_grid(4, bump=0.3, seed=5)
-    L, M0 = tp.laplacian(V, F)
+    L, M0 = tp.laplacian(V.to(device), F)
     K = 5
-    layer = tnn.ChebyshevFilter(3, 2, K=K, normalization=normalization).double()
-    x = torch.randn(V.shape[0], 3, generator=torch.Generator().manual_seed(6), **D64)
+    layer = tnn.ChebyshevFilter(3, 2, K=K, normalization=normalization).double().to(device)
+    x = torch.randn(V.shape[0], 3, generator=torch.Generator().manual_seed(6), **D64).to(device)
     polys = dense_chebyshev(L, M0, K, normalization)
     expected = sum(p @ x @ layer.weight[k] for k, p in enumerate(polys)) + layer.bias
     assert torch.allclose(layer(x, L, M0), expected, atol=1e-10)
 
 
-def test_chebyshev_gradcheck():
+def test_chebyshev_gradcheck(device):
     V, F = mixed_mesh()
-    x = torch.randn(
-        V.shape[0], 2, generator=torch.Generator().manual_seed(7), **D64, requires_grad=True
-    )
-    w = torch.randn(3, 2, 2, generator=torch.Generator().manual_seed(8), **D64, requires_grad=True)
-    Vg = V.clone().requires_grad_(True)
+    x = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(7), **D64)
+    w = torch.randn(3, 2, 2, generator=torch.Generator().manual_seed(8), **D64)
+    x, w = x.to(device).requires_grad_(True), w.to(device).requires_grad_(True)
+    Vg = V.to(device, copy=True).requires_grad_(True)
 
     def f(x, w, X):
         L, M0 = tp.laplacian(X, F)

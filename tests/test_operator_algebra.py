@@ -46,7 +46,7 @@ def dense_operators(X: torch.Tensor, faces, lam) -> tuple[torch.Tensor, torch.Te
 def second_mesh_operator(X, L_like):
     """An operator on another pattern: the graph Laplacian of the mesh's vertex chain."""
     n = X.shape[0]
-    i = torch.arange(n - 1)
+    i = torch.arange(n - 1, device=X.device)
     w = 1.0 + X[:-1, 0] ** 2  # differentiable weights
     rows = torch.cat((i, i + 1, i, i + 1))
     cols = torch.cat((i + 1, i, i, i + 1))
@@ -97,26 +97,29 @@ EXPRESSIONS = {
 
 
 @pytest.mark.parametrize("name", list(EXPRESSIONS))
-def test_expression_gradients_match_dense_reference(name):
+def test_expression_gradients_match_dense_reference(name, device):
     V, F = hex_pent_mesh()
     expr = EXPRESSIONS[name]
     weights = None
 
-    def run(build):
+    def run(build, device):
         nonlocal weights
-        X = V.clone().requires_grad_(True)
-        lam = torch.tensor(1.3, **D64, requires_grad=True)
+        X = V.to(device, copy=True).requires_grad_(True)
+        lam = torch.tensor(1.3, **D64, device=device, requires_grad=True)
         L, M0 = build(X, lam)
         out = expr(L, M0, X)
+        assert out.device.type == device.type
         if weights is None:
             gen = torch.Generator().manual_seed(3)
             weights = torch.randn(out.shape, generator=gen, **D64)
-        loss = (out * weights).sum()
+        loss = (out * weights.to(device)).sum()
         gX, glam = torch.autograd.grad(loss, (X, lam), allow_unused=True)
-        return out.detach(), gX, torch.zeros((), **D64) if glam is None else glam
+        glam = torch.zeros((), **D64) if glam is None else glam
+        return out.detach().cpu(), gX.cpu(), glam.cpu()
 
-    out, gX, glam = run(lambda X, lam: tp.laplacian(X, F, lam))
-    ref_out, ref_gX, ref_glam = run(lambda X, lam: dense_operators(X, F, lam))
+    # the dense reference on the CPU (its face-by-face assembly indexes with CPU tensors)
+    out, gX, glam = run(lambda X, lam: tp.laplacian(X, F, lam), device)
+    ref_out, ref_gX, ref_glam = run(lambda X, lam: dense_operators(X, F, lam), torch.device("cpu"))
     torch.testing.assert_close(out, ref_out, rtol=1e-10, atol=1e-10)
     torch.testing.assert_close(gX, ref_gX, rtol=1e-9, atol=1e-9 * ref_gX.abs().max())
     torch.testing.assert_close(glam, ref_glam, rtol=1e-9, atol=1e-12)

@@ -76,21 +76,23 @@ def test_wave_kernel_signature_is_mass_normalized(spot):
     assert torch.allclose(mass @ wks, torch.ones(12, **D64), atol=1e-10)
 
 
-def test_learnable_times_and_diffusion_gradients():
+def test_learnable_times_and_diffusion_gradients(device):
     V, F = quad_grid(5, bump=0.3, seed=3)
+    V = V.to(device)
     L, M0 = tp.laplacian(V, F)
     evals, evecs = tp.eigs(L, M0, 12)
-    times = torch.tensor([0.01, 0.1], **D64, requires_grad=True)
+    times = torch.tensor([0.01, 0.1], **D64, device=device, requires_grad=True)
     assert torch.autograd.gradcheck(lambda t: tp.heat_kernel_signature(evals, evecs, t), (times,))
     u0 = V[:, :2].clone().requires_grad_(True)
-    t = torch.tensor(0.05, **D64, requires_grad=True)
+    t = torch.tensor(0.05, **D64, device=device, requires_grad=True)
     assert torch.autograd.gradcheck(lambda u, t: tp.implicit_heat_diffusion(L, M0, u, t), (u0, t))
 
 
-def test_eigenvector_gradients_reach_the_vertices():
+def test_eigenvector_gradients_reach_the_vertices(device):
     """Through evecs as well as evals (formerly refused; tests/test_eigenvector_gradients.py)."""
     V, F = mixed_mesh()
-    times = torch.tensor([0.1], **D64)
+    V = V.to(device)
+    times = torch.tensor([0.1], **D64, device=device)
 
     def hks(X, detach):
         evals, evecs = tp.eigs(*tp.laplacian(X, F), 4)

@@ -44,12 +44,13 @@ def triangulated(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_sphere_spectrum_is_l_l_plus_1_minus_1(method):
+def test_sphere_spectrum_is_l_l_plus_1_minus_1(method, device):
     """The Bochner Laplacian of the unit sphere has eigenvalues l (l + 1) - 1 with multiplicity
     2 (2 l + 1): 1 six times, 5 ten times (Weitzenboeck: the Hodge Laplacian's l (l + 1) minus
     the Ricci curvature 1). Measured on the 6 x 6 cube sphere: within 1.5% for all methods."""
     verts, faces = tp.shapes.quad_sphere(6)
-    A, M, _ = tv.connection_laplacian(verts, faces, method=method)
+    A, M, _ = tv.connection_laplacian(verts.to(device), faces, method=method)
+    assert A.device.type == M.device.type == device.type
     mu = generalized_spectrum(A, M)
     np.testing.assert_allclose(mu[:6], 1.0, rtol=0.03)
     np.testing.assert_allclose(mu[6:16], 5.0, rtol=0.03)
@@ -140,19 +141,20 @@ def smooth_frames(verts: torch.Tensor, faces) -> tv.TangentFrames:
     """Frames whose e_x projects one fixed generic axis: smooth in verts (the default frames
     switch axis where two normal components tie, a jump that gradcheck would see)."""
     normal = tp.nn.vertex_tangent_frames(verts, faces)[0]
-    axis = torch.tensor([0.3, 0.5, 0.8], dtype=verts.dtype)
+    axis = torch.tensor([0.3, 0.5, 0.8], dtype=verts.dtype, device=verts.device)
     e_x = axis - (normal @ axis)[:, None] * normal
     e_x = e_x / e_x.norm(dim=1, keepdim=True)
     return tv.TangentFrames(normal, e_x, torch.linalg.cross(normal, e_x, dim=1))
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_gradcheck_connection_laplacian(method):
+def test_gradcheck_connection_laplacian(method, device):
     """Values and mass differentiable in verts (float64 gradcheck, non-planar mixed polygons
     with boundary), for vector and cross fields."""
     from conftest import hex_pent_mesh
 
     verts, faces = hex_pent_mesh()
+    verts = verts.to(device)
 
     def values(v: torch.Tensor) -> torch.Tensor:
         frames = smooth_frames(v, faces)

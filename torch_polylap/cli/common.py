@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +17,7 @@ import torch
 
 from ..atomic import atomic_write
 from ..faces import PolygonFaces
-from ..io import SkippedContentWarning, read_mesh, write_mesh
+from ..io import read_mesh, write_mesh
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -253,24 +252,9 @@ def load_mesh(
 ) -> tuple[torch.Tensor, PolygonFaces, Path, str]:
     """``(verts, faces, path, label)`` of the mesh argument or the command's default mesh."""
     path = Path(args.mesh) if args.mesh else args.default_mesh
-    verts, faces = read_mesh_quietly(path, embedded=not args.mesh, dtype=dtype, device=device)
+    verts, faces = read_mesh(path, dtype, device)
     label = path.name + ("" if args.mesh else " (embedded default mesh)")
     return verts, faces, path, label
-
-
-def read_mesh_quietly(
-    path: Path,
-    *,
-    embedded: bool,
-    dtype: torch.dtype = torch.float64,
-    device: torch.device | str | None = None,
-) -> tuple[torch.Tensor, PolygonFaces]:
-    """``read_mesh``; for the package's embedded meshes without the warning about the texture
-    coordinates and materials they carry, which the commands have no use for."""
-    with warnings.catch_warnings():
-        if embedded:
-            warnings.simplefilter("ignore", SkippedContentWarning)
-        return read_mesh(path, dtype, device)
 
 
 def output_dir(args: argparse.Namespace) -> Path:

@@ -18,6 +18,7 @@ import torch
 
 from .. import __version__
 from ..faces import PolygonFaces
+from ..io import read_mesh
 from ..timing import markdown_table
 from ..topology import get_topology
 from . import param, planarize, smooth
@@ -29,7 +30,6 @@ from .common import (
     execute,
     figure_output,
     mesh_output,
-    read_mesh_quietly,
     text_output,
 )
 
@@ -140,7 +140,7 @@ def plate(*, with_plot: bool, method: str = "aw11") -> Result:
     of ``method`` (``"plms"`` ignores lambda: the three errors are equal)."""
     from ..apps.plate import navier_deflection, plate_bending, plate_error
 
-    verts, faces = read_mesh_quietly(PLATE_MESH, embedded=True)
+    verts, faces = read_mesh(PLATE_MESH)
     # the polyLaplace grid covers [-1/2, 1/2]^2; Navier's solution is for [0, 1]^2
     verts = verts + torch.tensor([0.5, 0.5, 0.0], dtype=verts.dtype)
     topo = get_topology(faces, verts.shape[0])
