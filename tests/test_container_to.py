@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import hex_pent_mesh, mixed_mesh
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from torch_polylap.batch import PolygonMeshes, to_arguments
@@ -151,6 +151,10 @@ _VALUES = [*_DEVICES, *_DTYPES, False, torch.zeros(1), torch.zeros(1, dtype=F64)
         max_size=3,
     ),
 )
+# torch reads the device before it casts: an unreadable device is its RuntimeError even with an
+# integer dtype, and a wrongly typed argument its TypeError before the device is read
+@example(args=["nowhere", torch.int64], kwargs={})
+@example(args=["nowhere", "cpu"], kwargs={})
 def test_to_arguments_accept_exactly_what_tensor_to_accepts(args, kwargs):
     t = torch.zeros(2, dtype=F64)
     try:

@@ -166,17 +166,20 @@ def to_arguments(*args: Any, **kwargs: Any) -> TensorMove:
         )
     if dtype is not None and not isinstance(dtype, torch.dtype):
         raise TypeError(f"to(): dtype must be a torch.dtype, got {dtype!r}.")
+    flags = {key: given.get(key, False) for key in ("non_blocking", "copy")}
+    for key, value in flags.items():
+        if not isinstance(value, bool):
+            raise TypeError(f"to(): {key} must be a bool, got {value!r}.")
+    # as torch: arguments of the wrong type are a TypeError first, then a device string it
+    # cannot read is a RuntimeError, whatever the dtype
+    target = None if device is None else torch.device(device)
     if dtype is not None and not dtype.is_floating_point:
         raise TypeError(
             f"to(): a mesh container casts its positions and operator values, which must stay "
             f"floating point; got dtype {dtype} (use torch.float32 or torch.float64)."
         )
-    flags = {key: given.get(key, False) for key in ("non_blocking", "copy")}
-    for key, value in flags.items():
-        if not isinstance(value, bool):
-            raise TypeError(f"to(): {key} must be a bool, got {value!r}.")
     return TensorMove(
-        None if device is None else torch.device(device),
+        target,
         dtype,
         flags["non_blocking"],
         flags["copy"],
