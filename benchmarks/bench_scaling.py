@@ -2,9 +2,11 @@
 
     python benchmarks/bench_scaling.py [--sizes 100 316 1000] [--repeat 3] [--json PATH]
 
-On ``n x n`` non-planar quad grids (``F = n^2`` quads, the lift of ``bench_laplacian.py``), one
+Writes ``benchmarks/results/scaling.json`` (or ``--json PATH``).
+
+On ``n x n`` non-planar quad grids (``F = n^2`` quads, ``common.bench_grid``), one
 torch thread, float64, CPU, every operation timed as the median of ``--repeat`` samples after a
-warm-up call:
+warm-up call (one sample at 500k faces and above for the factorizations and the I/O):
 
 * ``topology``: ``tp.build_topology`` (sorting corner pairs, manifold analysis, CSR pattern);
 * ``first assembly``: ``tp.laplacian`` on a fresh topology (topology included);
@@ -27,23 +29,26 @@ algorithm's by more than 0.15.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import platform
 import sys
 import tempfile
-import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import cpu_model, markdown_table, median_time, pinned_threads
+from common import (
+    bench_grid,
+    markdown_table,
+    pinned_threads,
+    run_meta,
+    table_data,
+    timed,
+    write_results,
+)
 
 import torch_polylap as tp
-from torch_polylap.shapes import quad_grid
 
 # (label, exponent the algorithm needs)
 ROWS: dict[str, tuple[str, float]] = {
@@ -60,11 +65,6 @@ ROWS: dict[str, tuple[str, float]] = {
 }
 # a fitted exponent this far above the algorithm's is flagged as superlinear beyond need
 TOLERANCE = 0.15
-
-
-def grid(n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n x n`` non-planar quads: float64 ``(V, 3)`` positions and ``(F, 4)`` faces."""
-    return quad_grid(n, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y))
 
 
 def forward_backward(verts: torch.Tensor, topo: tp.Topology) -> None:
@@ -88,7 +88,7 @@ def eigs_fresh(verts: torch.Tensor, topo: tp.Topology) -> torch.Tensor:
 
 def measure(n: int, repeat: int, workdir: Path) -> dict:
     """Median seconds of every row on the ``n x n`` grid."""
-    verts, faces = grid(n)
+    verts, faces = bench_grid(n)
     topo = tp.build_topology(faces, verts.shape[0])
     B = torch.randn(
         verts.shape[0], 3, dtype=verts.dtype, generator=torch.Generator().manual_seed(0)
@@ -114,7 +114,8 @@ def measure(n: int, repeat: int, workdir: Path) -> dict:
     seconds = {}
     for key, (fn, reps) in steps.items():
         print(f"  {n}x{n} {ROWS[key][0]} ...", file=sys.stderr, flush=True)
-        seconds[key] = median_time(fn, reps)
+        # one discarded warm-up call; sub-millisecond work timed over several calls per sample
+        seconds[key] = timed(fn, reps, warmup=True, min_sample_s=0 if big else 0.05)[0]
     path.unlink()
     return {
         "n": n,
@@ -130,7 +131,7 @@ def exponent(faces: list[int], seconds: list[float]) -> float:
     return float(np.polyfit(np.log(faces), np.log(seconds), 1)[0])
 
 
-def table(grids: list[dict]) -> str:
+def table(grids: list[dict]) -> tuple[list[str], list[list[str]]]:
     """One row per operation: milliseconds at each size, the fitted and the needed exponent."""
     faces = [g["faces"] for g in grids]
     header = ["operation", *[f"{f:,} faces (ms)" for f in faces], "exponent", "needs", ""]
@@ -142,21 +143,7 @@ def table(grids: list[dict]) -> str:
         body.append(
             [label, *[f"{1e3 * t:,.1f}" for t in times], f"{fitted:.2f}", f"{needed:g}", flag]
         )
-    return markdown_table(header, body)
-
-
-def environment(argv: list[str]) -> dict:
-    """Machine, versions, threads and load, recorded beside the numbers."""
-    return {
-        "command": "python benchmarks/bench_scaling.py " + " ".join(argv),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "machine": f"{cpu_model()}, {os.cpu_count()} cores",
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "threads": torch.get_num_threads(),
-        "load_average": list(os.getloadavg()),
-    }
+    return header, body
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -169,7 +156,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         help="grid sides n (n x n quads); at least two (default 100 316 1000)",
     )
     parser.add_argument("--repeat", type=int, default=3, help="samples per timing (default 3)")
-    parser.add_argument("--json", type=Path, help="also write the numbers here")
+    parser.add_argument("--json", type=Path, help="default benchmarks/results/scaling.json")
     args = parser.parse_args(argv)
     if len(args.sizes) < 2:
         parser.error("an exponent needs at least two --sizes")
@@ -177,21 +164,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    args = parse_args(argv)
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    meta = run_meta(threads=1)
     with pinned_threads(1), warnings.catch_warnings(), tempfile.TemporaryDirectory() as tmp:
         warnings.simplefilter("ignore")
-        env = environment(argv)
         grids = [measure(n, args.repeat, Path(tmp)) for n in sorted(args.sizes)]
-        env["load_average_after"] = list(os.getloadavg())
-    print(
-        f"{env['machine']}; torch {env['torch']}, one thread; load average "
-        f"{' '.join(f'{x:.1f}' for x in env['load_average'])} before, "
-        f"{' '.join(f'{x:.1f}' for x in env['load_average_after'])} after.\n"
-    )
-    print(table(grids))
-    if args.json:
-        args.json.write_text(json.dumps({"environment": env, "grids": grids}, indent=1) + "\n")
+    header, body = table(grids)
+    print(markdown_table(header, body))
+    tables = {"scaling": table_data(header, body)}
+    write_results("scaling", {"grids": grids, "tables": tables}, meta=meta, path=args.json)
     return 0 if all(math.isfinite(t) for g in grids for t in g["seconds"].values()) else 1
 
 
