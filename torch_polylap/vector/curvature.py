@@ -182,9 +182,7 @@ def shape_operator(
     n_f = a / area[:, None]
     device = verts.device
     idx = topo.faces.indices.to(device)
-    face = torch.repeat_interleave(
-        torch.arange(topo.num_faces, device=device), topo.faces.sizes.to(device)
-    )
+    face = topo.faces.corner_face.to(device)
     # Q^T e for the vertex axes e: the axes carried into the face plane by Q(n_v -> n_f)
     n_v, n_c = frames.normal[idx], n_f[face]
     axes = torch.stack(

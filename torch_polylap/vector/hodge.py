@@ -100,7 +100,7 @@ def _refinement(topo: Topology) -> _Refinement:
         topo.require_manifold("hodge decomposition", vertices=False)
         topo.require_oriented("hodge decomposition")
         src, dst = half_edge_vertices(faces)
-        face = torch.repeat_interleave(torch.arange(faces.num_faces), faces.sizes)
+        face = faces.corner_face
         n = topo.num_verts + faces.num_faces
         triangles = torch.stack((src, dst, topo.num_verts + face), 1)
         refined = build_topology(triangles, n, warn=False)
@@ -144,9 +144,7 @@ def virtual_refinement(verts: torch.Tensor, faces: MeshFaces) -> tuple[torch.Ten
 def _refined_verts(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
     faces = topo.faces
     idx = faces.indices.to(verts.device)
-    face = torch.repeat_interleave(
-        torch.arange(faces.num_faces, device=verts.device), faces.sizes.to(verts.device)
-    )
+    face = faces.corner_face.to(verts.device)
     sums = verts.new_zeros(faces.num_faces, 3).index_add(0, face, verts[idx])
     centroids = sums / faces.sizes.to(verts.device, verts.dtype)[:, None]
     return torch.cat((verts, centroids))
@@ -243,9 +241,7 @@ class HodgeDecomposition:
             )
         faces = self.topology.faces
         idx = faces.indices.to(u.device)
-        face = torch.repeat_interleave(
-            torch.arange(faces.num_faces, device=u.device), faces.sizes.to(u.device)
-        )
+        face = faces.corner_face.to(u.device)
         sums = u.new_zeros((faces.num_faces,) + u.shape[1:]).index_add(0, face, u[idx])
         sizes = faces.sizes.to(u.device, u.dtype).reshape((-1,) + (1,) * (u.dim() - 1))
         return torch.cat((u, sums / sizes))

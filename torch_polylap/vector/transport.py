@@ -97,9 +97,7 @@ def corner_transport(
     """
     device = verts.device
     idx = faces.indices.to(device)
-    face = torch.repeat_interleave(
-        torch.arange(faces.num_faces, device=device), faces.sizes.to(device)
-    )
+    face = faces.corner_face.to(device)
     n_f, t1, t2 = face_normals_and_frames(verts, faces, topo)
     n_v, n_c = frames.normal[idx], n_f[face]
     cos = (n_v * n_c).sum(1)
