@@ -82,10 +82,12 @@ def test_backends_give_the_same_distances():
 
 
 def _two_components():
-    """A quad grid and a copy of it lifted off its plane: two connected components."""
+    """A quad grid and a copy of it 100x larger, lifted off its plane: two connected
+    components. The copy's faces have areas above 1e2, whose ratio to the smallest normal
+    float overflows (a component without a source has ``grad u = 0`` on every face)."""
     verts, faces = tp.shapes.quad_grid(9, 8)
     verts = verts.double()
-    lifted = verts + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
+    lifted = 100.0 * verts + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
     return torch.cat([verts, lifted]), torch.cat([faces, faces + verts.shape[0]])
 
 
