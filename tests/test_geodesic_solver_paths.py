@@ -17,7 +17,7 @@ from conftest import DATA, hex_pent_mesh
 from meshes import load, shared_path
 
 import torch_polylap as tp
-from torch_polylap.linalg.factor import LDLFactorization
+from torch_polylap.linalg.factor import LDLFactorization, _upper_triangle, cholespy_available
 from torch_polylap.measures import mean_edge_length
 
 pytest.importorskip("qdldl", reason="the 'ldl' backend needs the optional qdldl")
@@ -79,6 +79,49 @@ def test_backends_give_the_same_distances():
     ind = solver._indicator([0])
     phi = solver.potential(solver.normalized_field(solver.heat(ind)))
     torch.testing.assert_close(solver.shift_to_sources(phi, ind)[:, 0], dist["ldl"][:, 0])
+
+
+def _two_components():
+    """A quad grid and a copy of it 100x larger, lifted off its plane: two connected
+    components. The copy's faces have areas above 1e2, whose ratio to the smallest normal
+    float overflows (a component without a source has ``grad u = 0`` on every face)."""
+    verts, faces = tp.shapes.quad_grid(9, 8)
+    verts = verts.double()
+    lifted = 100.0 * verts + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
+    return torch.cat([verts, lifted]), torch.cat([faces, faces + verts.shape[0]])
+
+
+_BACKENDS = ["ldl", "splu"] + (["cholesky"] if cholespy_available() else [])
+
+
+@pytest.mark.parametrize("backend", _BACKENDS)
+def test_query_without_gradients_equals_the_differentiable_path(backend):
+    """A query that needs no gradient runs on float64 arrays (the gradient as one sparse
+    matrix, the solves straight through the factorizations); with ``verts`` requiring grad it
+    takes the torch path (per degree group, through ``solve``'s autograd Function). Both must
+    agree, batches, several sources and a component without a source (``inf``) included."""
+    verts, faces = _two_components()
+    n = verts.shape[0] // 2
+    sources = [[0], [5, 40], [n + 3], [7, n + 9]]
+    plain = tp.HeatGeodesicSolver(verts, faces, backend=backend)
+    fast = plain.distance(sources)
+    tracked = verts.clone().requires_grad_(True)
+    slow = tp.HeatGeodesicSolver(tracked, faces, backend=backend).distance(sources)
+    assert slow.requires_grad and not fast.requires_grad
+    torch.testing.assert_close(fast, slow.detach(), rtol=1e-12, atol=1e-12)
+    assert bool(torch.isinf(fast[n:, 0]).all()) and bool(torch.isinf(fast[:n, 2]).all())
+    # one query gives a vector; no_grad on tracked vertices takes the array path too
+    with torch.no_grad():
+        single = tp.HeatGeodesicSolver(tracked, faces, backend=backend).distance([5, 40])
+    torch.testing.assert_close(single, fast[:, 1], rtol=1e-12, atol=1e-12)
+
+
+def test_float32_query_without_gradients_matches_float64():
+    verts, faces = _sphere_quad()
+    d64 = tp.HeatGeodesicSolver(verts, faces).distance([0])
+    d32 = tp.HeatGeodesicSolver(verts.float(), faces).distance([0])
+    assert d32.dtype == torch.float32
+    torch.testing.assert_close(d32.double(), d64, rtol=1e-4, atol=1e-5)
 
 
 def _strip(n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -158,3 +201,12 @@ def test_solve_takes_the_ldl_backend_with_gradients():
         tp.solve(
             (M0 + 0.1 * L) * torch.arange(1.0, X.shape[0] + 1)[:, None].double(), B, backend="ldl"
         )
+
+
+def test_upper_triangle_equals_scipy_triu():
+    """The upper triangle handed to qdldl (one mask over a symmetric CSR matrix's entries)."""
+    S = _random_spd(60, 3)
+    U = _upper_triangle(S)
+    assert U.format == "csc"
+    np.testing.assert_array_equal(U.toarray(), sp.triu(S).toarray())
+    assert U.nnz == sp.triu(S, format="csc").nnz

@@ -28,18 +28,21 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
+import numpy as np
+import scipy.sparse as sp
 import torch
 
 from ._typing import MeshFaces
 from .checks import Lam, check_index_or_mask, check_verts
 from .kernels.frames import corner_terms, gather_corners
-from .linalg import qdldl_available, solve
+from .linalg import cached_factorization, cholespy_available, qdldl_available, solve
 from .measures import mean_edge_length
 from .operators import laplacian
-from .sparse import SparseOperator, diag
+from .sparse import SparseOperator, as_operator, diag, sparse_values
 from .sparse.operator import operator_on
 from .sparse.pattern import SparsityPattern
 from .topology import DegreeGroup, Topology, get_topology
+from .tracing import tracing
 
 __all__ = [
     "face_gradient",
@@ -243,14 +246,27 @@ SourcesLike = torch.Tensor | Sequence[int] | Sequence[torch.Tensor | Sequence[in
 
 class _Corners(NamedTuple):
     """One degree group's share of the heat method's per-face steps: ``corners`` ``(k, F_k)``,
-    the hat-function gradients ``weights`` ``(3, k, F_k)`` in float64 (eq. (1)), and the same
+    the hat-function gradients ``weights`` ``(3, k, F_k)`` in float64 (eq. (1)), the same
     times the face area, ``flux`` ``(3, k, F_k)`` in ``verts``' dtype (the entries of
-    ``G^T A_F``)."""
+    ``G^T A_F``), and the ``(F_k,)`` float64 face ``area``."""
 
     face_ids: torch.Tensor
     corners: torch.Tensor
     weights: torch.Tensor
     flux: torch.Tensor
+    area: torch.Tensor
+
+
+class _QueryArrays(NamedTuple):
+    """What a query outside autograd reads (:meth:`HeatGeodesicSolver._distance_without_grad`):
+    the ``(3F, V)`` float64 ``gradient`` matrix ``G`` (eq. (1)), the ``(F,)`` face ``area``,
+    the ``(C, V)`` 0/1 matrix ``members`` of the connected components and their ``(V,)``
+    ``labels``."""
+
+    gradient: sp.csr_matrix
+    area: np.ndarray
+    members: sp.csr_matrix
+    labels: np.ndarray
 
 
 class HeatGeodesicSolver:
@@ -277,7 +293,12 @@ class HeatGeodesicSolver:
     ``backend``; on the CPU by default QDLDL's ``L D L^T``, which builds in about half
     CHOLMOD's time on meshes up to :data:`LDL_MAX_VERTS` vertices.  Steps 2 and 3's right-hand
     side are one pass over the faces of each degree, with the per-corner gradient weights
-    computed here once.
+    computed here once.  A query that needs no gradient (neither ``verts`` nor a tensor ``t`` or
+    ``lam`` requires grad, or it runs under ``torch.no_grad()``) with a direct backend on the
+    CPU runs steps 1-4 on float64 arrays instead: ``grad u`` as one product with the
+    ``(3F, V)`` gradient matrix, ``-div X`` as one with its transpose, both solves straight
+    through the cached factorizations; the same distances to round-off, at a fraction of the
+    per-query cost outside the solves.
 
     Vertices of components without a source get ``inf`` (isolated vertices included).
     Differentiable with respect to ``verts`` through both solves (O(nnz) backward).  The heat
@@ -339,11 +360,12 @@ class HeatGeodesicSolver:
         self.heat_operator = self._heat_system(M0 + t * L).double()
         self.poisson_operator = L_poisson + self._pin(L_poisson)
         self._corners = [
-            _Corners(grp.face_ids, grp.corners_t, w.double(), w * area)
+            _Corners(grp.face_ids, grp.corners_t, w.double(), w * area, area.detach().double())
             for grp, w, area in grouped_corner_gradients(verts, self.topology)
         ]
         self.num_components, labels = self.topology.connected_components()
         self.labels = labels.to(verts.device)
+        self._arrays: _QueryArrays | None = None
 
     def _heat_system(self, A: torch.Tensor) -> torch.Tensor:
         """``M0 + t L`` with a unit diagonal at isolated vertices (no face: zero mass, an empty
@@ -448,9 +470,75 @@ class HeatGeodesicSolver:
                 non-integer index (see :func:`~torch_polylap.checks.check_index_or_mask`).
         """
         indicator = self._indicator(sources)
-        phi = self._potential_of_heat(self.heat(indicator))
-        dist = self.shift_to_sources(phi, indicator)
+        backend = self._direct_backend()
+        if backend is None:
+            phi = self._potential_of_heat(self.heat(indicator))
+            dist = self.shift_to_sources(phi, indicator)
+        else:
+            dist = self._distance_without_grad(indicator, backend)
         return dist if _is_batch(sources) else dist[:, 0]
+
+    def _direct_backend(self) -> str | None:
+        """The factorization a query may use outside autograd, or ``None``: a query that
+        needs gradients, runs under a trace, or solves with CG (or on CUDA) takes the torch
+        path of :meth:`heat`, :meth:`_potential_of_heat` and :meth:`shift_to_sources`."""
+        if self.verts.device.type != "cpu" or tracing():
+            return None
+        heat, poisson = sparse_values(self.heat_operator), sparse_values(self.poisson_operator)
+        if torch.is_grad_enabled() and any(x.requires_grad for x in (self.verts, heat, poisson)):
+            return None
+        if self.backend == "auto":
+            # as solve()'s "auto" on the CPU: both operators are symmetric
+            return "cholesky" if cholespy_available() else "splu"
+        return None if self.backend == "cg" else self.backend
+
+    def _query_arrays(self) -> _QueryArrays:
+        """The per-mesh arrays of :meth:`_distance_without_grad`, built by its first call."""
+        if self._arrays is None:
+            groups = self.topology.on(self.verts.device).groups
+            pattern, order = _gradient_layout(self.topology, groups, self.verts.device)
+            weights = torch.cat([c.weights.detach().reshape(-1) for c in self._corners])
+            gradient = sp.csr_matrix(
+                (weights.index_select(0, order).numpy(), pattern.col.numpy(), pattern.crow.numpy()),
+                shape=pattern.shape,
+            )
+            area = np.zeros(self.topology.num_faces)
+            for c in self._corners:
+                area[c.face_ids.numpy()] = c.area.numpy()
+            labels = self.labels.numpy()
+            members = sp.csr_matrix(
+                (np.ones(labels.size), (labels, np.arange(labels.size))),
+                shape=(self.num_components, labels.size),
+            )
+            self._arrays = _QueryArrays(gradient, area, members, labels)
+        return self._arrays
+
+    def _distance_without_grad(self, indicator: torch.Tensor, backend: str) -> torch.Tensor:
+        """Steps 1-4 on float64 arrays, for ``(V, Q)`` ``indicator``: the two solves through
+        the cached factorizations, ``grad u`` as one product with the ``(3F, V)`` gradient
+        matrix and ``-div X`` as one with its transpose (scaled by the face areas), instead of
+        a pass of torch operations per degree group. The same steps as the differentiable
+        path, in float64 whatever ``verts``' dtype."""
+        arrays = self._query_arrays()
+        delta = indicator.double().numpy()
+        heat = cached_factorization(as_operator(self.heat_operator), backend)
+        mass = self.mass.detach().numpy()
+        u = heat.solve(torch.from_numpy(mass[:, None] * delta)).numpy()
+        grad = (arrays.gradient @ u).reshape(-1, 3, u.shape[1])
+        # hypot: the heat underflows in squares some 700 edge lengths from the sources
+        norm = np.hypot(np.hypot(grad[:, 0], grad[:, 1]), grad[:, 2])
+        # divide first: a face of a component without a source has grad u = 0, and its area
+        # over the clamp (the smallest normal float) would overflow to inf, and 0 * inf to NaN
+        unit = grad / np.maximum(norm, np.finfo(np.float64).tiny)[:, None]
+        field = unit * -arrays.area[:, None, None]  # |f| X_f, X = -grad u / |grad u|
+        rhs = arrays.gradient.T @ field.reshape(-1, u.shape[1])
+        poisson = cached_factorization(as_operator(self.poisson_operator), backend)
+        phi = poisson.solve(torch.from_numpy(np.ascontiguousarray(rhs))).numpy()
+        sums = arrays.members @ (phi * delta)
+        hits = arrays.members @ delta
+        shift = sums[arrays.labels] / np.maximum(hits[arrays.labels], 1.0)
+        dist = np.where(hits[arrays.labels] > 0, phi - shift, np.inf)
+        return torch.from_numpy(dist).to(self.verts.dtype)
 
 
 def _geodesic_backend(backend: str, device: torch.device, num_verts: int) -> str:

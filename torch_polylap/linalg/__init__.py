@@ -13,6 +13,7 @@ from .eigenpairs import eigs
 from .eigenpairs import eigs_route as eigs_route
 from .factor import CholeskyFactorization as CholeskyFactorization
 from .factor import Factorization as Factorization
+from .factor import cached_factorization as cached_factorization
 from .factor import cholespy_available as cholespy_available
 from .factor import qdldl_available as qdldl_available
 from .factor import spd_splu as spd_splu

@@ -156,10 +156,8 @@ class LDLFactorization:
         import qdldl
 
         S = to_scipy(A).astype(np.float64, copy=False)
-        # A symmetric CSR matrix read as CSC is its transpose, that is itself: no conversion
-        csc = sp.csc_matrix((S.data, S.indices, S.indptr), shape=S.shape)
         try:
-            self.factor = qdldl.Solver(csc)
+            self.factor = qdldl.Solver(_upper_triangle(S), upper=True)
         except (RuntimeError, ValueError) as err:
             raise ValueError(_not_positive_definite_message(A, str(err))) from None
         if not check:
@@ -184,6 +182,21 @@ class LDLFactorization:
         for j in range(rhs.shape[1]):
             X[:, j] = self.factor.solve(np.ascontiguousarray(rhs[:, j]))
         return _finite(torch.from_numpy(X)).to(B)
+
+
+def _upper_triangle(S: sp.csr_matrix) -> sp.csc_matrix:
+    """The upper triangle (diagonal included) of a symmetric CSR matrix, as CSC.
+
+    Read as CSC, the CSR arrays of a symmetric matrix are its transpose, that is itself: column
+    ``j`` is row ``j``, and its upper part the entries with column index ``<= j``. One mask
+    over the entries replaces scipy's ``triu`` (a COO round trip), which qdldl calls otherwise.
+    """
+    n = S.shape[0]
+    rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(S.indptr))
+    keep = S.indices <= rows
+    indptr = np.concatenate(([0], np.cumsum(keep, dtype=np.int64)))[S.indptr]
+    indices = S.indices[keep].astype(np.int64, copy=False)
+    return sp.csc_matrix((S.data[keep], indices, indptr), shape=S.shape)
 
 
 # An LU of a well-posed system solves it to a backward error of a few eps; a larger one means
