@@ -418,3 +418,140 @@ def test_bulk_off_parser_agrees_with_record_parser(case):
         assert lines == bulk
     elif not wrapped:
         assert lines[0] == "error"  # it gives up only on broken files and wrapped faces
+
+
+# --------------------------------------------------------------------------------------------
+# the bulk ASCII PLY parser against the record parser
+# --------------------------------------------------------------------------------------------
+
+
+def _ply_value(draw, kind: str) -> str:
+    if kind == "f":
+        return draw(st.sampled_from([repr, "{:.17g}".format]))(draw(doubles))
+    return str(draw(st.integers(0, 300)))
+
+
+@st.composite
+def ply_ascii_texts(draw) -> bytes:
+    """Random ASCII PLY: extra vertex properties, scalars around the face list, an extra
+    element, float or int index lists, and now and then a broken record, a blank line or a
+    missing one."""
+    num_verts, num_faces = draw(st.integers(3, 6)), draw(st.integers(1, 4))
+    vprops = [("x", "f"), ("y", "f"), ("z", "f")]
+    vprops += draw(st.sampled_from([[], [("nx", "f"), ("ny", "f"), ("nz", "f")], [("red", "i")]]))
+    before = draw(st.sampled_from([[], [("flags", "i")]]))
+    after = draw(st.sampled_from([[], [("material", "i")], [("w", "f"), ("q", "i")]]))
+    item = draw(st.sampled_from(["int", "uint", "float"]))
+    count = draw(st.sampled_from(["uchar", "int"]))
+    edge_at = draw(st.sampled_from([None, 1, 2]))
+    type_name = {"f": "double", "i": "int"}
+
+    head = ["ply", "format ascii 1.0", f"element vertex {num_verts}"]
+    head += [f"property {type_name[k]} {p}" for p, k in vprops]
+    elements = [("vertex", num_verts), ("face", num_faces)]
+    face_head = [f"element face {num_faces}"]
+    face_head += [f"property {type_name[k]} {p}" for p, k in before]
+    face_head += [f"property list {count} {item} vertex_indices"]
+    face_head += [f"property {type_name[k]} {p}" for p, k in after]
+    edge_head = ["element edge 2", "property int vertex1", "property int vertex2"]
+    if edge_at == 1:
+        head += edge_head
+        elements.insert(1, ("edge", 2))
+    head += face_head
+    if edge_at == 2:
+        head += edge_head
+        elements.append(("edge", 2))
+    head.append("end_header")
+
+    rows = []
+    for name, n in elements:
+        for _ in range(n):
+            if name == "vertex":
+                row = [_ply_value(draw, k) for _, k in vprops]
+            elif name == "edge":
+                row = [str(draw(st.integers(0, num_verts - 1))) for _ in range(2)]
+            else:
+                k = draw(st.sampled_from([3] * 8 + [4] * 8 + [5, 6, 2]))
+                index = st.integers(0, num_verts - (draw(st.integers(0, 60)) > 0))
+                corners = [str(draw(index)) for _ in range(k)]
+                if item == "float":
+                    corners = [c + draw(st.sampled_from([".0", ""] * 10 + [".5"])) for c in corners]
+                row = [_ply_value(draw, k) for _, k in before] + [str(k), *corners]
+                row += [_ply_value(draw, k) for _, k in after]
+            broken = draw(st.integers(0, 80))
+            if broken == 0 and len(row) > 1:
+                row.pop()
+            elif broken == 1:
+                row[draw(st.integers(0, len(row) - 1))] = draw(st.sampled_from(["x1", "nan", "#"]))
+            elif broken == 2:
+                rows.append("")
+            rows.append(draw(st.sampled_from([" ", " ", "  ", "\t"])).join(row))
+    rows += draw(st.sampled_from([[], [], ["1 2"], [""]]))
+    if draw(st.integers(0, 15)) == 0:
+        rows.pop()
+    newline = draw(st.sampled_from(["\n", "\r\n", "\r"]))
+    return (newline.join(head + rows) + draw(st.sampled_from([newline, ""]))).encode()
+
+
+def _read_ply_both(text: bytes, want_attributes: bool):
+    """``read_ply`` with its bulk ASCII parser, and with only the record parser; and whether
+    the bulk one answered."""
+    from torch_polylap.io import ply as ply_module
+
+    answered = []
+    bulk_parser = ply_module._read_ply_ascii_bulk
+
+    def spy(*args):
+        got = bulk_parser(*args)
+        answered.append(got is not None)
+        return got
+
+    results = []
+    for parser in (spy, lambda *args: None):
+        ply_module._read_ply_ascii_bulk = parser
+        try:
+            results.append(
+                _parse(lambda t, s: ply_module.read_ply(t, "m.ply", s, want_attributes), text)
+            )
+        finally:
+            ply_module._read_ply_ascii_bulk = bulk_parser
+    return results[0], results[1], any(answered)
+
+
+@settings(PROPERTY, max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(ply_ascii_texts(), st.booleans())
+def test_bulk_ply_parser_agrees_with_record_parser(text, want_attributes):
+    """The same vertices, faces, attributes, warning and error message (naming the line)
+    either way; the bulk parser gives up only where the record parser refuses the file (or on a
+    '#', which an element that is not read may hold)."""
+    bulk, reference, answered = _read_ply_both(text, want_attributes)
+    assert bulk == reference
+    if not answered and b"#" not in text:
+        assert reference[0] == "error"
+
+
+def test_bulk_ply_parser_reads_what_write_mesh_writes(tmp_path):
+    verts, quads = _grid(4)
+    faces = [[0, 1, 6], *map(list, quads)]
+    path = tmp_path / "m.ply"
+    write_mesh(path, verts, faces)
+    bulk, reference, answered = _read_ply_both(path.read_bytes(), False)
+    assert answered and bulk == reference
+    assert np.array_equal(np.array(bulk[0]).view(np.float64).reshape(-1, 3), verts)
+
+
+@pytest.mark.parametrize(
+    ("record", "message"),
+    [
+        ("4 0 1 2", r"line 15: element 'face' record 1 has 4 values, but its properties need 5"),
+        ("3 0 1 9", r"line 15: element 'face' record 1: face 1 refers to vertex 9, out of range"),
+        ("3 0 1 x", r"line 15: element 'face' record 1: cannot parse 'vertex_indices' value 'x'"),
+    ],
+)
+def test_broken_ascii_ply_records_name_their_line(tmp_path, record, message):
+    head = PLY_HEAD.format(fmt="ascii", count="uchar", item="int").replace("face 1", "face 2")
+    rows = ["0 0 0", "1 0 0", "0 1 0", "1 1 0", "3 0 1 2", record]
+    path = tmp_path / "b.ply"
+    path.write_bytes((head + "\n".join(rows) + "\n").encode())
+    with pytest.raises(ValueError, match=r"b\.ply, " + message):
+        read_mesh(path)
