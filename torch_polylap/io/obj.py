@@ -379,14 +379,14 @@ def obj_bytes(
         blocks.append(face_block(indices, sizes, base=1, prefix="f"))
     else:
         blocks.append(face_block(_corner_tokens(indices, corner_uv, corner_normals), sizes, "f"))
-    return "".join(blocks).encode("ascii")
+    return b"".join(blocks)
 
 
-def _value_block(values: np.ndarray, prefix: str) -> str:
+def _value_block(values: np.ndarray, prefix: str) -> bytes:
     if len(values) == 0:
-        return ""
+        return b""
     line = prefix + " %.17g" * values.shape[1] + "\n"
-    return (line * len(values)) % tuple(values.reshape(-1).tolist())
+    return ((line * len(values)) % tuple(values.reshape(-1).tolist())).encode("ascii")
 
 
 def _corner_tokens(
