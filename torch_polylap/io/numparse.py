@@ -33,6 +33,8 @@ _HI_NIBBLES = U64(0xF0F0F0F0F0F0F0F0)
 _SIX = U64(0x0606060606060606)
 _THREES = U64(0x3333333333333333)
 _B = 8  # bytes per word
+_LOW_BYTE = U64(0xFF)
+_ZERO = U64(48)  # '0'
 PAD = 24  # bytes of padding a buffer needs before its first and after its last token
 
 # For c = 0..8 valid digits in the top c bytes of a word: the bytes to keep, and '0' bytes to
@@ -84,8 +86,13 @@ _SWAR_STEPS = (
 def _digits(words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray) -> np.ndarray:
     """Value (``uint64``) of the ``count`` (0-24) digits ending at ``end`` (see _digits_word);
     more than 19 significant digits count as ``bad``."""
-    value = _digits_word(words, end, count, bad)
     longest = int(count.max()) if len(count) else 0
+    if longest <= 1:  # one digit at most (the integer part of most coordinates): one byte each
+        value = (words[end - 1] & _LOW_BYTE) - _ZERO
+        value *= (count >= 1).astype(U64)
+        bad |= (value > U64(9)).astype(U64)
+        return value
+    value = _digits_word(words, end, count, bad)
     for k in (1, 2):
         if longest <= 8 * k:
             break
