@@ -246,10 +246,11 @@ def _grid(n: int) -> tuple[np.ndarray, np.ndarray]:
     return verts, quads.reshape(-1, 4)
 
 
-@pytest.mark.parametrize("name", ["grid.obj"])
+@pytest.mark.parametrize("name", ["grid.obj", "grid.off", "grid.ply"])
 def test_peak_memory_of_a_read_is_a_few_times_the_file(tmp_path, name):
     """A ~20 MB file: the read's peak (the file's bytes included; numpy arrays are
-    traced by tracemalloc) stays under 6x its size; the line parser peaked at 17-38x."""
+    traced by tracemalloc) stays under 5x its size (about 4x here, under 3x on a 90 MB file:
+    the chunk work arrays are a fixed ~20 MB); the line parsers peaked at 8-38x."""
     verts, quads = _grid(450)
     path = tmp_path / name
     write_mesh(path, verts, quads)
@@ -262,7 +263,7 @@ def test_peak_memory_of_a_read_is_a_few_times_the_file(tmp_path, name):
     finally:
         tracemalloc.stop()
     assert np.array_equal(got.numpy(), verts) and faces.num_faces == len(quads)
-    assert peak <= 6 * size, f"peak {peak / size:.1f}x the file size"
+    assert peak <= 5 * size, f"peak {peak / size:.1f}x the file size"
 
 
 # --------------------------------------------------------------------------------------------

@@ -479,14 +479,18 @@ def _read_ply_ascii(
     record_line: dict[str, Callable[[int], int]],
 ) -> _Columns:
     """Columns of the wanted elements; ``record_line`` gets each one's record -> line number."""
-    body = data[pos:]
     # '#' starts no comment in a PLY body (the record parser refuses it as a number)
-    text = None if b"#" in body else plain_text(body)
-    if text is not None:
-        bulk = _read_ply_ascii_bulk(text, header_lines + 1, elements, wanted, record_line)
-        if bulk is not None:
-            return bulk
-    lines = text_lines(body)
+    if data.find(b"#", pos) < 0:
+        # a body plain_text would leave as it is is read in place: no copy of the file
+        as_is = all(data.find(byte, pos) < 0 for byte in (b"\r", b"\x1b", b"\x85", b"\xa0"))
+        text, begin = (data, pos) if as_is else (plain_text(data[pos:]), 0)
+        if text is not None:
+            bulk = _read_ply_ascii_bulk(
+                text, begin, header_lines + 1, elements, wanted, record_line
+            )
+            if bulk is not None:
+                return bulk
+    lines = text_lines(data[pos:])
     # Records are found by line index; tokens are split from the line when needed, so no
     # per-record lists stay alive (millions of them make the cyclic GC rescan quadratically).
     records = [i for i, line in enumerate(lines) if line and not line.isspace()]
@@ -665,22 +669,23 @@ def _ply_spans(elements: list[_PlyElement], wanted: dict[str, set[str]]) -> tupl
 
 def _read_ply_ascii_bulk(
     text: bytes,
+    begin: int,
     first_line: int,
     elements: list[_PlyElement],
     wanted: dict[str, set[str]],
     record_line: dict[str, Callable[[int], int]],
 ) -> _Columns | None:
-    """Columns of the wanted elements of an ASCII body prepared by :func:`plain_text`, each
-    record one line (``first_line``: the file line of the body's first); None for what the
-    record parser must read (two lists in one element, and every error, whose message that
-    one words)."""
+    """Columns of the wanted elements of an ASCII body (``text[begin:]``, prepared by
+    :func:`plain_text`), each record one line (``first_line``: the file line of the body's
+    first); None for what the record parser must read (two lists in one element, and every
+    error, whose message that one words)."""
     spans, needed = _ply_spans(elements, wanted)
     if needed < 0:
         return None
     parts: dict[str, dict[str, list[np.ndarray]]] = {sp[0].name: {} for sp in spans}
     line_parts: dict[str, list[np.ndarray]] = {sp[0].name: [] for sp in spans}
     seen = 0  # non-blank lines before the chunk
-    for chunk in chunks(text):
+    for chunk in chunks(text, begin):
         if seen >= needed:
             break
         lines = np.flatnonzero(chunk.per_line)
