@@ -172,9 +172,12 @@ def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
             return None
         if (written == 0).any():
             return None
-        before = num_verts + np.cumsum(is_v)[is_f]  # vertices read before each face
-        relative = np.repeat(before, f_size) + written
-        indices.append(np.where(written > 0, written - 1, relative))
+        if (written < 0).any():  # negative indices count back from the vertices read so far
+            before = num_verts + np.cumsum(is_v.astype(np.int64))[is_f]
+            indices.append(np.where(written > 0, written - 1, np.repeat(before, f_size) + written))
+        else:
+            written -= 1
+            indices.append(written)
         sizes.append(f_size)
         num_verts += len(first)
 

@@ -94,6 +94,8 @@ class Chunk:
         Raises:
             BadNumber: a token is no number; ``position`` is its index in ``tokens``.
         """
+        if len(tokens) == 0:  # a chunk of faces only: none of the per-token work below
+            return np.zeros(0, dtype=np.float64)
         t = len(self.start)
         chars, owner, at = self._special_char, self._special_token, self._special_at
         dot = np.full(t, -1, dtype=np.int64)
