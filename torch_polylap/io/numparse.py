@@ -235,14 +235,17 @@ def parse_floats(
     ipart = _digits(words, int_end, n_int, bad)
     fpart = _digits(words, mant_end, n_frac, bad)
     q = -n_frac
-    if has_exp.any():
-        e_first = buf[np.where(has_exp, exp + 1, start)]
-        e_signed = has_exp & ((e_first == 45) | (e_first == 43))
-        n_exp = np.where(has_exp, end - exp - 1 - e_signed, 0)
-        epart = _digits_word(words, end, n_exp, bad)
-        ok &= (n_exp <= 4) & (~has_exp | (n_exp >= 1))
-        e_val = epart.astype(np.int64)
-        q = q + np.where(has_exp & (e_first == 45), -e_val, e_val)
+    with_exp = np.flatnonzero(has_exp)
+    if len(with_exp):  # exponents: only the tokens that have one (few, in most files)
+        e_at = exp.take(with_exp)
+        e_end = end.take(with_exp)
+        e_first = buf.take(e_at + 1)
+        e_signed = (e_first == 45) | (e_first == 43)
+        n_exp = e_end - e_at - 1 - e_signed
+        e_bad = np.zeros(len(with_exp), dtype=U64)
+        e_val = _digits_word(words, e_end, n_exp, e_bad).astype(np.int64)
+        ok[with_exp] &= (n_exp <= 4) & (n_exp >= 1) & (e_bad == 0)
+        q[with_exp] += np.where(e_first == 45, -e_val, e_val)
     fits = n_int + n_frac <= 19
     ok &= (bad == 0) & (fits | (ipart == 0))
     w = np.where(fits, ipart * _POW10_INT[np.clip(n_frac, 0, 19)] + fpart, fpart)
