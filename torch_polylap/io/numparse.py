@@ -169,15 +169,16 @@ def decimal_to_double(w: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndar
     undecided = np.zeros(len(w), dtype=bool)
     # Clinger: w and 10**|q| are exact doubles, so one IEEE operation rounds once, correctly
     easy = (w <= U64(2**53)) & (q >= -22) & (q <= 22)
-    if easy.any():
-        we = w[easy].astype(np.float64)
-        qe = q[easy]
-        p = _POW10_FLOAT[np.abs(qe)]
-        out[easy] = np.where(qe >= 0, we * p, we / p)
+    simple = np.flatnonzero(easy)  # indices, not masks: numpy's mask indexing is slower
+    if len(simple):
+        we = w.take(simple).astype(np.float64)
+        qe = q.take(simple)
+        p = _POW10_FLOAT.take(np.abs(qe))
+        out[simple] = np.where(qe >= 0, we * p, we / p)
     hard = np.flatnonzero(~easy)
     if len(hard) == 0:
         return out, undecided
-    wh, qh = w[hard], q[hard]
+    wh, qh = w.take(hard), q.take(hard)
     row = np.clip(qh, _QMIN, _QMAX) - _QMIN
     shift = 64 - _bit_length(wh)
     wn = wh << shift.astype(U64)  # 2**63 <= wn < 2**64

@@ -21,7 +21,6 @@ from .numparse import PAD, parse_floats, parse_ints, word_view
 __all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
 
 CHUNK_BYTES = 1 << 21
-_SPACES = b" " * PAD
 
 
 class Chunk:
@@ -34,9 +33,14 @@ class Chunk:
         line0: 0-based index of the chunk's first line in the whole text.
     """
 
-    def __init__(self, piece: bytes, line0: int) -> None:
-        tail = b"" if piece.endswith(b"\n") else b"\n"
-        buf = np.frombuffer(_SPACES + piece + tail + _SPACES, dtype=np.uint8)
+    def __init__(self, text: bytes, begin: int, stop: int, line0: int) -> None:
+        """The lines ``text[begin:stop]`` (copied once, into the padded buffer)."""
+        size = stop - begin
+        tail = 0 if text[stop - 1 : stop] == b"\n" else 1
+        buf = np.full(PAD + size + tail + PAD, 32, dtype=np.uint8)
+        buf[PAD : PAD + size] = np.frombuffer(text, dtype=np.uint8, count=size, offset=begin)
+        if tail:
+            buf[PAD + size] = 10
         self.buf = buf
         self.line0 = line0
         self._words: np.ndarray | None = None
@@ -180,7 +184,7 @@ def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
             if cut < 0:
                 cut = text.find(b"\n", stop)
             stop = size if cut < 0 else cut + 1
-        chunk = Chunk(text[pos:stop], line0)
+        chunk = Chunk(text, pos, stop, line0)
         line0 += len(chunk.per_line)
         pos = stop
         yield chunk
