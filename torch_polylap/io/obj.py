@@ -388,7 +388,7 @@ def obj_bytes(
 def _value_block(values: np.ndarray, prefix: str) -> bytes:
     if len(values) == 0:
         return b""
-    line = prefix + " %.17g" * values.shape[1] + "\n"
+    line = prefix + " %r" * values.shape[1] + "\n"  # exact, as the vertices
     return ((line * len(values)) % tuple(values.reshape(-1).tolist())).encode("ascii")
 
 
