@@ -96,11 +96,15 @@ def _digits(words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarr
     for k in (1, 2):
         if longest <= 8 * k:
             break
-        more = _digits_word(words, end - 8 * k, count - 8 * k, bad)
+        # the next eight digits only where there are more (shortest-repr files mix lengths)
+        longer = np.flatnonzero(count > 8 * k)
+        sub_bad = np.zeros(len(longer), dtype=U64)
+        more = _digits_word(words, end.take(longer) - 8 * k, count.take(longer) - 8 * k, sub_bad)
         if k == 2:  # up to 24 digits, of which at most 19 significant: no overflow
-            bad |= (more >= U64(1000)).astype(U64)
+            sub_bad |= (more >= U64(1000)).astype(U64)
         more *= _POW10_INT[8 * k]
-        value += more
+        value[longer] += more
+        bad[longer] |= sub_bad
     return value
 
 
