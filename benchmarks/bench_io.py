@@ -419,7 +419,8 @@ def quietly(fn: Callable[[], object]) -> object:
 
 
 def quad_grid(n: int) -> Mesh:
-    """``(n+1)^2`` vertices on the unit square lifted by a bump: ``n^2`` quads, 17-digit coords."""
+    """``(n+1)^2`` vertices on the unit square lifted by a bump: ``n^2`` quads (the bump's
+    coordinates need 16-17 significant digits)."""
     s = np.linspace(0.0, 1.0, n + 1)
     xs, ys = np.meshgrid(s, s, indexing="ij")
     zs = 0.05 * np.sin(7 * xs) * np.cos(5 * ys)
