@@ -57,6 +57,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from common import (
+    RESULTS,
     bench_grid,
     cpu_model,
     fmt_time,
@@ -64,6 +65,7 @@ from common import (
     median_time,
     pinned_threads,
     run_meta,
+    table_data,
     table_from_markdown,
     write_results,
 )
@@ -692,6 +694,71 @@ def bench_write(
     return row
 
 
+def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
+    """Ours against lagrange on the ``n x n`` quad grid, the two calls alternating (A B A B) so
+    that load from other processes hits both alike: median wall and CPU (process) seconds of
+    each read (OBJ, OFF, ASCII PLY, as ``write_mesh`` writes them) and write (OBJ, ASCII PLY:
+    lagrange writes no OFF), and the ratios ours / lagrange."""
+    import time
+
+    grid = quad_grid(n)
+    rows = []
+    for fmt in ("obj", "off", "ply"):
+        path = folder / f"grid{FORMAT_EXT[fmt]}"
+        ours_write(path, grid, fmt)
+        cases = [
+            ("read", fmt, lambda path=path: ours_read(path), lambda path=path: lagrange_raw(path))
+        ]
+        if fmt in ("obj", "ply"):
+            out = folder / f"lagrange{FORMAT_EXT[fmt]}"
+            cases.append(
+                (
+                    "write",
+                    fmt,
+                    lambda path=path, fmt=fmt: ours_write(path, grid, fmt),
+                    lambda out=out, fmt=fmt: lagrange_write(out, grid, fmt),
+                )
+            )
+        for what, fmt_, ours, theirs in cases:
+            samples: dict[str, list[tuple[float, float]]] = {"ours": [], "lagrange": []}
+            quietly(ours), quietly(theirs)  # warm-up
+            for _ in range(repeat):
+                for name, fn in (("ours", ours), ("lagrange", theirs)):
+                    wall, cpu = time.perf_counter(), time.process_time()
+                    quietly(fn)
+                    samples[name].append((time.perf_counter() - wall, time.process_time() - cpu))
+            med = {k: np.median(np.array(v), axis=0) for k, v in samples.items()}
+            rows.append(
+                {
+                    "op": what,
+                    "format": FORMAT_NAME[fmt_],
+                    "bytes": path.stat().st_size,
+                    "ours_wall_s": float(med["ours"][0]),
+                    "ours_cpu_s": float(med["ours"][1]),
+                    "lagrange_wall_s": float(med["lagrange"][0]),
+                    "lagrange_cpu_s": float(med["lagrange"][1]),
+                }
+            )
+        if fmt != "obj":
+            path.unlink()
+    return rows
+
+
+def interleaved_table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of the interleaved comparison (ratios ours / lagrange)."""
+    head = ["op", "format", "ours wall", "lagrange wall", "ours/lagrange wall", "ours CPU",
+            "lagrange CPU", "ours/lagrange CPU"]  # fmt: skip
+    table = [
+        [
+            r["op"], r["format"], fmt_time(r["ours_wall_s"]), fmt_time(r["lagrange_wall_s"]),
+            f"{r['ours_wall_s'] / r['lagrange_wall_s']:.2f}", fmt_time(r["ours_cpu_s"]),
+            fmt_time(r["lagrange_cpu_s"]), f"{r['ours_cpu_s'] / r['lagrange_cpu_s']:.2f}",
+        ]
+        for r in rows
+    ]  # fmt: skip
+    return head, table
+
+
 # ---------------------------------------------------------------- report
 
 ABBREV = {
@@ -820,10 +887,28 @@ def main(argv: list[str] | None = None) -> None:
         "--write-real", nargs="*", default=["rockerArm.obj", "lion_vase_poly.off"],
         help="real meshes also timed as writers (in every format)",
     )  # fmt: skip
+    parser.add_argument(
+        "--interleaved",
+        action="store_true",
+        help="only ours against lagrange on the --grid, alternating calls (wall and CPU time)",
+    )
     parser.add_argument("--json", type=Path, help="default benchmarks/results/io.json")
     args = parser.parse_args(argv)
     meta = run_meta(threads=1)
     warnings.simplefilter("ignore", SkippedContentWarning)
+    if args.interleaved:
+        with pinned_threads(1), tempfile.TemporaryDirectory(prefix="bench_io_") as tmp:
+            rows = interleaved_grid(args.grid, args.grid_repeat, Path(tmp))
+        head, table = interleaved_table(rows)
+        print(
+            f"Quad grid {args.grid}x{args.grid}, ours and lagrange alternating, medians of "
+            f"{args.grid_repeat} rounds, one thread.\n"
+        )
+        print(markdown_table(head, table))
+        tables = {"interleaved": table_data(head, table)}
+        path = args.json or RESULTS / "io_interleaved.json"
+        write_results("io_interleaved", {"rows": rows, "tables": tables}, meta=meta, path=path)
+        return
 
     libs = [lib for lib in LIBRARIES if lib.available]
     for lib in LIBRARIES:

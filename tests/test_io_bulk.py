@@ -246,10 +246,11 @@ def _grid(n: int) -> tuple[np.ndarray, np.ndarray]:
     return verts, quads.reshape(-1, 4)
 
 
-@pytest.mark.parametrize("name", ["grid.obj"])
+@pytest.mark.parametrize("name", ["grid.obj", "grid.off", "grid.ply"])
 def test_peak_memory_of_a_read_is_a_few_times_the_file(tmp_path, name):
     """A ~20 MB file: the read's peak (the file's bytes included; numpy arrays are
-    traced by tracemalloc) stays under 6x its size; the line parser peaked at 17-38x."""
+    traced by tracemalloc) stays under 5x its size (about 4x here, under 3x on a 90 MB file:
+    the chunk work arrays are a fixed ~20 MB); the line parsers peaked at 8-38x."""
     verts, quads = _grid(450)
     path = tmp_path / name
     write_mesh(path, verts, quads)
@@ -262,7 +263,7 @@ def test_peak_memory_of_a_read_is_a_few_times_the_file(tmp_path, name):
     finally:
         tracemalloc.stop()
     assert np.array_equal(got.numpy(), verts) and faces.num_faces == len(quads)
-    assert peak <= 6 * size, f"peak {peak / size:.1f}x the file size"
+    assert peak <= 5 * size, f"peak {peak / size:.1f}x the file size"
 
 
 # --------------------------------------------------------------------------------------------
@@ -418,3 +419,204 @@ def test_bulk_off_parser_agrees_with_record_parser(case):
         assert lines == bulk
     elif not wrapped:
         assert lines[0] == "error"  # it gives up only on broken files and wrapped faces
+
+
+# --------------------------------------------------------------------------------------------
+# the bulk ASCII PLY parser against the record parser
+# --------------------------------------------------------------------------------------------
+
+
+def _ply_value(draw, kind: str) -> str:
+    if kind == "f":
+        return draw(st.sampled_from([repr, "{:.17g}".format]))(draw(doubles))
+    return str(draw(st.integers(0, 300)))
+
+
+@st.composite
+def ply_ascii_texts(draw) -> bytes:
+    """Random ASCII PLY: extra vertex properties, scalars around the face list, an extra
+    element, float or int index lists, and now and then a broken record, a blank line or a
+    missing one."""
+    num_verts, num_faces = draw(st.integers(3, 6)), draw(st.integers(1, 4))
+    vprops = [("x", "f"), ("y", "f"), ("z", "f")]
+    vprops += draw(st.sampled_from([[], [("nx", "f"), ("ny", "f"), ("nz", "f")], [("red", "i")]]))
+    before = draw(st.sampled_from([[], [("flags", "i")]]))
+    after = draw(st.sampled_from([[], [("material", "i")], [("w", "f"), ("q", "i")]]))
+    item = draw(st.sampled_from(["int", "uint", "float"]))
+    count = draw(st.sampled_from(["uchar", "int"]))
+    edge_at = draw(st.sampled_from([None, 1, 2]))
+    type_name = {"f": "double", "i": "int"}
+
+    head = ["ply", "format ascii 1.0", f"element vertex {num_verts}"]
+    head += [f"property {type_name[k]} {p}" for p, k in vprops]
+    elements = [("vertex", num_verts), ("face", num_faces)]
+    face_head = [f"element face {num_faces}"]
+    face_head += [f"property {type_name[k]} {p}" for p, k in before]
+    face_head += [f"property list {count} {item} vertex_indices"]
+    face_head += [f"property {type_name[k]} {p}" for p, k in after]
+    edge_head = ["element edge 2", "property int vertex1", "property int vertex2"]
+    if edge_at == 1:
+        head += edge_head
+        elements.insert(1, ("edge", 2))
+    head += face_head
+    if edge_at == 2:
+        head += edge_head
+        elements.append(("edge", 2))
+    head.append("end_header")
+
+    rows = []
+    for name, n in elements:
+        for _ in range(n):
+            if name == "vertex":
+                row = [_ply_value(draw, k) for _, k in vprops]
+            elif name == "edge":
+                row = [str(draw(st.integers(0, num_verts - 1))) for _ in range(2)]
+            else:
+                k = draw(st.sampled_from([3] * 8 + [4] * 8 + [5, 6, 2]))
+                index = st.integers(0, num_verts - (draw(st.integers(0, 60)) > 0))
+                corners = [str(draw(index)) for _ in range(k)]
+                if item == "float":
+                    corners = [c + draw(st.sampled_from([".0", ""] * 10 + [".5"])) for c in corners]
+                row = [_ply_value(draw, k) for _, k in before] + [str(k), *corners]
+                row += [_ply_value(draw, k) for _, k in after]
+            broken = draw(st.integers(0, 80))
+            if broken == 0 and len(row) > 1:
+                row.pop()
+            elif broken == 1:
+                row[draw(st.integers(0, len(row) - 1))] = draw(st.sampled_from(["x1", "nan", "#"]))
+            elif broken == 2:
+                rows.append("")
+            rows.append(draw(st.sampled_from([" ", " ", "  ", "\t"])).join(row))
+    rows += draw(st.sampled_from([[], [], ["1 2"], [""]]))
+    if draw(st.integers(0, 15)) == 0:
+        rows.pop()
+    newline = draw(st.sampled_from(["\n", "\r\n", "\r"]))
+    return (newline.join(head + rows) + draw(st.sampled_from([newline, ""]))).encode()
+
+
+def _read_ply_both(text: bytes, want_attributes: bool):
+    """``read_ply`` with its bulk ASCII parser, and with only the record parser; and whether
+    the bulk one answered."""
+    from torch_polylap.io import ply as ply_module
+
+    answered = []
+    bulk_parser = ply_module._read_ply_ascii_bulk
+
+    def spy(*args):
+        got = bulk_parser(*args)
+        answered.append(got is not None)
+        return got
+
+    results = []
+    for parser in (spy, lambda *args: None):
+        ply_module._read_ply_ascii_bulk = parser
+        try:
+            results.append(
+                _parse(lambda t, s: ply_module.read_ply(t, "m.ply", s, want_attributes), text)
+            )
+        finally:
+            ply_module._read_ply_ascii_bulk = bulk_parser
+    return results[0], results[1], any(answered)
+
+
+@settings(PROPERTY, max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(ply_ascii_texts(), st.booleans())
+def test_bulk_ply_parser_agrees_with_record_parser(text, want_attributes):
+    """The same vertices, faces, attributes, warning and error message (naming the line)
+    either way; the bulk parser gives up only where the record parser refuses the file (or on a
+    '#', which an element that is not read may hold)."""
+    bulk, reference, answered = _read_ply_both(text, want_attributes)
+    assert bulk == reference
+    if not answered and b"#" not in text:
+        assert reference[0] == "error"
+
+
+def test_bulk_ply_parser_reads_what_write_mesh_writes(tmp_path):
+    verts, quads = _grid(4)
+    faces = [[0, 1, 6], *map(list, quads)]
+    path = tmp_path / "m.ply"
+    write_mesh(path, verts, faces)
+    bulk, reference, answered = _read_ply_both(path.read_bytes(), False)
+    assert answered and bulk == reference
+    assert np.array_equal(np.array(bulk[0]).view(np.float64).reshape(-1, 3), verts)
+
+
+@pytest.mark.parametrize(
+    ("record", "message"),
+    [
+        ("4 0 1 2", r"line 15: element 'face' record 1 has 4 values, but its properties need 5"),
+        ("3 0 1 9", r"line 15: element 'face' record 1: face 1 refers to vertex 9, out of range"),
+        ("3 0 1 x", r"line 15: element 'face' record 1: cannot parse 'vertex_indices' value 'x'"),
+    ],
+)
+def test_broken_ascii_ply_records_name_their_line(tmp_path, record, message):
+    head = PLY_HEAD.format(fmt="ascii", count="uchar", item="int").replace("face 1", "face 2")
+    rows = ["0 0 0", "1 0 0", "0 1 0", "1 1 0", "3 0 1 2", record]
+    path = tmp_path / "b.ply"
+    path.write_bytes((head + "\n".join(rows) + "\n").encode())
+    with pytest.raises(ValueError, match=r"b\.ply, " + message):
+        read_mesh(path)
+
+
+# --------------------------------------------------------------------------------------------
+# the vectorized integer writer
+# --------------------------------------------------------------------------------------------
+
+
+@PROPERTY
+@given(
+    st.lists(
+        st.lists(st.integers(0, 2**63 - 1) | st.integers(0, 10**7), min_size=1, max_size=7),
+        max_size=30,
+    ),
+    st.sampled_from([b"", b"f", b"ab"]),
+)
+def test_int_lines_match_python_formatting(lines, prefix):
+    from torch_polylap.io.writers import int_lines
+
+    tokens = np.array([t for line in lines for t in line], dtype=np.int64)
+    per_line = np.array([len(line) for line in lines], dtype=np.int64)
+    want = "".join(
+        " ".join(([prefix.decode()] if prefix else []) + list(map(str, line))) + "\n"
+        for line in lines
+    )
+    assert int_lines(tokens, per_line, prefix) == want.encode()
+
+
+@settings(PROPERTY, max_examples=40)
+@given(sizes=st.lists(st.integers(3, 7), min_size=1, max_size=20), seed=st.integers(0, 2**32))
+def test_written_faces_read_back_through_every_text_format(sizes, seed, tmp_path_factory):
+    """Mixed and uniform degrees: OBJ, OFF and ASCII PLY text of the faces is what Python's
+    formatting gives, and reads back to the same faces."""
+    from torch_polylap.io.writers import face_block
+
+    rng = np.random.default_rng(seed)
+    num_verts = int(sum(sizes)) + 1
+    indices = rng.integers(0, num_verts, int(sum(sizes)))
+    sizes_arr = np.array(sizes, dtype=np.int64)
+    rows = np.split(indices, np.cumsum(sizes_arr)[:-1])
+    obj = "".join("f " + " ".join(str(i + 1) for i in row) + "\n" for row in rows)
+    off = "".join(f"{len(row)} " + " ".join(map(str, row)) + "\n" for row in rows)
+    assert face_block(indices, sizes_arr, prefix="f", base=1) == obj.encode()
+    assert face_block(indices, sizes_arr) == off.encode()
+    verts = rng.normal(size=(num_verts, 3))
+    folder = tmp_path_factory.mktemp("faces")
+    faces = [row.tolist() for row in rows]
+    for name in ("m.obj", "m.off", "m.ply"):
+        write_mesh(folder / name, verts, faces)
+        got, read_faces = read_mesh(folder / name)
+        assert np.array_equal(got.numpy(), verts) and read_faces.tolist() == faces
+
+
+@settings(PROPERTY, max_examples=40)
+@given(coords=st.lists(doubles, min_size=9, max_size=30))
+def test_written_coordinates_read_back_bit_for_bit(coords, tmp_path_factory):
+    """Any finite doubles (subnormals, -0.0, the extremes) written as text read back to the
+    same bits: the writers' shortest round-trip decimals and the bulk readers agree."""
+    verts = np.array(coords[: len(coords) // 3 * 3]).reshape(-1, 3)
+    faces = [[0, 1, 2]]
+    folder = tmp_path_factory.mktemp("coords")
+    for name in ("c.obj", "c.off", "c.ply"):
+        write_mesh(folder / name, verts, faces)
+        got, _ = read_mesh(folder / name)
+        assert got.numpy().view(np.int64).tolist() == verts.view(np.int64).tolist()

@@ -187,8 +187,9 @@ def write_mesh(
 ) -> None:
     """Write a polygon mesh as OBJ, OFF or PLY, chosen by the file extension, atomically.
 
-    Coordinates are written with 17 significant digits (text formats) or as doubles (binary PLY),
-    so reading the file back with ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The
+    Coordinates are written as the shortest decimal that reads back as the same double (Python's
+    ``repr``, at most 17 significant digits; text formats) or as doubles (binary PLY), so
+    reading the file back with ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The
     file is written to a temporary file in the same folder and moved onto ``path`` only once
     complete (see :func:`~torch_polylap.atomic.atomic_write`): an existing file is never
     left half-overwritten.

@@ -238,11 +238,12 @@ def _has_control_bytes(data: bytes) -> bool:
     """Whether ``data`` holds a byte :func:`check_text` refuses: a quick count with numpy (a
     regular-expression scan takes seconds on a large file), then the regex only to locate it."""
     whole = np.frombuffer(data, dtype=np.uint8)
-    below = 0
+    below = 0  # bytes below the space other than tab, the line breaks and ESC
     for at in range(0, len(whole), 1 << 22):  # slices: small temporaries, hot in the cache
         u = whole[at : at + (1 << 22)]
         below += np.count_nonzero(u < 32) - np.count_nonzero((u - np.uint8(9)) <= 4)
-    return below != data.count(b"\x1b") or b"\x7f" in data
+        below -= np.count_nonzero(u == 27)
+    return below != 0 or b"\x7f" in data
 
 
 _COMMENT = re.compile(rb"#[^\n]*")

@@ -33,6 +33,8 @@ _HI_NIBBLES = U64(0xF0F0F0F0F0F0F0F0)
 _SIX = U64(0x0606060606060606)
 _THREES = U64(0x3333333333333333)
 _B = 8  # bytes per word
+_LOW_BYTE = U64(0xFF)
+_ZERO = U64(48)  # '0'
 PAD = 24  # bytes of padding a buffer needs before its first and after its last token
 
 # For c = 0..8 valid digits in the top c bytes of a word: the bytes to keep, and '0' bytes to
@@ -84,16 +86,25 @@ _SWAR_STEPS = (
 def _digits(words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray) -> np.ndarray:
     """Value (``uint64``) of the ``count`` (0-24) digits ending at ``end`` (see _digits_word);
     more than 19 significant digits count as ``bad``."""
-    value = _digits_word(words, end, count, bad)
     longest = int(count.max()) if len(count) else 0
+    if longest <= 1:  # one digit at most (the integer part of most coordinates): one byte each
+        value = (words[end - 1] & _LOW_BYTE) - _ZERO
+        value *= (count >= 1).astype(U64)
+        bad |= (value > U64(9)).astype(U64)
+        return value
+    value = _digits_word(words, end, count, bad)
     for k in (1, 2):
         if longest <= 8 * k:
             break
-        more = _digits_word(words, end - 8 * k, count - 8 * k, bad)
+        # the next eight digits only where there are more (shortest-repr files mix lengths)
+        longer = np.flatnonzero(count > 8 * k)
+        sub_bad = np.zeros(len(longer), dtype=U64)
+        more = _digits_word(words, end.take(longer) - 8 * k, count.take(longer) - 8 * k, sub_bad)
         if k == 2:  # up to 24 digits, of which at most 19 significant: no overflow
-            bad |= (more >= U64(1000)).astype(U64)
+            sub_bad |= (more >= U64(1000)).astype(U64)
         more *= _POW10_INT[8 * k]
-        value += more
+        value[longer] += more
+        bad[longer] |= sub_bad
     return value
 
 
@@ -162,15 +173,16 @@ def decimal_to_double(w: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndar
     undecided = np.zeros(len(w), dtype=bool)
     # Clinger: w and 10**|q| are exact doubles, so one IEEE operation rounds once, correctly
     easy = (w <= U64(2**53)) & (q >= -22) & (q <= 22)
-    if easy.any():
-        we = w[easy].astype(np.float64)
-        qe = q[easy]
-        p = _POW10_FLOAT[np.abs(qe)]
-        out[easy] = np.where(qe >= 0, we * p, we / p)
+    simple = np.flatnonzero(easy)  # indices, not masks: numpy's mask indexing is slower
+    if len(simple):
+        we = w.take(simple).astype(np.float64)
+        qe = q.take(simple)
+        p = _POW10_FLOAT.take(np.abs(qe))
+        out[simple] = np.where(qe >= 0, we * p, we / p)
     hard = np.flatnonzero(~easy)
     if len(hard) == 0:
         return out, undecided
-    wh, qh = w[hard], q[hard]
+    wh, qh = w.take(hard), q.take(hard)
     row = np.clip(qh, _QMIN, _QMAX) - _QMIN
     shift = 64 - _bit_length(wh)
     wn = wh << shift.astype(U64)  # 2**63 <= wn < 2**64
@@ -228,14 +240,17 @@ def parse_floats(
     ipart = _digits(words, int_end, n_int, bad)
     fpart = _digits(words, mant_end, n_frac, bad)
     q = -n_frac
-    if has_exp.any():
-        e_first = buf[np.where(has_exp, exp + 1, start)]
-        e_signed = has_exp & ((e_first == 45) | (e_first == 43))
-        n_exp = np.where(has_exp, end - exp - 1 - e_signed, 0)
-        epart = _digits_word(words, end, n_exp, bad)
-        ok &= (n_exp <= 4) & (~has_exp | (n_exp >= 1))
-        e_val = epart.astype(np.int64)
-        q = q + np.where(has_exp & (e_first == 45), -e_val, e_val)
+    with_exp = np.flatnonzero(has_exp)
+    if len(with_exp):  # exponents: only the tokens that have one (few, in most files)
+        e_at = exp.take(with_exp)
+        e_end = end.take(with_exp)
+        e_first = buf.take(e_at + 1)
+        e_signed = (e_first == 45) | (e_first == 43)
+        n_exp = e_end - e_at - 1 - e_signed
+        e_bad = np.zeros(len(with_exp), dtype=U64)
+        e_val = _digits_word(words, e_end, n_exp, e_bad).astype(np.int64)
+        ok[with_exp] &= (n_exp <= 4) & (n_exp >= 1) & (e_bad == 0)
+        q[with_exp] += np.where(e_first == 45, -e_val, e_val)
     fits = n_int + n_frac <= 19
     ok &= (bad == 0) & (fits | (ipart == 0))
     w = np.where(fits, ipart * _POW10_INT[np.clip(n_frac, 0, 19)] + fpart, fpart)

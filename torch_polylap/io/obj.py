@@ -172,9 +172,12 @@ def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
             return None
         if (written == 0).any():
             return None
-        before = num_verts + np.cumsum(is_v)[is_f]  # vertices read before each face
-        relative = np.repeat(before, f_size) + written
-        indices.append(np.where(written > 0, written - 1, relative))
+        if (written < 0).any():  # negative indices count back from the vertices read so far
+            before = num_verts + np.cumsum(is_v.astype(np.int64))[is_f]
+            indices.append(np.where(written > 0, written - 1, np.repeat(before, f_size) + written))
+        else:
+            written -= 1
+            indices.append(written)
         sizes.append(f_size)
         num_verts += len(first)
 
@@ -379,14 +382,14 @@ def obj_bytes(
         blocks.append(face_block(indices, sizes, base=1, prefix="f"))
     else:
         blocks.append(face_block(_corner_tokens(indices, corner_uv, corner_normals), sizes, "f"))
-    return "".join(blocks).encode("ascii")
+    return b"".join(blocks)
 
 
-def _value_block(values: np.ndarray, prefix: str) -> str:
+def _value_block(values: np.ndarray, prefix: str) -> bytes:
     if len(values) == 0:
-        return ""
-    line = prefix + " %.17g" * values.shape[1] + "\n"
-    return (line * len(values)) % tuple(values.reshape(-1).tolist())
+        return b""
+    line = prefix + " %r" * values.shape[1] + "\n"  # exact, as the vertices
+    return ((line * len(values)) % tuple(values.reshape(-1).tolist())).encode("ascii")
 
 
 def _corner_tokens(

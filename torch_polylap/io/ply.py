@@ -1,4 +1,10 @@
-"""Polygon File Format (Stanford PLY): ASCII and binary, any extra properties and elements."""
+"""Polygon File Format (Stanford PLY): ASCII and binary, any extra properties and elements.
+
+ASCII bodies are read in bulk (:func:`_read_ply_ascii_bulk`: numpy tokens and numbers, a chunk
+of lines at a time) when each wanted element has at most one list property; anything else, and
+every malformed file, goes to the record-by-record parser, the reference whose messages name
+the offending line.
+"""
 
 from __future__ import annotations
 
@@ -19,8 +25,10 @@ from .common import (
     check_sizes_binary,
     check_text,
     numbers,
+    plain_text,
     text_lines,
 )
+from .tokens import Chunk, chunks, runs
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -471,6 +479,17 @@ def _read_ply_ascii(
     record_line: dict[str, Callable[[int], int]],
 ) -> _Columns:
     """Columns of the wanted elements; ``record_line`` gets each one's record -> line number."""
+    # '#' starts no comment in a PLY body (the record parser refuses it as a number)
+    if data.find(b"#", pos) < 0:
+        # a body plain_text would leave as it is is read in place: no copy of the file
+        as_is = all(data.find(byte, pos) < 0 for byte in (b"\r", b"\x1b", b"\x85", b"\xa0"))
+        text, begin = (data, pos) if as_is else (plain_text(data[pos:]), 0)
+        if text is not None:
+            bulk = _read_ply_ascii_bulk(
+                text, begin, header_lines + 1, elements, wanted, record_line
+            )
+            if bulk is not None:
+                return bulk
     lines = text_lines(data[pos:])
     # Records are found by line index; tokens are split from the line when needed, so no
     # per-record lists stay alive (millions of them make the cyclic GC rescan quadratically).
@@ -623,3 +642,131 @@ def _ascii_tokens(table: _AsciiRows, el: _PlyElement, want: set[str], name: str)
                 f"but its properties need {at}."
             )
     return scalars, sizes
+
+
+# A wanted element as the bulk parser reads it: the element, the rank of its first record among
+# the body's non-blank lines, and the index of its list property (None when it has none).
+_Span = tuple[_PlyElement, int, int | None]
+
+
+def _ply_spans(elements: list[_PlyElement], wanted: dict[str, set[str]]) -> tuple[list[_Span], int]:
+    """The wanted elements the record parser would read (it stops once it has them all) and
+    the number of records up to the end of the last one; an element with more than one list
+    property is no span (the bulk parser then gives up)."""
+    spans: list[_Span] = []
+    start = 0
+    for el in elements:
+        if {sp[0].name for sp in spans} == set(wanted):
+            break
+        if el.name in wanted:
+            lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
+            if len(lists) > 1 or any(sp[0].name == el.name for sp in spans):
+                return [], -1
+            spans.append((el, start, lists[0] if lists else None))
+        start += el.count
+    return spans, start
+
+
+def _read_ply_ascii_bulk(
+    text: bytes,
+    begin: int,
+    first_line: int,
+    elements: list[_PlyElement],
+    wanted: dict[str, set[str]],
+    record_line: dict[str, Callable[[int], int]],
+) -> _Columns | None:
+    """Columns of the wanted elements of an ASCII body (``text[begin:]``, prepared by
+    :func:`plain_text`), each record one line (``first_line``: the file line of the body's
+    first); None for what the record parser must read (two lists in one element, and every
+    error, whose message that one words)."""
+    spans, needed = _ply_spans(elements, wanted)
+    if needed < 0:
+        return None
+    parts: dict[str, dict[str, list[np.ndarray]]] = {sp[0].name: {} for sp in spans}
+    line_parts: dict[str, list[np.ndarray]] = {sp[0].name: [] for sp in spans}
+    seen = 0  # non-blank lines before the chunk
+    for chunk in chunks(text, begin):
+        if seen >= needed:
+            break
+        lines = np.flatnonzero(chunk.per_line)
+        first_token = chunk.first_token
+        for el, rank, at in spans:
+            a, b = max(rank - seen, 0), min(rank + el.count - seen, len(lines))
+            if a >= b:
+                continue
+            sel = lines[a:b]
+            got = _ply_records(chunk, first_token[sel], chunk.per_line[sel], el, at, wanted)
+            if got is None:
+                return None
+            for key, values in got.items():
+                parts[el.name].setdefault(key, []).append(values)
+            line_parts[el.name].append(chunk.line0 + sel)
+        seen += len(lines)
+    if seen < needed:
+        return None  # truncated: the record parser says so
+    out: _Columns = {}
+    for el, _, at in spans:
+        pieces = parts[el.name]
+        cols: dict[str, _Column] = {}
+        for i, prop in enumerate(el.props):
+            if prop.name not in wanted[el.name]:
+                continue
+            is_int = i == at and prop.dtype[0] != "f"
+            values = _joined(pieces.get(prop.name, []), np.int64 if is_int else np.float64)
+            if i == at:
+                cols[prop.name] = (values, _joined(pieces.get(" sizes", []), np.int64))
+            else:
+                cols[prop.name] = values
+        out[el.name] = cols
+        record_line[el.name] = _line_numbers(_joined(line_parts[el.name], np.int64), first_line)
+    return out
+
+
+def _line_numbers(line_of: np.ndarray, first_line: int) -> Callable[[int], int]:
+    """Record -> file line, from each record's line index in the body."""
+    return lambda record: first_line + int(line_of[record])
+
+
+def _joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
+    return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
+
+
+def _ply_records(
+    chunk: Chunk,
+    first: np.ndarray,
+    count: np.ndarray,
+    el: _PlyElement,
+    at: int | None,
+    wanted: dict[str, set[str]],
+) -> dict[str, np.ndarray] | None:
+    """Wanted values of the records of ``el`` on lines whose first tokens are ``first`` and
+    token counts ``count`` (``" sizes"``: the list lengths); None when a record does not fit
+    the element or holds something but numbers."""
+    n = len(el.props)
+    out: dict[str, np.ndarray] = {}
+    try:
+        if at is None:
+            if (count != n).any():
+                return None
+            k = np.zeros(0, dtype=np.int64)
+        else:
+            k = chunk.ints(first + at)
+            if (k < 0).any() or (count != n + k).any():
+                return None
+            out[" sizes"] = k
+        scalars = [i for i, p in enumerate(el.props) if i != at and p.name in wanted[el.name]]
+        if scalars:  # one conversion for all scalar columns; those after the list sit k further
+            picks = np.asarray(scalars, dtype=np.int64)
+            tokens = first[:, None] + picks
+            if at is not None:
+                tokens += k[:, None] * (picks > at)
+            values = chunk.floats(tokens.reshape(-1)).reshape(-1, len(scalars))
+            for j, i in enumerate(scalars):
+                out[el.props[i].name] = values[:, j]
+        if at is not None and el.props[at].name in wanted[el.name]:
+            tokens = runs(first + at + 1, k)
+            is_float = el.props[at].dtype[0] == "f"
+            out[el.props[at].name] = chunk.floats(tokens) if is_float else chunk.ints(tokens)
+    except BadNumber:
+        return None
+    return out

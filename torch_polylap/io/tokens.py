@@ -21,7 +21,6 @@ from .numparse import PAD, parse_floats, parse_ints, word_view
 __all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
 
 CHUNK_BYTES = 1 << 21
-_SPACES = b" " * PAD
 
 
 class Chunk:
@@ -34,9 +33,14 @@ class Chunk:
         line0: 0-based index of the chunk's first line in the whole text.
     """
 
-    def __init__(self, piece: bytes, line0: int) -> None:
-        tail = b"" if piece.endswith(b"\n") else b"\n"
-        buf = np.frombuffer(_SPACES + piece + tail + _SPACES, dtype=np.uint8)
+    def __init__(self, text: bytes, begin: int, stop: int, line0: int) -> None:
+        """The lines ``text[begin:stop]`` (copied once, into the padded buffer)."""
+        size = stop - begin
+        tail = 0 if text[stop - 1 : stop] == b"\n" else 1
+        buf = np.full(PAD + size + tail + PAD, 32, dtype=np.uint8)
+        buf[PAD : PAD + size] = np.frombuffer(text, dtype=np.uint8, count=size, offset=begin)
+        if tail:
+            buf[PAD + size] = 10
         self.buf = buf
         self.line0 = line0
         self._words: np.ndarray | None = None
@@ -51,20 +55,24 @@ class Chunk:
         events |= buf == 10
         ev = np.flatnonzero(events)
         del events
-        at_change, blank = change[ev], ws[ev]
+        # Selections below are take(flatnonzero(mask)): numpy's boolean-mask indexing is two to
+        # three times slower on these sizes.
+        at_change, blank = change.take(ev), ws.take(ev)
         del change, ws
         is_start = at_change & ~blank
         is_end = at_change & blank
-        token_of = np.cumsum(is_start, dtype=np.int64) - 1  # the token each event is in
-        self.start = ev[is_start]
-        self.end = ev[is_end]
-        chars = buf[ev]
-        before = token_of[chars == 10] + 1  # tokens started before each line break
-        self.per_line = np.diff(before, prepend=0)
-        keep = special[ev]
-        self._special_at = ev[keep]
-        self._special_token = token_of[keep]
-        self._special_char = chars[keep]
+        # the token each event is in (int32: numpy's bool -> int64 running sum is slower)
+        small = np.int32 if len(buf) < 2**31 else np.int64
+        token_of = np.cumsum(is_start, dtype=small) - small(1)
+        self.start = ev.take(np.flatnonzero(is_start))
+        self.end = ev.take(np.flatnonzero(is_end))
+        chars = buf.take(ev)
+        before = token_of.take(np.flatnonzero(chars == 10)) + 1  # tokens before each line break
+        self.per_line = np.diff(before, prepend=0).astype(np.int64)
+        keep = np.flatnonzero(special.take(ev))
+        self._special_at = ev.take(keep)
+        self._special_token = token_of.take(keep)
+        self._special_char = chars.take(keep)
 
     @property
     def words(self) -> np.ndarray:
@@ -90,29 +98,30 @@ class Chunk:
         Raises:
             BadNumber: a token is no number; ``position`` is its index in ``tokens``.
         """
+        if len(tokens) == 0:  # a chunk of faces only: none of the per-token work below
+            return np.zeros(0, dtype=np.float64)
         t = len(self.start)
         chars, owner, at = self._special_char, self._special_token, self._special_at
         dot = np.full(t, -1, dtype=np.int64)
         exp = np.full(t, -1, dtype=np.int64)
         slow = np.zeros(t, dtype=bool)
-        is_dot = chars == 46
-        is_exp = (chars | np.uint8(32)) == 101
-        is_sign = (chars == 43) | (chars == 45)
-        dot[owner[is_dot]] = at[is_dot]
-        exp[owner[is_exp]] = at[is_exp]
-        slow[owner[(chars == 44) | (chars == 47)]] = True
-        for mark in (is_dot, is_exp):
-            counts = np.bincount(owner[mark], minlength=t)
-            slow |= counts > 1
-        sign_at, sign_owner = at[is_sign], owner[is_sign]
-        leading = sign_at == self.start[sign_owner]
-        after_exp = (self.buf[sign_at - 1] | np.uint8(32)) == 101
-        slow[sign_owner[~(leading | after_exp)]] = True
-        d, e = dot[tokens], exp[tokens]
-        slow_t = slow[tokens]
+        dot_owner = owner.take(dots := np.flatnonzero(chars == 46))
+        exp_owner = owner.take(exps := np.flatnonzero((chars | np.uint8(32)) == 101))
+        dot[dot_owner] = at.take(dots)
+        exp[exp_owner] = at.take(exps)
+        slow[owner.take(np.flatnonzero((chars == 44) | (chars == 47)))] = True
+        for marks in (dot_owner, exp_owner):  # sorted: a second mark follows its token's first
+            slow[marks[1:].take(np.flatnonzero(marks[1:] == marks[:-1]))] = True
+        signs = np.flatnonzero((chars == 43) | (chars == 45))
+        sign_at, sign_owner = at.take(signs), owner.take(signs)
+        leading = sign_at == self.start.take(sign_owner)
+        after_exp = (self.buf.take(sign_at - 1) | np.uint8(32)) == 101
+        slow[sign_owner.take(np.flatnonzero(~(leading | after_exp)))] = True
+        d, e = dot.take(tokens), exp.take(tokens)
+        slow_t = slow.take(tokens)
         slow_t |= (e >= 0) & (d > e)
         values, slow_parse = parse_floats(
-            self.buf, self.words, self.start[tokens], self.end[tokens], d, e
+            self.buf, self.words, self.start.take(tokens), self.end.take(tokens), d, e
         )
         slow_t |= slow_parse
         self._exact(values, tokens, slow_t, float)
@@ -175,7 +184,7 @@ def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
             if cut < 0:
                 cut = text.find(b"\n", stop)
             stop = size if cut < 0 else cut + 1
-        chunk = Chunk(text[pos:stop], line0)
+        chunk = Chunk(text, pos, stop, line0)
         line0 += len(chunk.per_line)
         pos = stop
         yield chunk
