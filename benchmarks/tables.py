@@ -1,4 +1,5 @@
-"""Regenerate the tables of ``benchmarks/README.md`` from the committed results.
+"""Regenerate the tables of ``benchmarks/README.md`` and ``docs/performance.md`` from the
+committed results.
 
     python benchmarks/tables.py            # rewrite the README's generated blocks
     python benchmarks/tables.py --check    # exit 1 (naming the blocks) if any is out of date
@@ -26,6 +27,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 README = HERE / "README.md"
 RESULTS = HERE / "results"
+# every page with generated blocks: the benchmarks' README and the docs site's performance page
+PAGES = (README, HERE.parent / "docs" / "performance.md")
 
 BLOCK = re.compile(
     r"(<!-- (?P<kind>table|run):(?P<ref>[\w.\-/]+) -->\n)"
@@ -125,20 +128,23 @@ def stale_blocks(text: str, results: Path = RESULTS) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="only report out-of-date blocks")
-    parser.add_argument("--readme", type=Path, default=README)
+    parser.add_argument(
+        "--page", type=Path, action="append", help="a page to process (default: all of PAGES)"
+    )
     args = parser.parse_args(argv)
-    text = args.readme.read_text()
-    if args.check:
-        stale = stale_blocks(text)
-        for ref in stale:
-            print(f"{args.readme}: block {ref} is out of date; run benchmarks/tables.py")
-        return 1 if stale else 0
-    new = regenerate(text)
-    if new != text:
-        args.readme.write_text(new)
-        print(f"rewrote {args.readme}", file=sys.stderr)
-    return 0
-
+    status = 0
+    for page in args.page or PAGES:
+        text = page.read_text()
+        if args.check:
+            for ref in stale_blocks(text):
+                print(f"{page}: block {ref} is out of date; run benchmarks/tables.py")
+                status = 1
+            continue
+        new = regenerate(text)
+        if new != text:
+            page.write_text(new)
+            print(f"rewrote {page}", file=sys.stderr)
+    return status
 
 if __name__ == "__main__":
     sys.exit(main())
