@@ -289,6 +289,28 @@ def test_union_pattern_is_computed_once_per_pair():
     assert L1.pattern is L2.pattern and A1.pattern is L1.pattern and A2.pattern is A1.pattern
 
 
+
+def test_sum_with_the_mass_equals_the_dense_sum():
+    """``M0 + t L`` (L stores its whole diagonal: answered from the diagonal positions, L's own
+    pattern) and ``M0 + B`` for a ``B`` with empty diagonal entries (a true union of patterns),
+    both ways round, against dense matrices."""
+    V, F = quad_grid(5, bump=0.2, seed=1)
+    L, M0 = tp.laplacian(V, F)
+    n = L.shape[0]
+    # B: the strict upper triangle of L plus one entry, so most diagonal entries are missing
+    dense_b = torch.triu(L.to_dense(), 1)
+    dense_b[0, 0] = 2.0
+    S = dense_b.to_sparse_csr()
+    B = tp.sparse.operator_from_parts(S.crow_indices(), S.col_indices(), S.values(), (n, n))
+    for other, dense, same in ((0.3 * L, 0.3 * L.to_dense(), True), (B, dense_b, False)):
+        want = M0.to_dense() + dense
+        for A in (M0 + other, other + M0):
+            torch.testing.assert_close(A.to_dense(), want, rtol=1e-14, atol=1e-14)
+            assert (A.pattern is other.pattern) == same
+            # the union adds the n - 1 diagonal entries B lacks
+            assert A.pattern.nnz == other.pattern.nnz + (0 if same else n - 1)
+
+
 _MEMORY_SCRIPT = textwrap.dedent(
     """
     import resource, sys

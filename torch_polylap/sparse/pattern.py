@@ -217,9 +217,24 @@ class SparsityPattern:
             union, at_self, at_other = _cache_union(self, other)
         return (other if union is None else union), at_self, at_other
 
+    def _is_diagonal(self) -> bool:
+        """Whether the entries are exactly ``(i, i)`` for every ``i`` (a mass matrix's pattern)."""
+        k = min(self.shape)
+        return self.nnz == k and bool(
+            torch.equal(self.row, self.col)
+            and torch.equal(self.row, torch.arange(k, device=self.device))
+        )
+
     def _compute_union(
         self, other: SparsityPattern
     ) -> tuple[SparsityPattern, torch.Tensor | None, torch.Tensor | None]:
+        # M0 + t L, the common case: a full diagonal against a pattern that stores its diagonal
+        # is answered from the diagonal positions, without sorting every entry of both
+        for big, small, big_first in ((self, other, True), (other, self, False)):
+            if small._is_diagonal():
+                pos = big.diagonal_positions()
+                if bool((pos >= 0).all()):
+                    return (big, None, pos) if big_first else (big, pos, None)
         m = self.shape[1]
         keys = torch.cat((self.row * m + self.col, other.row * m + other.col))
         unique, inverse = torch.unique(keys, sorted=True, return_inverse=True)
