@@ -210,7 +210,9 @@ def write_results(
         argv: the command line (default ``sys.argv``); used only when ``meta`` is None.
         meta: the header :func:`run_meta` returned at the start of the run (so that its load
             average is the one before the run); None takes it now.
-        path: where to write instead of the default.
+        path: where to write instead of the default; the file's stem is then the name it is
+            recorded under (the README shows a results file by its name, e.g. a 1M-only run
+            of ``bench_laplacian.py`` written to ``laplacian_1m.json``).
 
     Values JSON cannot hold (paths, numpy scalars) are written as their ``str``.
     """
@@ -220,6 +222,7 @@ def write_results(
         dist: _version(dist) for module, dist in PEERS.items() if module in sys.modules
     }
     target = RESULTS / f"{name}.json" if path is None else Path(path)
+    name = target.stem
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(target.name + ".tmp")
     text = json.dumps({"benchmark": name, "meta": meta, **sections}, indent=1, default=str)

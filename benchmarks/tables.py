@@ -69,6 +69,11 @@ def render_table(ref: str, results: Path = RESULTS) -> str:
     return markdown(tables[key]["columns"], tables[key]["rows"])
 
 
+# the reference meshes' folder as a run recorded it (beside the repository), named instead:
+# the pages cite nothing outside the repository
+MESHES = re.compile(r"(?:\.\./)+shared/data/meshes")
+
+
 def render_run(name: str, results: Path = RESULTS) -> str:
     """One paragraph on how ``results/<name>.json`` was made, from its ``meta`` header."""
     meta = load(name, results)["meta"]
@@ -100,7 +105,7 @@ def render_run(name: str, results: Path = RESULTS) -> str:
         text += f" {meta['transcribed']}"
     if meta.get("note"):
         text += f" {meta['note']}"
-    return text
+    return MESHES.sub("$MESHES", text)
 
 
 def regenerate(text: str, results: Path = RESULTS) -> str:
