@@ -158,10 +158,27 @@ CASES = [
 ]
 
 
+def _default_ending_signals() -> None:
+    """In the child, before it starts: the ending signals at their default disposition.
+
+    A test run started under ``nohup`` (SIGHUP ignored) or as a background job of a shell
+    without job control (SIGINT ignored) hands those ignored dispositions to its children, and
+    the command rightly keeps an ignored signal ignored; the tests are about the default case.
+    """
+    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
+        signal.signal(getattr(signal, name), signal.SIG_DFL)
+
+
 def interrupt(argv: list[str], marker: str, signame: str, **popen) -> subprocess.CompletedProcess:
     """Run ``argv``, wait for the line starting with ``marker`` on stdout, send the signal."""
     proc = subprocess.Popen(
-        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV, **popen
+        argv,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+        preexec_fn=_default_ending_signals,
+        **popen,
     )
     try:
         line = proc.stdout.readline()
