@@ -202,6 +202,12 @@ def _upper_triangle(S: sp.csr_matrix) -> sp.csc_matrix:
 # An LU of a well-posed system solves it to a backward error of a few eps; a larger one means
 # tiny pivots (an indefinite matrix factored without pivoting) or near-singularity.
 _BACKWARD_ERROR = 1e-10
+# A singular PSD matrix's last pivot is round-off of a few to a few dozen eps |S|, so a solve
+# grows a right-hand side by up to about 1 / eps: on 5,596 singular graph Laplacians of 4-40
+# vertices CHOLMOD factored, the growth |x| |S| / |b| was down to 0.09 / eps. The growth is
+# refused from 1 / (eps max(n, _GROWTH_MIN_N)) on: a 90x margin there, and a matrix this ill
+# conditioned would keep three or four correct digits at best.
+_GROWTH_MIN_N = 1000
 
 
 def _solution_problem(S: sp.spmatrix, solve: Callable[[np.ndarray], np.ndarray]) -> str | None:
@@ -218,7 +224,7 @@ def _solution_problem(S: sp.spmatrix, solve: Callable[[np.ndarray], np.ndarray])
     x = solve(b)
     norm = abs(S).max()
     growth = np.abs(x).max() * norm / np.abs(b).max()
-    if not np.isfinite(growth) or growth * n * np.finfo(float).eps >= 1.0:
+    if not np.isfinite(growth) or growth * max(n, _GROWTH_MIN_N) * np.finfo(float).eps >= 1.0:
         return f"solution growth {growth:.1e}"
     backward = np.abs(S @ x - b).max() / (norm * np.abs(x).max() + np.abs(b).max())
     if backward > _BACKWARD_ERROR:
