@@ -325,3 +325,19 @@ def test_gradient_operator_equals_adobe_lagrange_on_polygons(name):
     np.testing.assert_allclose(G.to_dense().numpy(), G_peer, atol=1e-12 * abs(G_peer).max())
     # the second call reuses the cached pattern and gives the same operator
     torch.testing.assert_close(tp.gradient_operator(verts, faces).to_dense(), G.to_dense())
+
+
+def test_gradients_are_finite_on_faces_in_a_coordinate_plane():
+    """A planar grid in the xy plane: every face's vector area has two zero components. The
+    face gradient, the heat method's distance and their derivatives to the vertices stay
+    finite (gradcheck against finite differences)."""
+    verts, faces = tp.shapes.quad_grid(3)
+    verts = verts.clone()
+    verts[:, 2] = 0.0
+    X = verts.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda X: tp.face_gradient(X, faces, X[:, 0] ** 2 + X[:, 1]), (X,), eps=1e-6, atol=1e-6
+    )
+    distance = tp.heat_geodesic_distance(X, faces, 0)
+    (grad,) = torch.autograd.grad(distance.sum(), X)
+    assert torch.isfinite(grad).all()

@@ -39,6 +39,22 @@ def stable_norm(a: torch.Tensor, dim: int, *, keepdim: bool = False) -> torch.Te
     return norm if keepdim else norm.squeeze(dim)
 
 
+def component_norm(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """``|(x, y, z)|`` elementwise from three component tensors of one shape, as
+    :func:`stable_norm` (no under- or overflow) but without a reduction over a leading
+    dimension (slow in torch: a fifth of a heat solver's build on a 27k-face mesh).
+
+    Its gradient is finite wherever the vector is not zero, also where some components are
+    exactly zero (a face in a coordinate plane), which ``hypot`` nested twice is not
+    (``hypot(0, 0)`` has a 0/0 derivative); a zero vector gets norm ``tiny`` and gradient 0.
+    """
+    scale = torch.maximum(torch.maximum(x.abs(), y.abs()), z.abs())
+    scale = scale.clamp_min(torch.finfo(scale.dtype).tiny)
+    squares = (x / scale).square() + (y / scale).square() + (z / scale).square()
+    # >= 1 for every non-zero vector (its largest component over itself is exactly 1)
+    return scale * torch.where(squares > 0, squares, 1.0).sqrt()
+
+
 def gather_corners(verts_t: torch.Tensor, corners_t: torch.Tensor) -> torch.Tensor:
     """Corner positions of a degree group.
 
