@@ -318,3 +318,30 @@ def test_operators_cross_a_compiled_boundary_without_gradients_only():
     L, _ = tp.laplacian(X, faces)
     with pytest.raises(Exception):  # noqa: B017
         torch.compile(lambda L, Y: (L @ Y).sum(), backend="aot_eager")(L, verts)
+
+
+@pytest.mark.parametrize("what", ["principal_curvatures", "mean_edge_length", "corner_gradients"])
+def test_geometry_measures_compile_in_one_graph(what):
+    """Curvature, edge length and the gradient's corner weights in one graph, on a topology
+    nothing has used yet (its face-only data computed outside the graph): gradients equal
+    eager ones; a NaN vertex is refused inside the graph."""
+    verts, faces = tp.shapes.quad_sphere(3)
+
+    def measure(X: torch.Tensor, topo: tp.Topology) -> torch.Tensor:
+        if what == "principal_curvatures":
+            kmin, kmax, _, _ = tp.vector.principal_curvatures(X, topo)
+            return (kmin * kmax).sum()
+        if what == "mean_edge_length":
+            return tp.mean_edge_length(X, topo)
+        return tp.corner_gradients(X, topo).square().sum()
+
+    compiled = torch.compile(measure, backend="aot_eager", fullgraph=True)
+    X = verts.clone().requires_grad_(True)
+    (got,) = torch.autograd.grad(compiled(X, tp.build_topology(faces, verts.shape[0])), X)
+    X = verts.clone().requires_grad_(True)
+    (want,) = torch.autograd.grad(measure(X, tp.build_topology(faces, verts.shape[0])), X)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    bad = verts.clone()
+    bad[5, 0] = float("nan")
+    with pytest.raises(RuntimeError, match="NaN or an infinity"):
+        compiled(bad, tp.build_topology(faces, verts.shape[0]))

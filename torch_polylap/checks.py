@@ -25,6 +25,8 @@ import warnings
 import numpy as np
 import torch
 
+from .tracing import require
+
 __all__ = [
     "check_verts",
     "check_verts_array",
@@ -112,10 +114,12 @@ def check_verts_array(verts: object, name: str = "verts") -> np.ndarray:
 def check_finite(x: torch.Tensor, name: str, what: str = "row") -> None:
     """Raise a ValueError naming the first row of ``x`` that holds a NaN or an infinity.
 
-    One reduction and one host sync when everything is finite.
+    One reduction and one host sync when everything is finite. Traced (torch.compile) or
+    under vmap, an in-graph assertion instead (:func:`~torch_polylap.tracing.require`), whose
+    message names the tensor but not the row.
     """
     finite = torch.isfinite(x)
-    if bool(finite.all()):
+    if require(finite, f"{name} holds a NaN or an infinity; fix it before building operators."):
         return
     bad = ~finite.reshape(x.shape[0], -1).all(1) if x.dim() else ~finite.reshape(1)
     first = int(torch.nonzero(bad)[0, 0])

@@ -49,9 +49,10 @@ import torch
 from .._typing import MeshFaces
 from ..calculus import face_gradient
 from ..checks import check_verts
-from ..kernels.frames import stable_norm
+from ..kernels.frames import component_norm, stable_norm
 from ..measures import vector_area
 from ..topology import Topology, get_topology
+from ..tracing import run_eagerly, tracing
 from .transport import TangentFrames, minimal_rotation, tangent_frames
 
 __all__ = ["face_shape_operator", "fitted_frames", "shape_operator", "principal_curvatures"]
@@ -66,25 +67,33 @@ _RIDGE = 1e-8
 
 def _ring_pairs(topo: Topology) -> tuple[torch.Tensor, torch.Tensor]:
     """``(v, u)``: every ordered pair of distinct vertices sharing a face, each pair once, sorted
-    by ``v`` (cached on the topology)."""
+    by ``v``. Cached on the topology; when traced and not yet cached, computed outside the graph
+    (it depends on the faces alone, and its size on their data) and not stored, since a traced
+    function must not change the topology it guards on."""
     key = ("vector.ring_pairs", torch.device("cpu"))
     cached = topo.derived.get(key)
-    if cached is None:
-        faces = topo.faces
-        sizes = faces.sizes
-        corner_size = torch.repeat_interleave(sizes, sizes)  # k_f of each corner's face
-        corner_start = torch.repeat_interleave(faces.offsets[:-1], sizes)
-        # corner c is paired with the k_f corners of its face: c repeated k_f times
-        first = torch.repeat_interleave(torch.arange(faces.num_corners), corner_size)
-        block_start = torch.cumsum(corner_size, 0) - corner_size
-        position = torch.arange(first.numel()) - torch.repeat_interleave(block_start, corner_size)
-        v = faces.indices[first]
-        u = faces.indices[corner_start[first] + position]
-        n = topo.num_verts
-        code = torch.unique(v[v != u] * n + u[v != u])
-        cached = (torch.div(code, n, rounding_mode="floor"), code % n)
-        topo.derived[key] = cached
+    if cached is not None:
+        return cached
+    if tracing():
+        return run_eagerly(_compute_ring_pairs, topo)
+    cached = topo.derived[key] = _compute_ring_pairs(topo)
     return cached
+
+
+def _compute_ring_pairs(topo: Topology) -> tuple[torch.Tensor, torch.Tensor]:
+    faces = topo.faces
+    sizes = faces.sizes
+    corner_size = torch.repeat_interleave(sizes, sizes)  # k_f of each corner's face
+    corner_start = torch.repeat_interleave(faces.offsets[:-1], sizes)
+    # corner c is paired with the k_f corners of its face: c repeated k_f times
+    first = torch.repeat_interleave(torch.arange(faces.num_corners), corner_size)
+    block_start = torch.cumsum(corner_size, 0) - corner_size
+    position = torch.arange(first.numel()) - torch.repeat_interleave(block_start, corner_size)
+    v = faces.indices[first]
+    u = faces.indices[corner_start[first] + position]
+    n = topo.num_verts
+    code = torch.unique(v[v != u] * n + u[v != u])
+    return torch.div(code, n, rounding_mode="floor"), code % n
 
 
 def fitted_frames(
@@ -211,12 +220,14 @@ def principal_curvatures(
         sphere of radius ``R`` with outward normals), and ``(V, 3)`` unit tangent directions
         (``dmin = normal x dmax``; each defined up to sign, and arbitrary at umbilics, where
         ``kmin = kmax``). Closed-form ``2 x 2`` eigenpairs, differentiable in ``verts`` away
-        from umbilics.
+        from umbilics; at an umbilic ``kmin`` and ``kmax`` take the mean curvature's gradient
+        (as ``|x|`` takes 0 at 0), so their sum and product have their true gradients there,
+        and the directions have none.
     """
     S, frames = shape_operator(verts, faces, frames)
     a, b, d = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
     mean = 0.5 * (a + d)
-    half_gap = torch.hypot(0.5 * (a - d), b)
+    half_gap = component_norm(0.5 * (a - d), b, torch.zeros_like(b))
     theta = 0.5 * torch.atan2(2 * b, a - d)  # angle of the kmax axis from e_x
     dmax = torch.cos(theta)[:, None] * frames.e_x + torch.sin(theta)[:, None] * frames.e_y
     dmin = torch.linalg.cross(frames.normal, dmax, dim=1)
