@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 from conftest import mixed_mesh
 
@@ -39,3 +40,10 @@ def test_mean_edge_length_gradient():
     h = tp.mean_edge_length(s * square, [[0, 1, 2, 3]])
     (grad,) = torch.autograd.grad(h, s)
     assert math.isclose(float(h), 1.5) and math.isclose(float(grad), 1.0)
+
+
+def test_mean_edge_length_of_a_mesh_without_faces_is_refused():
+    """No edges: no length scale, an error rather than the NaN of an empty mean."""
+    verts = torch.zeros(3, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match="no faces"):
+        tp.mean_edge_length(verts, torch.zeros(0, 3, dtype=torch.long))

@@ -95,8 +95,18 @@ def mean_edge_length(
 ) -> torch.Tensor:
     """Mean length ``h`` of the undirected edges, a 0-dim tensor differentiable in ``verts``:
     the mesh's length scale (the heat method's default time is ``4 h^2``); ``validate`` as
-    for :func:`mass`."""
-    return edge_lengths(verts, faces, validate=validate).mean()
+    for :func:`mass`.
+
+    Raises:
+        ValueError: the mesh has no edge (no face), so it has no length scale.
+    """
+    lengths = edge_lengths(verts, faces, validate=validate)
+    if lengths.numel() == 0:
+        raise ValueError(
+            "mean_edge_length: the mesh has no faces, hence no edges and no length scale; "
+            "pass a mesh with at least one face."
+        )
+    return lengths.mean()
 
 
 def face_normals(verts: torch.Tensor, faces: MeshFaces, *, validate: bool = True) -> torch.Tensor:
