@@ -257,14 +257,17 @@ class _Corners(NamedTuple):
 
 class _QueryArrays(NamedTuple):
     """What a query outside autograd reads (:meth:`HeatGeodesicSolver._distance_without_grad`):
-    the ``(3F, V)`` float64 ``gradient`` matrix ``G`` (eq. (1)), the ``(F,)`` face ``area``,
-    the ``(C, V)`` 0/1 matrix ``members`` of the connected components and their ``(V,)``
-    ``labels``."""
+    the ``(3F, V)`` float64 ``gradient`` matrix ``G`` (eq. (1)), the ``(V, 3F)`` ``flux``
+    matrix ``-G^T A_F`` (``A_F`` the face areas repeated per component; ``flux X`` for a unit
+    field ``X`` of ``grad u`` is the Poisson right-hand side ``G^T A_F (-X)``), the ``(V,)``
+    lumped ``mass``, the ``(V,)`` component ``labels`` and the number of
+    ``components``."""
 
     gradient: sp.csr_matrix
-    area: np.ndarray
-    members: sp.csr_matrix
+    flux: sp.csr_matrix
+    mass: np.ndarray
     labels: np.ndarray
+    components: int
 
 
 class HeatGeodesicSolver:
@@ -384,9 +387,17 @@ class HeatGeodesicSolver:
 
     def _indicator(self, sources: SourcesLike) -> torch.Tensor:
         """``(V, Q)`` 0/1 indicator of each query's sources (``Q = 1`` for a single query)."""
+        queries = self._source_indices(sources)
+        ind = self.verts.new_zeros(self.topology.num_verts, len(queries))
+        for q, idx in enumerate(queries):
+            ind[idx.to(ind.device), q] = 1.0
+        return ind
+
+    def _source_indices(self, sources: SourcesLike) -> list[torch.Tensor]:
+        """Each query's source vertices as ``(m_q,)`` int64 indices, checked."""
         n = self.topology.num_verts
         queries = _as_queries(sources)
-        ind = self.verts.new_zeros(n, len(queries))
+        out = []
         for q, src in enumerate(queries):
             name = f"sources[{q}]" if len(queries) > 1 else "sources"
             # An empty list reads as a float array; say what is wrong with it, not its dtype.
@@ -394,8 +405,8 @@ class HeatGeodesicSolver:
             idx = None if empty else check_index_or_mask(src, n, name)
             if idx is None or idx.numel() == 0:
                 raise ValueError(f"{name} is empty; give at least one source vertex per query.")
-            ind[idx.to(ind.device), q] = 1.0
-        return ind
+            out.append(idx)
+        return out
 
     def _solve(self, A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
         """``A^{-1} B`` with :attr:`backend`'s factorization, cached on ``A``."""
@@ -467,13 +478,13 @@ class HeatGeodesicSolver:
             ValueError, TypeError: an empty query, an index out of range or repeated, a
                 non-integer index (see :func:`~torch_polylap.checks.check_index_or_mask`).
         """
-        indicator = self._indicator(sources)
         backend = self._direct_backend()
         if backend is None:
+            indicator = self._indicator(sources)
             phi = self._potential_of_heat(self.heat(indicator))
             dist = self.shift_to_sources(phi, indicator)
         else:
-            dist = self._distance_without_grad(indicator, backend)
+            dist = self._distance_without_grad(self._source_indices(sources), backend)
         return dist if _is_batch(sources) else dist[:, 0]
 
     def _direct_backend(self) -> str | None:
@@ -503,40 +514,76 @@ class HeatGeodesicSolver:
             area = np.zeros(self.topology.num_faces)
             for c in self._corners:
                 area[c.face_ids.numpy()] = c.area.numpy()
-            labels = self.labels.numpy()
-            members = sp.csr_matrix(
-                (np.ones(labels.size), (labels, np.arange(labels.size))),
-                shape=(self.num_components, labels.size),
+            # -G^T A_F as one CSR matrix: the area and the field's sign fold into its entries,
+            # and a row-major product writes each vertex's sum once
+            row_scale = np.repeat(-np.repeat(area, 3), np.diff(gradient.indptr))
+            scaled = sp.csr_matrix(
+                (gradient.data * row_scale, gradient.indices, gradient.indptr),
+                shape=gradient.shape,
             )
-            self._arrays = _QueryArrays(gradient, area, members, labels)
+            flux = sp.csr_matrix(scaled.T)
+            mass = self.mass.detach().numpy()
+            labels = self.labels.numpy()
+            self._arrays = _QueryArrays(gradient, flux, mass, labels, self.num_components)
         return self._arrays
 
-    def _distance_without_grad(self, indicator: torch.Tensor, backend: str) -> torch.Tensor:
-        """Steps 1-4 on float64 arrays, for ``(V, Q)`` ``indicator``: the two solves through
-        the cached factorizations, ``grad u`` as one product with the ``(3F, V)`` gradient
-        matrix and ``-div X`` as one with its transpose (scaled by the face areas), instead of
-        a pass of torch operations per degree group. The same steps as the differentiable
-        path, in float64 whatever ``verts``' dtype."""
+    def _distance_without_grad(self, sources: list[torch.Tensor], backend: str) -> torch.Tensor:
+        """Steps 1-4 on float64 arrays, for each query's ``(m_q,)`` source indices: the two
+        solves through the cached factorizations, ``grad u`` as one product with the
+        ``(3F, V)`` gradient matrix and ``-div X`` as one with the flux matrix ``-G^T A_F``,
+        instead of a pass of torch operations per degree group. The same steps as the
+        differentiable path, in float64 whatever ``verts``' dtype; ``(V, Q)``."""
         arrays = self._query_arrays()
-        delta = indicator.double().numpy()
         heat = cached_factorization(as_operator(self.heat_operator), backend)
-        mass = self.mass.detach().numpy()
-        u = heat.solve(torch.from_numpy(mass[:, None] * delta)).numpy()
-        grad = (arrays.gradient @ u).reshape(-1, 3, u.shape[1])
-        # hypot: the heat underflows in squares some 700 edge lengths from the sources
-        norm = np.hypot(np.hypot(grad[:, 0], grad[:, 1]), grad[:, 2])
-        # divide first: a face of a component without a source has grad u = 0, and its area
-        # over the clamp (the smallest normal float) would overflow to inf, and 0 * inf to NaN
-        unit = grad / np.maximum(norm, np.finfo(np.float64).tiny)[:, None]
-        field = unit * -arrays.area[:, None, None]  # |f| X_f, X = -grad u / |grad u|
-        rhs = arrays.gradient.T @ field.reshape(-1, u.shape[1])
         poisson = cached_factorization(as_operator(self.poisson_operator), backend)
-        phi = poisson.solve(torch.from_numpy(np.ascontiguousarray(rhs))).numpy()
-        sums = arrays.members @ (phi * delta)
-        hits = arrays.members @ delta
-        shift = sums[arrays.labels] / np.maximum(hits[arrays.labels], 1.0)
-        dist = np.where(hits[arrays.labels] > 0, phi - shift, np.inf)
+        rhs = np.zeros((arrays.mass.size, len(sources)))
+        index = [idx.cpu().numpy() for idx in sources]
+        for q, idx in enumerate(index):
+            rhs[idx, q] = arrays.mass[idx]  # M0 delta
+        u = heat.solve_array(rhs)
+        phi = poisson.solve_array(arrays.flux @ _unit_rows(arrays.gradient @ u))
+        dist = np.empty_like(phi)
+        for q, idx in enumerate(index):
+            dist[:, q] = _shift_to_sources(phi[:, q], idx, arrays.labels, arrays.components)
         return torch.from_numpy(dist).to(self.verts.dtype)
+
+
+def _unit_rows(grad: np.ndarray) -> np.ndarray:
+    """``grad u / |grad u|`` per face, in place in the ``(3F, Q)`` face gradients ``grad``
+    (face-major, components ``x, y, z``); 0 on faces where ``grad u = 0``.
+
+    The squared norm underflows where the heat's gradient falls below 1e-154 (some 700 edge
+    lengths from the sources at the default time): such faces, and any whose squared norm
+    overflows, take ``hypot``'s scaled norm; the others the plain sum of squares, a third of
+    the work. In place: each temporary of a query is a fresh allocation the size of the
+    mesh, which costs about as much as the arithmetic."""
+    tiny, huge = np.finfo(np.float64).tiny, np.finfo(np.float64).max
+    g = grad.reshape(-1, 3, grad.shape[1])
+    norm = np.einsum("fdq,fdq->fq", g, g)
+    if norm.min() >= tiny and norm.max() <= huge:
+        np.sqrt(norm, out=norm)
+    else:
+        bad = ~((norm >= tiny) & (norm <= huge))
+        np.sqrt(norm, out=norm)
+        f, q = np.nonzero(bad)
+        norm[f, q] = np.hypot(np.hypot(g[f, 0, q], g[f, 1, q]), g[f, 2, q])
+    # the clamp keeps faces with grad u = 0 at 0 (a component without a source)
+    np.maximum(norm, tiny, out=norm)
+    g /= norm[:, None]
+    return g.reshape(grad.shape)
+
+
+def _shift_to_sources(
+    phi: np.ndarray, sources: np.ndarray, labels: np.ndarray, count: int
+) -> np.ndarray:
+    """``(V,)`` ``phi`` less its mean at the ``sources`` of each connected component, ``inf``
+    on components without a source (step 4 for one query)."""
+    if count == 1:
+        return phi - phi[sources].mean()
+    comp = labels[sources]
+    hits = np.bincount(comp, minlength=count)
+    shift = np.bincount(comp, weights=phi[sources], minlength=count) / np.maximum(hits, 1)
+    return np.where(hits[labels] > 0, phi - shift[labels], np.inf)
 
 
 def _geodesic_backend(backend: str, device: torch.device, num_verts: int) -> str:

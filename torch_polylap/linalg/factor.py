@@ -64,6 +64,10 @@ class Factorization:
         )
         return _finite(torch.from_numpy(X)).to(B)
 
+    def solve_array(self, b: np.ndarray) -> np.ndarray:
+        """``A^{-1} b`` for a float64 ``(n,)`` or ``(n, k)`` array, without torch tensors."""
+        return _finite_array(self.lu.solve(np.ascontiguousarray(b, dtype=np.float64)))
+
 
 # cholespy's solver objects are nanobind instances; one still alive at interpreter shutdown
 # (cached on an operator that a user's tensor keeps reachable through its autograd graph) makes
@@ -137,6 +141,12 @@ class CholeskyFactorization:
         B64 = B.detach().to(device=self.device, dtype=torch.float64).contiguous()
         return _finite(self._solve64(B64)).to(B)
 
+    def solve_array(self, b: np.ndarray) -> np.ndarray:
+        """``A^{-1} b`` for a float64 ``(n,)`` or ``(n, k)`` array (a CPU factorization)."""
+        B = torch.from_numpy(np.ascontiguousarray(b, dtype=np.float64))
+        X = self._solve64(B.reshape(B.shape[0], -1).to(self.device)).cpu().numpy()
+        return _finite_array(X.reshape(b.shape))
+
 
 class LDLFactorization:
     """QDLDL's sparse ``L D L^T`` of a symmetric positive definite matrix, after an AMD
@@ -177,11 +187,16 @@ class LDLFactorization:
 
     def solve(self, B: torch.Tensor, *, transpose: bool = False) -> torch.Tensor:
         # A^T = A: ``transpose`` changes nothing
-        rhs = B.detach().cpu().numpy().astype(np.float64, copy=False)
-        X = np.empty(rhs.shape)
-        for j in range(rhs.shape[1]):
-            X[:, j] = self.factor.solve(np.ascontiguousarray(rhs[:, j]))
-        return _finite(torch.from_numpy(X)).to(B)
+        return torch.from_numpy(self.solve_array(B.detach().cpu().numpy())).to(B)
+
+    def solve_array(self, b: np.ndarray) -> np.ndarray:
+        """``A^{-1} b`` for a float64 ``(n,)`` or ``(n, k)`` array, without torch tensors."""
+        if b.ndim == 1:
+            return _finite_array(self.factor.solve(np.ascontiguousarray(b, dtype=np.float64)))
+        X = np.empty(b.shape)
+        for j in range(b.shape[1]):
+            X[:, j] = self.factor.solve(np.ascontiguousarray(b[:, j], dtype=np.float64))
+        return _finite_array(X)
 
 
 def _upper_triangle(S: sp.csr_matrix) -> sp.csc_matrix:
@@ -232,12 +247,23 @@ def _solution_problem(S: sp.spmatrix, solve: Callable[[np.ndarray], np.ndarray])
     return None
 
 
+_NOT_FINITE = (
+    "the solve produced non-finite values: the system matrix is singular or "
+    "numerically singular (a Laplacian without a mass term or Dirichlet values?)."
+)
+
+
 def _finite(X: torch.Tensor) -> torch.Tensor:
     if not bool(torch.isfinite(X).all()):
-        raise ValueError(
-            "the solve produced non-finite values: the system matrix is singular or "
-            "numerically singular (a Laplacian without a mass term or Dirichlet values?)."
-        )
+        raise ValueError(_NOT_FINITE)
+    return X
+
+
+def _finite_array(X: np.ndarray) -> np.ndarray:
+    # the sum is one pass without a boolean temporary; it is finite iff every entry is (an
+    # overflow of the sum itself would need entries near the float64 maximum)
+    if not np.isfinite(X.sum()) and not np.isfinite(X).all():
+        raise ValueError(_NOT_FINITE)
     return X
 
 
