@@ -176,7 +176,9 @@ class LDLFactorization:
 
         def solve_once(b: np.ndarray) -> np.ndarray:
             x = self.factor.solve(b)
-            curvature.append(float(b @ x))
+            # not b @ x: a BLAS dot this long wakes OpenBLAS's threads, which then spin for a
+            # while, taking the other core from the next solves
+            curvature.append(float(np.einsum("i,i->", b, x)))
             return x
 
         problem = _solution_problem(S, solve_once)
