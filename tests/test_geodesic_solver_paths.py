@@ -210,3 +210,37 @@ def test_upper_triangle_equals_scipy_triu():
     assert U.format == "csc"
     np.testing.assert_array_equal(U.toarray(), sp.triu(S).toarray())
     assert U.nnz == sp.triu(S, format="csc").nnz
+
+
+def test_unit_field_of_huge_tiny_and_zero_gradients():
+    """The array path's unit field: a face whose squared gradient over- or underflows takes
+    the scaled norm, a zero gradient stays 0; reference: each row divided by its norm computed
+    after scaling by its largest entry."""
+    from torch_polylap.calculus import _unit_rows
+
+    rng = np.random.default_rng(4)
+    rows = rng.standard_normal((6, 3, 2))
+    rows[1] *= 1e200  # the square overflows
+    rows[2] *= 1e-170  # the square underflows
+    rows[3, :, 0] = 0.0  # a face where the heat is constant
+    rows[4, 2] = 0.0
+    scale = np.abs(rows).max(axis=1, keepdims=True)
+    scaled = rows / np.where(scale > 0, scale, 1.0)
+    want = scaled / np.maximum(np.linalg.norm(scaled, axis=1, keepdims=True), 1e-300)
+    got = _unit_rows(rows.reshape(18, 2).copy())
+    np.testing.assert_allclose(got.reshape(6, 3, 2), want, rtol=1e-14, atol=0)
+    assert np.all(got.reshape(6, 3, 2)[3, :, 0] == 0.0)
+
+
+@pytest.mark.parametrize("kind", ["ldl", "splu"] + (["cholesky"] if cholespy_available() else []))
+def test_solve_array_against_dense_solve(kind):
+    from torch_polylap.linalg.factor import CholeskyFactorization, Factorization
+
+    S = _random_spd(50, 5)
+    A = tp.sparse.from_scipy(S, symmetric=True)
+    factor = {"ldl": LDLFactorization, "splu": Factorization, "cholesky": CholeskyFactorization}
+    F = factor[kind](A)
+    B = np.random.default_rng(6).standard_normal((50, 3))
+    dense = np.linalg.solve(S.toarray(), B)
+    np.testing.assert_allclose(F.solve_array(B), dense, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(F.solve_array(B[:, 1]), dense[:, 1], rtol=1e-10, atol=1e-12)

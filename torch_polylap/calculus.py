@@ -297,9 +297,9 @@ class HeatGeodesicSolver:
     computed here once.  A query that needs no gradient (neither ``verts`` nor a tensor ``t`` or
     ``lam`` requires grad, or it runs under ``torch.no_grad()``) with a direct backend on the
     CPU runs steps 1-4 on float64 arrays instead: ``grad u`` as one product with the
-    ``(3F, V)`` gradient matrix, ``-div X`` as one with its transpose, both solves straight
-    through the cached factorizations; the same distances to round-off, at a fraction of the
-    per-query cost outside the solves.
+    ``(3F, V)`` gradient matrix, ``-div X`` as one with ``-G^T A_F`` (the face areas folded
+    in), both solves straight through the cached factorizations; the same distances to
+    round-off, at a fraction of the per-query cost outside the solves.
 
     Vertices of components without a source get ``inf`` (isolated vertices included).
     Differentiable with respect to ``verts`` through both solves (O(nnz) backward).  The heat
