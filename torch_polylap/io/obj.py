@@ -26,6 +26,7 @@ from .common import (
     plain_text,
     text_lines,
 )
+from .float_text import float_lines
 from .tokens import chunks, runs
 from .writers import face_block, vertex_block
 
@@ -386,10 +387,7 @@ def obj_bytes(
 
 
 def _value_block(values: np.ndarray, prefix: str) -> bytes:
-    if len(values) == 0:
-        return b""
-    line = prefix + " %r" * values.shape[1] + "\n"  # exact, as the vertices
-    return ((line * len(values)) % tuple(values.reshape(-1).tolist())).encode("ascii")
+    return float_lines(values, prefix.encode("ascii") + b" ")  # exact, as the vertices
 
 
 def _corner_tokens(
