@@ -42,11 +42,11 @@ from .common import (
     strip_bom,
     verts_numpy,
 )
-from .obj import obj_bytes, read_obj
+from .obj import obj_text, read_obj
 from .off import read_off
 from .ply import read_ply
 from .triangulate import triangulate_faces
-from .writers import off_bytes, ply_bytes
+from .writers import off_text, ply_text
 
 __all__ = [
     "MeshAttributes",
@@ -229,12 +229,12 @@ def write_mesh(
     sizes = pf.sizes.cpu().numpy()
     _check_range(path, "vertex", indices, len(v), "vertices", pf)
     if ext == ".obj":
-        data = obj_bytes(v, indices, sizes, _attributes_numpy(path, attributes, pf))
+        text = obj_text(v, indices, sizes, _attributes_numpy(path, attributes, pf))
     elif ext == ".off":
-        data = off_bytes(v, indices, sizes)
+        text = off_text(v, indices, sizes)
     else:
-        data = ply_bytes(v, indices, sizes, binary)
-    atomic_write(path, lambda f: f.write(data))
+        text = ply_text(v, indices, sizes, binary)
+    atomic_write(path, lambda f: f.writelines(text))
 
 
 def _check_range(

@@ -32,7 +32,7 @@ import numpy as np
 
 from .numparse import decimal_to_double
 
-__all__ = ["float_lines"]
+__all__ = ["float_lines", "float_pieces"]
 
 U64 = np.uint64
 _CHUNK_ROWS = 1 << 15  # lines per chunk: the temporaries stay in cache
@@ -281,19 +281,24 @@ def float_lines(values: np.ndarray, prefix: bytes) -> bytes:
     Returns:
         the text as ASCII bytes.
     """
+    return b"".join(float_pieces(values, prefix))
+
+
+def float_pieces(values: np.ndarray, prefix: bytes) -> list[bytes | memoryview]:
+    """:func:`float_lines` in consecutive pieces (a few thousand lines each), to be written one
+    after another without joining them."""
     values = np.ascontiguousarray(values, dtype=np.float64)
     if values.ndim != 2:
         raise ValueError("float_lines takes an (n, m) array")
     n, m = values.shape
     if n == 0:
-        return b""
+        return []
     sep_last = b"\n" + prefix
-    pieces = [prefix]
+    pieces: list[bytes | memoryview] = [prefix]
     for lo in range(0, n, _CHUNK_ROWS):
-        x = values[lo : lo + _CHUNK_ROWS].reshape(-1)
-        rec, keep = _records(x, m, sep_last)
+        rec, keep = _records(values[lo : lo + _CHUNK_ROWS].reshape(-1), m, sep_last)
         packed = rec[keep]
         if lo + _CHUNK_ROWS >= n:  # no line after the last
             packed = packed[: len(packed) - len(prefix)]
-        pieces.append(packed.tobytes())
-    return b"".join(pieces)
+        pieces.append(memoryview(packed))
+    return pieces

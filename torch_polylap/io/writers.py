@@ -1,31 +1,46 @@
-"""Text blocks shared by the OBJ, OFF and ASCII PLY writers, and the PLY writer."""
+"""Text blocks shared by the OBJ, OFF and ASCII PLY writers, and the PLY writer.
+
+The blocks are lists of pieces (``bytes`` or uint8 arrays) that the writers hand to
+``writelines`` as they are: joining the pieces of a million-face mesh would copy its tens of
+megabytes of text once more.
+"""
 
 from __future__ import annotations
 
+from typing import TypeAlias
+
 import numpy as np
 
-from .float_text import float_lines
+from .float_text import float_pieces
+
+# Consecutive pieces of a file's text
+Pieces: TypeAlias = list[bytes | memoryview]
 
 
-def vertex_block(v: np.ndarray, prefix: str) -> bytes:
+def vertex_block(v: np.ndarray, prefix: str) -> Pieces:
     """One line per vertex, ``prefix`` then ``x y z``, each the shortest decimal that reads back
-    as the same double (Python's ``repr``; built in bulk by :func:`.float_text.float_lines`)."""
-    return float_lines(v, prefix.encode("ascii"))
+    as the same double (Python's ``repr``; built in bulk by :mod:`.float_text`)."""
+    return list(float_pieces(v, prefix.encode("ascii")))
 
 
 def face_block(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: int = 0) -> bytes:
+    """:func:`face_pieces` joined."""
+    return b"".join(face_pieces(values, sizes, prefix, base))
+
+
+def face_pieces(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: int = 0) -> Pieces:
     """One line per face: ``prefix`` (or the degree when empty) then its corner values.
 
     ``values`` are integer indices (written plus ``base``) or an object array of ready-made
-    corner strings.  Integers are written digit by digit with numpy (:func:`int_lines`);
+    corner strings.  Integers are written with numpy (:func:`int_lines`);
     strings are formatted one degree at a time with a single ``%`` per degree, then put back in
     file order.
     """
     if len(sizes) == 0:
-        return b""
+        return []
     if values.dtype != object:
         if prefix:
-            return int_lines(values + base, sizes, prefix.encode("ascii"))
+            return int_pieces(values + base, sizes, prefix.encode("ascii"))
         # OFF: each line is the degree, then the indices
         tokens = np.empty(len(values) + len(sizes), dtype=np.int64)
         head = np.cumsum(sizes + 1) - (sizes + 1)
@@ -33,7 +48,7 @@ def face_block(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: in
         is_head[head] = True
         tokens[head] = sizes
         tokens[~is_head] = values + base
-        return int_lines(tokens, sizes + 1, b"")
+        return int_pieces(tokens, sizes + 1, b"")
     starts = np.cumsum(sizes) - sizes
     lines = np.empty(len(sizes), dtype=object)
     for k in np.unique(sizes).tolist():
@@ -41,10 +56,15 @@ def face_block(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: in
         rows = values[starts[sel][:, None] + np.arange(k)]
         line = (prefix or str(k)) + " %s" * k + "\n"
         lines[sel] = ((line * len(sel)) % tuple(rows.reshape(-1).tolist())).split("\n")[:-1]
-    return ("\n".join(lines.tolist()) + "\n").encode("ascii")
+    return [("\n".join(lines.tolist()) + "\n").encode("ascii")]
 
 
 def int_lines(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> bytes:
+    """:func:`int_pieces` joined."""
+    return b"".join(int_pieces(tokens, per_line, prefix))
+
+
+def int_pieces(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> Pieces:
     """Lines of non-negative integers: line ``l`` is ``prefix``, then the next ``per_line[l]``
     of ``tokens`` in decimal, separated by single spaces (one after a non-empty prefix), then
     a line break; without a prefix every line must hold a token.
@@ -54,12 +74,12 @@ def int_lines(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> bytes:
     as 16-byte records, packed by a byte mask (:func:`_int_records`); others digit by digit
     (:func:`_int_lines_by_place`)."""
     if len(per_line) == 0:
-        return b""
+        return []
     tokens = np.asarray(tokens, dtype=np.int64)
     if len(tokens) and tokens.min() < 0:
         raise ValueError("int_lines writes non-negative integers only")
     if len(prefix) <= 6 and per_line.min() >= 1 and tokens.max() < 10**8:
-        pieces = []
+        pieces: Pieces = []
         line_end = np.cumsum(per_line)
         for lo in range(0, len(per_line), _INT_CHUNK_LINES):
             hi = min(lo + _INT_CHUNK_LINES, len(per_line))
@@ -67,10 +87,10 @@ def int_lines(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> bytes:
             rec, keep = _int_records(
                 tokens[first : line_end[hi - 1]], per_line[lo:hi], prefix, first_line=lo == 0
             )
-            pieces.append(rec[keep].tobytes())
+            pieces.append(memoryview(rec[keep]))
         pieces.append(b"\n")
-        return b"".join(pieces)
-    return _int_lines_by_place(tokens, per_line, prefix)
+        return pieces
+    return [_int_lines_by_place(tokens, per_line, prefix)]
 
 
 _INT_CHUNK_LINES = 1 << 15  # lines per chunk: the temporaries stay in cache
@@ -165,13 +185,13 @@ def _int_lines_by_place(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes)
     return out[:size].tobytes()
 
 
-def off_bytes(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray) -> bytes:
+def off_text(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray) -> Pieces:
     """ASCII OFF."""
     header = f"OFF\n{len(v)} {len(sizes)} 0\n".encode("ascii")
-    return header + vertex_block(v, "") + face_block(indices, sizes)
+    return [header, *vertex_block(v, ""), *face_pieces(indices, sizes)]
 
 
-def ply_bytes(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray, binary: bool) -> bytes:
+def ply_text(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray, binary: bool) -> Pieces:
     """ASCII or binary little-endian PLY with double coordinates and int indices."""
     count_type = "uchar" if len(sizes) == 0 or sizes.max() <= 255 else "int"
     header = (
@@ -185,7 +205,7 @@ def ply_bytes(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray, binary: boo
         "end_header\n"
     ).encode("ascii")
     if not binary:
-        return header + vertex_block(v, "") + face_block(indices, sizes)
+        return [header, *vertex_block(v, ""), *face_pieces(indices, sizes)]
     count_size = 1 if count_type == "uchar" else 4
     # Each face record is its count followed by its int32 indices; place both by byte offset.
     starts = np.cumsum(sizes) - sizes
@@ -197,4 +217,4 @@ def ply_bytes(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray, binary: boo
         np.arange(len(indices)) - np.repeat(starts, sizes)
     )
     out[(corner_at[:, None] + np.arange(4)).reshape(-1)] = indices.astype("<i4").view(np.uint8)
-    return header + v.astype("<f8").tobytes() + out.tobytes()
+    return [header, np.ascontiguousarray(v, dtype="<f8").reshape(-1).view(np.uint8).data, out.data]
