@@ -187,9 +187,11 @@ def write_mesh(
 ) -> None:
     """Write a polygon mesh as OBJ, OFF or PLY, chosen by the file extension, atomically.
 
-    Coordinates are written as the shortest decimal that reads back as the same double (Python's
-    ``repr``, at most 17 significant digits; text formats) or as doubles (binary PLY), so
-    reading the file back with ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The
+    Coordinates are written as decimals that read back as the same doubles (text formats; each
+    is checked by parsing it back) or as doubles (binary PLY), so reading the file back with
+    ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The decimals are the shortest
+    that do (Python's ``repr``: at most 17 significant digits) but in rare cases one digit
+    longer (see :mod:`torch_polylap.io.float_text`).  The
     file is written to a temporary file in the same folder and moved onto ``path`` only once
     complete (see :func:`~torch_polylap.atomic.atomic_write`): an existing file is never
     left half-overwritten.

@@ -5,23 +5,24 @@ round-trip decimal) costs about a microsecond a number.  This module gives the s
 numpy operations on whole arrays:
 
 * candidates: ``|x|`` scaled by ``10**k`` (a double-double power of ten and Dekker's exact
-  product: about 106 correct bits) gives the 17-digit integer part and fraction of
-  ``|x| * 10**(16 - e)``, ``e`` the decimal exponent; from it the 15-, 16- and 17-digit
-  significands rounded to nearest (ties to even);
-* verification: each candidate is parsed back with the readers' exact decimal-to-double
-  conversion (:func:`.numparse.decimal_to_double`) and kept, shortest first, only if it gives
-  ``x`` again; every number no candidate settles (and ``nan``, infinities, subnormals and
-  magnitudes beyond ``1e290``) is printed by Python's ``repr``.  Exact round trip is thus
-  guaranteed by the check itself, not by the arithmetic;
-* text: significant digits eight at a time as ASCII (integer "SWAR" steps), the decimal point
-  put in with byte masks and shifts, laid out like ``repr`` (positional for exponents
+  product: about 106 correct bits) gives the integer part and fraction of
+  ``|x| * 10**(16 - e)``, ``e`` the decimal exponent; from them the 17-, 16- and 15-digit
+  significands rounded to nearest (ties to even), and the shortest one whose distance to
+  ``|x|`` is within half the spacing of doubles there is chosen;
+* verification: every chosen decimal is parsed back with the readers' exact decimal-to-double
+  conversion (:func:`.numparse.decimal_to_double`; Python's ``float`` for the few it leaves
+  undecided) and must give ``x`` again, else Python's ``repr`` prints that number, as it does
+  ``nan``, infinities, subnormals and magnitudes beyond ``1e290``.  The exact round trip is
+  thus guaranteed by the check itself, not by the arithmetic before it;
+* text: the digits eight at a time as ASCII (integer "SWAR" steps), the decimal point put in
+  with byte masks and shifts, laid out as ``repr`` does (positional for exponents
   ``-4 <= e < 16``, else ``d.ddde+XX``) in fixed 40-byte records, which a byte mask then
   packs into the file's text.
 
-The digits are those of ``repr`` (the shortest round-trip decimal, the nearest one among those)
-except in rare cases where a longer, still exact, decimal is written: the 15 or 16 digits that
-would do lie on the far side of a power of two (whose rounding interval is lopsided) or the
-nearest candidate was within about ``2**-49`` units of a rounding tie.
+The text is ``repr``'s (the shortest round-trip decimal, the nearest among those) except in
+rare cases, where a longer decimal, still exact, is written: a shorter one exactly half a
+spacing of doubles away from ``|x| >= 1e17`` (where the inexact ``10**k``, ``k < 0``, blurs
+the tie) or on the short side of a power of two (whose rounding interval is lopsided).
 """
 
 from __future__ import annotations
@@ -204,17 +205,15 @@ def _records(x: np.ndarray, width: int, sep_last: bytes) -> tuple[np.ndarray, np
     n = len(x)
     ax = np.abs(x)
     fast = (ax >= _FAST_MIN) & (ax < _FAST_MAX)
-    n17 = np.zeros(n, dtype=U64)  # zeros are "0.0" from these defaults
-    digits = np.ones(n, dtype=np.int64)
-    e = np.zeros(n, dtype=np.int64)
     if fast.all():
-        at = None
         n17, digits, e, ok = _decimals(ax)
-        slow = np.flatnonzero(~ok)
-    else:
-        at = np.flatnonzero(fast)
-        n17[at], digits[at], e[at], ok = _decimals(ax[at])
-        slow = np.union1d(np.flatnonzero(~fast & (ax != 0)), at[~ok])
+    else:  # the others as 1.0, then zeros as "0.0" and the rest as repr
+        n17, digits, e, ok = _decimals(np.where(fast, ax, 1.0))
+        n17 = np.where(fast, n17, U64(0))
+        digits = np.where(fast, digits, 1)
+        e = np.where(fast, e, 0)
+        ok &= fast | (ax == 0)
+    slow = np.flatnonzero(~ok)
     w = _digit_words(n17)
 
     positional = (e >= -4) & (e < 16)
