@@ -180,12 +180,18 @@ def _low_bytes(c: int, fill: int) -> int:
     return int.from_bytes(bytes([fill]) * c + bytes(8 - c), "little")
 
 
-# By c = 0..8: the lowest c bytes of a word
-_LOW = np.array([_low_bytes(c, 0xFF) for c in range(9)], dtype=U64)
+# For the point at byte p (0-23; 24: none) of three words of digits: by word k, indexed by p,
+# the bytes of word k before the point (kept in place), and the point's byte in word k
+_KEEP = [
+    np.array([_low_bytes(min(max(p - 8 * k, 0), 8), 0xFF) for p in range(25)], dtype=U64)
+    for k in range(3)
+]
 # Record bytes kept: a range [a, b) of the 40, a <= 8, as a row of this table (index a * 41 + b)
 _MASKS = np.array([[a <= i < b for i in range(_W)] for a in range(9) for b in range(_W + 1)])
-# By c + 16 for c = -16..24: the word with a "." at byte c (none outside 0..7)
-_POINT = np.array([0x2E << (8 * c) if 0 <= c < 8 else 0 for c in range(-16, 25)], dtype=U64)
+_POINT = [
+    np.array([0x2E << (8 * (p - 8 * k)) if 0 <= p - 8 * k < 8 else 0 for p in range(25)], U64)
+    for k in range(3)
+]
 
 # Text before the digits: "-" (sign) then "0." and zeros (exponents -1 to -4), right-aligned in
 # the record's first word; key = 5 * sign + (0 for no "0.", else -e)
@@ -224,16 +230,14 @@ def _records(x: np.ndarray, width: int, sep_last: bytes) -> tuple[np.ndarray, np
     zone = np.where(positional, zone, digits + (digits > 1))
     lead_key = np.where(positional & below_one, -e, 0)
     lead_key += 5 * np.signbit(x)
-    rec = np.empty((n, _W // 8), dtype=U64)
+    rec = np.empty((n, _W // 8), dtype=U64)  # every byte kept is written below
     rec[:, 0] = _LEAD_WORD.take(lead_key)
-    rec[:, 4] = 0
     carry = U64(0)
     for k in range(3):
-        c = np.clip(point - 8 * k, 0, 8)
-        kept = w[k] & _LOW.take(c)
+        kept = w[k] & _KEEP[k].take(point)
         moved = w[k] ^ kept
         kept |= moved << U64(8)
-        kept |= _POINT.take(point + (16 - 8 * k))
+        kept |= _POINT[k].take(point)
         kept |= carry
         rec[:, k + 1] = kept
         carry = moved >> U64(56)
