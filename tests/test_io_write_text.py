@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torch_polylap.io import float_text, read_mesh, write_mesh
-from torch_polylap.io.float_text import float_lines
+from torch_polylap.io.float_text import ascii8, float_lines
 from torch_polylap.io.writers import int_lines
 
 PROPERTY = settings(max_examples=200, deadline=None, database=None)
@@ -132,3 +132,11 @@ def test_many_face_lines_match_python_formatting():
         head = [prefix.decode()] if prefix else []
         want = "".join(" ".join(head + [str(v) for v in line]) + "\n" for line in lines)
         assert int_lines(values, per_line, prefix) == want.encode()
+
+
+@PROPERTY
+@given(st.lists(st.integers(0, 10**8 - 1), min_size=1, max_size=50))
+def test_eight_digits_at_once(values):
+    """The integer steps that turn a number below 10**8 into its eight ASCII digits."""
+    words = ascii8(np.array(values, dtype=np.uint64))
+    assert words.astype("<u8").tobytes() == "".join(f"{v:08d}" for v in values).encode()

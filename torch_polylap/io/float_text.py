@@ -33,10 +33,10 @@ import numpy as np
 
 from .numparse import decimal_to_double
 
-__all__ = ["float_lines", "float_pieces"]
+__all__ = ["ascii8", "float_lines", "float_pieces"]
 
 U64 = np.uint64
-_CHUNK_ROWS = 1 << 15  # lines per chunk: the temporaries stay in cache
+_CHUNK_ROWS = 1 << 15  # lines per chunk: temporaries of a few megabytes, not of the whole mesh
 _W = 40  # bytes per number record: 8 of prefix ("-0.000"), 24 of digits, exponent, separator
 _FAST_MIN, _FAST_MAX = 1e-290, 1e290  # |x| the vectorised path handles
 _KMIN, _KMAX = -290, 308  # powers of ten it scales by
@@ -66,9 +66,9 @@ def _power_table() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 
 _H, _HH, _HL, _LO = _power_table()
-_SPLIT = 134217729.0
+_SPLIT = 134217729.0  # 2**27 + 1: Veltkamp's split into two 26-bit halves
 _EXPONENT = U64(0x7FF0000000000000)
-_HALF_ULP = U64(53 << 52)  # 2**27 + 1: Veltkamp's split into two 26-bit halves
+_HALF_ULP = U64(53 << 52)
 
 
 def _scaled(ax: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -151,11 +151,14 @@ def _decimals(ax: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
 _ASCII_ZEROS = U64(0x3030303030303030)
 
 
-def _ascii8(v: np.ndarray) -> np.ndarray:
-    """The 8 decimal digits of each ``v < 10**8`` (zero-padded) as ASCII, most significant
-    first in memory (little-endian: lowest byte).  Each step splits every lane of the word in
-    two: 4+4 digits in 32-bit lanes, 2+2 in 16-bit, 1+1 in 8-bit; the divisions by 100 and by
-    10 are multiply-shifts exact for the lane values (below 10**4 and 100)."""
+def ascii8(v: np.ndarray) -> np.ndarray:
+    """The 8 decimal digits of each integer ``0 <= v < 10**8`` (zero-padded) as ASCII in a
+    uint64, most significant first in memory (little-endian: the lowest byte).
+
+    Each step splits every lane of the word in two: 4+4 digits in 32-bit lanes, 2+2 in
+    16-bit, 1+1 in 8-bit; the divisions by 100 and 10 are multiply-shifts, exact for the lane
+    values (below 10**4 and 100)."""
+    v = v.astype(U64, copy=False)
     hi = v // U64(10000)
     w = hi | ((v - hi * U64(10000)) << U64(32))
     hi = ((w * U64(5243)) >> U64(19)) & U64(0x0000007F0000007F)
@@ -170,8 +173,8 @@ def _digit_words(n17: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     lead = n17 // U64(10**16)
     rest = n17 - lead * U64(10**16)
     a = rest // U64(10**8)
-    b = _ascii8(rest - a * U64(10**8))
-    a = _ascii8(a)
+    b = ascii8(rest - a * U64(10**8))
+    a = ascii8(a)
     return (lead + U64(48)) | (a << U64(8)), (a >> U64(56)) | (b << U64(8)), b >> U64(56)
 
 
@@ -186,12 +189,13 @@ _KEEP = [
     np.array([_low_bytes(min(max(p - 8 * k, 0), 8), 0xFF) for p in range(25)], dtype=U64)
     for k in range(3)
 ]
-# Record bytes kept: a range [a, b) of the 40, a <= 8, as a row of this table (index a * 41 + b)
-_MASKS = np.array([[a <= i < b for i in range(_W)] for a in range(9) for b in range(_W + 1)])
 _POINT = [
     np.array([0x2E << (8 * (p - 8 * k)) if 0 <= p - 8 * k < 8 else 0 for p in range(25)], U64)
     for k in range(3)
 ]
+
+# Record bytes kept: a range [a, b) of the 40, a <= 8, as a row of this table (index a * 41 + b)
+_MASKS = np.array([[a <= i < b for i in range(_W)] for a in range(9) for b in range(_W + 1)])
 
 # Text before the digits: "-" (sign) then "0." and zeros (exponents -1 to -4), right-aligned in
 # the record's first word; key = 5 * sign + (0 for no "0.", else -e)

@@ -11,7 +11,7 @@ from typing import TypeAlias
 
 import numpy as np
 
-from .float_text import float_pieces
+from .float_text import ascii8, float_pieces
 
 # Consecutive pieces of a file's text
 Pieces: TypeAlias = list[bytes | memoryview]
@@ -94,28 +94,9 @@ def int_pieces(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> Piece
 
 
 _INT_CHUNK_LINES = 1 << 15  # lines per chunk: the temporaries stay in cache
-_ASCII_ZEROS = np.uint64(0x3030303030303030)
 _POW10_U32 = np.array([10**k for k in range(1, 8)], dtype=np.uint32)
 # A 16-byte record keeps bytes [a, b) with a <= 8: row a * 17 + b of this table
 _INT_MASKS = np.array([[a <= i < b for i in range(16)] for a in range(9) for b in range(17)])
-
-
-def ascii8(v: np.ndarray) -> np.ndarray:
-    """The 8 decimal digits of each ``v < 10**8`` (zero-padded) as ASCII in a uint64, most
-    significant first in memory (little-endian: the lowest byte).
-
-    Each step splits every lane of the word in two: 4+4 digits in 32-bit lanes, 2+2 in
-    16-bit, 1+1 in 8-bit; the divisions by 100 and 10 are multiply-shifts, exact for the lane
-    values (below 10**4 and 100)."""
-    u = np.uint64
-    v = v.astype(u)
-    hi = v // u(10000)
-    w = hi | ((v - hi * u(10000)) << u(32))
-    hi = ((w * u(5243)) >> u(19)) & u(0x0000007F0000007F)
-    w = hi | ((w - hi * u(100)) << u(16))
-    hi = ((w * u(103)) >> u(10)) & u(0x000F000F000F000F)
-    w = hi | ((w - hi * u(10)) << u(8))
-    return w | _ASCII_ZEROS
 
 
 def _int_records(
