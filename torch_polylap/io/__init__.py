@@ -42,11 +42,11 @@ from .common import (
     strip_bom,
     verts_numpy,
 )
-from .obj import obj_bytes, read_obj
+from .obj import obj_text, read_obj
 from .off import read_off
 from .ply import read_ply
 from .triangulate import triangulate_faces
-from .writers import off_bytes, ply_bytes
+from .writers import off_text, ply_text
 
 __all__ = [
     "MeshAttributes",
@@ -187,9 +187,11 @@ def write_mesh(
 ) -> None:
     """Write a polygon mesh as OBJ, OFF or PLY, chosen by the file extension, atomically.
 
-    Coordinates are written as the shortest decimal that reads back as the same double (Python's
-    ``repr``, at most 17 significant digits; text formats) or as doubles (binary PLY), so
-    reading the file back with ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The
+    Coordinates are written as decimals that read back as the same doubles (text formats; each
+    is checked by parsing it back) or as doubles (binary PLY), so reading the file back with
+    ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The decimals are the shortest
+    that do (Python's ``repr``: at most 17 significant digits) but in rare cases one digit
+    longer (see :mod:`torch_polylap.io.float_text`).  The
     file is written to a temporary file in the same folder and moved onto ``path`` only once
     complete (see :func:`~torch_polylap.atomic.atomic_write`): an existing file is never
     left half-overwritten.
@@ -229,12 +231,12 @@ def write_mesh(
     sizes = pf.sizes.cpu().numpy()
     _check_range(path, "vertex", indices, len(v), "vertices", pf)
     if ext == ".obj":
-        data = obj_bytes(v, indices, sizes, _attributes_numpy(path, attributes, pf))
+        text = obj_text(v, indices, sizes, _attributes_numpy(path, attributes, pf))
     elif ext == ".off":
-        data = off_bytes(v, indices, sizes)
+        text = off_text(v, indices, sizes)
     else:
-        data = ply_bytes(v, indices, sizes, binary)
-    atomic_write(path, lambda f: f.write(data))
+        text = ply_text(v, indices, sizes, binary)
+    atomic_write(path, lambda f: f.writelines(text))
 
 
 def _check_range(

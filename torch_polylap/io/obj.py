@@ -26,8 +26,9 @@ from .common import (
     plain_text,
     text_lines,
 )
+from .float_text import float_pieces
 from .tokens import chunks, runs
-from .writers import face_block, vertex_block
+from .writers import Pieces, face_pieces, vertex_block
 
 # Records that carry no polygon connectivity, as the skipped-content warning names them.
 _SKIPPED = {
@@ -364,32 +365,25 @@ def _add_attribute(
         parsed.attributes["corner_" + key] = refs
 
 
-def obj_bytes(
+def obj_text(
     v: np.ndarray,
     indices: np.ndarray,
     sizes: np.ndarray,
     attributes: dict[str, np.ndarray],
-) -> bytes:
+) -> Pieces:
     """OBJ text: ``vt``/``vn`` records and ``v/t/n`` corners when ``attributes`` has them."""
-    blocks = [vertex_block(v, "v ")]
+    pieces = vertex_block(v, "v ")
     if "uv" in attributes:
-        blocks.append(_value_block(attributes["uv"], "vt"))
+        pieces += float_pieces(attributes["uv"], b"vt ")  # exact, as the vertices
     if "normals" in attributes:
-        blocks.append(_value_block(attributes["normals"], "vn"))
+        pieces += float_pieces(attributes["normals"], b"vn ")
     corner_uv = attributes.get("corner_uv")
     corner_normals = attributes.get("corner_normals")
     if corner_uv is None and corner_normals is None:
-        blocks.append(face_block(indices, sizes, base=1, prefix="f"))
+        pieces += face_pieces(indices, sizes, base=1, prefix="f")
     else:
-        blocks.append(face_block(_corner_tokens(indices, corner_uv, corner_normals), sizes, "f"))
-    return b"".join(blocks)
-
-
-def _value_block(values: np.ndarray, prefix: str) -> bytes:
-    if len(values) == 0:
-        return b""
-    line = prefix + " %r" * values.shape[1] + "\n"  # exact, as the vertices
-    return ((line * len(values)) % tuple(values.reshape(-1).tolist())).encode("ascii")
+        pieces += face_pieces(_corner_tokens(indices, corner_uv, corner_normals), sizes, "f")
+    return pieces
 
 
 def _corner_tokens(

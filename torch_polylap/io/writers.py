@@ -1,33 +1,46 @@
-"""Text blocks shared by the OBJ, OFF and ASCII PLY writers, and the PLY writer."""
+"""Text blocks shared by the OBJ, OFF and ASCII PLY writers, and the PLY writer.
+
+The blocks are lists of pieces (``bytes`` or uint8 arrays) that the writers hand to
+``writelines`` as they are: joining the pieces of a million-face mesh would copy its tens of
+megabytes of text once more.
+"""
 
 from __future__ import annotations
 
+from typing import TypeAlias
+
 import numpy as np
 
+from .float_text import ascii8, float_pieces
 
-def vertex_block(v: np.ndarray, prefix: str) -> bytes:
-    """One line per vertex, ``prefix`` then ``x y z`` as Python's ``repr``: the shortest
-    decimal that reads back as the same double (at most 17 significant digits; a third faster
-    to format than ``%.17g``, and shorter)."""
-    if len(v) == 0:
-        return b""
-    text = ((prefix + "%r %r %r\n") * len(v)) % tuple(v.reshape(-1).tolist())
-    return text.encode("ascii")
+# Consecutive pieces of a file's text
+Pieces: TypeAlias = list[bytes | memoryview]
+
+
+def vertex_block(v: np.ndarray, prefix: str) -> Pieces:
+    """One line per vertex, ``prefix`` then ``x y z``, each the shortest decimal that reads back
+    as the same double (Python's ``repr``; built in bulk by :mod:`.float_text`)."""
+    return list(float_pieces(v, prefix.encode("ascii")))
 
 
 def face_block(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: int = 0) -> bytes:
+    """:func:`face_pieces` joined."""
+    return b"".join(face_pieces(values, sizes, prefix, base))
+
+
+def face_pieces(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: int = 0) -> Pieces:
     """One line per face: ``prefix`` (or the degree when empty) then its corner values.
 
     ``values`` are integer indices (written plus ``base``) or an object array of ready-made
-    corner strings.  Integers are written digit by digit with numpy (:func:`int_lines`);
+    corner strings.  Integers are written with numpy (:func:`int_lines`);
     strings are formatted one degree at a time with a single ``%`` per degree, then put back in
     file order.
     """
     if len(sizes) == 0:
-        return b""
+        return []
     if values.dtype != object:
         if prefix:
-            return int_lines(values + base, sizes, prefix.encode("ascii"))
+            return int_pieces(values + base, sizes, prefix.encode("ascii"))
         # OFF: each line is the degree, then the indices
         tokens = np.empty(len(values) + len(sizes), dtype=np.int64)
         head = np.cumsum(sizes + 1) - (sizes + 1)
@@ -35,7 +48,7 @@ def face_block(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: in
         is_head[head] = True
         tokens[head] = sizes
         tokens[~is_head] = values + base
-        return int_lines(tokens, sizes + 1, b"")
+        return int_pieces(tokens, sizes + 1, b"")
     starts = np.cumsum(sizes) - sizes
     lines = np.empty(len(sizes), dtype=object)
     for k in np.unique(sizes).tolist():
@@ -43,22 +56,81 @@ def face_block(values: np.ndarray, sizes: np.ndarray, prefix: str = "", base: in
         rows = values[starts[sel][:, None] + np.arange(k)]
         line = (prefix or str(k)) + " %s" * k + "\n"
         lines[sel] = ((line * len(sel)) % tuple(rows.reshape(-1).tolist())).split("\n")[:-1]
-    return ("\n".join(lines.tolist()) + "\n").encode("ascii")
+    return [("\n".join(lines.tolist()) + "\n").encode("ascii")]
 
 
 def int_lines(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> bytes:
+    """:func:`int_pieces` joined."""
+    return b"".join(int_pieces(tokens, per_line, prefix))
+
+
+def int_pieces(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> Pieces:
     """Lines of non-negative integers: line ``l`` is ``prefix``, then the next ``per_line[l]``
     of ``tokens`` in decimal, separated by single spaces (one after a non-empty prefix), then
     a line break; without a prefix every line must hold a token.
 
-    Built in one byte array (Python's ``%d`` formatting of millions of indices takes twice as
-    long): each token's place follows from the running sum of the widths, and its digits are
-    written one decimal place at a time for all tokens at once."""
+    Built with numpy, no Python work per token (Python's ``%d`` formatting of millions of
+    indices takes several times as long): tokens below ``10**8`` in every line (mesh indices)
+    as 16-byte records, packed by a byte mask (:func:`_int_records`); others digit by digit
+    (:func:`_int_lines_by_place`)."""
     if len(per_line) == 0:
-        return b""
+        return []
     tokens = np.asarray(tokens, dtype=np.int64)
     if len(tokens) and tokens.min() < 0:
         raise ValueError("int_lines writes non-negative integers only")
+    if len(prefix) <= 6 and per_line.min() >= 1 and tokens.max() < 10**8:
+        pieces: Pieces = []
+        line_end = np.cumsum(per_line)
+        for lo in range(0, len(per_line), _INT_CHUNK_LINES):
+            hi = min(lo + _INT_CHUNK_LINES, len(per_line))
+            first = int(line_end[lo - 1]) if lo else 0
+            rec, keep = _int_records(
+                tokens[first : line_end[hi - 1]], per_line[lo:hi], prefix, first_line=lo == 0
+            )
+            pieces.append(memoryview(rec[keep]))
+        pieces.append(b"\n")
+        return pieces
+    return [_int_lines_by_place(tokens, per_line, prefix)]
+
+
+_INT_CHUNK_LINES = 1 << 15  # lines per chunk: the temporaries stay in cache
+_POW10_U32 = np.array([10**k for k in range(1, 8)], dtype=np.uint32)
+# A 16-byte record keeps bytes [a, b) with a <= 8: row a * 17 + b of this table
+_INT_MASKS = np.array([[a <= i < b for i in range(16)] for a in range(9) for b in range(17)])
+
+
+def _int_records(
+    tokens: np.ndarray, per_line: np.ndarray, prefix: bytes, first_line: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(records, keep)`` for :func:`int_lines` (tokens below ``10**8``, lines not empty):
+    per token a 16-byte record, the text before it right-aligned in the first 8 bytes (a
+    space; before a line's first token the previous line's break unless ``first_line``,
+    ``prefix`` and its space) and its digits from byte 8, all in one uint8 array, and the
+    bytes of it to keep."""
+    n = len(tokens)
+    v = tokens.astype(np.uint32)
+    digits = np.ones(n, dtype=np.int64)
+    for power in _POW10_U32:
+        digits += v >= power
+    rec = np.empty((n, 2), dtype=np.uint64)
+    rec[:, 1] = ascii8(v) >> ((8 - digits) * 8).astype(np.uint64)  # drop the leading zeros
+    before = b" "
+    head = b"\n" + prefix + (b" " if prefix else b"")
+    rec[:, 0] = int.from_bytes(before.rjust(8, b"\0"), "little")
+    heads = np.cumsum(per_line) - per_line
+    rec[heads, 0] = int.from_bytes(head.rjust(8, b"\0"), "little")
+    start = np.full(n, 8 - len(before), dtype=np.int64)
+    start[heads] = 8 - len(head)
+    if first_line:
+        start[0] += 1  # no line break before the first line
+    keep = _INT_MASKS.take(start * 17 + digits + 8, axis=0)
+    return rec.view(np.uint8).reshape(-1), keep.reshape(-1)
+
+
+def _int_lines_by_place(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> bytes:
+    """:func:`int_lines` for any tokens (and empty lines): built in one byte array, each
+    token's place following from the running sum of the widths, its digits written one
+    decimal place at a time for all tokens at once."""
     top = int(tokens.max()) if len(tokens) else 0
     value = tokens.astype(np.uint64 if top >= 2**32 else np.uint32)
     digits = np.ones(len(tokens), dtype=np.int64)
@@ -94,13 +166,13 @@ def int_lines(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> bytes:
     return out[:size].tobytes()
 
 
-def off_bytes(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray) -> bytes:
+def off_text(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray) -> Pieces:
     """ASCII OFF."""
     header = f"OFF\n{len(v)} {len(sizes)} 0\n".encode("ascii")
-    return header + vertex_block(v, "") + face_block(indices, sizes)
+    return [header, *vertex_block(v, ""), *face_pieces(indices, sizes)]
 
 
-def ply_bytes(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray, binary: bool) -> bytes:
+def ply_text(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray, binary: bool) -> Pieces:
     """ASCII or binary little-endian PLY with double coordinates and int indices."""
     count_type = "uchar" if len(sizes) == 0 or sizes.max() <= 255 else "int"
     header = (
@@ -114,7 +186,7 @@ def ply_bytes(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray, binary: boo
         "end_header\n"
     ).encode("ascii")
     if not binary:
-        return header + vertex_block(v, "") + face_block(indices, sizes)
+        return [header, *vertex_block(v, ""), *face_pieces(indices, sizes)]
     count_size = 1 if count_type == "uchar" else 4
     # Each face record is its count followed by its int32 indices; place both by byte offset.
     starts = np.cumsum(sizes) - sizes
@@ -126,4 +198,4 @@ def ply_bytes(v: np.ndarray, indices: np.ndarray, sizes: np.ndarray, binary: boo
         np.arange(len(indices)) - np.repeat(starts, sizes)
     )
     out[(corner_at[:, None] + np.arange(4)).reshape(-1)] = indices.astype("<i4").view(np.uint8)
-    return header + v.astype("<f8").tobytes() + out.tobytes()
+    return [header, np.ascontiguousarray(v, dtype="<f8").reshape(-1).view(np.uint8).data, out.data]
