@@ -9,6 +9,7 @@ functions here directly.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -57,21 +58,27 @@ def _analyse(
     edge_uses: np.ndarray,
     he_edge: np.ndarray,
     valence: np.ndarray,
+    degree: int | None = None,
 ) -> TopologyReport:
     """The :class:`TopologyReport` of a mesh, O(N) for a clean one (``N`` corners).
 
     The costlier searches (a graph over corners for non-manifold vertices, orientability,
-    duplicates) run only when a cheap test has already found a defect. ``faces`` is on the CPU.
+    duplicates) run only when a cheap test has already found a defect. ``faces`` is on the CPU;
+    ``degree``: the degree of every face when all have the same one (then no corner maps are
+    built for a clean mesh), else ``None``.
     """
-    idx, nxt, prv = (t.numpy() for t in (faces.indices, faces.next_corner, faces.prev_corner))
-    forward = idx < idx[nxt]
+    idx = faces.indices.numpy()
+    cycle = _CornerCycle(faces, degree)
+    forward = idx < cycle.next_of(idx)
     heavy = edge_uses > 2
     fwd_count = np.bincount(he_edge[forward], minlength=edge_uses.size)
     misoriented = (edge_uses == 2) & (fwd_count != 1)
-    if heavy.any() or misoriented.any():
+    defective = bool(heavy.any() or misoriented.any())
+    nxt = faces.next_corner.numpy() if defective else np.zeros(0, np.int64)
+    if defective:
         fans = _fan_counts_general(idx, nxt, forward, he_edge, edge_uses, num_verts)
     else:
-        fans = _fan_counts_oriented(idx, prv, he_edge, edge_uses, valence)
+        fans = _fan_counts_oriented(idx, cycle.prev_of, he_edge, edge_uses, valence)
     bad_vertex = fans > 1
     bad_vertex[edges[heavy].reshape(-1)] = True
     # a misoriented edge's faces are stored as (p, q) = the direction both traverse
@@ -83,7 +90,7 @@ def _analyse(
         he_face = faces.corner_face.numpy()
         _, bad_face, comp = _orientation(nxt, forward, he_face, he_edge, edge_uses)
         non_orientable = int(np.unique(comp[bad_face]).size)
-    if heavy.any() or misoriented.any():
+    if defective:
         dups = duplicate_faces(faces)[0]
     return TopologyReport(
         non_manifold_edges=edges[heavy],
@@ -93,6 +100,37 @@ def _analyse(
         duplicate_faces=dups,
         isolated_vertices=np.flatnonzero(valence == 0),
     )
+
+
+class _CornerCycle:
+    """Per-corner values moved to the next or previous corner of the same face, ``(N,)`` to
+    ``(N,)``: ``next_of(a)[c] == a[next_corner[c]]``.
+
+    With one degree ``k`` for all faces this is a shift of the packed array with every face's
+    wrap-around patched by a strided copy: no ``(N,)`` corner maps, no gather.
+    """
+
+    def __init__(self, faces: PolygonFaces, degree: int | None) -> None:
+        self.faces = faces
+        self.k = degree
+
+    def next_of(self, a: np.ndarray) -> np.ndarray:
+        k = self.k
+        if k is None:
+            return a[self.faces.next_corner.numpy()]
+        out = np.empty_like(a)
+        out[:-1] = a[1:]
+        out[k - 1 :: k] = a[::k]
+        return out
+
+    def prev_of(self, a: np.ndarray) -> np.ndarray:
+        k = self.k
+        if k is None:
+            return a[self.faces.prev_corner.numpy()]
+        out = np.empty_like(a)
+        out[1:] = a[:-1]
+        out[::k] = a[k - 1 :: k]
+        return out
 
 
 def _twins(he_edge: np.ndarray, edge_uses: np.ndarray, itype: type = np.int64) -> np.ndarray:
@@ -112,14 +150,15 @@ def _twins(he_edge: np.ndarray, edge_uses: np.ndarray, itype: type = np.int64) -
 
 def _fan_counts_oriented(
     idx: np.ndarray,
-    prv: np.ndarray,
+    prev_of: Callable[[np.ndarray], np.ndarray],
     he_edge: np.ndarray,
     edge_uses: np.ndarray,
     valence: np.ndarray,
 ) -> np.ndarray:
     """``(V,)`` number of fans (maximal runs of faces linked by shared edges) at each vertex,
     for a mesh whose edges are manifold and consistently oriented; ``valence`` ``(V,)`` counts
-    the corners at each vertex.
+    the corners at each vertex, ``prev_of`` moves per-corner values to the previous corner
+    (:meth:`_CornerCycle.prev_of`).
 
     Around a vertex, corner ``c`` continues to the corner where the twin of its incoming
     half-edge starts, so every vertex's corners form paths (open fans) and cycles (closed
@@ -131,7 +170,7 @@ def _fan_counts_oriented(
     n = idx.size
     itype = np.int32 if n < 2**31 - 1 else np.int64
     pos = np.arange(n, dtype=itype)
-    succ = _twins(he_edge, edge_uses, itype)[prv]
+    succ = prev_of(_twins(he_edge, edge_uses, itype))
     np.copyto(succ, pos, where=succ < 0)
     jump, low = succ, pos.copy()
     max_valence = int(valence.max()) if n else 1
