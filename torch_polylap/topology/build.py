@@ -14,7 +14,14 @@ import torch
 from ..checks import warn_outside_package
 from ..faces import FacesLike, PolygonFaces, as_faces
 from .analysis import _analyse
-from .groups import DegreeGroup, _chunks, _cycle_pair_rows, _degree_block, _write_pair_keys
+from .groups import (
+    DegreeGroup,
+    _check_simple_faces,
+    _chunks,
+    _cycle_pair_rows,
+    _degree_block,
+    _write_pair_keys,
+)
 from .structure import Topology
 
 # A face of degree k contributes k (k - 1) / 2 corner pairs to the pattern, each costing about
@@ -49,7 +56,10 @@ def build_topology(
     cpu = pf if pf.device.type == "cpu" else pf.to("cpu")
     # A private copy: the topology is cached and outlives the call, so it must neither see
     # later in-place edits of the caller's tensor nor keep that tensor alive (a view would).
-    own = PolygonFaces(cpu.indices.clone(), offsets=cpu.offsets.clone())
+    # (numpy copies: numpy asks for huge pages, which first touch far faster at this size)
+    own = PolygonFaces(
+        torch.from_numpy(cpu.indices.numpy().copy()), offsets=cpu.offsets.numpy().copy()
+    )
     idx, sizes, offsets = own.indices.numpy(), own.sizes.numpy(), own.offsets.numpy()
     if num_verts is None:
         num_verts = int(idx.max()) + 1 if idx.size else 0
@@ -67,11 +77,14 @@ def build_topology(
     start = 0
     for _, fid, corners_t, pi, pj in blocks:
         stop = start + pi.size * fid.size
-        _write_pair_keys(corners_t, fid, pi, pj, nv, all_keys[start:stop])
+        _write_pair_keys(corners_t, pi, pj, nv, all_keys[start:stop])
         start = stop
 
     ulo, uhi, inv = _unique_pairs(all_keys, nv)
     del all_keys
+    if bool((ulo == uhi).any()):  # a face visits a vertex twice: find and name it
+        for _, fid, corners_t, pi, pj in blocks:
+            _check_simple_faces(corners_t, fid, pi, pj)
     crow, col, pos_up_u, pos_low_u, pos_diag_v = _symmetric_pattern(ulo, uhi, num_verts)
 
     groups = []
