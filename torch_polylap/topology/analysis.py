@@ -1,10 +1,10 @@
 """Connectivity analysis on the packed faces: half-edges, twins, fans, orientation, duplicates.
 
-Everything runs vectorized in numpy on the CPU: pointer doubling for the fans around vertices,
-one ``connected_components`` on a doubled face graph for orientations, one lexicographic sort
-per degree for duplicated faces. :func:`~torch_polylap.topology.build_topology` calls
-:func:`_analyse` on every mesh; the repairs (:mod:`torch_polylap.repair`) call the public
-functions here directly.
+Everything runs vectorized in numpy on the CPU: walks around all vertices at once (pointer
+doubling where a vertex is busy) for the fans, one ``connected_components`` on a doubled face
+graph for orientations, one lexicographic sort per degree for duplicated faces.
+:func:`~torch_polylap.topology.build_topology` calls :func:`_analyse` on every mesh; the repairs
+(:mod:`torch_polylap.repair`) call the public functions here directly.
 """
 
 from __future__ import annotations
@@ -76,10 +76,9 @@ def _analyse(
     defective = bool(heavy.any() or misoriented.any())
     nxt = faces.next_corner.numpy() if defective else np.zeros(0, np.int64)
     if defective:
-        fans = _fan_counts_general(idx, nxt, forward, he_edge, edge_uses, num_verts)
+        bad_vertex = _fan_counts_general(idx, nxt, forward, he_edge, edge_uses, num_verts) > 1
     else:
-        fans = _fan_counts_oriented(idx, cycle.prev_of, he_edge, edge_uses, valence)
-    bad_vertex = fans > 1
+        bad_vertex = _multi_fan_vertices_oriented(idx, cycle.prev_of, he_edge, edge_uses, valence)
     bad_vertex[edges[heavy].reshape(-1)] = True
     # a misoriented edge's faces are stored as (p, q) = the direction both traverse
     mis = edges[misoriented]
@@ -148,37 +147,77 @@ def _twins(he_edge: np.ndarray, edge_uses: np.ndarray, itype: type = np.int64) -
     return twin
 
 
-def _fan_counts_oriented(
+# Vertices with at most this many corners are checked by walking their fan (one vectorized
+# step per corner of the busiest vertex); meshes with busier vertices use pointer doubling.
+MAX_WALK_VALENCE = 32
+
+
+def _multi_fan_vertices_oriented(
     idx: np.ndarray,
     prev_of: Callable[[np.ndarray], np.ndarray],
     he_edge: np.ndarray,
     edge_uses: np.ndarray,
     valence: np.ndarray,
 ) -> np.ndarray:
-    """``(V,)`` number of fans (maximal runs of faces linked by shared edges) at each vertex,
-    for a mesh whose edges are manifold and consistently oriented; ``valence`` ``(V,)`` counts
-    the corners at each vertex, ``prev_of`` moves per-corner values to the previous corner
-    (:meth:`_CornerCycle.prev_of`).
+    """``(V,)`` bool: vertices whose faces form more than one fan (maximal run of faces linked
+    by shared edges), for a mesh whose edges are manifold and consistently oriented.
+
+    ``valence`` ``(V,)`` counts the corners at each vertex; ``prev_of`` moves per-corner values
+    to the previous corner (:meth:`_CornerCycle.prev_of`).
 
     Around a vertex, corner ``c`` continues to the corner where the twin of its incoming
     half-edge starts, so every vertex's corners form paths (open fans) and cycles (closed
-    fans). Pointer doubling labels each path by its last corner and each cycle by its smallest
-    corner in ``ceil(log2(max valence))`` vectorized rounds, O(N log valence), with no graph
-    library: cheap enough to run on every mesh. int32 indices halve the memory traffic of the
+    fans). A corner whose outgoing half-edge has no twin starts a path. The walk from one
+    path start of a vertex (from any corner if it has none) visits all its corners before it
+    ends or comes back exactly when they form one fan. The walks advance all vertices
+    together, one step per round, dropping finished ones: O(N) work in ``max valence`` rounds,
+    so above :data:`MAX_WALK_VALENCE` pointer doubling (O(N log valence) in
+    ``log2(max valence)`` rounds) takes over. int32 indices halve the memory traffic of the
     gathers, which dominate.
     """
     n = idx.size
     itype = np.int32 if n < 2**31 - 1 else np.int64
     pos = np.arange(n, dtype=itype)
-    succ = prev_of(_twins(he_edge, edge_uses, itype))
-    np.copyto(succ, pos, where=succ < 0)
-    jump, low = succ, pos.copy()
+    twin = _twins(he_edge, edge_uses, itype)
+    succ = prev_of(twin)
+    np.copyto(succ, pos, where=succ < 0)  # a path's last corner continues to itself
     max_valence = int(valence.max()) if n else 1
-    for _ in range((max_valence - 1).bit_length()):  # doubling rounds, not corners
+    if max_valence > MAX_WALK_VALENCE:
+        return _fan_counts_doubling(idx, pos, succ, max_valence, valence.size) > 1
+    opens = np.flatnonzero(twin < 0).astype(itype)
+    start = np.empty(valence.size, itype)
+    start[idx] = pos  # any corner of each vertex; then a path start where it has one
+    start[idx[opens]] = opens
+    bad = np.zeros(valence.size, bool)
+    verts = np.flatnonzero(valence > 1)
+    first = start[verts]
+    cur, left = first, valence[verts] - 1  # steps that must all reach a new corner
+    while verts.size:
+        nxt = succ[cur]
+        short = (nxt == cur) | (nxt == first)
+        bad[verts[short]] = True
+        left = left - 1
+        go = ~short & (left > 0)
+        verts, first, cur, left = verts[go], first[go], nxt[go], left[go]
+    return bad
+
+
+def _fan_counts_doubling(
+    idx: np.ndarray, pos: np.ndarray, succ: np.ndarray, max_valence: int, num_verts: int
+) -> np.ndarray:
+    """``(V,)`` fans per vertex from the corner successors ``succ`` (``succ[c] == c`` ends a
+    path): pointer doubling labels each path by its last corner and each cycle by its smallest
+    corner in ``ceil(log2(max valence))`` rounds."""
+    rounds = (max_valence - 1).bit_length()  # doubling rounds, not corners
+    jump, low = succ, pos
+    if rounds:  # the first round gathers nothing: low[succ] is succ while low is pos
+        low = np.minimum(pos, succ)
+        jump = succ[succ]
+    for _ in range(rounds - 1):
         np.minimum(low, low[jump], out=low)
         jump = jump[jump]
     label = np.where(succ[jump] == jump, jump, low)
-    return np.bincount(idx[label == pos], minlength=valence.size)
+    return np.bincount(idx[label == pos], minlength=num_verts)
 
 
 def _fan_counts_general(
