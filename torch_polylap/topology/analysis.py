@@ -69,7 +69,7 @@ def _analyse(
     """
     idx = faces.indices.numpy()
     cycle = _CornerCycle(faces, degree)
-    forward = idx < cycle.next_of(idx)
+    forward = cycle.less_than_next(idx)
     heavy = edge_uses > 2
     fwd_count = np.bincount(he_edge[forward], minlength=edge_uses.size)
     misoriented = (edge_uses == 2) & (fwd_count != 1)
@@ -102,24 +102,25 @@ def _analyse(
 
 
 class _CornerCycle:
-    """Per-corner values moved to the next or previous corner of the same face, ``(N,)`` to
-    ``(N,)``: ``next_of(a)[c] == a[next_corner[c]]``.
+    """Per-corner values compared with, or moved from, the neighbouring corners of the same
+    face: ``prev_of(a)[c] == a[prev_corner[c]]``, ``less_than_next(a)[c] == a[c] < a[next]``.
 
-    With one degree ``k`` for all faces this is a shift of the packed array with every face's
-    wrap-around patched by a strided copy: no ``(N,)`` corner maps, no gather.
+    With one degree ``k`` for all faces these are shifts of the packed array with every face's
+    wrap-around patched by a strided slice: no ``(N,)`` corner maps, no gather.
     """
 
     def __init__(self, faces: PolygonFaces, degree: int | None) -> None:
         self.faces = faces
         self.k = degree
 
-    def next_of(self, a: np.ndarray) -> np.ndarray:
+    def less_than_next(self, a: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool, each corner's value below the next corner's."""
         k = self.k
         if k is None:
-            return a[self.faces.next_corner.numpy()]
-        out = np.empty_like(a)
-        out[:-1] = a[1:]
-        out[k - 1 :: k] = a[::k]
+            return a < a[self.faces.next_corner.numpy()]
+        out = np.empty(a.shape, bool)
+        np.less(a[:-1], a[1:], out=out[:-1])
+        np.less(a[k - 1 :: k], a[::k], out=out[k - 1 :: k])
         return out
 
     def prev_of(self, a: np.ndarray) -> np.ndarray:
@@ -195,10 +196,15 @@ def _multi_fan_vertices_oriented(
     while verts.size:
         nxt = succ[cur]
         short = (nxt == cur) | (nxt == first)
+        short &= left > 0  # walks already done ride along until the next compaction
         bad[verts[short]] = True
-        left = left - 1
-        go = ~short & (left > 0)
-        verts, first, cur, left = verts[go], first[go], nxt[go], left[go]
+        left -= 1
+        left[short] = 0
+        n_live = np.count_nonzero(left > 0)
+        if n_live < verts.size - verts.size // 8:  # compact once an eighth has finished
+            go = left > 0
+            verts, first, nxt, left = verts[go], first[go], nxt[go], left[go]
+        cur = nxt
     return bad
 
 

@@ -156,7 +156,11 @@ def _unique_pairs(keys: np.ndarray, nv: np.int64) -> tuple[np.ndarray, np.ndarra
     inv = np.empty(sk.size, itype)
     inv[perm] = uid
     del perm, uid
-    ulo, uhi = np.divmod(sk[np.flatnonzero(new)], nv)
+    ukeys = sk[np.flatnonzero(new)]
+    del sk, new
+    ulo = ukeys // nv  # (numpy divides by a scalar with multiplications; divmod does not)
+    uhi = ulo * nv
+    np.subtract(ukeys, uhi, out=uhi)
     return ulo, uhi, inv
 
 
