@@ -240,8 +240,8 @@ def _degrees(sizes: np.ndarray) -> list[int]:
 
 
 def _check_index_range(idx: np.ndarray, offsets: np.ndarray, num_verts: int) -> None:
-    if idx.size == 0:
-        return
+    if idx.size == 0 or (int(idx.min()) >= 0 and int(idx.max()) < num_verts):
+        return  # two reductions; the full comparison only to name the first bad index
     bad = np.flatnonzero((idx < 0) | (idx >= num_verts))
     if bad.size:
         c = int(bad[0])
