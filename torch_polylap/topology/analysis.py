@@ -173,8 +173,7 @@ def _multi_fan_vertices_oriented(
     ends or comes back exactly when they form one fan. The walks advance all vertices
     together, one step per round, dropping finished ones: O(N) work in ``max valence`` rounds,
     so above :data:`MAX_WALK_VALENCE` pointer doubling (O(N log valence) in
-    ``log2(max valence)`` rounds) takes over. int32 indices halve the memory traffic of the
-    gathers, which dominate.
+    ``log2(max valence)`` rounds) takes over.
     """
     n = idx.size
     itype = np.int32 if n < 2**31 - 1 else np.int64
