@@ -88,7 +88,9 @@ def build_topology(
     crow, col, pos_up_u, pos_low_u, pos_diag_v = _symmetric_pattern(ulo, uhi, num_verts)
 
     groups = []
-    he_pair = np.empty(idx.size, inv.dtype)  # pair id of every half-edge, in packed order
+    # pair id of every half-edge, in packed order; int64: numpy would widen an int32 index
+    # array into a fresh (N,) int64 copy for each bincount and gather that reads it
+    he_pair = np.empty(idx.size, np.int64)
     start = 0
     for k, fid, corners_t, pi, pj in blocks:
         ginv = inv[start : start + pi.size * fid.size].reshape(pi.size, fid.size)
