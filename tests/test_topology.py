@@ -137,6 +137,67 @@ def test_isolated_vertex_warns_and_gets_zero_mass():
     assert torch.isfinite(H).all() and H[9].abs().sum() == 0
 
 
+def _split_vertices_reference(faces: list[list[int]]) -> list[int]:
+    """Vertices whose faces form two or more fans, by a union-find over each vertex's faces
+    linked across the edges at that vertex (plain Python; edges used by at most two faces)."""
+    at: dict[int, list[int]] = {}
+    edge_faces: dict[tuple[int, int], list[int]] = {}
+    for f, face in enumerate(faces):
+        for i, v in enumerate(face):
+            at.setdefault(v, []).append(f)
+            w = face[(i + 1) % len(face)]
+            edge_faces.setdefault((min(v, w), max(v, w)), []).append(f)
+    parent = {(v, f): (v, f) for v, fs in at.items() for f in fs}
+
+    def root(x):
+        while parent[x] != x:
+            x = parent[x]
+        return x
+
+    for (p, q), fs in edge_faces.items():
+        if len(fs) == 2:
+            for v in (p, q):
+                parent[root((v, fs[0]))] = root((v, fs[1]))
+    return sorted(v for v, fs in at.items() if len({root((v, f)) for f in fs}) > 1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.sampled_from(["quads", "triangles", "mixed", "cones", "busy cones"]),
+    st.floats(0.2, 1.0),
+)
+def test_split_vertices_match_a_union_find(seed, kind, keep):
+    # Subsets of consistently oriented meshes: manifold edges, and pinched vertices wherever
+    # the kept faces touch only at a corner. Cones share their apex, each whole (a closed fan),
+    # missing one face (an open fan) or thinned; busy cones give the apex more corners than
+    # the walk takes (MAX_WALK_VALENCE), so pointer doubling decides there.
+    rng = np.random.default_rng(seed)
+    if kind.endswith("cones"):
+        faces, base = [], 1
+        low, high = (3, 12) if kind == "cones" else (17, 40)
+        for m in rng.integers(low, high, size=rng.integers(1, 4)).tolist():
+            cone = [[0, base + i, base + (i + 1) % m] for i in range(m)]
+            mode = rng.integers(3)
+            if mode == 1:
+                cone.pop(int(rng.integers(m)))
+            elif mode == 2:
+                cone = [f for f in cone if rng.random() < keep]
+            faces += cone
+            base += m
+        faces = faces or [[0, 1, 2]]
+    else:
+        _, grid = quad_grid(6, 5)
+        quads = grid.tolist()
+        tris = [[a, b, c] for a, b, c, d in quads] + [[a, c, d] for a, b, c, d in quads]
+        faces = {"quads": quads, "triangles": tris, "mixed": quads[:15] + tris[30:]}[kind]
+        faces = [f for f in faces if rng.random() < keep] or faces[:1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        topo = tp.build_topology(faces)
+    assert topo.report.non_manifold_vertices.tolist() == _split_vertices_reference(faces)
+
+
 def test_pattern_matches_scipy_and_edges():
     V, F = mixed_mesh()
     topo = tp.build_topology(F, V.shape[0])

@@ -153,12 +153,16 @@ class PolygonFaces:
     def _cycle(self) -> tuple[torch.Tensor, torch.Tensor]:
         cycle = self._corner_cycle
         if cycle is None:
-            pos = torch.arange(self.num_corners, device=self.device)
-            nxt, prv = pos + 1, pos - 1
-            first, last = self.offsets[:-1], self.offsets[1:] - 1
-            nxt[last] = first
-            prv[first] = last
-            cycle = (nxt, prv)
+            if self.device.type == "cpu" and not tracing():
+                cycle = _corner_cycle_numpy(self.offsets.numpy())
+            else:
+                n = self.num_corners
+                nxt = torch.arange(1, n + 1, device=self.device)
+                prv = torch.arange(-1, n - 1, device=self.device)
+                first, last = self.offsets[:-1], self.offsets[1:] - 1
+                nxt[last] = first
+                prv[first] = last
+                cycle = (nxt, prv)
             if not tracing():
                 self._corner_cycle = cycle
         return cycle
@@ -178,6 +182,20 @@ class PolygonFaces:
         start, end = self.offsets[:-1][face], self.offsets[1:][face]
         pos = torch.arange(self.num_corners, device=self.device)
         return PolygonFaces(self.indices[start + end - 1 - pos], sizes=self._sizes)
+
+
+def _corner_cycle_numpy(offsets: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(next, prev)`` corner maps, each ``(N,)`` int64, from ``(F + 1,)`` CPU offsets.
+
+    numpy rather than torch on the CPU: numpy asks the kernel for huge pages on large arrays,
+    and at millions of corners first touching fresh 4 KiB pages costs more than the arithmetic.
+    """
+    n = int(offsets[-1])
+    nxt = np.arange(1, n + 1, dtype=np.int64)
+    prv = np.arange(-1, n - 1, dtype=np.int64)
+    nxt[offsets[1:] - 1] = offsets[:-1]
+    prv[offsets[:-1]] = offsets[1:] - 1
+    return torch.from_numpy(nxt), torch.from_numpy(prv)
 
 
 FacesLike = PolygonFaces | torch.Tensor | np.ndarray | Sequence[Sequence[int]]

@@ -1,14 +1,15 @@
 """Connectivity analysis on the packed faces: half-edges, twins, fans, orientation, duplicates.
 
-Everything runs vectorized in numpy on the CPU: pointer doubling for the fans around vertices,
-one ``connected_components`` on a doubled face graph for orientations, one lexicographic sort
-per degree for duplicated faces. :func:`~torch_polylap.topology.build_topology` calls
-:func:`_analyse` on every mesh; the repairs (:mod:`torch_polylap.repair`) call the public
-functions here directly.
+Everything runs vectorized in numpy on the CPU: walks around all vertices at once (pointer
+doubling where a vertex is busy) for the fans, one ``connected_components`` on a doubled face
+graph for orientations, one lexicographic sort per degree for duplicated faces.
+:func:`~torch_polylap.topology.build_topology` calls :func:`_analyse` on every mesh; the repairs
+(:mod:`torch_polylap.repair`) call the public functions here directly.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -57,22 +58,27 @@ def _analyse(
     edge_uses: np.ndarray,
     he_edge: np.ndarray,
     valence: np.ndarray,
+    degree: int | None = None,
 ) -> TopologyReport:
     """The :class:`TopologyReport` of a mesh, O(N) for a clean one (``N`` corners).
 
     The costlier searches (a graph over corners for non-manifold vertices, orientability,
-    duplicates) run only when a cheap test has already found a defect. ``faces`` is on the CPU.
+    duplicates) run only when a cheap test has already found a defect. ``faces`` is on the CPU;
+    ``degree``: the degree of every face when all have the same one (then no corner maps are
+    built for a clean mesh), else ``None``.
     """
-    idx, nxt, prv = (t.numpy() for t in (faces.indices, faces.next_corner, faces.prev_corner))
-    forward = idx < idx[nxt]
+    idx = faces.indices.numpy()
+    cycle = _CornerCycle(faces, degree)
+    forward = cycle.less_than_next(idx)
     heavy = edge_uses > 2
     fwd_count = np.bincount(he_edge[forward], minlength=edge_uses.size)
     misoriented = (edge_uses == 2) & (fwd_count != 1)
-    if heavy.any() or misoriented.any():
-        fans = _fan_counts_general(idx, nxt, forward, he_edge, edge_uses, num_verts)
+    defective = bool(heavy.any() or misoriented.any())
+    nxt = faces.next_corner.numpy() if defective else np.zeros(0, np.int64)
+    if defective:
+        bad_vertex = _fan_counts_general(idx, nxt, forward, he_edge, edge_uses, num_verts) > 1
     else:
-        fans = _fan_counts_oriented(idx, prv, he_edge, edge_uses, valence)
-    bad_vertex = fans > 1
+        bad_vertex = _multi_fan_vertices_oriented(idx, cycle.prev_of, he_edge, edge_uses, valence)
     bad_vertex[edges[heavy].reshape(-1)] = True
     # a misoriented edge's faces are stored as (p, q) = the direction both traverse
     mis = edges[misoriented]
@@ -83,7 +89,7 @@ def _analyse(
         he_face = faces.corner_face.numpy()
         _, bad_face, comp = _orientation(nxt, forward, he_face, he_edge, edge_uses)
         non_orientable = int(np.unique(comp[bad_face]).size)
-    if heavy.any() or misoriented.any():
+    if defective:
         dups = duplicate_faces(faces)[0]
     return TopologyReport(
         non_manifold_edges=edges[heavy],
@@ -93,6 +99,38 @@ def _analyse(
         duplicate_faces=dups,
         isolated_vertices=np.flatnonzero(valence == 0),
     )
+
+
+class _CornerCycle:
+    """Per-corner values compared with, or moved from, the neighbouring corners of the same
+    face: ``prev_of(a)[c] == a[prev_corner[c]]``, ``less_than_next(a)[c] == a[c] < a[next]``.
+
+    With one degree ``k`` for all faces these are shifts of the packed array with every face's
+    wrap-around patched by a strided slice: no ``(N,)`` corner maps, no gather.
+    """
+
+    def __init__(self, faces: PolygonFaces, degree: int | None) -> None:
+        self.faces = faces
+        self.k = degree
+
+    def less_than_next(self, a: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool, each corner's value below the next corner's."""
+        k = self.k
+        if k is None:
+            return a < a[self.faces.next_corner.numpy()]
+        out = np.empty(a.shape, bool)
+        np.less(a[:-1], a[1:], out=out[:-1])
+        np.less(a[k - 1 :: k], a[::k], out=out[k - 1 :: k])
+        return out
+
+    def prev_of(self, a: np.ndarray) -> np.ndarray:
+        k = self.k
+        if k is None:
+            return a[self.faces.prev_corner.numpy()]
+        out = np.empty_like(a)
+        out[1:] = a[:-1]
+        out[::k] = a[k - 1 :: k]
+        return out
 
 
 def _twins(he_edge: np.ndarray, edge_uses: np.ndarray, itype: type = np.int64) -> np.ndarray:
@@ -110,36 +148,81 @@ def _twins(he_edge: np.ndarray, edge_uses: np.ndarray, itype: type = np.int64) -
     return twin
 
 
-def _fan_counts_oriented(
+# Vertices with at most this many corners are checked by walking their fan (one vectorized
+# step per corner of the busiest vertex); meshes with busier vertices use pointer doubling.
+MAX_WALK_VALENCE = 32
+
+
+def _multi_fan_vertices_oriented(
     idx: np.ndarray,
-    prv: np.ndarray,
+    prev_of: Callable[[np.ndarray], np.ndarray],
     he_edge: np.ndarray,
     edge_uses: np.ndarray,
     valence: np.ndarray,
 ) -> np.ndarray:
-    """``(V,)`` number of fans (maximal runs of faces linked by shared edges) at each vertex,
-    for a mesh whose edges are manifold and consistently oriented; ``valence`` ``(V,)`` counts
-    the corners at each vertex.
+    """``(V,)`` bool: vertices whose faces form more than one fan (maximal run of faces linked
+    by shared edges), for a mesh whose edges are manifold and consistently oriented.
+
+    ``valence`` ``(V,)`` counts the corners at each vertex; ``prev_of`` moves per-corner values
+    to the previous corner (:meth:`_CornerCycle.prev_of`).
 
     Around a vertex, corner ``c`` continues to the corner where the twin of its incoming
     half-edge starts, so every vertex's corners form paths (open fans) and cycles (closed
-    fans). Pointer doubling labels each path by its last corner and each cycle by its smallest
-    corner in ``ceil(log2(max valence))`` vectorized rounds, O(N log valence), with no graph
-    library: cheap enough to run on every mesh. int32 indices halve the memory traffic of the
-    gathers, which dominate.
+    fans). A corner whose outgoing half-edge has no twin starts a path. The walk from one
+    path start of a vertex (from any corner if it has none) visits all its corners before it
+    ends or comes back exactly when they form one fan. The walks advance all vertices
+    together, one step per round, dropping finished ones: O(N) work in ``max valence`` rounds,
+    so above :data:`MAX_WALK_VALENCE` pointer doubling (O(N log valence) in
+    ``log2(max valence)`` rounds) takes over.
     """
     n = idx.size
     itype = np.int32 if n < 2**31 - 1 else np.int64
     pos = np.arange(n, dtype=itype)
-    succ = _twins(he_edge, edge_uses, itype)[prv]
-    np.copyto(succ, pos, where=succ < 0)
-    jump, low = succ, pos.copy()
+    twin = _twins(he_edge, edge_uses, itype)
+    succ = prev_of(twin)
+    np.copyto(succ, pos, where=succ < 0)  # a path's last corner continues to itself
     max_valence = int(valence.max()) if n else 1
-    for _ in range((max_valence - 1).bit_length()):  # doubling rounds, not corners
+    if max_valence > MAX_WALK_VALENCE:
+        return _fan_counts_doubling(idx, pos, succ, max_valence, valence.size) > 1
+    opens = np.flatnonzero(twin < 0).astype(itype)
+    start = np.empty(valence.size, itype)
+    start[idx] = pos  # any corner of each vertex; then a path start where it has one
+    start[idx[opens]] = opens
+    bad = np.zeros(valence.size, bool)
+    verts = np.flatnonzero(valence > 1)
+    first = start[verts]
+    cur, left = first, valence[verts] - 1  # steps that must all reach a new corner
+    while verts.size:
+        nxt = succ[cur]
+        short = (nxt == cur) | (nxt == first)
+        short &= left > 0  # walks already done ride along until the next compaction
+        bad[verts[short]] = True
+        left -= 1
+        left[short] = 0
+        n_live = np.count_nonzero(left > 0)
+        if n_live < verts.size - verts.size // 8:  # compact once an eighth has finished
+            go = left > 0
+            verts, first, nxt, left = verts[go], first[go], nxt[go], left[go]
+        cur = nxt
+    return bad
+
+
+def _fan_counts_doubling(
+    idx: np.ndarray, pos: np.ndarray, succ: np.ndarray, max_valence: int, num_verts: int
+) -> np.ndarray:
+    """``(V,)`` fans per vertex from the corner successors ``succ`` (``succ[c] == c`` ends a
+    path): pointer doubling labels each path by its last corner and each cycle by its smallest
+    corner in ``ceil(log2(max valence))`` rounds."""
+    rounds = (max_valence - 1).bit_length()  # doubling rounds, not corners
+    jump, low = succ, pos
+    if rounds:  # the first round gathers nothing: low[succ] is succ while low is pos
+        low = np.minimum(pos, succ)
+        jump = succ[succ]
+    for _ in range(rounds - 1):
         np.minimum(low, low[jump], out=low)
         jump = jump[jump]
     label = np.where(succ[jump] == jump, jump, low)
-    return np.bincount(idx[label == pos], minlength=valence.size)
+    return np.bincount(idx[label == pos], minlength=num_verts)
 
 
 def _fan_counts_general(

@@ -8,12 +8,20 @@ per-face entry, and the pairs that half-edges use are the mesh's undirected edge
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 
 from ..checks import warn_outside_package
 from ..faces import FacesLike, PolygonFaces, as_faces
 from .analysis import _analyse
-from .groups import DegreeGroup, _chunks, _cycle_pair_rows, _degree_block, _write_pair_keys
+from .groups import (
+    DegreeGroup,
+    _check_simple_faces,
+    _chunks,
+    _cycle_pair_rows,
+    _degree_block,
+    _write_pair_keys,
+)
 from .structure import Topology
 
 # A face of degree k contributes k (k - 1) / 2 corner pairs to the pattern, each costing about
@@ -48,7 +56,10 @@ def build_topology(
     cpu = pf if pf.device.type == "cpu" else pf.to("cpu")
     # A private copy: the topology is cached and outlives the call, so it must neither see
     # later in-place edits of the caller's tensor nor keep that tensor alive (a view would).
-    own = PolygonFaces(cpu.indices.clone(), offsets=cpu.offsets.clone())
+    # (numpy copies: numpy asks for huge pages, which first touch far faster at this size)
+    own = PolygonFaces(
+        torch.from_numpy(cpu.indices.numpy().copy()), offsets=cpu.offsets.numpy().copy()
+    )
     idx, sizes, offsets = own.indices.numpy(), own.sizes.numpy(), own.offsets.numpy()
     if num_verts is None:
         num_verts = int(idx.max()) + 1 if idx.size else 0
@@ -59,55 +70,27 @@ def build_topology(
 
     # One block per degree; inside a block every per-pair array is laid out (P, F_k), the
     # layout in which the kernels produce the per-face entries.
-    degrees = np.unique(sizes)
-    blocks = [
-        _degree_block(k, idx, sizes, offsets, uniform=degrees.size == 1) for k in degrees.tolist()
-    ]
+    degrees = _degrees(sizes)
+    uniform = len(degrees) == 1
+    blocks = [_degree_block(k, idx, sizes, offsets, uniform=uniform) for k in degrees]
     all_keys = np.empty(sum(pi.size * fid.size for _, fid, _, pi, _ in blocks), np.int64)
     start = 0
     for _, fid, corners_t, pi, pj in blocks:
         stop = start + pi.size * fid.size
-        _write_pair_keys(corners_t, fid, pi, pj, nv, all_keys[start:stop])
+        _write_pair_keys(corners_t, pi, pj, nv, all_keys[start:stop])
         start = stop
 
-    # Stable sort (timsort) exploits the long sorted runs that face-ordered keys contain; on
-    # structured meshes it is an order of magnitude faster than quicksort.
-    perm = np.argsort(all_keys, kind="stable")
-    sk = all_keys[perm]
-    new = np.ones(sk.size, bool)
-    np.not_equal(sk[1:], sk[:-1], out=new[1:])
-    uid = np.cumsum(new, dtype=np.int64)
-    uid -= 1
-    inv = np.empty_like(perm)
-    inv[perm] = uid
-    del perm, uid
-    ukeys = sk[new]
-    ulo = ukeys // nv
-    uhi = ukeys - ulo * nv
-    n_unique = ukeys.size
-
-    # CSR pattern of the full symmetric matrix: row p holds its lower pairs (q < p), then the
-    # diagonal, then its upper pairs (q > p), so every row comes out sorted by column.
-    n_low = np.bincount(uhi, minlength=num_verts)
-    n_up = np.bincount(ulo, minlength=num_verts)
-    crow = np.zeros(num_verts + 1, np.int64)
-    np.cumsum(n_low + n_up + 1, out=crow[1:])
-    up_start = crow[:-1] + n_low + 1 - np.concatenate(([0], np.cumsum(n_up)[:-1]))
-    u = np.arange(n_unique, dtype=np.int64)
-    pos_up_u = up_start[ulo] + u
-    # ukeys is sorted by (lo, hi), so a stable sort by hi alone orders the mirrors by (hi, lo).
-    low_order = np.argsort(uhi, kind="stable")
-    low_start = crow[:-1] - np.concatenate(([0], np.cumsum(n_low)[:-1]))
-    pos_low_u = np.empty(n_unique, np.int64)
-    pos_low_u[low_order] = low_start[uhi[low_order]] + u
-    pos_diag_v = crow[:-1] + n_low
-    col = np.empty(crow[-1], np.int64)
-    col[pos_up_u] = uhi
-    col[pos_low_u] = ulo
-    col[pos_diag_v] = np.arange(num_verts)
+    ulo, uhi, inv = _unique_pairs(all_keys, nv)
+    del all_keys
+    if bool((ulo == uhi).any()):  # a face visits a vertex twice: find and name it
+        for _, fid, corners_t, pi, pj in blocks:
+            _check_simple_faces(corners_t, fid, pi, pj)
+    crow, col, pos_up_u, pos_low_u, pos_diag_v = _symmetric_pattern(ulo, uhi, num_verts)
 
     groups = []
-    he_pair = np.empty(idx.size, np.int64)  # pair id of every half-edge, in packed order
+    # pair id of every half-edge, in packed order; int64: numpy would widen an int32 index
+    # array into a fresh (N,) int64 copy for each bincount and gather that reads it
+    he_pair = np.empty(idx.size, np.int64)
     start = 0
     for k, fid, corners_t, pi, pj in blocks:
         ginv = inv[start : start + pi.size * fid.size].reshape(pi.size, fid.size)
@@ -127,16 +110,12 @@ def build_topology(
         else:
             he_pair[offsets[fid][None, :] + np.arange(k)[:, None]] = ginv[_cycle_pair_rows(k)]
 
-    # Undirected edges: the pairs some half-edge uses, renumbered densely.
-    uses_pair = np.bincount(he_pair, minlength=n_unique)
-    is_edge = uses_pair > 0
-    edge_of_pair = np.cumsum(is_edge) - 1
-    edges = np.stack([ulo[is_edge], uhi[is_edge]], 1)
-    he_edge = edge_of_pair[he_pair]
-    edge_uses = uses_pair[is_edge]
+    edges, edge_uses, he_edge = _edges(he_pair, ulo, uhi)
 
     valence = np.bincount(idx, minlength=num_verts)
-    report = _analyse(own, num_verts, edges, edge_uses, he_edge, valence)
+    report = _analyse(
+        own, num_verts, edges, edge_uses, he_edge, valence, degree=degrees[0] if uniform else None
+    )
     if warn and not report.is_clean:
         warn_outside_package(
             f"the mesh ({num_verts} vertices, {sizes.size} faces) is not a consistently oriented "
@@ -157,9 +136,115 @@ def build_topology(
     )
 
 
+def _unique_pairs(keys: np.ndarray, nv: np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct pairs among the ``(n,)`` keys ``lo * nv + hi``, by one sort.
+
+    Returns:
+        ``ulo``, ``uhi`` ``(U,)`` int64, the distinct pairs sorted by ``(lo, hi)``, and
+        ``inv`` ``(n,)``, the index of every key's pair, int32 where ``n`` allows (half the
+        memory of a buffer that lives through the group building; its running count, the
+        cumsum, is several times cheaper into int32 than into fresh int64 pages).
+    """
+    # Stable sort (timsort) exploits the long sorted runs that face-ordered keys contain; on
+    # structured meshes it is an order of magnitude faster than quicksort. Ties need no order:
+    # equal keys get the same pair index whatever their order.
+    perm = np.argsort(keys, kind="stable")
+    sk = keys[perm]
+    new = np.empty(sk.size, bool)
+    new[:1] = True
+    np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    itype = np.int32 if sk.size < 2**31 else np.int64
+    uid = np.cumsum(new, dtype=itype)
+    uid -= 1
+    inv = np.empty(sk.size, itype)
+    inv[perm] = uid
+    del perm, uid
+    ukeys = sk[np.flatnonzero(new)]
+    del sk, new
+    ulo = ukeys // nv  # (numpy divides by a scalar with multiplications; divmod does not)
+    uhi = ulo * nv
+    np.subtract(ukeys, uhi, out=uhi)
+    return ulo, uhi, inv
+
+
+def _edges(
+    he_pair: np.ndarray, ulo: np.ndarray, uhi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Undirected edges: the pairs some half-edge uses, renumbered densely.
+
+    Args:
+        he_pair: ``(N,)`` the pair of every half-edge.
+        ulo, uhi: ``(U,)`` the pairs.
+
+    Returns:
+        ``edges`` ``(E, 2)``, ``edge_uses`` ``(E,)`` (half-edges on each edge) and ``he_edge``
+        ``(N,)`` (the edge of every half-edge), all int64.
+    """
+    uses_pair = np.bincount(he_pair, minlength=ulo.size)
+    is_edge = uses_pair > 0
+    edge_pairs = np.flatnonzero(is_edge)
+    edges = np.empty((edge_pairs.size, 2), np.int64)
+    edges[:, 0] = ulo[edge_pairs]
+    edges[:, 1] = uhi[edge_pairs]
+    edge_of_pair = np.cumsum(is_edge, dtype=np.int64)
+    edge_of_pair -= 1
+    return edges, uses_pair[edge_pairs], edge_of_pair[he_pair]
+
+
+def _symmetric_pattern(
+    ulo: np.ndarray, uhi: np.ndarray, num_verts: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The CSR pattern of the symmetric ``V x V`` matrix whose off-diagonal entries are the
+    ``U`` pairs ``(ulo, uhi)``, ``ulo < uhi``, sorted by ``(lo, hi)``, and their mirrors.
+
+    Row ``p`` holds its lower pairs (``q < p``), the diagonal, then its upper pairs (``q > p``),
+    so every row comes out sorted by column.
+
+    Returns:
+        ``crow`` ``(V + 1,)``, ``col`` ``(2 U + V,)``, and where each pair ``(U,)``, its mirror
+        ``(U,)`` and each diagonal entry ``(V,)`` land in ``col``; all int64.
+    """
+    n_unique, v = ulo.size, np.arange(num_verts, dtype=np.int64)
+    u = np.arange(n_unique, dtype=np.int64)
+    up_ptr = np.zeros(num_verts + 1, np.int64)
+    np.cumsum(np.bincount(ulo, minlength=num_verts), out=up_ptr[1:])
+    # The pairs are the CSR rows of the upper triangle; its transpose (scipy's counting sort,
+    # O(U + V)) lists the mirrors column by column with rows ascending: the (hi, lo) order,
+    # without a second comparison sort.
+    upper = sp.csr_matrix((u, uhi, up_ptr), shape=(num_verts, num_verts))
+    lower = upper.tocsc()
+    low_ptr = lower.indptr.astype(np.int64)
+    crow = up_ptr + low_ptr + np.arange(num_verts + 1, dtype=np.int64)
+    pos_diag_v = crow[:-1] + np.diff(low_ptr)
+    pos_up_u = (pos_diag_v + 1 - up_ptr[:-1])[ulo]
+    pos_up_u += u
+    # the mirrors in (hi, lo) order land at consecutive places of their rows
+    pos_low_sorted = np.repeat(crow[:-1] - low_ptr[:-1], np.diff(low_ptr))
+    pos_low_sorted += u
+    pos_low_u = np.empty(n_unique, np.int64)
+    pos_low_u[lower.data] = pos_low_sorted
+    col = np.empty(int(crow[-1]), np.int64)
+    col[pos_up_u] = uhi
+    col[pos_low_sorted] = lower.indices
+    col[pos_diag_v] = v
+    return crow, col, pos_up_u, pos_low_u, pos_diag_v
+
+
+def _degrees(sizes: np.ndarray) -> list[int]:
+    """The face degrees present, ascending: a min/max check for the usual one-degree mesh,
+    else a count over the degrees (bounded by :func:`_check_face_size`), never a sort of all
+    faces."""
+    if sizes.size == 0:
+        return []
+    lo, hi = int(sizes.min()), int(sizes.max())
+    if lo == hi:
+        return [lo]
+    return (np.flatnonzero(np.bincount(sizes - lo)) + lo).tolist()
+
+
 def _check_index_range(idx: np.ndarray, offsets: np.ndarray, num_verts: int) -> None:
-    if idx.size == 0:
-        return
+    if idx.size == 0 or (int(idx.min()) >= 0 and int(idx.max()) < num_verts):
+        return  # two reductions; the full comparison only to name the first bad index
     bad = np.flatnonzero((idx < 0) | (idx >= num_verts))
     if bad.size:
         c = int(bad[0])

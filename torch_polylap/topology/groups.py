@@ -112,21 +112,18 @@ def _degree_block(
 
 
 def _write_pair_keys(
-    corners_t: np.ndarray,
-    fid: np.ndarray,
-    pi: np.ndarray,
-    pj: np.ndarray,
-    nv: np.int64,
-    out: np.ndarray,
+    corners_t: np.ndarray, pi: np.ndarray, pj: np.ndarray, nv: np.int64, out: np.ndarray
 ) -> None:
     """Fill ``out`` (``(P * F_k,)``, pair-major) with the keys ``lo * V + hi`` of every corner
-    pair of every face, refusing a face that visits a vertex twice.
+    pair of every face.
 
     Runs of pair rows are processed together so that every step touches about
     ``CHUNK_ELEMENTS`` entries: one row at a time for large groups (views, no temporaries),
-    all pairs at once for one high-degree face.
+    all pairs at once for one high-degree face. A face that visits a vertex twice gives a key
+    with ``lo == hi``: the caller checks the distinct keys for that, and
+    :func:`_check_simple_faces` names the face.
     """
-    f = fid.size
+    f = corners_t.shape[1]
     rows = out.reshape(pi.size, f)
     step = max(1, CHUNK_ELEMENTS // max(f, 1))
     for s in range(0, pi.size, step):
@@ -134,6 +131,25 @@ def _write_pair_keys(
             a, b = corners_t[pi[s]][None], corners_t[pj[s]][None]
         else:
             a, b = corners_t[pi[s : s + step]], corners_t[pj[s : s + step]]
+        block = rows[s : s + a.shape[0]]
+        np.minimum(a, b, out=block)
+        block *= nv
+        block += np.maximum(a, b)
+
+
+def _check_simple_faces(
+    corners_t: np.ndarray, fid: np.ndarray, pi: np.ndarray, pj: np.ndarray
+) -> None:
+    """Refuse the first face (in pair-row order) of a degree block that visits a vertex twice.
+
+    Runs of pair rows are compared together so that every step touches about
+    ``CHUNK_ELEMENTS`` entries: one row at a time for large groups, all pairs at once for one
+    high-degree face.
+    """
+    f = fid.size
+    step = max(1, CHUNK_ELEMENTS // max(f, 1))
+    for s in range(0, pi.size, step):
+        a, b = corners_t[pi[s : s + step]], corners_t[pj[s : s + step]]
         same = a == b
         if same.any():
             r, c = (int(t[0]) for t in np.nonzero(same))
@@ -143,10 +159,6 @@ def _write_pair_keys(
                 "or merge the duplicated corners (torch_polylap.repair.remove_degenerate_faces "
                 "removes such faces)."
             )
-        block = rows[s : s + a.shape[0]]
-        np.minimum(a, b, out=block)
-        block *= nv
-        block += np.maximum(a, b)
 
 
 def _cycle_pair_rows(k: int) -> np.ndarray:
