@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 import torch
 
 from ..tracing import in_functorch, tracing
-from .index_ops import transposed
+from .index_ops import int32_indices, transposed
 from .pattern import SparsityPattern, block_diagonal_indices
 
 __all__ = ["csr_product", "sampled_product", "spmm", "spmm_t", "sampled", "torch_csr"]
@@ -43,6 +43,8 @@ __all__ = ["csr_product", "sampled_product", "spmm", "spmm_t", "sampled", "torch
 def _csr(crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor, m: int) -> torch.Tensor:
     # the package builds its patterns itself and knows them valid: skip torch's invariant
     # checks and its one-time "CSR support is in beta" warning
+    if crow.device.type == "cpu" and crow.dtype == torch.int64:
+        crow, col = int32_indices(crow, col, m)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
         return torch.sparse_csr_tensor(
