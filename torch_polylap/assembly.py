@@ -21,6 +21,7 @@ from .checks import check_verts, warn_outside_package
 from .kernels import BlockKernel
 from .kernels.aw11 import aw11_entries, row_sums
 from .kernels.frames import gather_corners
+from .kernels.gather import gather_chunks
 from .topology import DegreeGroup, GroupChunk, Topology, TopologyView, get_topology
 from .tracing import functional, require
 
@@ -175,12 +176,21 @@ def _scatter(
     masses = verts_t.new_zeros(topo.num_verts) if want_mass else None
     eps = torch.finfo(verts_t.dtype).eps
     degenerate, ill = [], []
+    # differentiated: every chunk's corners gathered by one autograd node, whose backward
+    # forms one (3, V) gradient rather than one per chunk
+    one_node = verts_t64 is None and torch.is_grad_enabled() and verts_t.requires_grad
     for grp in view.groups:
-        for chunk in grp.chunks:
+        xs = gather_chunks(verts_t, [c.corners_t for c in grp.chunks]) if one_node else None
+        for i, chunk in enumerate(grp.chunks):
             if verts_t64 is not None:
                 _scatter_mixed(verts_t, verts_t64, grp, chunk, kernel, values, masses, eps)
                 continue
-            off, corner_mass, area, size2, error = kernel(verts_t, grp, chunk.corners_t)
+            entries = (
+                kernel(verts_t, grp, chunk.corners_t)
+                if xs is None
+                else kernel.on_corners(xs[i], grp)
+            )
+            off, corner_mass, area, size2, error = entries
             _scatter_blocks(grp, chunk, off, corner_mass, values, masses)
             degenerate.append(_any_degenerate(area, size2, eps))
             if mixed:
