@@ -83,9 +83,7 @@ class BlockKernel:
         return _with_masses(entries, grp.k)
 
 
-def block_kernel(
-    method: str, lam: float | torch.Tensor, *, geometric: bool = True
-) -> BlockKernel:
+def block_kernel(method: str, lam: float | torch.Tensor, *, geometric: bool = True) -> BlockKernel:
     """The per-chunk block kernel of ``method`` for the shared assembly.
 
     The kernel maps ``(verts_t (3, V), group, corners_t (k, F))`` to the off-diagonal entries
