@@ -155,8 +155,12 @@ def _sampled_cpu(
         stop = min(start + block, nnz)
         part = out[start:stop]
         prod = G.index_select(0, row[start:stop]).mul_(X.index_select(0, col[start:stop]))
-        part.copy_(prod[:, 0])
-        for j in range(1, c):
+        # a strided copy of the first column would cost as much as the gathers: add two
+        if c == 1:
+            part.copy_(prod[:, 0])
+        else:
+            torch.add(prod[:, 0], prod[:, 1], out=part)
+        for j in range(2, c):
             part.add_(prod[:, j])
     return out
 
