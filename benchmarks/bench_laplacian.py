@@ -8,7 +8,9 @@ real polygon meshes of ``--real-dir``:
 3. forward + backward of ``sum((L X)^2)`` with respect to the vertex positions ``X``;
 4. ``L @ X`` for ``X`` ``(V, 3)``: ``torch_polylap.sparse.spmm`` and plain ``L @ X`` on a
    detached ``L``;
-5. peak memory of (3), in a fresh process per grid size.
+5. peak memory of (3), in a fresh process per grid size;
+6. with ``--compiled``: (2) and (3) through ``tp.CompiledLaplacian`` (the opt-in compiled
+   assembly), its compile time, and the targets for it (``COMPILED_RATIOS``).
 
 Side by side: libigl's triangle ``cotmatrix`` on the fan triangulation of the same mesh (two
 triangles per grid quad), libigl's polygon ``cotmatrix`` (Bunge et al. 2020) and scipy's CSR
@@ -68,6 +70,11 @@ NON_ORIENTABLE = ("moebius.obj",)
 # A timing sample repeats a fast call until it lasts this long, so sub-millisecond operations
 # are not dominated by timer and scheduling noise.
 MIN_SAMPLE_SECONDS = 0.05
+# name -> (numerator, denominator, target upper bound) of the compiled assembly (--compiled)
+COMPILED_RATIOS: dict[str, tuple[str, str, float]] = {
+    "re-asm compiled / igl tri": ("reassembly_compiled", "igl_tri", 0.05),
+    "fwd+bwd compiled / re-asm compiled": ("fwd_bwd_compiled", "reassembly_compiled", 2.0),
+}
 CORRECTNESS_TOL = 1e-10
 MEMORY_TARGET_BYTES = 3 * 2**30
 # Warn when other processes kept more than this fraction of the cores busy during the run:
@@ -135,15 +142,46 @@ def median_time(fn: Callable[[], object], repeat: int, sync: Callable[[], None])
     return common.median_time(fn, repeat, sync=sync, min_sample_s=MIN_SAMPLE_SECONDS)
 
 
-def forward_backward(verts: torch.Tensor, topo: tp.Topology) -> None:
-    """One training step's worth of work: ``(L, M0)`` from ``X``, ``sum((L X)^2)``, backward."""
+def forward_backward(
+    verts: torch.Tensor,
+    topo: tp.Topology,
+    assemble: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]] | None = None,
+) -> None:
+    """One training step's worth of work: ``(L, M0)`` from ``X``, ``sum((L X)^2)``, backward
+    (``assemble``: instead of ``tp.laplacian(X, topo)``)."""
     X = verts.detach().requires_grad_(True)
-    L, _ = tp.laplacian(X, topo)
+    L, _ = tp.laplacian(X, topo) if assemble is None else assemble(X)
     loss = (tp.sparse.spmm(L, X) ** 2).sum()
     loss.backward()
 
 
-def bench_mesh(mesh: Mesh, dtype: torch.dtype, device: torch.device, repeat: int) -> dict:
+def bench_compiled(
+    verts: torch.Tensor, topo: tp.Topology, repeat: int, sync: Callable[[], None]
+) -> dict[str, float]:
+    """Seconds of the first calls of ``tp.CompiledLaplacian`` (compilation included: without
+    and with gradients), its re-assembly and its forward + backward."""
+    compiled = tp.CompiledLaplacian(topo)
+    start = time.perf_counter()
+    compiled(verts)
+    sync()
+    first = time.perf_counter() - start
+    start = time.perf_counter()
+    forward_backward(verts, topo, compiled)
+    sync()
+    first_grad = time.perf_counter() - start
+    return {
+        "compile": first,
+        "compile_grad": first_grad,
+        "reassembly_compiled": median_time(lambda: compiled(verts), repeat, sync),
+        "fwd_bwd_compiled": median_time(
+            lambda: forward_backward(verts, topo, compiled), repeat, sync
+        ),
+    }
+
+
+def bench_mesh(
+    mesh: Mesh, dtype: torch.dtype, device: torch.device, repeat: int, compiled: bool = False
+) -> dict:
     """Median seconds of every measured operation on ``mesh``, plus its sizes."""
     sync = synchronizer(device)
     num_verts = mesh.verts.shape[0]
@@ -172,6 +210,11 @@ def bench_mesh(mesh: Mesh, dtype: torch.dtype, device: torch.device, repeat: int
                 lambda: igl.cotmatrix(mesh.verts, corners, offsets), repeat, sync
             ),
         }
+        if compiled:
+            times.update(bench_compiled(verts, topo, repeat, sync))
+    ratios = {name: times[a] / times[b] for name, (a, b, _) in RATIOS.items()}
+    if compiled:
+        ratios.update({name: times[a] / times[b] for name, (a, b, _) in COMPILED_RATIOS.items()})
     return {
         "name": mesh.name,
         "faces": mesh.num_faces,
@@ -179,7 +222,7 @@ def bench_mesh(mesh: Mesh, dtype: torch.dtype, device: torch.device, repeat: int
         "nnz": topo.nnz,
         "degrees": sorted(set(mesh.packed.sizes.tolist())),
         "seconds": times,
-        "ratios": {name: times[a] / times[b] for name, (a, b, _) in RATIOS.items()},
+        "ratios": ratios,
     }
 
 
@@ -436,11 +479,39 @@ def md(t: dict) -> str:
     return markdown_table(t["columns"], t["rows"])
 
 
+def compiled_table(results: list[dict]) -> dict:
+    """Eager against compiled (``tp.CompiledLaplacian``) re-assembly and forward + backward."""
+    header = [
+        "mesh",
+        "compile s (no grad, grad)",
+        "re-asm eager",
+        "re-asm compiled",
+        "fwd+bwd eager",
+        "fwd+bwd compiled",
+    ] + [f"{name} (≤ {t:g})" for name, (_, _, t) in COMPILED_RATIOS.items()]
+    rows = []
+    for r in results:
+        s = r["seconds"]
+        rows.append(
+            [r["name"], f"{s['compile']:.1f}, {s['compile_grad']:.1f}"]
+            + [
+                fmt_ms(s[key])
+                for key in ("reassembly", "reassembly_compiled", "fwd_bwd", "fwd_bwd_compiled")
+            ]
+            + [fmt_ratio(r["ratios"][name], t) for name, (_, _, t) in COMPILED_RATIOS.items()]
+        )
+    return table_data(header, rows)
+
+
 def tables(grids: list[dict], reals: list[dict]) -> dict:
-    """The report's tables (``timings``, ``ratios``, ``scaling`` for the grids)."""
+    """The report's tables (``timings``, ``ratios``, ``scaling`` for the grids, ``compiled``
+    with ``--compiled``)."""
     out = {"timings": timing_table(grids + reals), "ratios": ratio_table(grids + reals)}
     if grids:
         out["scaling"] = scaling_table(grids)
+    measured = [r for r in grids + reals if "reassembly_compiled" in r["seconds"]]
+    if measured:
+        out["compiled"] = compiled_table(measured)
     return out
 
 
@@ -493,6 +564,13 @@ def report(env: dict, checks: dict, grids: list[dict], reals: list[dict]) -> str
             "### Time per face on the grids (growth relative to the smallest)",
             "",
             md(tables_["scaling"]),
+        ]
+    if "compiled" in tables_:
+        lines += [
+            "",
+            "### Compiled assembly (tp.CompiledLaplacian; ms unless noted)",
+            "",
+            md(tables_["compiled"]),
         ]
     memories = [g["memory"] for g in grids if g.get("memory")]
     if memories:
@@ -559,6 +637,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="measure peak fwd+bwd memory per grid in a fresh process (default: on)",
     )
     parser.add_argument(
+        "--compiled",
+        action="store_true",
+        help="also time tp.CompiledLaplacian (compiles once per mesh: tens of seconds each)",
+    )
+    parser.add_argument(
         "--json", type=Path, metavar="PATH", help="default: benchmarks/results/laplacian.json"
     )
     args = parser.parse_args(argv)
@@ -594,7 +677,7 @@ def main(argv: list[str] | None = None) -> int:
     grids = []
     for n in sizes:
         progress(f"grid {n}x{n} ...")
-        result = bench_mesh(grid_mesh(n), dtype, device, args.repeat)
+        result = bench_mesh(grid_mesh(n), dtype, device, args.repeat, args.compiled)
         if args.memory:
             result["memory"] = measure_peak_memory(n, dtype, device)
         grids.append(result)
@@ -604,7 +687,7 @@ def main(argv: list[str] | None = None) -> int:
         meshes, skipped, checks["non_orientable"] = real_meshes(args.real_dir)
         for mesh in meshes:
             progress(f"{mesh.name} ...")
-            reals.append(bench_mesh(mesh, dtype, device, args.repeat))
+            reals.append(bench_mesh(mesh, dtype, device, args.repeat, args.compiled))
 
     elapsed = time.perf_counter() - started
     env["other_processes_cores"] = other_processes_cores(counters, cpu_counters(), elapsed)
@@ -618,7 +701,12 @@ def main(argv: list[str] | None = None) -> int:
         "grids": grids,
         "real": reals,
         "skipped": skipped,
-        "targets": {name: t for name, (_, _, t) in RATIOS.items()},
+        "targets": {
+            name: t
+            for name, (_, _, t) in (
+                {**RATIOS, **COMPILED_RATIOS} if args.compiled else RATIOS
+            ).items()
+        },
         "memory_target_bytes": MEMORY_TARGET_BYTES,
         "total_seconds": elapsed,
         "tables": tables(grids, reals),

@@ -1,6 +1,6 @@
 """Where the time of re-assembly, forward+backward and the topology build goes, at 1M quads.
 
-    python benchmarks/profile_assembly.py [--n 1000] [--top 10] [--json PATH]
+    python benchmarks/profile_assembly.py [--n 1000] [--top 10] [--compiled] [--json PATH]
 
 Writes ``benchmarks/results/profile_assembly.json`` (or ``--json PATH``). On the ``n x n``
 non-planar quad grid of ``common.bench_grid``, one torch thread, float64, CPU, after one
@@ -10,7 +10,9 @@ warm-up call each:
   ``torch.profiler`` (the torch operators by self CPU time: what each kind of pass costs);
 * ``fwd_bwd``: the same plus ``(L X)^2`` summed and its gradient to the vertices;
 * ``topology``: ``tp.build_topology``, profiled with ``cProfile`` (most of it is numpy, which
-  torch's profiler does not see), the functions by their own time.
+  torch's profiler does not see), the functions by their own time;
+* with ``--compiled``, ``reassembly_compiled`` and ``fwd_bwd_compiled``: the same two through
+  ``tp.CompiledLaplacian`` (compiled before profiling; a compiled graph is one row).
 
 Each table lists the ``--top`` entries with their share of the profiled total, so the rows say
 which passes a faster implementation would have to remove, whatever the machine's speed.
@@ -32,10 +34,15 @@ from common import bench_grid, markdown_table, pinned_threads, run_meta, table_d
 import torch_polylap as tp
 
 
-def forward_backward(verts: torch.Tensor, topo: tp.Topology) -> None:
-    """Re-assembly, ``sum((L X)^2)`` and its gradient to the vertices."""
+def forward_backward(
+    verts: torch.Tensor,
+    topo: tp.Topology,
+    assemble: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]] | None = None,
+) -> None:
+    """Re-assembly (``tp.laplacian``, or ``assemble``), ``sum((L X)^2)`` and its gradient to
+    the vertices."""
     X = verts.detach().requires_grad_(True)
-    L, _ = tp.laplacian(X, topo)
+    L, _ = tp.laplacian(X, topo) if assemble is None else assemble(X)
     (L @ X).square().sum().backward()
 
 
@@ -87,6 +94,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--n", type=int, default=1000, help="grid side (n x n quads)")
     parser.add_argument("--top", type=int, default=10, help="rows per profile")
     parser.add_argument(
+        "--compiled",
+        action="store_true",
+        help="also profile tp.CompiledLaplacian (compiling it first takes tens of seconds)",
+    )
+    parser.add_argument(
         "--json", type=Path, help="default benchmarks/results/profile_assembly.json"
     )
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
@@ -101,6 +113,12 @@ def main(argv: list[str] | None = None) -> int:
             "fwd_bwd": torch_profile(lambda: forward_backward(verts, topo), args.top),
             "topology": python_profile(lambda: tp.build_topology(faces, verts.shape[0]), args.top),
         }
+        if args.compiled:
+            compiled = tp.CompiledLaplacian(topo)
+            profiles["reassembly_compiled"] = torch_profile(lambda: compiled(verts), args.top)
+            profiles["fwd_bwd_compiled"] = torch_profile(
+                lambda: forward_backward(verts, topo, compiled), args.top
+            )
     for name, (header, rows) in profiles.items():
         print(f"\n{name}, {faces.shape[0]:,} quads\n")
         print(markdown_table(header, rows))

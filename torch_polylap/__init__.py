@@ -44,6 +44,7 @@ from . import (
 )
 from .batch import *
 from .calculus import *
+from .compiled import *
 from .faces import *
 from .interop import from_pyg, from_pytorch3d, from_trimesh, to_pyg, to_pytorch3d, to_trimesh
 from .io import read_mesh, write_mesh

@@ -21,8 +21,10 @@ from .checks import check_verts, warn_outside_package
 from .kernels import BlockKernel
 from .kernels.aw11 import aw11_entries, row_sums
 from .kernels.frames import gather_corners
+from .kernels.gather import gather_chunks
+from .sparse.gather_plan import GatherPlan, gather_plan
 from .topology import DegreeGroup, GroupChunk, Topology, TopologyView, get_topology
-from .tracing import functional, require
+from .tracing import functional, require, run_eagerly, tracing
 
 __all__ = [
     "MeshFaces",
@@ -79,9 +81,7 @@ def assemble(
             return _assemble_functional(
                 verts, view, topo, kernel, want_mass=want_mass, validate=validate
             )
-        return _assemble_chunked(
-            verts, view, topo, kernel, want_mass=want_mass, validate=validate
-        )
+        return _assemble_chunked(verts, view, topo, kernel, want_mass=want_mass, validate=validate)
 
 
 def _assemble_chunked(
@@ -94,17 +94,15 @@ def _assemble_chunked(
     validate: bool,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`assemble` eagerly: chunks whose temporaries stay small, in place."""
-    scale, unscale = _normalizer(verts)
+    scale, unscale, finite = _normalizer(verts)
     verts_t = verts.t().contiguous() * scale
     mixed = validate and verts.dtype == torch.float32
-    parts = _scatter(
-        verts_t, view, topo, kernel, want_mass=want_mass, mixed=mixed, verts_t64=None
-    )
+    parts = _scatter(verts_t, view, topo, kernel, want_mass=want_mass, mixed=mixed, verts_t64=None)
     values, masses_n, degenerate, ill = parts
     masses = _unscaled(masses_n, unscale)
     if not validate:
         return values, masses
-    flags = [_input_ok(verts, degenerate), _output_ok(values, masses_n, masses)]
+    flags = [_input_ok(finite, degenerate), _output_ok(values, masses_n, masses)]
     if ill:
         flags.append(torch.stack(ill).amax())  # NaN propagates: counts as ill-conditioned
     read = torch.stack([f.to(verts.dtype) for f in flags]).tolist()
@@ -134,18 +132,31 @@ def _assemble_chunked(
     return values, masses
 
 
-def _normalizer(verts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(scale, 1 / scale)``: 0-dim powers of two that bring the largest coordinate magnitude
-    into ``[1/2, 1)`` (multiplying by them is exact), without a device sync."""
+class _Normalizer(NamedTuple):
+    scale: torch.Tensor
+    """0-dim power of two that brings the largest coordinate magnitude into ``[1/2, 1)``."""
+    unscale: torch.Tensor
+    """0-dim, its reciprocal."""
+    finite: torch.Tensor
+    """0-dim bool: every coordinate is finite (NaN and infinities reach the extremes)."""
+
+
+def _normalizer(verts: torch.Tensor) -> _Normalizer:
+    """The exact rescaling of the coordinates (multiplying by powers of two), without a
+    device sync, and whether they are finite: one pass over ``verts`` for both."""
     info = torch.finfo(verts.dtype)
     if verts.numel() == 0:
-        return verts.new_ones(()), verts.new_ones(())
-    low, high = torch.aminmax(verts.detach())
+        one = verts.new_ones(())
+        return _Normalizer(one, one, torch.ones((), dtype=torch.bool, device=verts.device))
+    extremes = torch.stack(torch.aminmax(verts.detach()))
+    low, high = extremes.unbind(0)
     exponent = torch.frexp(torch.maximum(high, -low)).exponent
     # within the normal range both ways; a non-finite maximum is refused by the validation
     exponent = exponent.clamp(int(math.log2(info.tiny)) + 1, int(math.log2(info.max)) - 1)
     one = verts.new_ones(())
-    return torch.ldexp(one, -exponent), torch.ldexp(one, exponent)
+    return _Normalizer(
+        torch.ldexp(one, -exponent), torch.ldexp(one, exponent), torch.isfinite(extremes).all()
+    )
 
 
 def _unscaled(masses: torch.Tensor | None, unscale: torch.Tensor) -> torch.Tensor | None:
@@ -175,12 +186,21 @@ def _scatter(
     masses = verts_t.new_zeros(topo.num_verts) if want_mass else None
     eps = torch.finfo(verts_t.dtype).eps
     degenerate, ill = [], []
+    # differentiated: every chunk's corners gathered by one autograd node, whose backward
+    # forms one (3, V) gradient rather than one per chunk
+    one_node = verts_t64 is None and torch.is_grad_enabled() and verts_t.requires_grad
     for grp in view.groups:
-        for chunk in grp.chunks:
+        xs = gather_chunks(verts_t, [c.corners_t for c in grp.chunks]) if one_node else None
+        for i, chunk in enumerate(grp.chunks):
             if verts_t64 is not None:
                 _scatter_mixed(verts_t, verts_t64, grp, chunk, kernel, values, masses, eps)
                 continue
-            off, corner_mass, area, size2, error = kernel(verts_t, grp, chunk.corners_t)
+            entries = (
+                kernel(verts_t, grp, chunk.corners_t)
+                if xs is None
+                else kernel.on_corners(xs[i], grp)
+            )
+            off, corner_mass, area, size2, error = entries
             _scatter_blocks(grp, chunk, off, corner_mass, values, masses)
             degenerate.append(_any_degenerate(area, size2, eps))
             if mixed:
@@ -264,9 +284,9 @@ def _finite(t: torch.Tensor) -> torch.Tensor:
     return torch.isfinite(torch.stack(torch.aminmax(t))).all()
 
 
-def _input_ok(verts: torch.Tensor, degenerate: list[torch.Tensor]) -> torch.Tensor:
-    ok = _finite(verts)
-    return ok & ~torch.stack(degenerate).any() if degenerate else ok
+def _input_ok(finite: torch.Tensor, degenerate: list[torch.Tensor]) -> torch.Tensor:
+    """Finite coordinates (``finite``, from :func:`_normalizer`) and no degenerate face."""
+    return finite & ~torch.stack(degenerate).any() if degenerate else finite
 
 
 def _output_ok(
@@ -300,7 +320,13 @@ def _assemble_functional(
     """:func:`assemble` for traced and transformed code (see :func:`assemble_flagged`); the
     checks are an in-graph assertion when traced, a batch-wide check under vmap, and under
     the other torch.func transforms the eager error that names the vertex or face."""
-    values, masses, ok, accurate = assemble_flagged(verts, view, topo, kernel, want_mass=want_mass)
+    if tracing():
+        # compiled: the gather form, which inductor fuses far better than scatters
+        plan = run_eagerly(gather_plan_of, topo, view)
+        flagged = assemble_gathered(verts, view, kernel, plan, want_mass=want_mass)
+    else:
+        flagged = assemble_flagged(verts, view, topo, kernel, want_mass=want_mass)
+    values, masses, ok, accurate = flagged
     if validate:
         if not require(ok, BAD_INPUT):
             raise_bad_input(verts, topo, kernel)
@@ -342,7 +368,7 @@ def assemble_flagged(
     number on the host): such faces make ``accurate`` false, and the callers refuse them
     rather than return a silently inaccurate result.
     """
-    scale, unscale = _normalizer(verts)
+    scale, unscale, finite = _normalizer(verts)
     verts_t = verts.t().contiguous() * scale
     values = verts.new_zeros(topo.nnz)
     masses = verts.new_zeros(topo.num_verts) if want_mass else None
@@ -361,7 +387,7 @@ def assemble_flagged(
             masses = masses.index_add(0, whole.corners_t.reshape(-1), corner_mass.reshape(-1))
         degenerate.append(_any_degenerate(area, size2, eps))
     masses_n, masses = masses, _unscaled(masses, unscale)
-    ok = _input_ok(verts, degenerate) & _output_ok(values, masses_n, masses)
+    ok = _input_ok(finite, degenerate) & _output_ok(values, masses_n, masses)
     all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
     return FlaggedAssembly(values, masses, ok, all_accurate)
 
@@ -402,7 +428,7 @@ def raise_bad_input(
         )
     verts = verts.detach()
     info = torch.finfo(verts.dtype)
-    scale, unscale = _normalizer(verts)
+    scale, unscale, _ = _normalizer(verts)
     biggest = float(verts.abs().max())
     verts_n = verts * scale
     for _, grp, x in face_groups(verts_n, topo):
@@ -477,3 +503,63 @@ def face_groups(
     verts_t = verts.t().contiguous()
     for grp in topo.on(verts.device).groups:
         yield topo, grp, gather_corners(verts_t, grp.corners_t)
+
+
+def gather_plan_of(topo: Topology, view: TopologyView) -> GatherPlan:
+    """``topo``'s :class:`~torch_polylap.sparse.gather_plan.GatherPlan` on ``view``'s device,
+    computed once per topology and device."""
+    key = ("gather_plan", view.col.device)
+    plan = topo.derived.get(key)
+    if plan is None:
+        wholes = [view.whole(i) for i in range(len(view.groups))]
+        shapes = [(g.pair_i.numel(), g.face_ids.numel()) for g in view.groups]
+        cpu = gather_plan(
+            [w.pos_upper.cpu().numpy().reshape(s) for w, s in zip(wholes, shapes, strict=True)],
+            [w.pos_lower.cpu().numpy().reshape(s) for w, s in zip(wholes, shapes, strict=True)],
+            [g.corners_t.cpu().numpy() for g in view.groups],
+            view.pattern.diagonal_positions().cpu().numpy(),
+            topo.nnz,
+        )
+        plan = cpu.to(view.col.device)
+        topo.derived[key] = plan
+    assert isinstance(plan, GatherPlan)
+    return plan
+
+
+def assemble_gathered(
+    verts: torch.Tensor,
+    view: TopologyView,
+    kernel: BlockKernel,
+    plan: GatherPlan,
+    *,
+    want_mass: bool,
+) -> FlaggedAssembly:
+    """:func:`assemble_flagged` with gathers instead of scatters (``plan``, from
+    :func:`gather_plan_of`): every group's blocks at once, then each stored value as the sum
+    of its (mostly two) per-face entries and each diagonal as minus the sum of the row sums
+    of its vertex's blocks. Written for torch.compile, which fuses the kernels and the
+    gathers; eagerly the chunked :func:`assemble` is faster."""
+    scale, unscale, finite = _normalizer(verts)
+    verts_t = verts.t() * scale
+    eps = torch.finfo(verts.dtype).eps
+    offs, sums, corner_masses, degenerate, accurate = [], [], [], [], []
+    corners = plan.vertex.corners(verts_t)
+    start = 0
+    for grp in view.groups:
+        k, count = grp.corners_t.shape
+        x = corners[:, start : start + k * count].view(3, k, count)
+        start += k * count
+        off, corner_mass, area, size2, error = kernel.on_corners(x, grp)
+        offs.append(off.reshape(-1))
+        sums.append(row_sums(off, grp).reshape(-1))
+        corner_masses.append(corner_mass.reshape(-1))
+        degenerate.append(_any_degenerate(area, size2, eps))
+        if verts.dtype == torch.float32:
+            accurate.append(error.amax() * eps <= FLOAT32_TOLERANCE)
+    diagonal = -plan.vertex.total(torch.cat(sums))
+    values = plan.values(torch.cat(offs), diagonal)
+    masses_n = plan.vertex.total(torch.cat(corner_masses)) if want_mass else None
+    masses = _unscaled(masses_n, unscale)
+    ok = _input_ok(finite, degenerate) & _output_ok(values, masses_n, masses)
+    all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
+    return FlaggedAssembly(values, masses, ok, all_accurate)

@@ -16,8 +16,6 @@ the off-diagonal entries and the diagonal is minus their row sums.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
 
 from ..topology import DegreeGroup
@@ -37,8 +35,6 @@ __all__ = [
     "thin_error",
 ]
 
-BlockKernel = Callable[[torch.Tensor, DegreeGroup, torch.Tensor], BlockEntries]
-
 METHODS = ("aw11", "plms", "degoes")
 
 
@@ -49,9 +45,45 @@ def check_method(method: object) -> str:
     return method
 
 
-def block_kernel(
-    method: str, lam: float | torch.Tensor, *, geometric: bool = True
-) -> BlockKernel:
+class BlockKernel:
+    """The per-chunk block kernel of one method (see :func:`block_kernel`).
+
+    Called as ``kernel(verts_t (3, V), group, corners_t (k, F))`` it gathers the corners and
+    evaluates their blocks; :meth:`on_corners` evaluates already gathered ``(3, k, F)`` corner
+    positions (the eager assembly gathers all its chunks in one autograd node).
+    """
+
+    def __init__(self, method: str, lam: float | torch.Tensor, *, geometric: bool) -> None:
+        self.method = method
+        self.lam = lam
+        self.geometric = geometric
+
+    def __call__(
+        self, verts_t: torch.Tensor, grp: DegreeGroup, corners_t: torch.Tensor
+    ) -> BlockEntries:
+        if self.method == "aw11" and grp.k == 4:
+            # quads read three coordinate rows (the closed form's faster gather)
+            return self._aw11(gather_coordinates(verts_t, corners_t), grp)
+        return self.on_corners(gather_corners(verts_t, corners_t), grp)
+
+    def on_corners(self, x: torch.Tensor, grp: DegreeGroup) -> BlockEntries:
+        """The blocks of the faces whose ``(3, k, F)`` corner positions are ``x``."""
+        if self.method == "aw11":
+            return self._aw11(x, grp)
+        if self.method == "plms":
+            return plms_entries(x, grp.pair_i, grp.pair_j)
+        return _with_masses(degoes_entries(x, grp.pair_i, grp.pair_j, self.lam), grp.k)
+
+    def _aw11(
+        self,
+        x: torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        grp: DegreeGroup,
+    ) -> BlockEntries:
+        entries = aw11_entries(x, grp, self.lam, geometric=self.geometric)
+        return _with_masses(entries, grp.k)
+
+
+def block_kernel(method: str, lam: float | torch.Tensor, *, geometric: bool = True) -> BlockKernel:
     """The per-chunk block kernel of ``method`` for the shared assembly.
 
     The kernel maps ``(verts_t (3, V), group, corners_t (k, F))`` to the off-diagonal entries
@@ -65,22 +97,7 @@ def block_kernel(
     check_method(method)
     if not geometric and method != "aw11":
         raise ValueError("only method='aw11' has a planarity (stabilizer-only) operator.")
-
-    def kernel(verts_t: torch.Tensor, grp: DegreeGroup, corners_t: torch.Tensor) -> BlockEntries:
-        if method == "aw11":
-            # quads read three coordinate rows (the closed form's faster gather)
-            x = (
-                gather_coordinates(verts_t, corners_t)
-                if grp.k == 4
-                else gather_corners(verts_t, corners_t)
-            )
-            return _with_masses(aw11_entries(x, grp, lam, geometric=geometric), grp.k)
-        x = gather_corners(verts_t, corners_t)
-        if method == "plms":
-            return plms_entries(x, grp.pair_i, grp.pair_j)
-        return _with_masses(degoes_entries(x, grp.pair_i, grp.pair_j, lam), grp.k)
-
-    return kernel
+    return BlockKernel(method, lam, geometric=geometric)
 
 
 def _with_masses(e: FaceEntries, k: int) -> BlockEntries:

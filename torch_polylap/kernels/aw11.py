@@ -105,11 +105,12 @@ def quad_entries(
         ``off`` ``(6, F)`` in the pair order ``(0,1), (0,2), (0,3), (1,2), (1,3), (2,3)``;
         ``area`` ``(F,)``; ``size2`` ``(F,)``, the sum of the squared diagonals.
     """
-    X, Y, Z = xyz
-    x0, x1, x2, x3 = ((X[c], Y[c], Z[c]) for c in range(4))
+    # rows by unbind, not X[c]: the backward of four selects zero-fills four (4, F) arrays and
+    # adds them up, that of one unbind stacks the four row gradients
+    x0, x1, x2, x3 = zip(*(c.unbind(0) for c in xyz), strict=True)
     g0 = tuple(a - b for a, b in zip(x1, x3, strict=True))  # 2 g_0
     g1 = tuple(a - b for a, b in zip(x2, x0, strict=True))  # 2 g_1
-    tiny = torch.finfo(X.dtype).tiny
+    tiny = torch.finfo(xyz[0].dtype).tiny
     d00 = torch.addcmul(torch.addcmul(g0[0] * g0[0], g0[1], g0[1]), g0[2], g0[2])
     d11 = torch.addcmul(torch.addcmul(g1[0] * g1[0], g1[1], g1[1]), g1[2], g1[2])
     size2 = d00 + d11  # squared diagonals: the length scale s^2 of the face

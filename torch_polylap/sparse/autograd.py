@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 import torch
 
 from ..tracing import in_functorch, tracing
-from .index_ops import transposed
+from .index_ops import int32_indices, transposed
 from .pattern import SparsityPattern, block_diagonal_indices
 
 __all__ = ["csr_product", "sampled_product", "spmm", "spmm_t", "sampled", "torch_csr"]
@@ -43,6 +43,8 @@ __all__ = ["csr_product", "sampled_product", "spmm", "spmm_t", "sampled", "torch
 def _csr(crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor, m: int) -> torch.Tensor:
     # the package builds its patterns itself and knows them valid: skip torch's invariant
     # checks and its one-time "CSR support is in beta" warning
+    if crow.device.type == "cpu" and crow.dtype == torch.int64:
+        crow, col = int32_indices(crow, col, m)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
         return torch.sparse_csr_tensor(
@@ -123,10 +125,44 @@ def sampled_op(
     G: torch.Tensor, X: torch.Tensor, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor
 ) -> torch.Tensor:
     """``(nnz,)`` entries ``s_k = sum_c G[row_k, c] X[col_k, c]`` of ``G X^T`` on the pattern."""
+    if G.device.type == "cpu":
+        return _sampled_cpu(G, X, row, col)
     zeros = G.new_zeros(col.shape[0])
     return torch.sparse.sampled_addmm(
         _csr(crow, col, zeros, X.shape[0]), G.contiguous(), X.t().contiguous(), beta=0.0
     ).values()
+
+
+# entries per block of the CPU sampled product: its two (block, c) row gathers stay in cache
+_SAMPLED_BLOCK = 1 << 16
+
+
+def _sampled_cpu(
+    G: torch.Tensor,
+    X: torch.Tensor,
+    row: torch.Tensor,
+    col: torch.Tensor,
+    block: int = _SAMPLED_BLOCK,
+) -> torch.Tensor:
+    """:func:`sampled_op` on the CPU, in blocks of entries: two row gathers, their product
+    and its columns summed in order (the sums torch's ``sampled_addmm`` forms, at a third
+    of its time: it is the largest cost of a Laplacian's backward)."""
+    nnz, c = col.shape[0], G.shape[1]
+    out = G.new_empty(nnz)
+    if c == 0:
+        return out.zero_()
+    for start in range(0, nnz, block):
+        stop = min(start + block, nnz)
+        part = out[start:stop]
+        prod = G.index_select(0, row[start:stop]).mul_(X.index_select(0, col[start:stop]))
+        # a strided copy of the first column would cost as much as the gathers: add two
+        if c == 1:
+            part.copy_(prod[:, 0])
+        else:
+            torch.add(prod[:, 0], prod[:, 1], out=part)
+        for j in range(2, c):
+            part.add_(prod[:, j])
+    return out
 
 
 @sampled_op.register_fake

@@ -27,6 +27,7 @@ __all__ = [
     "transposed",
     "transpose_indices",
     "diagonal_indices",
+    "int32_indices",
 ]
 
 T = TypeVar("T", bound=tuple)
@@ -186,3 +187,23 @@ def diagonal_indices(crow: torch.Tensor, col: torch.Tensor, k: int) -> torch.Ten
 @diagonal_indices.register_fake
 def _diagonal_fake(crow: torch.Tensor, col: torch.Tensor, k: int) -> torch.Tensor:
     return col.new_empty((k,))
+
+
+_INT32_MAX = 2**31 - 1
+
+
+def int32_indices(
+    crow: torch.Tensor, col: torch.Tensor, m: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(crow, col)`` as int32 where every index and the number of entries fit (else as
+    given), kept while the int64 tensors live: torch's CPU CSR product converts int64 indices
+    for every call, which takes longer than the product itself (36 ms against 14 ms at 9M
+    entries)."""
+    if max(crow.numel(), col.numel(), m) > _INT32_MAX:
+        return crow, col
+
+    def compute() -> tuple[torch.Tensor, ...]:
+        return crow.to(torch.int32), col.to(torch.int32)
+
+    result = _remembered("int32", (crow, col), compute, copy=False)
+    return result[0], result[1]
