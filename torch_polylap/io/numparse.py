@@ -150,6 +150,8 @@ def _digits(
         value *= (count >= 1).astype(U64)
         bad |= (value > U64(9)).astype(U64)
         return value
+    if 2 * np.count_nonzero(count > 8) > len(count):
+        return _digits_dense(words, end, count, bad, min((longest + 7) // 8, 3))
     value = _digits_word(words, end, count, bad)
     for k in (1, 2):
         if longest <= 8 * k:
@@ -163,6 +165,35 @@ def _digits(
         more *= _POW10_INT[8 * k]
         value[longer] += more
         bad[longer] |= sub_bad
+    return value
+
+
+def _digits_dense(
+    words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray, spans: int
+) -> np.ndarray:
+    """:func:`_digits` for ``spans`` (2-3) words of digits when most strings are that long: the
+    words ending at ``end``, ``end - 8``... for every string, from ``spans + 1`` aligned loads
+    (each shared by two neighbouring words), with no index arrays."""
+    base = end >> 3
+    shift = (end & 7).view(U64)
+    shift <<= U64(3)
+    back = U64(64) - shift
+    upper = words.take(base)
+    value = np.zeros(len(end), dtype=U64)
+    for k in range(spans):
+        base -= 1
+        lower = words.take(base)
+        x = lower >> shift
+        upper <<= back  # a shift by 64 (end on a word boundary) gives 0
+        x |= upper
+        c = count - 8 * k
+        np.clip(c, 0, 8, out=c)
+        x = _swar(x, c, bad)
+        if k == 2:  # up to 24 digits, of which at most 19 significant: no overflow
+            bad |= (x >= U64(1000)).astype(U64)
+        x *= _POW10_INT[8 * k]
+        value += x
+        upper = lower
     return value
 
 

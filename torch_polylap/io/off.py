@@ -148,36 +148,42 @@ def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     if header is None:
         return None
     keyword, num_verts, num_faces, body = header
-    coords: list[np.ndarray] = []
+    if 6 * num_verts + 8 * num_faces > len(text) - body + 1:
+        return None  # no room for the records ("x y z", "3 a b c" lines; the last may end the
+        # file without its line break): truncated, and the record parser says so
+    # The counts are known: values go straight to the arrays returned (no concatenation).
+    verts = np.empty((num_verts, 3))
+    coords = verts.reshape(-1)
+    size = np.empty(num_faces, dtype=np.int64)
     indices: list[np.ndarray] = []
-    sizes: list[np.ndarray] = []
     extra = coloured = 0
     seen = 0  # content lines before the chunk
     try:
         for chunk in chunks(text, body):
             first, count, _ = chunk.lines()
+            if seen + len(count) > num_verts + num_faces:
+                return None  # data after the faces: the record parser names the line
             nv = min(max(num_verts - seen, 0), len(count))  # vertex lines in the chunk
-            seen += len(count)
             if nv:
                 vert_lines = _vertex_lines(chunk, first[:nv], count[:nv])
                 if vert_lines is None:
                     return None
-                coords.append(vert_lines[0])
+                coords[3 * seen : 3 * (seen + nv)] = vert_lines[0]
                 extra += vert_lines[1]
             if nv < len(count):
                 face_lines = _face_lines(chunk, first[nv:], count[nv:])
                 if face_lines is None:
                     return None
                 indices.append(face_lines[0])
-                sizes.append(face_lines[1])
+                faces_before = seen + nv - num_verts
+                size[faces_before : faces_before + len(face_lines[1])] = face_lines[1]
                 coloured += face_lines[2]
+            seen += len(count)
     except BadNumber:
         return None
     if seen != num_verts + num_faces:
         return None
-    verts = np.concatenate(coords).reshape(-1, 3) if coords else np.zeros((0, 3))
     index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
-    size = np.concatenate(sizes) if sizes else np.zeros(0, dtype=np.int64)
     if index.size and (index.min() < 0 or index.max() >= num_verts):
         return None
     skipped.add(_vertex_extras(keyword), extra)

@@ -66,10 +66,11 @@ class Chunk:
         ws = buf <= 32
         change = np.zeros(len(buf), dtype=bool)  # a token starts or ends here
         np.not_equal(ws[:-1], ws[1:], out=change[1:])
-        # the padding is blank, so starts and ends alternate
-        bounds = np.flatnonzero(change).reshape(-1, 2)
-        self.start = bounds[:, 0].copy()
-        self.end = bounds[:, 1].copy()
+        # the padding is blank, so starts and ends alternate (copied: numpy is slower on
+        # strided arrays, and these are read many times)
+        bounds = np.flatnonzero(change)
+        self.start = bounds[0::2].copy()
+        self.end = bounds[1::2].copy()
         del bounds
         # Single blanks between tokens (what writers write) and no blank line: a line ends at
         # each token followed by '\n', and no per-byte search for line breaks is needed.
