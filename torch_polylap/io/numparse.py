@@ -43,9 +43,8 @@ __all__ = [
 
 U64 = np.uint64
 _ZEROS = U64(0x3030303030303030)
-_HI_NIBBLES = U64(0xF0F0F0F0F0F0F0F0)
-_SIX = U64(0x0606060606060606)
-_THREES = U64(0x3333333333333333)
+_ABOVE_NINE = U64(0x7676767676767676)
+_HIGH_BITS = U64(0x8080808080808080)
 _B = 8  # bytes per word
 _ZERO = U64(48)  # '0'
 PAD = 24  # bytes of padding a buffer needs before its first and after its last token
@@ -116,13 +115,14 @@ def _swar(x: np.ndarray, c: np.ndarray, bad: np.ndarray) -> np.ndarray:
     see :func:`_digits_word`.  In-place steps: this is the hot loop."""
     x &= _KEEP.take(c)
     x |= _FILL.take(c)
-    t = x + _SIX
-    t &= _HI_NIBBLES
-    t >>= U64(4)
-    t |= x & _HI_NIBBLES
-    t ^= _THREES
-    bad |= t
     x -= _ZEROS
+    # A non-digit byte leaves bit 7 set in x - '0' (a byte below '0' borrows, the lowest such
+    # one from no other) or in x - '0' + 0x76 (a byte above '9'): exact as "some byte is not
+    # a digit", which is all that is asked.
+    t = x + _ABOVE_NINE
+    t |= x
+    t &= _HIGH_BITS
+    bad |= t
     for shift, scale, mask in _SWAR_STEPS:
         t = x >> shift
         x *= scale
@@ -378,7 +378,6 @@ def parse_floats(
 
 _DOTS = U64(0x2E2E2E2E2E2E2E2E)
 _ONES = U64(0x0101010101010101)
-_HIGHS = U64(0x8080808080808080)
 _BYTE_INDEX = U64(0x0001020304050607)  # times 2**(8j): j in the top byte
 
 
@@ -404,7 +403,7 @@ def parse_plain_floats(
     flags = found - _ONES
     np.invert(found, out=found)
     flags &= found
-    flags &= _HIGHS
+    flags &= _HIGH_BITS
     has_dot = flags != 0
     np.invert(flags, out=found)
     found += U64(1)

@@ -118,7 +118,11 @@ def _warn_unterminated(data: bytes, name: str) -> None:
 
 def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     """Parse OBJ text prepared by :func:`_plain_text` in bulk; None when the file needs the
-    line parser (for anything unusual, and for every error, whose message that one words)."""
+    line parser (for anything unusual, and for every error, whose message that one words).
+
+    A chunk holding only ``v x y z`` lines, or only faces of one degree (the usual layout), is
+    read as a block of consecutive tokens; any other chunk line by line in numpy (keywords
+    classified per line, values through index arrays)."""
     coords: list[np.ndarray] = []
     indices: list[np.ndarray] = []
     sizes: list[np.ndarray] = []

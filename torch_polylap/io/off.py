@@ -209,12 +209,14 @@ def _face_lines(
     """``(indices, sizes, coloured faces)`` of face lines; None for a face wrapped over lines
     or broken."""
     width = int(count[0])
-    if (count == width).all():  # one degree: read k and the indices as one block
-        values = chunk.ints(slice(int(first[0]), int(first[0]) + width * len(count)))
-        values = values.reshape(-1, width)
-        k = values[:, 0]
-        if width >= 4 and (k == width - 1).all():
-            return values[:, 1:].reshape(-1), k.copy(), 0
+    if 4 <= width <= 10 and (count == width).all():
+        # One degree, k = width - 1 a single digit on every line: the indices are a block.
+        lines, at = len(count), int(first[0])
+        k_start = chunk.start[at : at + lines * width : width]
+        k_end = chunk.end[at : at + lines * width : width]
+        if (k_end - k_start == 1).all() and (chunk.buf.take(k_start) == 47 + width).all():
+            indices = chunk.ints_at(*chunk.block(at, lines, width, 1))
+            return indices, np.full(lines, width - 1, dtype=np.int64), 0
     k = chunk.ints(first)
     if (k < 3).any() or (count < k + 1).any():
         return None
