@@ -49,10 +49,6 @@ _B = 8  # bytes per word
 _ZERO = U64(48)  # '0'
 PAD = 24  # bytes of padding a buffer needs before its first and after its last token
 
-# For c = 0..8 valid digits in the top c bytes of a word: the bytes to keep, and '0' bytes to
-# put in the others (leading zeros do not change the value).
-_KEEP = np.array([~((1 << (8 * (8 - c))) - 1) & (2**64 - 1) for c in range(9)], dtype=U64)
-_FILL = np.array([0x3030303030303030 & ((1 << (8 * (8 - c))) - 1) for c in range(9)], dtype=U64)
 _POW10_INT = np.array([10**k for k in range(20)], dtype=U64)
 _POW10_FLOAT = np.array([10.0**k for k in range(23)])
 
@@ -113,8 +109,14 @@ def _digits_word(
 def _swar(x: np.ndarray, c: np.ndarray, bad: np.ndarray) -> np.ndarray:
     """Value of the ``c`` (0-8) digits in the top bytes of the words ``x`` (changed in place);
     see :func:`_digits_word`.  In-place steps: this is the hot loop."""
-    x &= _KEEP.take(c)
-    x |= _FILL.take(c)
+    # keep the top c bytes, '0' in the others (leading zeros do not change the value); shifts
+    # by 64 (c = 0) give 0 in numpy, and beat two table lookups
+    low = (8 - c).view(U64)
+    low <<= U64(3)
+    x >>= low
+    x <<= low
+    np.subtract(U64(64), low, out=low)
+    x |= _ZEROS >> low
     x -= _ZEROS
     # A non-digit byte leaves bit 7 set in x - '0' (a byte below '0' borrows, the lowest such
     # one from no other) or in x - '0' + 0x76 (a byte above '9'): exact as "some byte is not
