@@ -5,6 +5,9 @@
   midpoints (ties), and the edges of the double range; bit for bit.
 * The bulk OBJ parser against the line-by-line reference parser on random OBJ text: whenever
   the bulk one answers, the same vertices, faces and skipped-content warning.
+* The tokenizer's lines and tokens against ``str.split``, and the bulk readers with chunks of
+  a few dozen bytes (every record layout meeting a chunk boundary) against the reference
+  parsers.
 * Peak memory of a read, and the reader bugs: truncated corners, files cut inside a record,
   float PLY index lists, impossible PLY list lengths.
 """
@@ -15,6 +18,7 @@ import re
 import struct
 import tracemalloc
 import warnings
+from contextlib import contextmanager
 from fractions import Fraction
 
 import numpy as np
@@ -24,8 +28,16 @@ from hypothesis import strategies as st
 
 from torch_polylap.io import SkippedContentWarning, read_mesh, write_mesh
 from torch_polylap.io import obj as obj_module
+from torch_polylap.io import tokens as tokens_module
 from torch_polylap.io.common import Skipped
-from torch_polylap.io.numparse import PAD, parse_floats, parse_ints, word_view
+from torch_polylap.io.numparse import (
+    PAD,
+    parse_floats,
+    parse_ints,
+    parse_plain_floats,
+    token_marks,
+    word_view,
+)
 
 PROPERTY = settings(max_examples=150, deadline=None, database=None)
 
@@ -135,6 +147,61 @@ def test_non_numbers_are_left_to_python():
     assert all(slow)
 
 
+def plain_floats(tokens: list[bytes]) -> tuple[list[float], list[bool]]:
+    """parse_plain_floats on ``tokens``, as (values, slow)."""
+    buf, start, end = _buffer(tokens)
+    values, slow = parse_plain_floats(buf, word_view(buf), start, end)
+    return values.tolist(), slow.tolist()
+
+
+@PROPERTY
+@given(
+    st.lists(st.one_of(decimal_strings(), doubles.map(lambda x: repr(x).encode())), max_size=200)
+)
+def test_plain_floats_are_exact_or_left_slow(tokens):
+    """The point-finding path: whatever it does not leave slow is float(token) bit for bit."""
+    values, slow = plain_floats(tokens)
+    for token, value, left in zip(tokens, values, slow, strict=True):
+        if not left:
+            assert same_bits(value, float(token)), (token, value, float(token))
+
+
+@PROPERTY
+@given(
+    st.lists(
+        st.tuples(st.sampled_from(["", "-", "+"]), st.text("0123456789", min_size=0, max_size=7),
+                  st.booleans(), st.text("0123456789", min_size=0, max_size=12)),
+        min_size=1, max_size=100,
+    )
+)  # fmt: skip
+def test_plain_floats_read_fixed_notation_in_bulk(parts):
+    """Fixed notation with at most 7 integer digits and 19 in all (integers: 8 digits) is never
+    left to the other paths, and reads exactly; a token without digits is slow."""
+    tokens = [
+        (sign + whole + ("." if point else "") + frac).encode()
+        for sign, whole, point, frac in parts
+    ]
+    values, slow = plain_floats(tokens)
+    for (_, whole, point, frac), token, value, left in zip(
+        parts, tokens, values, slow, strict=True
+    ):
+        if not whole + frac:  # "", "-", ".", "+."
+            assert left, token
+        elif len(whole) + len(frac) <= (19 if point else 8):
+            assert not left, token
+            assert same_bits(value, float(token)), (token, value, float(token))
+
+
+def test_token_marks_find_points_exponents_and_odd_tokens():
+    tokens = [b"1.5", b"-2e5", b"3.0E-7", b"1.2.3", b"1e5e5", b"1-2", b"1,5", b"1/2", b"e.5", b"7"]
+    buf, start, end = _buffer(tokens)
+    dot, exp, odd = token_marks(buf, start, end)
+    assert odd.tolist() == [False, False, False, True, True, True, True, True, True, False]
+    plain = [0, 1, 2, 9]  # where odd, parse_floats is not asked for a value
+    assert (np.where(dot >= 0, dot - start, -1))[plain].tolist() == [1, -1, 1, -1]
+    assert (np.where(exp >= 0, exp - start, -1))[plain].tolist() == [-1, 2, 3, -1]
+
+
 @PROPERTY
 @given(st.lists(st.integers(-(10**16) + 1, 10**16 - 1), min_size=1, max_size=200))
 def test_integers_convert_exactly(ints):
@@ -214,6 +281,99 @@ def test_bulk_obj_parser_agrees_with_line_parser(text):
         assert lines[0] == "error"
     else:
         assert lines == bulk
+
+
+@contextmanager
+def chunk_bytes(size: int):
+    """Cut texts into chunks of about ``size`` bytes (every layout then meets a boundary)."""
+    saved = tokens_module.CHUNK_BYTES
+    tokens_module.CHUNK_BYTES = size
+    try:
+        yield
+    finally:
+        tokens_module.CHUNK_BYTES = saved
+
+
+@st.composite
+def token_texts(draw) -> bytes:
+    word = st.text("0123456789.-vf/e", min_size=1, max_size=6)
+    lines = []
+    for _ in range(draw(st.integers(0, 12))):
+        sep = draw(st.sampled_from([" "] * 6 + ["\t", "  ", "\x0b", "\x0c"]))
+        lead, trail = (draw(st.sampled_from([""] * 4 + [" ", "\t"])) for _ in range(2))
+        lines.append(lead + sep.join(draw(st.lists(word, max_size=5))) + trail)
+    return ("\n".join(lines) + draw(st.sampled_from(["\n", ""]))).encode()
+
+
+@settings(PROPERTY, max_examples=300)
+@given(token_texts(), st.sampled_from([1, 8, 24, 1 << 21]))
+def test_tokens_and_lines_are_those_of_str_split(text, size):
+    """Per-line token counts, each line's first token and every token's text, whatever the
+    blanks (single spaces take the tokenizer's shortcut, anything else its line search)."""
+    lines = text.decode().split("\n") if text else []
+    if text.endswith(b"\n"):
+        lines.pop()
+    got_counts, got_first, got_tokens = [], [], []
+    with chunk_bytes(size):
+        for chunk in tokens_module.chunks(text):
+            got_counts += chunk.per_line.tolist()
+            got_first += [
+                chunk.text(int(t)) if n else None
+                for t, n in zip(chunk.first_token, chunk.per_line, strict=True)
+            ]
+            got_tokens += [chunk.text(i) for i in range(len(chunk.start))]
+    assert got_counts == [len(line.split()) for line in lines]
+    assert got_first == [line.split()[0] if line.split() else None for line in lines]
+    assert got_tokens == text.decode().split()
+
+
+@st.composite
+def uniform_obj_texts(draw) -> bytes:
+    """Runs of ``v x y z`` lines and of faces of one degree (the tokenizer's block layout),
+    with corner suffixes, negative indices and the odd other record."""
+    lines: list[str] = []
+    num_verts = 0
+    for _ in range(draw(st.integers(1, 3))):
+        new = draw(st.integers(3, 8))
+        for _ in range(new):
+            values = [draw(st.sampled_from([repr, "{:.6f}".format]))(draw(doubles)) for _ in "xyz"]
+            lines.append("v " + " ".join(values))
+        num_verts += new
+        k = draw(st.integers(3, 5))
+        suffix = draw(st.sampled_from(["", "/1", "//1", "/1/1"]))
+        index = st.one_of(st.integers(1, num_verts), st.integers(-num_verts, -1))
+        for _ in range(draw(st.integers(1, 8))):
+            lines.append("f " + " ".join(f"{draw(index)}{suffix}" for _ in range(k)))
+        if draw(st.integers(0, 3)) == 0:
+            lines.append(draw(st.sampled_from(["g part", "usemtl m", "vt 0 1", "s 1"])))
+    return ("\n".join(lines) + "\n").encode()
+
+
+@settings(PROPERTY, max_examples=200, suppress_health_check=[HealthCheck.too_slow])
+@given(st.one_of(uniform_obj_texts(), obj_texts()), st.sampled_from([16, 64, 256]))
+def test_bulk_obj_parser_agrees_with_line_parser_across_chunks(text, size):
+    """Small chunks: block and per-line paths, on either side of every boundary, give what the
+    line parser gives; the bulk parser declines only files that are in error."""
+    plain = obj_module._plain_text(text)
+    assert plain is not None
+    with chunk_bytes(size):
+        bulk = _parse(lambda t, s: obj_module._read_obj_bulk(plain, "m.obj", s), text)
+    lines = _parse(lambda t, s: obj_module._read_obj_lines(t, "m.obj", s, False), text)
+    if bulk is None:
+        assert lines[0] == "error"
+    else:
+        assert lines == bulk
+
+
+@settings(PROPERTY, max_examples=100, suppress_health_check=[HealthCheck.too_slow])
+@given(uniform_obj_texts(), st.sampled_from([16, 64, 1 << 21]))
+def test_bulk_obj_parser_reads_block_layouts(text, size):
+    plain = obj_module._plain_text(text)
+    assert plain is not None
+    with chunk_bytes(size):
+        bulk = _parse(lambda t, s: obj_module._read_obj_bulk(plain, "m.obj", s), text)
+    assert bulk is not None
+    assert bulk == _parse(lambda t, s: obj_module._read_obj_lines(t, "m.obj", s, False), text)
 
 
 def test_bulk_parser_handles_real_files_it_is_given(tmp_path):
@@ -395,15 +555,31 @@ def off_texts(draw) -> tuple[bytes, bool]:
     return ("\n".join(lines) + "\n").encode(), wrapped
 
 
+@st.composite
+def uniform_off_texts(draw) -> tuple[bytes, bool]:
+    """OFF in the block layout: ``x y z`` lines, then faces of one degree."""
+    num_verts = draw(st.integers(3, 12))
+    k = draw(st.integers(3, 5))
+    faces = draw(st.integers(1, 10))
+    lines = [f"OFF\n{num_verts} {faces} 0"]
+    for _ in range(num_verts):
+        fmt = draw(st.sampled_from([repr, "{:.6f}".format, "{:.3e}".format]))
+        lines.append(" ".join(fmt(draw(doubles)) for _ in "xyz"))
+    for _ in range(faces):
+        lines.append(f"{k} " + " ".join(str(draw(st.integers(0, num_verts - 1))) for _ in range(k)))
+    return ("\n".join(lines) + "\n").encode(), False
+
+
 @settings(PROPERTY, max_examples=300, suppress_health_check=[HealthCheck.too_slow])
-@given(off_texts())
-def test_bulk_off_parser_agrees_with_record_parser(case):
+@given(st.one_of(off_texts(), uniform_off_texts()), st.sampled_from([16, 64, 1 << 21]))
+def test_bulk_off_parser_agrees_with_record_parser(case, size):
     from torch_polylap.io import off as off_module
 
     text, wrapped = case
     from torch_polylap.io.common import plain_text
 
-    bulk = _parse(lambda t, s: off_module._read_off_bulk(plain_text(t), "m.off", s), text)
+    with chunk_bytes(size):
+        bulk = _parse(lambda t, s: off_module._read_off_bulk(plain_text(t), "m.off", s), text)
 
     def reference(t: bytes, s: Skipped):
         # the record parser, with the bulk one switched off

@@ -5,8 +5,13 @@ The text readers find their number tokens as ``(start, end)`` byte offsets into 
 on whole arrays, with no Python work per token:
 
 * digits are read eight at a time: the 8 bytes ending at a digit string's end are one
-  unaligned little-endian ``uint64``, checked to be digits and converted with three multiply-add
-  steps (the usual "SWAR" digit trick);
+  little-endian ``uint64`` (put together from the two aligned words it straddles: numpy gathers
+  aligned words several times faster than unaligned ones), checked to be digits and converted
+  with three multiply-add steps (the usual "SWAR" digit trick);
+* :func:`parse_plain_floats` reads the common ``[+-]digits[.digits]`` form without knowing where
+  the point is: it finds the point among the first eight bytes of the token by a zero-byte
+  search in one word, and leaves every other form (exponents, long integer parts) as ``slow``
+  for :func:`parse_floats`, which is given the positions of the point and the exponent;
 * a float's decimal significand ``w`` (at most 19 digits) and exponent ``q`` give the double
   nearest to ``w * 10**q``: by one IEEE operation when ``w <= 2**53`` and ``|q| <= 22`` (both
   operands exact, one rounding), otherwise from the high word of the product of ``w`` with the
@@ -25,49 +30,101 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["decimal_to_double", "parse_floats", "parse_ints", "word_view"]
+__all__ = [
+    "decimal_to_double",
+    "parse_floats",
+    "parse_ints",
+    "parse_plain_floats",
+    "runs",
+    "text_buffer",
+    "token_marks",
+    "word_view",
+]
 
 U64 = np.uint64
 _ZEROS = U64(0x3030303030303030)
-_HI_NIBBLES = U64(0xF0F0F0F0F0F0F0F0)
-_SIX = U64(0x0606060606060606)
-_THREES = U64(0x3333333333333333)
+_ABOVE_NINE = U64(0x7676767676767676)
+_HIGH_BITS = U64(0x8080808080808080)
 _B = 8  # bytes per word
-_LOW_BYTE = U64(0xFF)
 _ZERO = U64(48)  # '0'
 PAD = 24  # bytes of padding a buffer needs before its first and after its last token
 
-# For c = 0..8 valid digits in the top c bytes of a word: the bytes to keep, and '0' bytes to
-# put in the others (leading zeros do not change the value).
-_KEEP = np.array([~((1 << (8 * (8 - c))) - 1) & (2**64 - 1) for c in range(9)], dtype=U64)
-_FILL = np.array([0x3030303030303030 & ((1 << (8 * (8 - c))) - 1) for c in range(9)], dtype=U64)
 _POW10_INT = np.array([10**k for k in range(20)], dtype=U64)
 _POW10_FLOAT = np.array([10.0**k for k in range(23)])
 
 
+def text_buffer(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(buf, words)``: a ``uint8`` buffer of spaces, ``size`` bytes rounded up to whole
+    words plus one spare word (:func:`_load` reads the word after the one holding its first
+    byte), and the aligned ``uint64`` words over the same memory (``words[k]`` holds bytes
+    ``8k .. 8k+7``)."""
+    words = np.full(size // 8 + 2, U64(0x2020202020202020))
+    return words.view(np.uint8), words
+
+
 def word_view(buf: np.ndarray) -> np.ndarray:
-    """The unaligned little-endian ``uint64`` starting at every byte of ``buf``:
-    ``word_view(buf)[i]`` holds bytes ``i .. i+7`` (byte ``i`` least significant)."""
-    return np.ndarray(shape=(len(buf) - 7,), dtype="<u8", buffer=buf, strides=(1,))
+    """The aligned ``uint64`` words of a copy of ``buf`` (for buffers not made by
+    :func:`text_buffer`; the tokens must end ``PAD`` bytes before its end, as there)."""
+    copy, words = text_buffer(len(buf))
+    copy[: len(buf)] = buf
+    return words
+
+
+def runs(first: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """``first[i], first[i] + 1, ..., first[i] + size[i] - 1`` for every i, concatenated (one
+    ``reshape`` when all sizes are equal: all-quad or all-triangle meshes)."""
+    if len(size) and (size == size[0]).all():
+        return (first[:, None] + np.arange(int(size[0]))).reshape(-1)
+    starts = np.cumsum(size) - size
+    within = np.arange(int(size.sum())) - np.repeat(starts, size)
+    return np.repeat(first, size) + within
+
+
+def _load(words: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """Bytes ``pos .. pos+7`` of the buffer under ``words`` as little-endian ``uint64``: the low
+    part of the aligned word holding byte ``pos`` and the high part of the next one."""
+    q = pos >> 3
+    shift = (pos & 7).view(U64)
+    shift <<= U64(3)
+    lo = words.take(q)
+    q += 1
+    hi = words.take(q)
+    lo >>= shift
+    np.subtract(U64(64), shift, out=shift)
+    hi <<= shift  # numpy defines a shift by 64 (pos on a word boundary) as giving 0
+    lo |= hi
+    return lo
 
 
 def _digits_word(
     words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray
 ) -> np.ndarray:
     """Value of the ``count`` (0-8) bytes ending at ``end`` read as digits; a nonzero ``bad``
-    word (or-ed in place) marks a non-digit among them.  In-place steps: this is the hot loop."""
+    word (or-ed in place) marks a non-digit among them."""
     c = np.minimum(count, 8)
     np.maximum(c, 0, out=c)
-    x = words[end - _B]
-    x &= _KEEP[c]
-    x |= _FILL[c]
-    t = x + _SIX
-    t &= _HI_NIBBLES
-    t >>= U64(4)
-    t |= x & _HI_NIBBLES
-    t ^= _THREES
-    bad |= t
+    return _swar(_load(words, end - _B), c, bad)
+
+
+def _swar(x: np.ndarray, c: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """Value of the ``c`` (0-8) digits in the top bytes of the words ``x`` (changed in place);
+    see :func:`_digits_word`.  In-place steps: this is the hot loop."""
+    # keep the top c bytes, '0' in the others (leading zeros do not change the value); shifts
+    # by 64 (c = 0) give 0 in numpy, and beat two table lookups
+    low = (8 - c).view(U64)
+    low <<= U64(3)
+    x >>= low
+    x <<= low
+    np.subtract(U64(64), low, out=low)
+    x |= _ZEROS >> low
     x -= _ZEROS
+    # A non-digit byte leaves bit 7 set in x - '0' (a byte below '0' borrows, the lowest such
+    # one from no other) or in x - '0' + 0x76 (a byte above '9'): exact as "some byte is not
+    # a digit", which is all that is asked.
+    t = x + _ABOVE_NINE
+    t |= x
+    t &= _HIGH_BITS
+    bad |= t
     for shift, scale, mask in _SWAR_STEPS:
         t = x >> shift
         x *= scale
@@ -83,15 +140,20 @@ _SWAR_STEPS = (
 )
 
 
-def _digits(words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray) -> np.ndarray:
+def _digits(
+    buf: np.ndarray, words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray
+) -> np.ndarray:
     """Value (``uint64``) of the ``count`` (0-24) digits ending at ``end`` (see _digits_word);
     more than 19 significant digits count as ``bad``."""
     longest = int(count.max()) if len(count) else 0
-    if longest <= 1:  # one digit at most (the integer part of most coordinates): one byte each
-        value = (words[end - 1] & _LOW_BYTE) - _ZERO
+    if longest <= 1:  # one digit at most (face sizes, OFF's k): one byte each
+        value = buf.take(end - 1).astype(U64)
+        value -= _ZERO
         value *= (count >= 1).astype(U64)
         bad |= (value > U64(9)).astype(U64)
         return value
+    if 2 * np.count_nonzero(count > 8) > len(count):
+        return _digits_dense(words, end, count, bad, min((longest + 7) // 8, 3))
     value = _digits_word(words, end, count, bad)
     for k in (1, 2):
         if longest <= 8 * k:
@@ -108,21 +170,64 @@ def _digits(words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarr
     return value
 
 
+def _digits_dense(
+    words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray, spans: int
+) -> np.ndarray:
+    """:func:`_digits` for ``spans`` (2-3) words of digits when most strings are that long: the
+    words ending at ``end``, ``end - 8``... for every string, from ``spans + 1`` aligned loads
+    (each shared by two neighbouring words), with no index arrays."""
+    base = end >> 3
+    shift = (end & 7).view(U64)
+    shift <<= U64(3)
+    back = U64(64) - shift
+    upper = words.take(base)
+    value = np.zeros(len(end), dtype=U64)
+    for k in range(spans):
+        base -= 1
+        lower = words.take(base)
+        x = lower >> shift
+        upper <<= back  # a shift by 64 (end on a word boundary) gives 0
+        x |= upper
+        c = count - 8 * k
+        np.clip(c, 0, 8, out=c)
+        x = _swar(x, c, bad)
+        if k == 2:  # up to 24 digits, of which at most 19 significant: no overflow
+            bad |= (x >= U64(1000)).astype(U64)
+        x *= _POW10_INT[8 * k]
+        value += x
+        upper = lower
+    return value
+
+
 def parse_ints(
     buf: np.ndarray, words: np.ndarray, start: np.ndarray, end: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(values int64, slow bool)`` of the integer tokens ``buf[start:end]``: ``[+-]`` and up
-    to 16 digits; anything else is marked ``slow`` (its value is then meaningless)."""
-    first = buf[start]
+    to 16 digits; anything else is marked ``slow`` (its value is then meaningless).
+
+    All tokens are first read as plain digits (face indices seldom have a sign); only those
+    that fail are read again with a sign."""
+    count = end - start
+    bad = np.zeros(len(start), dtype=U64)
+    value = _digits(buf, words, end, count, bad).view(np.int64)
+    slow = bad != 0
+    slow |= count > 16
+    slow |= count < 1
+    if not slow.any():
+        return value, slow
+    again = np.flatnonzero(slow)
+    first_at = start.take(again)
+    first = buf.take(first_at)
     neg = first == 45  # '-'
     signed = neg | (first == 43)  # '+'
-    count = end - start - signed
-    bad = np.zeros(len(start), dtype=U64)
-    value = _digits(words, end, count, bad)
-    ok = (bad == 0) & (count >= 1) & (count <= 16)
-    out = value.view(np.int64)
-    np.negative(out, out=out, where=neg)
-    return out, ~ok
+    stop = end.take(again)
+    count = stop - first_at - signed
+    bad = np.zeros(len(again), dtype=U64)
+    signed_value = _digits(buf, words, stop, count, bad).view(np.int64)
+    np.negative(signed_value, out=signed_value, where=neg)
+    value[again] = signed_value
+    slow[again] = (bad != 0) | (count < 1) | (count > 16)
+    return value, slow
 
 
 def _table() -> tuple[np.ndarray, np.ndarray]:
@@ -167,19 +272,29 @@ def _bit_length(w: np.ndarray) -> np.ndarray:
 
 def decimal_to_double(w: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(doubles, undecided)``: ``w * 10**q`` correctly rounded (to nearest, ties to even) for
-    ``uint64`` ``w > 0``; ``undecided`` marks the few results this path cannot guarantee
+    ``uint64`` ``w``; ``undecided`` marks the few results this path cannot guarantee
     (products too close to a rounding boundary, subnormal or overflowing results)."""
-    out = np.zeros(len(w), dtype=np.float64)
-    undecided = np.zeros(len(w), dtype=bool)
     # Clinger: w and 10**|q| are exact doubles, so one IEEE operation rounds once, correctly
-    easy = (w <= U64(2**53)) & (q >= -22) & (q <= 22)
-    simple = np.flatnonzero(easy)  # indices, not masks: numpy's mask indexing is slower
-    if len(simple):
-        we = w.take(simple).astype(np.float64)
-        qe = q.take(simple)
-        p = _POW10_FLOAT.take(np.abs(qe))
-        out[simple] = np.where(qe >= 0, we * p, we / p)
-    hard = np.flatnonzero(~easy)
+    easy = w <= U64(2**53)
+    easy &= q >= -22
+    easy &= q <= 22
+    if (q <= 0).all():  # fixed notation: one division each, the hard ones redone below
+        out = w.astype(np.float64)
+        out /= _POW10_FLOAT.take(np.minimum(np.negative(q), 22))
+        undecided = np.zeros(len(w), dtype=bool)
+        if easy.all():
+            return out, undecided
+        out[np.flatnonzero(~easy & (w == 0))] = 0.0  # zero stays zero whatever q
+    else:
+        out = np.zeros(len(w), dtype=np.float64)
+        undecided = np.zeros(len(w), dtype=bool)
+        simple = np.flatnonzero(easy)  # indices, not masks: numpy's mask indexing is slower
+        if len(simple):
+            we = w.take(simple).astype(np.float64)
+            qe = q.take(simple)
+            p = _POW10_FLOAT.take(np.abs(qe))
+            out[simple] = np.where(qe >= 0, we * p, we / p)
+    hard = np.flatnonzero(~easy & (w != 0))
     if len(hard) == 0:
         return out, undecided
     wh, qh = w.take(hard), q.take(hard)
@@ -226,7 +341,7 @@ def parse_floats(
     either, or with a sign anywhere but first or right after the ``e``, as slow.  The bytes
     between those positions must be digits, else the token is marked ``slow`` too.
     """
-    first = buf[start]
+    first = buf.take(start)
     neg = first == 45  # '-'
     signed = (neg | (first == 43)).astype(np.int64)
     has_exp = exp >= 0
@@ -237,8 +352,8 @@ def parse_floats(
     n_frac = np.where(has_dot, mant_end - dot - 1, 0)
     ok = (n_int >= 0) & (n_frac >= 0) & (n_int + n_frac >= 1) & (n_int <= 19) & (n_frac <= 24)
     bad = np.zeros(len(start), dtype=U64)
-    ipart = _digits(words, int_end, n_int, bad)
-    fpart = _digits(words, mant_end, n_frac, bad)
+    ipart = _digits(buf, words, int_end, n_int, bad)
+    fpart = _digits(buf, words, mant_end, n_frac, bad)
     q = -n_frac
     with_exp = np.flatnonzero(has_exp)
     if len(with_exp):  # exponents: only the tokens that have one (few, in most files)
@@ -261,3 +376,102 @@ def parse_floats(
         ok[nonzero[undecided]] = False
     np.negative(out, out=out, where=neg)
     return out, ~ok
+
+
+_DOTS = U64(0x2E2E2E2E2E2E2E2E)
+_ONES = U64(0x0101010101010101)
+_BYTE_INDEX = U64(0x0001020304050607)  # times 2**(8j): j in the top byte
+
+
+def parse_plain_floats(
+    buf: np.ndarray, words: np.ndarray, start: np.ndarray, end: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(values float64, slow bool)`` of the number tokens ``buf[start:end]`` written
+    ``[+-]digits[.digits]`` with the point, if any, among the eight bytes after the sign (fixed
+    notation of anything below ``10**7``: what mesh writers print).  Every other token (an
+    exponent, a long integer part, no number at all) is marked ``slow``, to be read by
+    :func:`parse_floats`.
+    """
+    first = buf.take(start)
+    neg = first == 45  # '-'
+    signed = neg | (first == 43)  # '+'
+    begin = start + signed if signed.any() else start
+    length = end - begin
+    head = _load(words, begin)
+    # The first '.' of the head: the lowest zero byte of head ^ '........', found exactly by
+    # the zero-byte test (its false positives lie above a true zero byte), then its index by
+    # one multiplication of the lowest flag bit.
+    found = head ^ _DOTS
+    flags = found - _ONES
+    np.invert(found, out=found)
+    flags &= found
+    flags &= _HIGH_BITS
+    has_dot = flags != 0
+    np.invert(flags, out=found)
+    found += U64(1)
+    flags &= found  # the lowest flag only
+    flags >>= U64(7)
+    flags *= _BYTE_INDEX
+    flags >>= U64(56)
+    at = flags.view(np.int64)
+    has_dot &= at < length  # a '.' past the token's end is the next token's
+    n_int = np.where(has_dot, at, length)
+    n_frac = length - n_int
+    n_frac -= has_dot
+    shape_ok = has_dot | (length <= 8)
+    bad = np.zeros(len(start), dtype=U64)
+    # the integer part: the first n_int (at most 8) bytes of the head
+    if int(n_int.max(initial=0)) <= 1:  # 0.xxx, -1.xxx: one byte each
+        ipart = head & U64(0xFF)
+        ipart -= _ZERO
+        one = n_int == 1
+        bad |= ((ipart > U64(9)) & one).view(np.uint8)
+        ipart *= one
+    else:
+        c = np.minimum(n_int, 8)
+        top = head << ((8 - c) * 8).view(U64)  # a shift by 64 gives 0
+        ipart = _swar(top, c, bad)
+    fpart = _digits(buf, words, end, n_frac, bad)
+    total = n_int + n_frac
+    ok = bad == 0
+    ok &= shape_ok
+    ok &= total >= 1
+    ok &= n_frac <= 24
+    fits = total <= 19
+    ok &= fits | (ipart == 0)
+    ipart *= _POW10_INT.take(np.minimum(n_frac, 19))
+    ipart *= fits
+    ipart += fpart
+    values, undecided = decimal_to_double(ipart, np.negative(n_frac))
+    ok &= ~undecided
+    np.negative(values, out=values, where=neg)
+    return values, ~ok
+
+
+def token_marks(
+    buf: np.ndarray, start: np.ndarray, end: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(dot, exp, odd)`` for :func:`parse_floats`: the position of each token's ``.`` and of
+    its ``e``/``E`` (``-1``: none), and ``odd`` for tokens with two of either, a ``,`` or ``/``,
+    or a sign anywhere but first or right after the ``e`` (found in the tokens' own bytes)."""
+    n = len(start)
+    size = end - start
+    pos = runs(start, size)
+    owner = np.repeat(np.arange(n), size)
+    chars = buf.take(pos)
+    dot = np.full(n, -1, dtype=np.int64)
+    exp = np.full(n, -1, dtype=np.int64)
+    odd = np.zeros(n, dtype=bool)
+    for marks, out in ((chars == 46, dot), ((chars | np.uint8(32)) == 101, exp)):
+        at = np.flatnonzero(marks)
+        mine = owner.take(at)
+        out[mine] = pos.take(at)
+        odd[mine[1:].take(np.flatnonzero(mine[1:] == mine[:-1]))] = True  # a second one
+    odd[owner.take(np.flatnonzero((chars == 44) | (chars == 47)))] = True
+    signs = np.flatnonzero((chars == 43) | (chars == 45))
+    sign_at, sign_owner = pos.take(signs), owner.take(signs)
+    leading = sign_at == start.take(sign_owner)
+    after_exp = (buf.take(sign_at - 1) | np.uint8(32)) == 101
+    odd[sign_owner.take(np.flatnonzero(~(leading | after_exp)))] = True
+    odd |= (exp >= 0) & (dot > exp)
+    return dot, exp, odd

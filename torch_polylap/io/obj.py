@@ -27,7 +27,7 @@ from .common import (
     text_lines,
 )
 from .float_text import float_pieces
-from .tokens import chunks, runs
+from .tokens import Chunk, chunks, runs
 from .writers import Pieces, face_pieces, vertex_block
 
 # Records that carry no polygon connectivity, as the skipped-content warning names them.
@@ -119,7 +119,11 @@ def _warn_unterminated(data: bytes, name: str) -> None:
 
 def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     """Parse OBJ text prepared by :func:`_plain_text` in bulk; None when the file needs the
-    line parser (for anything unusual, and for every error, whose message that one words)."""
+    line parser (for anything unusual, and for every error, whose message that one words).
+
+    A chunk holding only ``v x y z`` lines, or only faces of one degree (the usual layout), is
+    read as a block of consecutive tokens; any other chunk line by line in numpy (keywords
+    classified per line, values through index arrays)."""
     coords: list[np.ndarray] = []
     indices: list[np.ndarray] = []
     sizes: list[np.ndarray] = []
@@ -127,6 +131,23 @@ def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     hint = False
     num_verts = 0
     for chunk in chunks(text):
+        uniform = _uniform_block(chunk)
+        if uniform is not None:  # only ``v x y z`` lines, or only faces of one degree
+            keyword, rows, width = uniform
+            start, end = chunk.block(0, rows, width, 1)
+            try:
+                if keyword == "v":
+                    coords.append(chunk.floats_at(start, end))
+                    num_verts += rows
+                    continue
+                written = chunk.ints_at(start, end, cut=47)
+            except BadNumber:
+                return None
+            if not _resolve(written, num_verts):
+                return None
+            indices.append(written)
+            sizes.append(np.full(rows, width - 1, dtype=np.int64))
+            continue
         buf, per_line = chunk.buf, chunk.per_line
         lines = np.flatnonzero(per_line)
         key = chunk.first_token[lines]
@@ -166,9 +187,8 @@ def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
 
         f_size = count[is_f] - 1
         corners = runs(key[is_f] + 1, f_size)
-        stop = chunk.first_slash(corners)  # "12/" and "12//" are vertex 12
-        try:
-            written = chunk.ints(corners, stop)
+        try:  # "12/" and "12//" are vertex 12
+            written = chunk.ints_at(*chunk.bounds(corners), cut=47)
         except BadNumber:
             return None
         if (written == 0).any():
@@ -185,12 +205,53 @@ def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     verts = np.concatenate(coords).reshape(-1, 3) if coords else np.zeros((0, 3))
     index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
     size = np.concatenate(sizes) if sizes else np.zeros(0, dtype=np.int64)
-    if (size.size and size.min() < 3) or ((index < 0) | (index >= len(verts))).any():
+    if size.size and size.min() < 3:
+        return None
+    if index.size and (index.min() < 0 or index.max() >= len(verts)):
         return None
     for _, what, n, example in sorted(found, key=lambda item: item[0]):
         skipped.add(what, n, example)
     skipped.attributes_hint |= hint
     return Parsed(verts, index, size)
+
+
+def _uniform_block(chunk: Chunk) -> tuple[str, int, int] | None:
+    """``(keyword, lines, tokens per line)`` when every line of ``chunk`` is a ``v x y z``
+    record, or every one an ``f`` record of the same degree (the usual layout: their values
+    are then blocks of consecutive tokens); None otherwise."""
+    first, count, _ = chunk.lines()
+    lines = len(count)
+    if lines == 0 or first[0] != 0:
+        return None
+    width = int(count[0])
+    if width < 4 or not (count == width).all():
+        return None
+    key_start = chunk.start[: lines * width : width]
+    if not (chunk.end[: lines * width : width] - key_start == 1).all():
+        return None
+    key = chunk.buf.take(key_start)
+    if width == 4 and (key == 118).all():
+        return "v", lines, width
+    if (key == 102).all():
+        return "f", lines, width
+    return None
+
+
+def _resolve(written: np.ndarray, num_verts: int) -> bool:
+    """Turn OBJ's written indices (1-based, negative counting back from the ``num_verts``
+    vertices read so far) into 0-based ones, in place; False for a 0 among them."""
+    if written.size == 0:
+        return True
+    low = int(written.min())
+    if low > 0:
+        written -= 1
+        return True
+    if (written == 0).any():
+        return False
+    negative = written < 0
+    written -= 1
+    np.add(written, num_verts + 1, out=written, where=negative)
+    return True
 
 
 def _read_obj_lines(data: bytes, name: str, skipped: Skipped, want_attributes: bool) -> Parsed:

@@ -27,7 +27,7 @@ from .common import (
     plain_text,
     text_lines,
 )
-from .tokens import chunks, runs
+from .tokens import Chunk, chunks, runs
 
 _OFF_KEYWORD = re.compile(r"(?:ST|C|N)*OFF")
 _FIRST_LINE = re.compile(rb"([^\r\n]*)(\r\n|\r|\n|$)")
@@ -140,50 +140,87 @@ def _header(text: bytes) -> tuple[str, int, int, int] | None:
 
 def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     """ASCII OFF in bulk when each face is one line (``k i1 .. ik [colour]``); None for what
-    the record parser must read (wrapped faces, and every error)."""
+    the record parser must read (wrapped faces, and every error).
+
+    Runs of ``x y z`` lines and of faces of one degree without colours (the usual layout) are
+    read as blocks of consecutive tokens; other lines through per-line index arrays."""
     header = _header(text)
     if header is None:
         return None
     keyword, num_verts, num_faces, body = header
-    coords: list[np.ndarray] = []
+    if 6 * num_verts + 8 * num_faces > len(text) - body + 1:
+        return None  # no room for the records ("x y z", "3 a b c" lines; the last may end the
+        # file without its line break): truncated, and the record parser says so
+    # The counts are known: values go straight to the arrays returned (no concatenation).
+    verts = np.empty((num_verts, 3))
+    coords = verts.reshape(-1)
+    size = np.empty(num_faces, dtype=np.int64)
     indices: list[np.ndarray] = []
-    sizes: list[np.ndarray] = []
     extra = coloured = 0
     seen = 0  # content lines before the chunk
-    for chunk in chunks(text, body):
-        lines = np.flatnonzero(chunk.per_line)
-        first = chunk.first_token[lines]
-        count = chunk.per_line[lines]
-        rank = seen + np.arange(len(lines))
-        seen += len(lines)
-        vert = rank < num_verts
-        if (count[vert] < 3).any():
-            return None
-        extra += int((count[vert] > 3).sum())
-        try:
-            coords.append(chunk.floats((first[vert][:, None] + np.arange(3)).reshape(-1)))
-            face_first, face_count = first[~vert], count[~vert]
-            k = chunk.ints(face_first)
-        except BadNumber:
-            return None
-        if (k < 3).any() or (face_count < k + 1).any():
-            return None  # a face wrapped over lines, or broken
-        coloured += int((face_count > k + 1).sum())
-        try:
-            indices.append(chunk.ints(runs(face_first + 1, k)))
-        except BadNumber:
-            return None
-        sizes.append(k)
+    try:
+        for chunk in chunks(text, body):
+            first, count, _ = chunk.lines()
+            if seen + len(count) > num_verts + num_faces:
+                return None  # data after the faces: the record parser names the line
+            nv = min(max(num_verts - seen, 0), len(count))  # vertex lines in the chunk
+            if nv:
+                vert_lines = _vertex_lines(chunk, first[:nv], count[:nv])
+                if vert_lines is None:
+                    return None
+                coords[3 * seen : 3 * (seen + nv)] = vert_lines[0]
+                extra += vert_lines[1]
+            if nv < len(count):
+                face_lines = _face_lines(chunk, first[nv:], count[nv:])
+                if face_lines is None:
+                    return None
+                indices.append(face_lines[0])
+                faces_before = seen + nv - num_verts
+                size[faces_before : faces_before + len(face_lines[1])] = face_lines[1]
+                coloured += face_lines[2]
+            seen += len(count)
+    except BadNumber:
+        return None
     if seen != num_verts + num_faces:
         return None
-    verts = np.concatenate(coords).reshape(-1, 3) if coords else np.zeros((0, 3))
     index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
-    size = np.concatenate(sizes) if sizes else np.zeros(0, dtype=np.int64)
-    if ((index < 0) | (index >= num_verts)).any():
+    if index.size and (index.min() < 0 or index.max() >= num_verts):
         return None
     skipped.add(_vertex_extras(keyword), extra)
     skipped.add("face colours", coloured)
     return Parsed(verts, index, size)
+
+
+def _vertex_lines(
+    chunk: Chunk, first: np.ndarray, count: np.ndarray
+) -> tuple[np.ndarray, int] | None:
+    """``(x y z values, lines with extra values)`` of vertex lines; None for a short one."""
+    if (count == 3).all():  # consecutive tokens
+        return chunk.floats(slice(int(first[0]), int(first[0]) + 3 * len(count))), 0
+    if (count < 3).any():
+        return None
+    tokens = (first[:, None] + np.arange(3)).reshape(-1)
+    return chunk.floats(tokens), int((count > 3).sum())
+
+
+def _face_lines(
+    chunk: Chunk, first: np.ndarray, count: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """``(indices, sizes, coloured faces)`` of face lines; None for a face wrapped over lines
+    or broken."""
+    width = int(count[0])
+    if 4 <= width <= 10 and (count == width).all():
+        # One degree, k = width - 1 a single digit on every line: the indices are a block.
+        lines, at = len(count), int(first[0])
+        k_start = chunk.start[at : at + lines * width : width]
+        k_end = chunk.end[at : at + lines * width : width]
+        if (k_end - k_start == 1).all() and (chunk.buf.take(k_start) == 47 + width).all():
+            indices = chunk.ints_at(*chunk.block(at, lines, width, 1))
+            return indices, np.full(lines, width - 1, dtype=np.int64), 0
+    k = chunk.ints(first)
+    if (k < 3).any() or (count < k + 1).any():
+        return None
+    return chunk.ints(runs(first + 1, k)), k, int((count > k + 1).sum())
 
 
 def _ascii_vertices(

@@ -3,24 +3,39 @@
 The text readers' fast paths see a file as lines of tokens.  :func:`chunks` cuts the text at
 line breaks into pieces of about :data:`CHUNK_BYTES` (so that the per-byte work arrays stay
 small whatever the file size) and :class:`Chunk` finds, in one pass over a piece, every token's
-start and end, the number of tokens on each line, and where the characters that make a token
-more than digits sit (``+ , - . /`` and ``e``/``E``).  Whitespace is ASCII's (space and
+start and end and the number of tokens on each line.  Whitespace is ASCII's (space and
 ``\\t \\n \\v \\f \\r``); the callers turn line endings into ``\\n`` first and refuse the
 control characters that could be confused with it.
+
+Numbers are converted by :mod:`.numparse`: the plain fixed-notation form first, then the
+tokens it leaves (exponents, long integer parts) with the positions of their point and
+exponent, then the rest (``nan``, more than 19 significant digits...) by Python, so that every
+value is exactly what ``float(token)`` or ``int(token)`` gives.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import TypeAlias
 
 import numpy as np
 
 from .common import BadNumber, numbers
-from .numparse import PAD, parse_floats, parse_ints, word_view
+from .numparse import (
+    PAD,
+    parse_floats,
+    parse_ints,
+    parse_plain_floats,
+    runs,
+    text_buffer,
+    token_marks,
+)
 
 __all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
 
 CHUNK_BYTES = 1 << 21
+
+Tokens: TypeAlias = np.ndarray | slice  # token indices, or a slice of consecutive tokens
 
 
 class Chunk:
@@ -28,8 +43,12 @@ class Chunk:
 
     Attributes:
         buf: the lines as ``uint8``, padded with spaces (and a final ``\\n`` when missing).
+        words: the aligned ``uint64`` words over ``buf`` (see :func:`.numparse.text_buffer`).
         start, end: ``(T,)`` int64 byte offsets in ``buf`` of each token (end exclusive).
         per_line: ``(L,)`` int64 number of tokens on each line, blank lines included.
+        first_token: ``(L,)`` index of each line's first token (of the next line's, for a
+            blank one).
+        blank_lines: whether some line holds no token.
         line0: 0-based index of the chunk's first line in the whole text.
     """
 
@@ -37,53 +56,45 @@ class Chunk:
         """The lines ``text[begin:stop]`` (copied once, into the padded buffer)."""
         size = stop - begin
         tail = 0 if text[stop - 1 : stop] == b"\n" else 1
-        buf = np.full(PAD + size + tail + PAD, 32, dtype=np.uint8)
+        body = size + tail
+        buf, self.words = text_buffer(PAD + body + PAD)
         buf[PAD : PAD + size] = np.frombuffer(text, dtype=np.uint8, count=size, offset=begin)
         if tail:
             buf[PAD + size] = 10
         self.buf = buf
         self.line0 = line0
-        self._words: np.ndarray | None = None
         ws = buf <= 32
         change = np.zeros(len(buf), dtype=bool)  # a token starts or ends here
         np.not_equal(ws[:-1], ws[1:], out=change[1:])
-        folded = buf | np.uint8(32)  # 'E' -> 'e'; + , - . / keep their codes
-        special = (folded - np.uint8(43)) <= 4  # + , - . /
-        special |= folded == 101  # e E
-        del folded
-        events = change | special
-        events |= buf == 10
-        ev = np.flatnonzero(events)
-        del events
-        # Selections below are take(flatnonzero(mask)): numpy's boolean-mask indexing is two to
-        # three times slower on these sizes.
-        at_change, blank = change.take(ev), ws.take(ev)
-        del change, ws
-        is_start = at_change & ~blank
-        is_end = at_change & blank
-        # the token each event is in (int32: numpy's bool -> int64 running sum is slower)
-        small = np.int32 if len(buf) < 2**31 else np.int64
-        token_of = np.cumsum(is_start, dtype=small) - small(1)
-        self.start = ev.take(np.flatnonzero(is_start))
-        self.end = ev.take(np.flatnonzero(is_end))
-        chars = buf.take(ev)
-        before = token_of.take(np.flatnonzero(chars == 10)) + 1  # tokens before each line break
-        self.per_line = np.diff(before, prepend=0).astype(np.int64)
-        keep = np.flatnonzero(special.take(ev))
-        self._special_at = ev.take(keep)
-        self._special_token = token_of.take(keep)
-        self._special_char = chars.take(keep)
+        # the padding is blank, so starts and ends alternate (copied: numpy is slower on
+        # strided arrays, and these are read many times)
+        bounds = np.flatnonzero(change)
+        self.start = bounds[0::2].copy()
+        self.end = bounds[1::2].copy()
+        del bounds
+        # Single blanks between tokens (what writers write) and no blank line: a line ends at
+        # each token followed by '\n', and no per-byte search for line breaks is needed.
+        inner = ws[PAD : PAD + body]
+        doubled = np.logical_and(inner[:-1], inner[1:], out=change[: body - 1])
+        if not inner[0] and not doubled.any():
+            last = np.flatnonzero(buf.take(self.end) == 10)
+            self.per_line = np.diff(last, prepend=-1)
+            self.first_token = last + 1
+            self.first_token -= self.per_line
+            self.blank_lines = False
+        else:
+            before = np.searchsorted(self.start, np.flatnonzero(buf == 10))
+            self.per_line = np.diff(before, prepend=0)
+            self.first_token = before - self.per_line
+            self.blank_lines = bool((self.per_line == 0).any())
 
-    @property
-    def words(self) -> np.ndarray:
-        if self._words is None:
-            self._words = word_view(self.buf)
-        return self._words
-
-    @property
-    def first_token(self) -> np.ndarray:
-        """``(L,)`` index of each line's first token (of the next line's, for a blank one)."""
-        return np.cumsum(self.per_line) - self.per_line
+    def lines(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | slice]:
+        """``(first token, token count, line index)`` of the lines holding tokens (the index is
+        a full slice when there is no blank line)."""
+        if not self.blank_lines:
+            return self.first_token, self.per_line, slice(None)
+        keep = np.flatnonzero(self.per_line)
+        return self.first_token.take(keep), self.per_line.take(keep), keep
 
     def text(self, token: int) -> str:
         return self.buf[self.start[token] : self.end[token]].tobytes().decode("latin-1")
@@ -92,85 +103,96 @@ class Chunk:
         """The text of ``count`` tokens from token ``first`` (one line)."""
         return self.buf[self.start[first] : self.end[first + count - 1]].tobytes().decode("latin-1")
 
-    def floats(self, tokens: np.ndarray) -> np.ndarray:
-        """float64 values of ``tokens`` (indices), each exactly ``float(token)``.
+    def bounds(self, tokens: Tokens) -> tuple[np.ndarray, np.ndarray]:
+        """``(start, end)`` of ``tokens``."""
+        if isinstance(tokens, slice):
+            return self.start[tokens], self.end[tokens]
+        return self.start.take(tokens), self.end.take(tokens)
+
+    def block(self, first: int, lines: int, width: int, skip: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(start, end)`` of the tokens after the first ``skip`` of ``lines`` consecutive
+        lines of ``width`` tokens each, from token ``first`` (without index arrays)."""
+        stop = first + lines * width
+
+        def columns(a: np.ndarray) -> np.ndarray:
+            return np.ascontiguousarray(a[first:stop].reshape(lines, width)[:, skip:]).reshape(-1)
+
+        return columns(self.start), columns(self.end)
+
+    def floats(self, tokens: Tokens) -> np.ndarray:
+        """float64 values of ``tokens``, each exactly ``float(token)``.
 
         Raises:
             BadNumber: a token is no number; ``position`` is its index in ``tokens``.
         """
-        if len(tokens) == 0:  # a chunk of faces only: none of the per-token work below
+        return self.floats_at(*self.bounds(tokens))
+
+    def floats_at(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+        """float64 values of the tokens ``buf[start:end]`` (see :meth:`floats`)."""
+        if len(start) == 0:
             return np.zeros(0, dtype=np.float64)
-        t = len(self.start)
-        chars, owner, at = self._special_char, self._special_token, self._special_at
-        dot = np.full(t, -1, dtype=np.int64)
-        exp = np.full(t, -1, dtype=np.int64)
-        slow = np.zeros(t, dtype=bool)
-        dot_owner = owner.take(dots := np.flatnonzero(chars == 46))
-        exp_owner = owner.take(exps := np.flatnonzero((chars | np.uint8(32)) == 101))
-        dot[dot_owner] = at.take(dots)
-        exp[exp_owner] = at.take(exps)
-        slow[owner.take(np.flatnonzero((chars == 44) | (chars == 47)))] = True
-        for marks in (dot_owner, exp_owner):  # sorted: a second mark follows its token's first
-            slow[marks[1:].take(np.flatnonzero(marks[1:] == marks[:-1]))] = True
-        signs = np.flatnonzero((chars == 43) | (chars == 45))
-        sign_at, sign_owner = at.take(signs), owner.take(signs)
-        leading = sign_at == self.start.take(sign_owner)
-        after_exp = (self.buf.take(sign_at - 1) | np.uint8(32)) == 101
-        slow[sign_owner.take(np.flatnonzero(~(leading | after_exp)))] = True
-        d, e = dot.take(tokens), exp.take(tokens)
-        slow_t = slow.take(tokens)
-        slow_t |= (e >= 0) & (d > e)
-        values, slow_parse = parse_floats(
-            self.buf, self.words, self.start.take(tokens), self.end.take(tokens), d, e
-        )
-        slow_t |= slow_parse
-        self._exact(values, tokens, slow_t, float)
+        values, slow = parse_plain_floats(self.buf, self.words, start, end)
+        if not slow.any():
+            return values
+        again = np.flatnonzero(slow)
+        s, e = start.take(again), end.take(again)
+        dot, exp, odd = token_marks(self.buf, s, e)
+        values[again], left = parse_floats(self.buf, self.words, s, e, dot, exp)
+        left |= odd
+        self._exact(values, start, end, again.take(np.flatnonzero(left)), float)
         return values
 
-    def ints(self, tokens: np.ndarray, stop: np.ndarray | None = None) -> np.ndarray:
-        """int64 values of ``tokens`` (read up to ``stop`` when given), as Python's ``int``.
+    def ints(self, tokens: Tokens) -> np.ndarray:
+        """int64 values of ``tokens``, as Python's ``int``.
 
         Raises:
             BadNumber: as :meth:`floats`.
         """
-        end = self.end[tokens] if stop is None else stop
-        values, slow = parse_ints(self.buf, self.words, self.start[tokens], end)
-        if slow.any():
-            where = np.flatnonzero(slow)
-            text = [
-                self.buf[self.start[tokens[i]] : end[i]].tobytes().decode("latin-1")
-                for i in where.tolist()
-            ]
-            try:
-                values[where] = numbers(text, int)
-            except BadNumber as e:
-                raise BadNumber(int(where[e.position]), e.token) from None
+        return self.ints_at(*self.bounds(tokens))
+
+    def ints_at(self, start: np.ndarray, end: np.ndarray, cut: int | None = None) -> np.ndarray:
+        """int64 values of the tokens ``buf[start:end]``, each read up to its first byte
+        ``cut`` when given (OBJ's ``12/5/7`` corners: vertex 12); see :meth:`ints`."""
+        values, slow = parse_ints(self.buf, self.words, start, end)
+        if not slow.any():
+            return values
+        if cut is not None:
+            end = self._cut(start, end, cut)
+            again = np.flatnonzero(slow)
+            values[again], slow[again] = parse_ints(
+                self.buf, self.words, start.take(again), end.take(again)
+            )
+        self._exact(values, start, end, np.flatnonzero(slow), int)
         return values
 
-    def _exact(self, values: np.ndarray, tokens: np.ndarray, slow: np.ndarray, kind: type) -> None:
-        """Convert the tokens the bulk path left to Python (through :func:`numbers`)."""
-        if not slow.any():
+    def _cut(self, start: np.ndarray, end: np.ndarray, byte: int) -> np.ndarray:
+        """Offset of each token's first ``byte`` (its end when it has none); ``start`` must be
+        increasing."""
+        at = np.flatnonzero(self.buf == byte)
+        owner = np.searchsorted(start, at, side="right") - 1
+        inside = np.flatnonzero((owner >= 0) & (at < end.take(np.maximum(owner, 0))))
+        at, owner = at.take(inside), owner.take(inside)
+        first = np.ones(len(owner), dtype=bool)
+        first[1:] = owner[1:] != owner[:-1]
+        stop = end.copy()
+        stop[owner[first]] = at[first]
+        return stop
+
+    def _exact(
+        self, values: np.ndarray, start: np.ndarray, end: np.ndarray, where: np.ndarray, kind: type
+    ) -> None:
+        """Convert the tokens ``where`` that the bulk paths left, with Python (through
+        :func:`numbers`)."""
+        if len(where) == 0:
             return
-        where = np.flatnonzero(slow)
-        text = [self.text(int(tokens[i])) for i in where.tolist()]
+        text = [
+            self.buf[s:e].tobytes().decode("latin-1")
+            for s, e in zip(start.take(where).tolist(), end.take(where).tolist(), strict=True)
+        ]
         try:
             values[where] = numbers(text, kind)
         except BadNumber as e:
             raise BadNumber(int(where[e.position]), e.token) from None
-
-    def first_slash(self, tokens: np.ndarray) -> np.ndarray:
-        """Offset of each token's first ``/`` (its end when it has none)."""
-        stop = self.end[tokens].copy()
-        slash = self._special_char == 47
-        if not slash.any():
-            return stop
-        owner, at = self._special_token[slash], self._special_at[slash]
-        first = np.ones(len(owner), dtype=bool)
-        first[1:] = owner[1:] != owner[:-1]
-        full = np.full(len(self.start), -1, dtype=np.int64)
-        full[owner[first]] = at[first]
-        mine = full[tokens]
-        return np.where(mine >= 0, mine, stop)
 
 
 def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
@@ -188,13 +210,3 @@ def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
         line0 += len(chunk.per_line)
         pos = stop
         yield chunk
-
-
-def runs(first: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """``first[i], first[i] + 1, ..., first[i] + size[i] - 1`` for every i, concatenated (one
-    ``reshape`` when all sizes are equal: all-quad or all-triangle meshes)."""
-    if len(size) and (size == size[0]).all():
-        return (first[:, None] + np.arange(int(size[0]))).reshape(-1)
-    starts = np.cumsum(size) - size
-    within = np.arange(int(size.sum())) - np.repeat(starts, size)
-    return np.repeat(first, size) + within
