@@ -35,7 +35,13 @@ import torch
 from ._typing import MeshFaces
 from .checks import Lam, check_index_or_mask, check_verts
 from .kernels.frames import component_norm, corner_terms, gather_corners
-from .linalg import cached_factorization, cholespy_available, qdldl_available, solve
+from .linalg import (
+    LDLFactorization,
+    cached_factorization,
+    cholespy_available,
+    qdldl_available,
+    solve,
+)
 from .measures import mean_edge_length
 from .operators import laplacian
 from .sparse import SparseOperator, as_operator, diag, sparse_values
@@ -536,11 +542,15 @@ class HeatGeodesicSolver:
         arrays = self._query_arrays()
         heat = cached_factorization(as_operator(self.heat_operator), backend)
         poisson = cached_factorization(as_operator(self.poisson_operator), backend)
-        rhs = np.zeros((arrays.mass.size, len(sources)))
         index = [idx.cpu().numpy() for idx in sources]
-        for q, idx in enumerate(index):
-            rhs[idx, q] = arrays.mass[idx]  # M0 delta
-        u = heat.solve_array(rhs)
+        if isinstance(heat, LDLFactorization):
+            # M0 delta is nonzero at the sources only: the forward solve runs over their paths
+            u = heat.solve_sparse_array(index, [arrays.mass[idx] for idx in index])
+        else:
+            rhs = np.zeros((arrays.mass.size, len(sources)))
+            for q, idx in enumerate(index):
+                rhs[idx, q] = arrays.mass[idx]  # M0 delta
+            u = heat.solve_array(rhs)
         phi = poisson.solve_array(arrays.flux @ _unit_rows(arrays.gradient @ u))
         dist = np.empty_like(phi)
         for q, idx in enumerate(index):
