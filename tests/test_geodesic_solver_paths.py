@@ -242,6 +242,8 @@ def test_solve_array_against_dense_solve(kind):
     F = factor[kind](A)
     B = np.random.default_rng(6).standard_normal((50, 3))
     dense = np.linalg.solve(S.toarray(), B)
+    if kind == "ldl":  # through the 32-bit copies of the factor, not QDLDL's solve
+        assert F._triangle_solves() is not None
     np.testing.assert_allclose(F.solve_array(B), dense, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(F.solve_array(B[:, 1]), dense[:, 1], rtol=1e-10, atol=1e-12)
 
@@ -280,7 +282,8 @@ def test_path_solve_equals_dense_solve():
     want = np.linalg.solve(dense, B)
     got = F.solve_sparse_array(rows, values)
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-13 * np.abs(want).max())
-    np.testing.assert_allclose(got, F.solve_array(B), rtol=1e-12, atol=1e-15)
+    qdldl = np.stack([F.factor.solve(np.ascontiguousarray(b)) for b in B.T], axis=1)
+    np.testing.assert_allclose(got, qdldl, rtol=1e-12, atol=1e-15)
 
 
 def test_forward_solve_is_supported_on_the_tree_path():
@@ -351,13 +354,13 @@ def test_unreadable_factors_take_the_full_solve(how):
     A, dense = _two_component_heat()
     F = LDLFactorization(A)
     F.factor = _MisreadFactor(F.factor, how)
-    assert F._path_solver() is None
+    assert F._path_solver() is None and F._triangle_solves() is None
     rows, values = [np.array([5, 40])], [np.array([1.0, 2.0])]
     B = np.zeros((dense.shape[0], 1))
     B[[5, 40], 0] = [1.0, 2.0]
-    np.testing.assert_allclose(
-        F.solve_sparse_array(rows, values), np.linalg.solve(dense, B), rtol=1e-10, atol=1e-15
-    )
+    want = np.linalg.solve(dense, B)
+    np.testing.assert_allclose(F.solve_sparse_array(rows, values), want, rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(F.solve_array(B), want, rtol=1e-10, atol=1e-15)
 
 
 def test_tree_depths_against_a_walk():
@@ -386,3 +389,16 @@ def test_distances_from_boundary_sources_equal_the_splu_backend():
     ldl = tp.HeatGeodesicSolver(verts, faces, backend="ldl").distance(sources)
     splu = tp.HeatGeodesicSolver(verts, faces, backend="splu").distance(sources)
     torch.testing.assert_close(ldl, splu, rtol=1e-12, atol=1e-12)
+
+
+def test_triangle_solves_of_a_mesh_system_against_dense_solve():
+    """The full solves through the 32-bit copies of QDLDL's factor (forward with ``D`` on
+    the diagonal, backward as a lower solve with the reversed transpose) on a sparse system
+    with a branching elimination forest (two components), one and several columns."""
+    A, dense = _two_component_heat()
+    F = LDLFactorization(A)
+    assert F._triangle_solves() is not None
+    B = np.random.default_rng(9).standard_normal((dense.shape[0], 4))
+    want = np.linalg.solve(dense, B)
+    np.testing.assert_allclose(F.solve_array(B), want, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(F.solve_array(B[:, 2]), want[:, 2], rtol=1e-10, atol=1e-13)
