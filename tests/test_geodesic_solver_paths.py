@@ -402,3 +402,22 @@ def test_triangle_solves_of_a_mesh_system_against_dense_solve():
     want = np.linalg.solve(dense, B)
     np.testing.assert_allclose(F.solve_array(B), want, rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(F.solve_array(B[:, 2]), want[:, 2], rtol=1e-10, atol=1e-13)
+
+
+def test_one_shot_distance_does_not_copy_the_factors(monkeypatch):
+    """heat_geodesic_distance queries once: the 32-bit copies of the factors (and the path
+    solver) would cost more than they save, so it solves with QDLDL; a solver kept for more
+    queries makes them on its first."""
+    import torch_polylap.linalg.factor as factor
+
+    verts, faces = _sphere_quad()
+    want = tp.HeatGeodesicSolver(verts, faces).distance([3, 50])
+
+    def refuse(*args):
+        raise AssertionError("copied the factors")
+
+    monkeypatch.setattr(factor, "_checked_solves", refuse)
+    got = tp.heat_geodesic_distance(verts, faces, [3, 50])
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    with pytest.raises(AssertionError, match="copied the factors"):
+        tp.HeatGeodesicSolver(verts, faces).distance([3, 50])

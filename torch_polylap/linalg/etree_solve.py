@@ -72,15 +72,16 @@ class LDLTriangles:
         self.values, self.rows = _with_diagonal(
             self.indptr, (d, L.data), (np.arange(n, dtype=np.intc), L.indices)
         )
-        # backward: J (I + L)^T J, a lower triangle; L read as CSR is L^T
-        upper = sp.csr_matrix((L.data, L.indices, L.indptr), shape=(n, n)).tocsc()
-        back_indptr = np.concatenate(([0], np.cumsum(np.diff(upper.indptr)[::-1] + 1)))
-        self.back_values, self.back_indices = _with_diagonal(
-            back_indptr,
-            (np.ones(n), upper.data[::-1]),
-            (np.arange(n, dtype=np.intc), (n - 1) - upper.indices[::-1]),
-        )
-        self.back_indptr = back_indptr.astype(np.intc)
+        # backward: J (I + L)^T J, a lower triangle. The forward copy read as CSR is
+        # D + L^T; its CSC has the rows of each column sorted, the diagonal last, and
+        # reversed (J's two sides) first, where it is set to 1
+        upper = sp.csr_matrix((self.values, self.rows, self._indptr), shape=(n, n)).tocsc()
+        self.back_values = upper.data[::-1].copy()
+        self.back_indices = np.subtract(n - 1, upper.indices[::-1], dtype=np.intc)
+        self.back_indptr = (upper.indptr[-1] - upper.indptr[::-1]).astype(np.intc)
+        if not np.array_equal(self.back_indices[self.back_indptr[:-1]], np.arange(n)):
+            raise ValueError("the transposed factor's diagonal is not first in its columns")
+        self.back_values[self.back_indptr[:-1]] = 1.0
         self.perm = np.asarray(p, dtype=np.int64)
         self.inverse = np.empty(n, dtype=np.int64)
         self.inverse[self.perm] = np.arange(n)

@@ -177,6 +177,7 @@ class LDLFactorization:
         self._paths: EtreePathSolver | None = None
         self._built: set[str] = set()
         S = to_scipy(A).astype(np.float64, copy=False)
+        self._matrix = S  # the copies' check
         try:
             self.factor = qdldl.Solver(_upper_triangle(S), upper=True)
         except (RuntimeError, ValueError) as err:
@@ -202,9 +203,11 @@ class LDLFactorization:
         # A^T = A: ``transpose`` changes nothing
         return torch.from_numpy(self.solve_array(B.detach().cpu().numpy())).to(B)
 
-    def solve_array(self, b: np.ndarray) -> np.ndarray:
-        """``A^{-1} b`` for a float64 ``(n,)`` or ``(n, k)`` array, without torch tensors."""
-        triangles = self._triangle_solves()
+    def solve_array(self, b: np.ndarray, *, copy_factor: bool = True) -> np.ndarray:
+        """``A^{-1} b`` for a float64 ``(n,)`` or ``(n, k)`` array, without torch tensors;
+        ``copy_factor=False`` solves with QDLDL unless the copies exist (for one solve they
+        would cost more than they save)."""
+        triangles = self._triangle_solves() if copy_factor else self._triangles
         if triangles is not None:
             return _finite_array(triangles.solve(np.asarray(b, dtype=np.float64)))
         if b.ndim == 1:
@@ -214,15 +217,17 @@ class LDLFactorization:
             X[:, j] = self.factor.solve(np.ascontiguousarray(b[:, j], dtype=np.float64))
         return _finite_array(X)
 
-    def solve_sparse_array(self, rows: list[np.ndarray], values: list[np.ndarray]) -> np.ndarray:
+    def solve_sparse_array(
+        self, rows: list[np.ndarray], values: list[np.ndarray], *, copy_factor: bool = True
+    ) -> np.ndarray:
         """``(n, Q)`` ``A^{-1} B`` for the ``B`` whose column ``q`` is ``values[q]`` (float64
         ``(m_q,)``) at the rows ``rows[q]`` (``(m_q,)``, no repeats) and zero elsewhere.
 
         A column whose sources' tree paths are short enough (:meth:`.EtreePathSolver.pays`)
         takes the path solve, about half a full solve's time from one source; the others,
         and all columns where the factor's structure could not be read, a full solve. The
-        same result to round-off either way."""
-        paths = self._path_solver()
+        same result to round-off either way. ``copy_factor`` as for :meth:`solve_array`."""
+        paths = self._path_solver() if copy_factor else self._paths
         cheap = [] if paths is None else [q for q, r in enumerate(rows) if paths.pays(r)]
         if paths is not None and len(cheap) == len(rows):
             return _finite_array(paths.solve_sparse(rows, values))
@@ -231,7 +236,7 @@ class LDLFactorization:
         for k, q in enumerate(full):
             B[rows[q], k] = values[q]
         X = np.empty((self.n, len(rows)))
-        X[:, full] = self.solve_array(B)
+        X[:, full] = self.solve_array(B, copy_factor=copy_factor)
         if paths is not None and cheap:
             X[:, cheap] = paths.solve_sparse([rows[q] for q in cheap], [values[q] for q in cheap])
         return _finite_array(X)
@@ -241,7 +246,7 @@ class LDLFactorization:
         :meth:`solve_array`); ``None`` where it fails its checks."""
         if "paths" not in self._built:
             self._built.add("paths")
-            paths = _checked_solves(self.factor, EtreePathSolver)
+            paths = _checked_solves(self.factor, self._matrix, EtreePathSolver)
             self._paths = paths if isinstance(paths, EtreePathSolver) else None
             if self._paths is not None and "triangles" not in self._built:
                 self._built.add("triangles")
@@ -253,30 +258,30 @@ class LDLFactorization:
         their checks."""
         if "triangles" not in self._built:
             self._built.add("triangles")
-            self._triangles = _checked_solves(self.factor, LDLTriangles)
+            self._triangles = _checked_solves(self.factor, self._matrix, LDLTriangles)
         return self._triangles
 
 
-def _checked_solves(factor: object, kind: type[LDLTriangles]) -> LDLTriangles | None:
-    """``kind`` built from a ``qdldl.Solver``'s factors and checked once against its solve
-    (a random right-hand side; a source at row 0 for a path solver), or ``None`` when the
-    factors cannot be read or a check fails (a qdldl or scipy whose API changed): the callers
-    then solve with QDLDL."""
+def _checked_solves(
+    factor: object, S: sp.spmatrix, kind: type[LDLTriangles]
+) -> LDLTriangles | None:
+    """``kind`` built from a ``qdldl.Solver``'s factors of ``S`` and checked once by the
+    backward error of a solve (a random right-hand side; a source at row 0 too for a path
+    solver), or ``None`` when the factors cannot be read or a check fails (a qdldl or scipy
+    whose API changed): the callers then solve with QDLDL."""
     try:
         L, d, p = factor.factors()  # type: ignore[attr-defined]
         solves = kind(sp.csc_matrix(L), np.asarray(d), np.asarray(p))
-        b = np.random.default_rng(0).standard_normal(solves.n)
-        checks = [(solves.solve(b), factor.solve(b))]  # type: ignore[attr-defined]
+        if _solution_problem(S, solves.solve) is not None:
+            return None
         if isinstance(solves, EtreePathSolver):
-            e = np.zeros(solves.n)
-            e[0] = 1.0
-            source = solves.solve_sparse([np.array([0])], [np.array([1.0])])[:, 0]
-            checks.append((source, factor.solve(e)))  # type: ignore[attr-defined]
+            x = solves.solve_sparse([np.array([0])], [np.array([1.0])])[:, 0]
+            r = S @ x
+            r[0] -= 1.0
+            if not np.abs(r).max() <= _BACKWARD_ERROR * (abs(S).max() * np.abs(x).max() + 1.0):
+                return None
     except (AttributeError, TypeError, ValueError, RuntimeError, IndexError):
         return None
-    for got, want in checks:
-        if not np.abs(got - want).max() <= 1e-10 * np.abs(want).max():
-            return None
     return solves
 
 
