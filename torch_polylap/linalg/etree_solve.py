@@ -31,11 +31,11 @@ try:  # scipy's compiled SuperLU triangular solve (private: checked, and optiona
 except ImportError:  # pragma: no cover - older scipy: the callers solve in full
     _gstrs = None
 
-# Per entry of L a path solve (its columns' copies and solve) costs about what the full
-# forward solve does, and the backward solve is a full one, so a path solve from sources whose
-# paths hold this share of L's entries takes about as long as the two full solves it replaces
-# (loki and rockerArm: 2.5 ms at 57 %, the full solve 3.1 ms); a margin under that.
-PATH_SHARE = 1.0
+# A path solve costs, per entry of L on the paths, a little more than the full forward solve
+# (the copies of its columns), and the backward solve is a full one. From 1-8 random sources on
+# loki and rockerArm it was the faster up to paths holding 55-60% of L's entries (summed over
+# the sources: 1.5-2 ms at 6-20%, the full solve 3 ms), slower from 65% on.
+PATH_SHARE = 0.5
 # Sources of one query beyond which the paths are not walked at all (their union is most of
 # the tree, and the walk is a Python loop per source).
 MAX_SOURCES = 64
