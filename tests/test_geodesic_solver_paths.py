@@ -242,5 +242,187 @@ def test_solve_array_against_dense_solve(kind):
     F = factor[kind](A)
     B = np.random.default_rng(6).standard_normal((50, 3))
     dense = np.linalg.solve(S.toarray(), B)
+    if kind == "ldl":  # through the 32-bit copies of the factor, not QDLDL's solve
+        assert F._triangle_solves() is not None
     np.testing.assert_allclose(F.solve_array(B), dense, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(F.solve_array(B[:, 1]), dense[:, 1], rtol=1e-10, atol=1e-12)
+
+
+# --- heat solves from a few sources over elimination-tree paths ----------------------------
+
+
+def _two_component_heat():
+    """The heat system ``M0 + t L`` of two grids (two trees in the factor's elimination
+    forest), as an operator and as a dense matrix."""
+    verts, faces = _two_components()
+    L, M0 = tp.laplacian(verts, faces)
+    A = M0 + 0.05 * L
+    return A, tp.sparse.to_scipy(A).toarray()
+
+
+# vertex 0 and 71 are corners of the first grid, 5 and 40 share most of their tree path,
+# 72 + 3 lies on the second grid's boundary
+_QUERIES = [[0], [71], [5, 40], [72 + 3], [7, 72 + 9], [0, 8, 63, 71, 30, 31, 32]]
+
+
+def test_path_solve_equals_dense_solve(monkeypatch):
+    """Right-hand sides nonzero at a few rows (corners, boundary vertices, sources whose tree
+    paths overlap, sources on two components) against a dense solve and QDLDL's full one. On
+    this small mesh the paths of several sources hold most of the factor: the path solve is
+    made to take them all."""
+    from torch_polylap.linalg import etree_solve
+
+    monkeypatch.setattr(etree_solve, "PATH_SHARE", 10.0)
+    A, dense = _two_component_heat()
+    F = LDLFactorization(A)
+    paths = F._path_solver()
+    assert paths is not None
+    rng = np.random.default_rng(7)
+    rows = [np.array(q) for q in _QUERIES]
+    values = [rng.uniform(0.5, 2.0, len(q)) for q in _QUERIES]
+    assert all(paths.pays(r) for r in rows)
+    B = np.zeros((dense.shape[0], len(rows)))
+    for q, (r, v) in enumerate(zip(rows, values, strict=True)):
+        B[r, q] = v
+    want = np.linalg.solve(dense, B)
+    got = F.solve_sparse_array(rows, values)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-13 * np.abs(want).max())
+    qdldl = np.stack([F.factor.solve(np.ascontiguousarray(b)) for b in B.T], axis=1)
+    np.testing.assert_allclose(got, qdldl, rtol=1e-12, atol=1e-15)
+
+
+def test_forward_solve_is_supported_on_the_tree_path():
+    """The forward solve from one row is nonzero only on the columns its path walks, and
+    equals the dense triangular solve with QDLDL's factor there."""
+    import scipy.linalg as sla
+
+    A, _ = _two_component_heat()
+    F = LDLFactorization(A)
+    paths = F._path_solver()
+    assert paths is not None
+    L, d, p = F.factor.factors()
+    unit = np.eye(L.shape[0]) + L.toarray()
+    inverse = np.argsort(p)
+    for row in (0, 40, 71, 75, 143):
+        e = np.zeros(L.shape[0])
+        e[inverse[row]] = 1.0  # P^T e_row
+        y = sla.solve_triangular(unit, e, lower=True, unit_diagonal=True) / d
+        columns, values = paths.forward(row, 1.0)
+        assert np.all(np.diff(columns) > 0)
+        np.testing.assert_allclose(values, y[columns], rtol=1e-12, atol=1e-15)
+        outside = np.ones(y.size, dtype=bool)
+        outside[columns] = False
+        assert np.all(y[outside] == 0.0)
+
+
+def test_path_solve_falls_back_to_full_solves(monkeypatch):
+    """Columns whose paths are too long (here: all, then every second) or that have more
+    than MAX_SOURCES sources take the full solve; the result is the same."""
+    from torch_polylap.linalg import etree_solve
+
+    A, dense = _two_component_heat()
+    n = dense.shape[0]
+    many = np.arange(0, n, 2)
+    assert many.size > etree_solve.MAX_SOURCES
+    rows = [np.array([3]), many, np.array([5, 40])]
+    values = [np.ones(r.size) for r in rows]
+    B = np.zeros((n, 3))
+    for q, r in enumerate(rows):
+        B[r, q] = 1.0
+    want = np.linalg.solve(dense, B)
+    F = LDLFactorization(A)
+    paths = F._path_solver()
+    assert paths is not None and not paths.pays(many)
+    np.testing.assert_allclose(F.solve_sparse_array(rows, values), want, rtol=1e-10, atol=1e-15)
+    monkeypatch.setattr(etree_solve, "PATH_SHARE", 0.0)
+    np.testing.assert_allclose(F.solve_sparse_array(rows, values), want, rtol=1e-10, atol=1e-15)
+
+
+class _MisreadFactor:
+    """A qdldl solver whose ``factors()`` are wrong: transposed, or with a scaled ``D``."""
+
+    def __init__(self, inner, how: str) -> None:
+        self.inner, self.how = inner, how
+
+    def solve(self, b):
+        return self.inner.solve(b)
+
+    def factors(self):
+        L, d, p = self.inner.factors()
+        return (L.T.tocsc(), d, p) if self.how == "transposed" else (L, 2.0 * d, p)
+
+
+@pytest.mark.parametrize("how", ["transposed", "scaled"])
+def test_unreadable_factors_take_the_full_solve(how):
+    """A factor whose structure is not a lower triangle is refused when read, one whose
+    values are off by the check against a full solve; the solves stay right."""
+    A, dense = _two_component_heat()
+    F = LDLFactorization(A)
+    F.factor = _MisreadFactor(F.factor, how)
+    assert F._path_solver() is None and F._triangle_solves() is None
+    rows, values = [np.array([5, 40])], [np.array([1.0, 2.0])]
+    B = np.zeros((dense.shape[0], 1))
+    B[[5, 40], 0] = [1.0, 2.0]
+    want = np.linalg.solve(dense, B)
+    np.testing.assert_allclose(F.solve_sparse_array(rows, values), want, rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(F.solve_array(B), want, rtol=1e-10, atol=1e-15)
+
+
+def test_tree_depths_against_a_walk():
+    from torch_polylap.linalg.etree_solve import _depths
+
+    rng = np.random.default_rng(8)
+    n = 500
+    parent = np.array(
+        [rng.integers(j + 1, n) if rng.random() < 0.97 and j < n - 1 else -1 for j in range(n)]
+    )
+    want = np.zeros(n, dtype=np.int64)
+    for j in range(n):
+        k = j
+        while parent[k] >= 0:
+            k = parent[k]
+            want[j] += 1
+    np.testing.assert_array_equal(_depths(parent), want)
+
+
+def test_distances_from_boundary_sources_equal_the_splu_backend():
+    """Heat geodesics from boundary vertices and overlapping source sets: the path solve
+    (``"ldl"``) against SuperLU's full solves."""
+    verts, faces = tp.shapes.quad_grid(14, 11)
+    verts = verts.double()
+    sources = [[0], [14], [0, 1, 2], [3, 100], [int(verts.shape[0]) - 1]]
+    ldl = tp.HeatGeodesicSolver(verts, faces, backend="ldl").distance(sources)
+    splu = tp.HeatGeodesicSolver(verts, faces, backend="splu").distance(sources)
+    torch.testing.assert_close(ldl, splu, rtol=1e-12, atol=1e-12)
+
+
+def test_triangle_solves_of_a_mesh_system_against_dense_solve():
+    """The full solves through the 32-bit copies of QDLDL's factor (forward with ``D`` on
+    the diagonal, backward as a lower solve with the reversed transpose) on a sparse system
+    with a branching elimination forest (two components), one and several columns."""
+    A, dense = _two_component_heat()
+    F = LDLFactorization(A)
+    assert F._triangle_solves() is not None
+    B = np.random.default_rng(9).standard_normal((dense.shape[0], 4))
+    want = np.linalg.solve(dense, B)
+    np.testing.assert_allclose(F.solve_array(B), want, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(F.solve_array(B[:, 2]), want[:, 2], rtol=1e-10, atol=1e-13)
+
+
+def test_one_shot_distance_does_not_copy_the_factors(monkeypatch):
+    """heat_geodesic_distance queries once: the 32-bit copies of the factors (and the path
+    solver) would cost more than they save, so it solves with QDLDL; a solver kept for more
+    queries makes them on its first."""
+    import torch_polylap.linalg.factor as factor
+
+    verts, faces = _sphere_quad()
+    want = tp.HeatGeodesicSolver(verts, faces).distance([3, 50])
+
+    def refuse(*args):
+        raise AssertionError("copied the factors")
+
+    monkeypatch.setattr(factor, "_checked_solves", refuse)
+    got = tp.heat_geodesic_distance(verts, faces, [3, 50])
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    with pytest.raises(AssertionError, match="copied the factors"):
+        tp.HeatGeodesicSolver(verts, faces).distance([3, 50])

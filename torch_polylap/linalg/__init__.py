@@ -1,6 +1,7 @@
 """Differentiable sparse solves and generalized eigenpairs for the operators of this package.
 
-:mod:`.factor` (SuperLU and CHOLMOD factorizations, cached on the operator), :mod:`.cg`
+:mod:`.factor` (SuperLU, CHOLMOD and QDLDL factorizations, cached on the operator),
+:mod:`.etree_solve` (solves from few sources over elimination-tree paths), :mod:`.cg`
 (conjugate gradients), :mod:`.solve_op` (the solve as a ``torch.library`` operator),
 :mod:`.solves` (``solve``, ``dirichlet_solve``), :mod:`.derivatives` (eigenvalue and
 eigenvector derivatives), :mod:`.lanczos` (block Lanczos), :mod:`.eigenpairs` (``eigs`` and
@@ -13,6 +14,7 @@ from .eigenpairs import eigs
 from .eigenpairs import eigs_route as eigs_route
 from .factor import CholeskyFactorization as CholeskyFactorization
 from .factor import Factorization as Factorization
+from .factor import LDLFactorization as LDLFactorization
 from .factor import cached_factorization as cached_factorization
 from .factor import cholespy_available as cholespy_available
 from .factor import qdldl_available as qdldl_available
