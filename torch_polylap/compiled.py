@@ -3,10 +3,10 @@
 :class:`CompiledLaplacian` compiles, for one topology, the assembly in its gather form
 (:func:`~torch_polylap.assembly.assemble_gathered`: every stored value gathered from the per-face
 entries, no scatter) with ``torch.compile``: the kernels and the gathers fuse into a few loops,
-forward and backward. At a million quads on one CPU thread it re-assembled in 0.35 to 0.7 times
-the time of the eager :func:`~torch_polylap.laplacian` in most runs on a busy 2-core machine;
-forward plus backward took about as long as eager (the sparse products, not compiled, weigh
-as much as the assembly there). The compilation is paid at the first call (tens of seconds with
+forward and backward. On a 1M-quad grid on one CPU thread it re-assembles in about two thirds
+of the eager time and runs forward plus backward in about four fifths (the sparse products, not
+compiled, weigh as much as the assembly there; the documentation's performance page has the
+measurements). The compilation is paid at the first call (seconds to tens of seconds with
 inductor's C++ backend; again for a new dtype, device or ``requires_grad``), so it is worth it
 for a loop of many steps on one mesh, not for one call. Nothing compiles unless this class is
 used: :func:`~torch_polylap.laplacian` stays eager.
