@@ -147,3 +147,21 @@ def test_compiled_laplacian_hands_bad_input_to_the_eager_checks():
 def test_compiled_laplacian_refuses_a_tensor_lam():
     with pytest.raises(TypeError, match="tensor lam"):
         tp.CompiledLaplacian([[0, 1, 2]], torch.tensor(1.0))
+
+
+@pytest.mark.usefixtures("fresh_dynamo")
+def test_compiled_laplacian_under_autocast_is_the_float32_operator():
+    """Under CPU autocast to bfloat16 the compiled assembly stays float32, as the eager one
+    (both assemble with autocast off), with the same values and a finite gradient."""
+    verts, faces = quad_grid(4, bump=0.1)
+    V = verts.float().requires_grad_(True)
+    lap = tp.CompiledLaplacian(faces, options={"backend": "aot_eager", "dynamic": False})
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        L, M0 = lap(V)
+        L_eager, M0_eager = tp.laplacian(V, faces)
+        loss = (L @ V).square().sum()
+    assert L.dtype == M0.dtype == loss.dtype == torch.float32
+    torch.testing.assert_close(L.to_dense(), L_eager.to_dense())
+    torch.testing.assert_close(M0.diagonal(), M0_eager.diagonal())
+    loss.backward()
+    assert V.grad is not None and bool(torch.isfinite(V.grad).all())
