@@ -174,7 +174,7 @@ class LDLFactorization:
         import qdldl
 
         S = to_scipy(A).astype(np.float64, copy=False)
-        self._setup(S, _upper_triangle(S))
+        self._setup(S, *_upper_parts(S))
         try:
             self.factor: object | None = qdldl.Solver(self._upper, upper=True)
         except (RuntimeError, ValueError) as err:
@@ -182,13 +182,14 @@ class LDLFactorization:
         if check:
             self._check(A)
 
-    def _setup(self, S: sp.csr_matrix, upper: sp.csc_matrix) -> None:
+    def _setup(self, S: sp.csr_matrix, upper: sp.csc_matrix, keep: np.ndarray) -> None:
         self.n = int(S.shape[0])
         self._triangles: LDLTriangles | None = None
         self._paths: EtreePathSolver | None = None
         self._built: set[str] = set()
         self._matrix = S  # the copies' check
         self._upper = upper  # what QDLDL factors (again, if its factor was handed on)
+        self._keep = keep  # the entries of S in upper
         # (L, d, p) read out of QDLDL's solver before it was handed on (see refactored)
         self._read: tuple[sp.csc_matrix, np.ndarray, np.ndarray] | None = None
 
@@ -225,21 +226,25 @@ class LDLFactorization:
             ValueError: ``B`` is numerically singular or not positive definite.
         """
         S = to_scipy(B).astype(np.float64, copy=False)
-        upper = _upper_triangle(S)
+        S0 = self._matrix
         solver = self.factor
         same = (
             solver is not None
-            and upper.shape == self._upper.shape
-            and np.array_equal(upper.indptr, self._upper.indptr)
-            and np.array_equal(upper.indices, self._upper.indices)
+            and S.shape == S0.shape
+            and np.array_equal(S.indptr, S0.indptr)
+            and np.array_equal(S.indices, S0.indices)
         )
         read = None
         if same and keep:
             read = _read_factors(solver)
         if not same or (keep and read is None) or not hasattr(solver, "update"):
             return LDLFactorization(B)
+        # the same pattern: the upper triangle is one gather of the values
+        upper = sp.csc_matrix(
+            (S.data[self._keep], self._upper.indices, self._upper.indptr), shape=S.shape
+        )
         other = LDLFactorization.__new__(LDLFactorization)
-        other._setup(S, upper)
+        other._setup(S, upper, self._keep)
         self.factor, self._read = None, read
         try:
             solver.update(upper, upper=True)
@@ -363,7 +368,8 @@ def _checked_solves(
             x = solves.solve_sparse([np.array([0])], [np.array([1.0])])[:, 0]
             r = S @ x
             r[0] -= 1.0
-            if not np.abs(r).max() <= _BACKWARD_ERROR * (abs(S).max() * np.abs(x).max() + 1.0):
+            norm = np.abs(S.data).max(initial=0.0)
+            if not np.abs(r).max() <= _BACKWARD_ERROR * (norm * np.abs(x).max() + 1.0):
                 return None
     except (AttributeError, TypeError, ValueError, RuntimeError, IndexError):
         return None
@@ -377,12 +383,18 @@ def _upper_triangle(S: sp.csr_matrix) -> sp.csc_matrix:
     ``j`` is row ``j``, and its upper part the entries with column index ``<= j``. One mask
     over the entries replaces scipy's ``triu`` (a COO round trip), which qdldl calls otherwise.
     """
+    return _upper_parts(S)[0]
+
+
+def _upper_parts(S: sp.csr_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
+    """:func:`_upper_triangle` of ``S`` and the ``(nnz,)`` mask of the entries of ``S`` it
+    holds."""
     n = S.shape[0]
     rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(S.indptr))
     keep = S.indices <= rows
     indptr = np.concatenate(([0], np.cumsum(keep, dtype=np.int64)))[S.indptr]
     indices = S.indices[keep].astype(np.int64, copy=False)
-    return sp.csc_matrix((S.data[keep], indices, indptr), shape=S.shape)
+    return sp.csc_matrix((S.data[keep], indices, indptr), shape=S.shape), keep
 
 
 # An LU of a well-posed system solves it to a backward error of a few eps; a larger one means
@@ -408,7 +420,8 @@ def _solution_problem(S: sp.spmatrix, solve: Callable[[np.ndarray], np.ndarray])
         return None
     b = np.random.default_rng(0).standard_normal(n)
     x = solve(b)
-    norm = abs(S).max()
+    # the entries' largest magnitude without abs(S), a copy of the matrix
+    norm = float(np.abs(S.data).max(initial=0.0))
     growth = np.abs(x).max() * norm / np.abs(b).max()
     if not np.isfinite(growth) or growth * max(n, _GROWTH_MIN_N) * np.finfo(float).eps >= 1.0:
         return f"solution growth {growth:.1e}"
