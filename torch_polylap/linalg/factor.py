@@ -104,7 +104,10 @@ class CholeskyFactorization:
         from cholespy import CholeskySolverD, MatrixType
 
         device = A.device if isinstance(A, torch.Tensor) else torch.device(device or "cpu")
-        S = sp.coo_matrix((to_scipy(A) if isinstance(A, torch.Tensor) else A).astype(np.float64))
+        S = sp.coo_matrix(
+            (to_scipy(A) if isinstance(A, torch.Tensor) else A).astype(np.float64, copy=False)
+        )
+        S.sum_duplicates()  # a no-op on what a compressed matrix converts to
         try:
             self.factor = CholeskySolverD(
                 S.shape[0],
@@ -124,7 +127,8 @@ class CholeskyFactorization:
             rhs = torch.from_numpy(b).to(self.device)[:, None]
             return self._solve64(rhs)[:, 0].cpu().numpy()
 
-        problem = _solution_problem(S.tocsc(), solve_numpy)
+        # the check's product and norm read the COO arrays (no tocsc copy)
+        problem = _solution_problem(S, solve_numpy)
         if problem is not None:
             raise ValueError(_not_positive_definite_message(A, problem))
 
