@@ -218,8 +218,9 @@ class LDLFactorization:
         """The checked factorization of ``B``, a matrix with this one's pattern (the heat and
         Poisson systems of :class:`~torch_polylap.HeatGeodesicSolver`): QDLDL's numeric
         factorization only, reusing this one's AMD ordering and elimination tree (the same
-        factor as a fresh one of ``B``, bit for bit), about 60% of a fresh factorization's
-        time on mesh matrices of 20k-30k vertices.
+        factor as a fresh one of ``B``, bit for bit): 58-65% of a fresh factorization's
+        time on the real meshes loki and rockerArm (20k-28k vertices; the AMD ordering and the
+        tree are the rest), 92% on bunny-dual (73k vertices, whose factor fills in more).
 
         QDLDL refactors in place, so this factorization hands its solver on: with ``keep`` it
         first reads its factor out (a copy of ``L``) and solves through :class:`.LDLTriangles`
