@@ -409,20 +409,102 @@ def test_triangle_solves_of_a_mesh_system_against_dense_solve():
     np.testing.assert_allclose(F.solve_array(B[:, 2]), want[:, 2], rtol=1e-10, atol=1e-13)
 
 
-def test_one_shot_distance_does_not_copy_the_factors(monkeypatch):
-    """heat_geodesic_distance queries once: the 32-bit copies of the factors (and the path
-    solver) would cost more than they save, so it solves with QDLDL; a solver kept for more
-    queries makes them on its first."""
+def test_factor_copies_are_made_by_the_second_query(monkeypatch):
+    """A first query (heat_geodesic_distance's only one, a solver's first) solves with QDLDL
+    itself: the 32-bit copies of the factors and the path solver would cost more than they
+    save. The second query makes them (the heat factor's path solver, the Poisson factor's
+    triangles), later ones reuse them; every query gives SuperLU's distances."""
     import torch_polylap.linalg.factor as factor
+    from torch_polylap.linalg.etree_solve import EtreePathSolver, LDLTriangles
 
     verts, faces = _sphere_quad()
-    want = tp.HeatGeodesicSolver(verts, faces).distance([3, 50])
+    sources = [[3, 50], [7]]
+    want = tp.HeatGeodesicSolver(verts, faces, backend="splu").distance(sources)
+    made = []
+    checked_solves = factor._checked_solves
 
-    def refuse(*args):
-        raise AssertionError("copied the factors")
+    def counted(factors, S, kind):
+        made.append(kind)
+        return checked_solves(factors, S, kind)
 
-    monkeypatch.setattr(factor, "_checked_solves", refuse)
-    got = tp.heat_geodesic_distance(verts, faces, [3, 50])
+    monkeypatch.setattr(factor, "_checked_solves", counted)
+    got = tp.heat_geodesic_distance(verts, faces, sources)
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
-    with pytest.raises(AssertionError, match="copied the factors"):
-        tp.HeatGeodesicSolver(verts, faces).distance([3, 50])
+    solver = tp.HeatGeodesicSolver(verts, faces)
+    torch.testing.assert_close(solver.distance(sources), want, rtol=1e-12, atol=1e-12)
+    assert made == []
+    torch.testing.assert_close(solver.distance(sources), want, rtol=1e-12, atol=1e-12)
+    assert sorted(k.__name__ for k in made) == ["EtreePathSolver", "LDLTriangles"]
+    assert made.count(EtreePathSolver) == 1 and made.count(LDLTriangles) == 1
+    torch.testing.assert_close(solver.distance(sources[1]), want[:, 1], rtol=1e-12, atol=1e-12)
+    assert len(made) == 2
+
+
+def _heat_and_poisson():
+    """``M0 + t L`` and ``L' + pin`` of the two-component grids (one pattern: the heat
+    solver's pair of systems), as operators and dense matrices."""
+    verts, faces = _two_components()
+    L, M0 = tp.laplacian(verts, faces, 1.0)
+    L2, _ = tp.laplacian(verts, faces, 0.1)
+    pin = torch.zeros(verts.shape[0], dtype=torch.float64)
+    pin[[0, verts.shape[0] // 2]] = 1.0
+    A, B = M0 + 0.05 * L, L2 + tp.sparse.diag(pin)
+    return A, B, tp.sparse.to_scipy(A).toarray(), tp.sparse.to_scipy(B).toarray()
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_refactored_solves_both_systems_against_dense_solves(keep):
+    """QDLDL's numeric refactorization of a second matrix of the same pattern (reusing the
+    first's ordering and tree) solves it; the first factorization, whose solver was handed
+    on, still solves its own matrix: through the factor read out beforehand (``keep``), or by
+    factoring again. Reference: dense solves; the refactored factor equals a fresh one."""
+    A, B, dense_a, dense_b = _heat_and_poisson()
+    rhs = np.random.default_rng(10).standard_normal((dense_a.shape[0], 2))
+    first = LDLFactorization(A)
+    second = first.refactored(B, keep=keep)
+    assert second.factor is not None and first.factor is None
+    fresh = LDLFactorization(B)
+    np.testing.assert_array_equal(second.factor.solve(rhs[:, 0]), fresh.factor.solve(rhs[:, 0]))
+    want_b = np.linalg.solve(dense_b, rhs)
+    want_a = np.linalg.solve(dense_a, rhs)
+    np.testing.assert_allclose(second.solve_array(rhs, copy_factor=False), want_b, rtol=1e-10)
+    np.testing.assert_allclose(second.solve_array(rhs), want_b, rtol=1e-10)
+    np.testing.assert_allclose(first.solve_array(rhs, copy_factor=False), want_a, rtol=1e-10)
+    # with the factor kept, first's solves ran through copies made from it; without, QDLDL
+    # factored the matrix again
+    assert (first._triangles is not None) == keep and (first.factor is None) == keep
+    rows, values = [np.array([5, 40])], [np.array([1.0, 2.0])]
+    sparse_rhs = np.zeros((dense_a.shape[0], 1))
+    sparse_rhs[[5, 40], 0] = [1.0, 2.0]
+    np.testing.assert_allclose(
+        first.solve_sparse_array(rows, values),
+        np.linalg.solve(dense_a, sparse_rhs),
+        rtol=1e-10,
+        atol=1e-15,
+    )
+
+
+def test_refactored_with_another_pattern_factors_afresh():
+    """A matrix whose pattern differs (here: a diagonal) cannot reuse the symbolic analysis:
+    it gets a fresh factorization, and the first keeps its solver."""
+    A, _, dense_a, _ = _heat_and_poisson()
+    n = dense_a.shape[0]
+    first = LDLFactorization(A)
+    solver = first.factor
+    D = tp.sparse.diag(torch.arange(1.0, n + 1, dtype=torch.float64))
+    second = first.refactored(D)
+    assert first.factor is solver and second.factor is not solver
+    b = np.ones(n)
+    np.testing.assert_allclose(second.solve_array(b), b / np.arange(1.0, n + 1), rtol=1e-14)
+    np.testing.assert_allclose(first.solve_array(b), np.linalg.solve(dense_a, b), rtol=1e-10)
+
+
+def test_refactored_refuses_an_indefinite_matrix():
+    """The refactored matrix is checked as a fresh one: ``-B`` (same pattern, negative
+    definite) is refused, and the first factorization still solves its matrix."""
+    A, B, dense_a, _ = _heat_and_poisson()
+    first = LDLFactorization(A)
+    with pytest.raises(ValueError, match="not positive definite|singular"):
+        first.refactored(-1.0 * B)
+    b = np.ones(dense_a.shape[0])
+    np.testing.assert_allclose(first.solve_array(b), np.linalg.solve(dense_a, b), rtol=1e-10)

@@ -45,6 +45,7 @@ from .linalg import (
 from .measures import mean_edge_length
 from .operators import laplacian
 from .sparse import SparseOperator, as_operator, diag, sparse_values
+from .sparse.construct import solver_cache
 from .sparse.operator import operator_on
 from .sparse.pattern import SparsityPattern
 from .topology import DegreeGroup, Topology, get_topology
@@ -298,7 +299,11 @@ class HeatGeodesicSolver:
     them by the first query, serve every later one.  (A Dirichlet solve with the sources fixed
     at 0 would change the matrix with every query.)  The factorizations are those of
     ``backend``; on the CPU by default QDLDL's ``L D L^T``, which builds in about half
-    CHOLMOD's time on meshes up to :data:`LDL_MAX_VERTS` vertices.  Steps 2 and 3's right-hand
+    CHOLMOD's time on meshes up to :data:`LDL_MAX_VERTS` vertices.  The two matrices share
+    their pattern, so QDLDL orders and analyses it once: after the first query's heat solve,
+    the Poisson matrix is factored numerically in place with the heat factor's ordering and
+    elimination tree, the heat factor having been read out first
+    (``torch_polylap.linalg.LDLFactorization.refactored``).  Steps 2 and 3's right-hand
     side are one pass over the faces of each degree, with the per-corner gradient weights
     computed here once.  A query that needs no gradient (neither ``verts`` nor a tensor ``t`` or
     ``lam`` requires grad, or it runs under ``torch.no_grad()``) with a direct backend on the
@@ -309,7 +314,14 @@ class HeatGeodesicSolver:
     the heat system's right-hand side ``M0 delta``, nonzero at the sources only, has a forward
     solve that is nonzero only on the sources' paths to the root of the factor's elimination
     tree (7-20% of its entries on meshes of 20k-30k vertices), and is solved there only
-    (``torch_polylap.linalg.etree_solve``).
+    (``torch_polylap.linalg.etree_solve``), from the second query on.
+
+    So with QDLDL the first query costs the two factorizations and four triangular solves
+    through QDLDL's own solve; the second also makes the faster copies of the factors (32-bit
+    indices, and the heat factor's elimination-tree paths: about 40-70 ms on meshes of 20k-30k
+    vertices, some ten times a query); every later query takes about 0.9x the time of one with
+    CHOLMOD (``backend="cholesky"``).  A single query, as :func:`heat_geodesic_distance`
+    makes, never pays for the copies.
 
     Vertices of components without a source get ``inf`` (isolated vertices included).
     Differentiable with respect to ``verts`` through both solves (O(nnz) backward).  The heat
@@ -336,10 +348,10 @@ class HeatGeodesicSolver:
             optional ``qdldl``), or a backend of :func:`~torch_polylap.solve` (``"cholesky"``,
             ``"splu"``, ``"cg"``, ``"auto"``).  The default ``"auto"`` takes ``"ldl"`` on the
             CPU when qdldl is installed and the mesh has at most :data:`LDL_MAX_VERTS`
-            vertices, else :func:`~torch_polylap.solve`'s ``"auto"``.  A query's QDLDL
-            solves run through copies of its factors with 32-bit indices, made by the first
-            query, and its heat solve's forward half over the sources' elimination-tree paths
-            only: a query takes about 0.9x the time of one with CHOLMOD (``"cholesky"``).
+            vertices, else :func:`~torch_polylap.solve`'s ``"auto"``.  From the second query
+            on, QDLDL's solves run through copies of its factors with 32-bit indices, and the
+            heat solve's forward half over the sources' elimination-tree paths only (see
+            above).
 
     Raises:
         ValueError: ``t`` not positive, an unknown ``backend``, or ``"ldl"`` without qdldl or
@@ -378,9 +390,11 @@ class HeatGeodesicSolver:
         self.num_components, labels = self.topology.connected_components()
         self.labels = labels.to(verts.device)
         self._arrays: _QueryArrays | None = None
-        # QDLDL's factors are copied for faster solves on the first query: about ten queries'
-        # worth of saved time; heat_geodesic_distance, which queries once, does without
-        self._copy_factors = True
+        # queries answered through the array path: the first solves with QDLDL itself, the
+        # next ones make (then use) the faster copies of its factors
+        self._queries = 0
+        # heat_geodesic_distance queries once: the heat factor need not outlive its solve
+        self._one_query = False
 
     def _heat_system(self, A: torch.Tensor) -> torch.Tensor:
         """``M0 + t L`` with a unit diagonal at isolated vertices (no face: zero mass, an empty
@@ -549,16 +563,25 @@ class HeatGeodesicSolver:
         differentiable path, in float64 whatever ``verts``' dtype; ``(V, Q)``."""
         arrays = self._query_arrays()
         heat = cached_factorization(as_operator(self.heat_operator), backend)
-        poisson = cached_factorization(as_operator(self.poisson_operator), backend)
         index = [idx.cpu().numpy() for idx in sources]
         mass = [arrays.mass[idx] for idx in index]  # M0 delta, nonzero at the sources
-        if isinstance(heat, LDLFactorization) and isinstance(poisson, LDLFactorization):
-            # the forward heat solve runs over the sources' tree paths only
-            copy = self._copy_factors
+        if isinstance(heat, LDLFactorization):
+            # the forward heat solve runs over the sources' tree paths only (from the second
+            # query on: the first solves with QDLDL, the copies would cost more than they save)
+            copy = self._queries > 0
+            self._queries += 1
             u = heat.solve_sparse_array(index, mass, copy_factor=copy)
             flux = arrays.flux @ _unit_rows(arrays.gradient @ u)
-            phi = poisson.solve_array(flux, copy_factor=copy)
+            # the Poisson system has the heat system's pattern: after the heat solve, QDLDL
+            # refactors in place with the heat factor's ordering and elimination tree
+            pair = solver_cache(
+                as_operator(self.poisson_operator),
+                "ldl",
+                lambda: heat.refactored(self.poisson_operator, keep=not self._one_query),
+            )
+            phi = pair.solve_array(flux, copy_factor=copy)
         else:
+            poisson = cached_factorization(as_operator(self.poisson_operator), backend)
             rhs = np.zeros((arrays.mass.size, len(sources)))
             for q, idx in enumerate(index):
                 rhs[idx, q] = mass[q]
@@ -665,5 +688,5 @@ def heat_geodesic_distance(
     solver = HeatGeodesicSolver(
         verts, faces, t, lam, poisson_lam=poisson_lam, backend=backend, method=method
     )
-    solver._copy_factors = False
+    solver._one_query = True
     return solver.distance(sources)
