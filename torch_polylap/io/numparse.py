@@ -510,15 +510,14 @@ _SWAR_MUL = (
 )
 
 
-def _swar_digits(x: np.ndarray, count: np.ndarray, tmp: np.ndarray) -> np.ndarray:
-    """Value of the ``count`` (0-8) digits in the top bytes of the words ``x`` (changed in
-    place; ``tmp`` is a work array of the same shape), the bytes being known to be digits.
+def _swar_digits(x: np.ndarray, low: np.ndarray) -> np.ndarray:
+    """Value of the digits in the top bytes of the words ``x`` (changed in place), the bytes
+    being known to be digits, below them ``low`` (``uint64``, 0 to 64) bits to ignore (``low``
+    is overwritten).
 
-    Masking the low nibble turns digit characters into their values and clears the bytes
+    Masking the low nibble turns digit characters into their values and clears the bits
     before the digits (leading zeros); three multiply-shift steps then merge neighbouring
     digits, pairs and quadruples (Lemire's eight-digit trick)."""
-    low = np.subtract(8, count, out=tmp.view(np.int64)).view(U64)
-    low <<= U64(3)
     x &= np.left_shift(_NIBBLES, low, out=low)  # a shift by 64 (no digit) gives 0
     for scale, shift, mask in _SWAR_MUL:
         x *= scale
@@ -596,15 +595,19 @@ def _block_digits(
 ) -> np.ndarray:
     """Value (``uint64``) of the ``count`` (0 to ``8 * spans``, ``spans`` <= 3) digits ending
     at ``end``, the bytes being known to be digits; a value of more than 19 digits wraps (the
-    caller checks)."""
+    caller checks).  Work arrays are ``scratch``'s, under names starting with ``key``; the
+    value is one of them."""
     n = len(end)
-    tmp = scratch(key + "tmp", n, U64)
-    c = scratch(key + "c", n)
+    # bits below the digits in the word ending 8k bytes before the end: 64 - 8 * (count - 8k),
+    # clipped to 0..64
+    bits = np.left_shift(count, 3, out=scratch(key + "bits", n))
+    low = scratch(key + "low", n)
     value = None
     for k, x in enumerate(_word_loads(words, end, spans, scratch, key)):
-        np.subtract(count, 8 * k, out=c)
-        np.clip(c, 0, 8, out=c)
-        x = _swar_digits(x, c, tmp)
+        np.subtract(64 * (k + 1), bits, out=low)
+        if spans > 1:
+            np.clip(low, 0, 64, out=low)
+        x = _swar_digits(x, low.view(U64))
         if value is None:
             value = x
         else:
