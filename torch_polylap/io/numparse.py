@@ -796,6 +796,6 @@ def parse_index_block(
     if longest > 16:
         return False
     spans = max((longest + 7) // 8, 1)
-    values = _block_digits(words, end.reshape(-1), count.reshape(-1), spans, scratch, "n")
+    values = _block_digits(words, end.reshape(-1), count.reshape(-1), spans, scratch, "f")
     out[...] = values.view(np.int64)
     return True

@@ -184,6 +184,7 @@ def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
             seen += len(count)
     except BadNumber:
         return None
+    del scratch  # before the concatenation, the read's peak of memory
     if seen != num_verts + num_faces:
         return None
     index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
