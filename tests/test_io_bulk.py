@@ -276,6 +276,7 @@ def quotients(request, monkeypatch):
             pytest.skip("no 80-bit long double on this platform")
     else:
         monkeypatch.setattr(numparse, "_POW10_LD", None)
+    monkeypatch.setattr(numparse, "EXPONENTS_IN_BULK", 1)  # even one: read by parse_floats
     return request.param
 
 
@@ -459,13 +460,16 @@ def test_bulk_obj_parser_agrees_with_line_parser(text):
 
 @contextmanager
 def chunk_bytes(size: int):
-    """Cut texts into chunks of about ``size`` bytes (every layout then meets a boundary)."""
-    saved = tokens_module.CHUNK_BYTES
+    """Cut texts into chunks of about ``size`` bytes (every layout then meets a boundary), and
+    convert even a few tokens with the numpy paths (small files otherwise go to Python's)."""
+    saved = tokens_module.CHUNK_BYTES, tokens_module.PYTHON_BELOW, numparse.EXPONENTS_IN_BULK
     tokens_module.CHUNK_BYTES = size
+    tokens_module.PYTHON_BELOW = 0
+    numparse.EXPONENTS_IN_BULK = 1
     try:
         yield
     finally:
-        tokens_module.CHUNK_BYTES = saved
+        tokens_module.CHUNK_BYTES, tokens_module.PYTHON_BELOW, numparse.EXPONENTS_IN_BULK = saved
 
 
 @st.composite

@@ -50,6 +50,7 @@ _ABOVE_NINE = U64(0x7676767676767676)
 _HIGH_BITS = U64(0x8080808080808080)
 _B = 8  # bytes per word
 _ZERO = U64(48)  # '0'
+EXPONENTS_IN_BULK = 512  # fewer exponent tokens in a block are left slow (Python's, faster)
 PAD = 24  # bytes of padding a buffer needs before its first and after its last token
 
 _POW10_INT = np.array([10**k for k in range(20)], dtype=U64)
@@ -722,7 +723,7 @@ def parse_decimal_block(
         slow[hard] |= done[1]
     if n_signed:
         out *= _SIGNS.take(neg.view(np.uint8), out=scratch("div", n, np.float64), mode="clip")
-    if exponent is not None and len(exponent[0]):
+    if exponent is not None and len(exponent[0]) >= EXPONENTS_IN_BULK:
         tokens, e_at = exponent
         dot = point.take(tokens)
         t_start, t_end = start.take(tokens), end.take(tokens)

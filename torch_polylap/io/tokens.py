@@ -36,6 +36,7 @@ from .numparse import (
 __all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
 
 CHUNK_BYTES = 1 << 20
+PYTHON_BELOW = 512  # fewer tokens than this are converted by Python's float
 
 Tokens: TypeAlias = np.ndarray | slice  # token indices, or a slice of consecutive tokens
 
@@ -167,8 +168,11 @@ class Chunk:
 
     def floats_at(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
         """float64 values of the tokens ``buf[start:end]`` (see :meth:`floats`)."""
-        if len(start) == 0:
-            return np.zeros(0, dtype=np.float64)
+        if len(start) < PYTHON_BELOW:  # a few (slow ones left by a block): the numpy paths'
+            # fixed cost of some fifty calls exceeds Python's per token
+            values = np.zeros(len(start), dtype=np.float64)
+            self._exact(values, start, end, np.arange(len(start)), float)
+            return values
         values, slow = parse_plain_floats(self.buf, self.words, start, end)
         if not slow.any():
             return values
