@@ -311,6 +311,34 @@ def test_block_floats_read_fixed_notation(quotients, parts):
             assert same_bits(value, float(token)), (token, value)
 
 
+unit_tokens = st.builds(
+    lambda sign, digit, frac: f"{sign}{digit}.{frac}".encode(),
+    st.sampled_from(["", "", "-", "+"]),
+    st.sampled_from("0123456789"),
+    st.text("0123456789", max_size=20),
+)
+
+
+@WITH_FIXTURE
+@given(token_blocks(st.one_of(unit_tokens, unit_tokens, unit_tokens, junk_tokens)))
+def test_block_floats_with_one_digit_before_the_point(quotients, block):
+    """Mostly ``d.ddd`` tokens, whose points the block parser takes where they must be without
+    a search: junk among them (misplaced or extra points, signs alone) is still slow."""
+    check_block_floats(*block)
+
+
+def test_block_floats_leave_points_outside_their_token_slow():
+    for tokens in ([b"-", b"..5"], [b"-", b"..5", b"0.5"], [b"1.", b"-.", b"."], [b"1.5", b"2"]):
+        values, slow = block_floats(tokens, [b" "] * (len(tokens) - 1))
+        for token, value, left in zip(tokens, values, slow, strict=True):
+            try:
+                expected = float(token)
+            except ValueError:
+                assert left, token
+            else:
+                assert left or same_bits(value, expected), token
+
+
 def test_block_floats_read_written_doubles_themselves(quotients):
     """Shortest-repr doubles of every magnitude mesh files hold (exponents included) are read
     without the per-token paths, but for under 1%."""

@@ -630,34 +630,47 @@ def parse_decimal_block(
     (another form, such as an exponent; no digit at all; more than 19 significant digits; a
     quotient this path cannot round with certainty): their ``out`` is meaningless.
 
-    The form is checked on the block's bytes as a whole, not token by token: one search finds
-    the points (in the usual case one in each token, in order), and every byte but the blanks,
-    the points and leading signs must be a digit; the few tokens holding another byte are
-    found from where those bytes are."""
+    The form is checked on the block's bytes as a whole, not token by token: the points are
+    counted (and found by one search unless each token has one after its first digit), and
+    every byte but the blanks, the points and leading signs must be a digit; the few tokens
+    holding another byte are found from where those bytes are."""
     n = len(sep) - 1
     lo, hi = int(sep[0]) + 1, int(sep[-1])
     start = np.add(sep[:-1], 1, out=scratch("start", n))
     end = sep[1:]
     region = buf[lo:hi]
     slow = np.zeros(n, dtype=bool)
-    dots = np.flatnonzero(np.equal(region, 46, out=scratch("dots", hi - lo, np.bool_)))
-    dots += lo
-    if len(dots) == n and (dots > sep[:-1]).all() and (dots < end).all():
-        point = dots
-    else:  # tokens without a point (or with two): the point of those with one, by search
-        owner = np.searchsorted(sep, dots) - 1
-        point = end.copy()  # none: the digits end the token
-        point[owner] = dots
-        slow[owner[1:][owner[1:] == owner[:-1]]] = True
     first = buf.take(start, out=scratch("first", n, np.uint8), mode="clip")
     neg = np.equal(first, 45, out=scratch("neg", n, np.bool_))
     signed = np.equal(first, 43, out=scratch("signed", n, np.bool_))
     signed |= neg
     n_signed = int(np.count_nonzero(signed))
+    is_dot = np.equal(region, 46, out=scratch("dots", hi - lo, np.bool_))
+    n_dots = int(np.count_nonzero(is_dot))
+    # one digit before each point (coordinates below 10, the usual): the points are where
+    # they must be, without a search, when each token has a point there and there are no
+    # others
+    point = np.add(start, 1, out=scratch("point", n))
+    if n_signed:
+        point += signed
+    if (
+        n_dots != n
+        or not (point < end).all()
+        or not (buf.take(point, out=scratch("at_point", n, np.uint8), mode="clip") == 46).all()
+    ):
+        dots = np.flatnonzero(is_dot)
+        dots += lo
+        if n_dots == n and (dots > sep[:-1]).all() and (dots < end).all():
+            point = dots
+        else:  # tokens without a point (or with two): the point of those with one, by search
+            owner = np.searchsorted(sep, dots) - 1
+            point = end.copy()  # none: the digits end the token
+            point[owner] = dots
+            slow[owner[1:][owner[1:] == owner[:-1]]] = True
     digit = np.subtract(region, np.uint8(48), out=scratch("bytes", hi - lo, np.uint8))
     nondigit = np.greater(digit, np.uint8(9), out=scratch("nondigit", hi - lo, np.bool_))
     exponent = None
-    if int(np.count_nonzero(nondigit)) != (n - 1) + len(dots) + n_signed:
+    if int(np.count_nonzero(nondigit)) != (n - 1) + n_dots + n_signed:
         # some token holds another byte: those tokens are slow, and read below when the
         # bytes are an exponent's ``e`` and its sign
         nondigit &= region > 32
