@@ -26,15 +26,19 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torch_polylap.io import SkippedContentWarning, read_mesh, write_mesh
+from torch_polylap.io import SkippedContentWarning, numparse, read_mesh, write_mesh
 from torch_polylap.io import obj as obj_module
 from torch_polylap.io import tokens as tokens_module
 from torch_polylap.io.common import Skipped
 from torch_polylap.io.numparse import (
     PAD,
+    Scratch,
+    parse_decimal_block,
     parse_floats,
+    parse_index_block,
     parse_ints,
     parse_plain_floats,
+    text_buffer,
     token_marks,
     word_view,
 )
@@ -215,6 +219,205 @@ def test_integers_convert_exactly(ints):
     assert parse_ints(buf, word_view(buf), start, end)[1].all()
 
 
+def _block(tokens: list[bytes], blanks: list[bytes]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(buf, words, sep)`` of ``tokens`` joined by the single-byte ``blanks`` (and a final
+    line break), as the tokenizer gives them to the block parsers."""
+    body = tokens[0] + b"".join(b + t for b, t in zip(blanks, tokens[1:], strict=False)) + b"\n"
+    buf, words = text_buffer(2 * PAD + len(body))
+    buf[PAD : PAD + len(body)] = np.frombuffer(body, dtype=np.uint8)
+    sep = np.flatnonzero(buf[PAD - 1 : PAD + len(body)] <= 32) + PAD - 1
+    assert len(sep) == len(tokens) + 1
+    return buf, words, sep
+
+
+def block_floats(tokens: list[bytes], blanks: list[bytes]) -> tuple[list[float], list[bool]]:
+    buf, words, sep = _block(tokens, blanks)
+    out = np.empty(len(tokens))
+    slow = parse_decimal_block(buf, words, sep, out, Scratch())
+    return out.tolist(), slow.tolist()
+
+
+def check_block_floats(tokens: list[bytes], blanks: list[bytes]) -> int:
+    """What the block parser does not leave slow is float(token) bit for bit (so a token
+    Python refuses is always slow); returns how many it read."""
+    values, slow = block_floats(tokens, blanks)
+    for token, value, left in zip(tokens, values, slow, strict=True):
+        if not left:
+            assert same_bits(value, float(token)), (token, value)
+    return len(tokens) - sum(slow)
+
+
+junk_tokens = st.text("0123456789.-+eE_xn,/", min_size=1, max_size=8).map(str.encode)
+float_tokens = st.one_of(
+    doubles.map(lambda x: repr(x).encode()),
+    doubles.map(lambda x: b"%.17g" % x),
+    decimal_strings(),
+    junk_tokens,
+)
+blank_bytes = st.sampled_from([b" "] * 6 + [b"\n", b"\t"])
+
+
+@st.composite
+def token_blocks(draw, tokens: st.SearchStrategy[bytes]) -> tuple[list[bytes], list[bytes]]:
+    toks = draw(st.lists(tokens, min_size=1, max_size=120))
+    return toks, [draw(blank_bytes) for _ in toks[1:]]
+
+
+# the fixture only switches a module constant, the same for every example
+WITH_FIXTURE = settings(PROPERTY, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@pytest.fixture(params=["long double", "integer"])
+def quotients(request, monkeypatch):
+    """The block parser's hard quotients through the 64-bit long double division (where numpy
+    has one) and through the integer path used elsewhere."""
+    if request.param == "long double":
+        if numparse._POW10_LD is None:
+            pytest.skip("no 80-bit long double on this platform")
+    else:
+        monkeypatch.setattr(numparse, "_POW10_LD", None)
+    monkeypatch.setattr(numparse, "EXPONENTS_IN_BULK", 1)  # even one: read by parse_floats
+    return request.param
+
+
+@WITH_FIXTURE
+@given(token_blocks(float_tokens))
+def test_block_floats_are_exact_or_left_slow(quotients, block):
+    check_block_floats(*block)
+
+
+@WITH_FIXTURE
+@given(
+    st.lists(
+        st.tuples(st.sampled_from(["", "-", "+"]), st.text("0123456789", max_size=8),
+                  st.booleans(), st.text("0123456789", max_size=11)),
+        min_size=1, max_size=100,
+    )
+)  # fmt: skip
+def test_block_floats_read_fixed_notation(quotients, parts):
+    """Fixed notation with up to 8 digits before the point is read by the block parser itself
+    when its quotient is one division (at most 15 digits: below 2**53; longer ones may rarely
+    be undecided), exactly; a token without a digit is slow."""
+    tokens = [(a + b + ("." if c else "") + d).encode() for a, b, c, d in parts]
+    values, slow = block_floats(tokens, [b" "] * (len(tokens) - 1))
+    for (_, whole, point, frac), token, value, left in zip(
+        parts, tokens, values, slow, strict=True
+    ):
+        if not whole + frac:
+            assert left, token
+        elif len(whole if point else whole + frac) <= 8 and len(whole + frac) <= 15:
+            assert not left, token
+        if not left:
+            assert same_bits(value, float(token)), (token, value)
+
+
+unit_tokens = st.builds(
+    lambda sign, digit, frac: f"{sign}{digit}.{frac}".encode(),
+    st.sampled_from(["", "", "-", "+"]),
+    st.sampled_from("0123456789"),
+    st.text("0123456789", max_size=20),
+)
+
+
+@WITH_FIXTURE
+@given(token_blocks(st.one_of(unit_tokens, unit_tokens, unit_tokens, junk_tokens)))
+def test_block_floats_with_one_digit_before_the_point(quotients, block):
+    """Mostly ``d.ddd`` tokens, whose points the block parser takes where they must be without
+    a search: junk among them (misplaced or extra points, signs alone) is still slow."""
+    check_block_floats(*block)
+
+
+def test_block_floats_leave_points_outside_their_token_slow():
+    for tokens in ([b"-", b"..5"], [b"-", b"..5", b"0.5"], [b"1.", b"-.", b"."], [b"1.5", b"2"]):
+        values, slow = block_floats(tokens, [b" "] * (len(tokens) - 1))
+        for token, value, left in zip(tokens, values, slow, strict=True):
+            try:
+                expected = float(token)
+            except ValueError:
+                assert left, token
+            else:
+                assert left or same_bits(value, expected), token
+
+
+def test_block_floats_read_written_doubles_themselves(quotients):
+    """Shortest-repr doubles of every magnitude mesh files hold (exponents included) are read
+    without the per-token paths, but for under 1%."""
+    rng = np.random.default_rng(1)
+    xs = np.concatenate([rng.normal(size=20000), rng.uniform(-1e-6, 1e-6, 5000)]).tolist()
+    tokens = [repr(x).encode() for x in xs] + [b"%.17g" % x for x in xs]
+    values, slow = block_floats(tokens, [b" "] * (len(tokens) - 1))
+    assert sum(slow) < 0.01 * len(tokens)
+    for token, value, left in zip(tokens, values, slow, strict=True):
+        if not left:
+            assert same_bits(value, float(token)), (token, value)
+
+
+@settings(PROPERTY, max_examples=40)
+@given(st.lists(st.tuples(st.integers(0, 2**64 - 1), st.integers(0, 27)), min_size=1))
+def test_long_double_quotients_are_correctly_rounded_or_undecided(cases):
+    """w / 10**k by one 64-bit long double division: the correctly rounded double (Python's
+    Fraction to float) unless left undecided."""
+    if numparse._POW10_LD is None:
+        pytest.skip("no 80-bit long double on this platform")
+    w = np.array([c[0] for c in cases], dtype=np.uint64)
+    k = np.array([c[1] for c in cases], dtype=np.int64)
+    done = numparse._divide_exact(w, k)
+    assert done is not None
+    for (wi, ki), value, undecided in zip(cases, *done, strict=True):
+        if not undecided:
+            assert same_bits(value, float(Fraction(wi, 10**ki))), (wi, ki)
+
+
+def test_long_double_quotients_leave_the_midpoints_undecided():
+    """Exact midpoints between doubles are undecided (ties to even would be right, but
+    the path cannot tell them from quotients rounded onto a midpoint)."""
+    if numparse._POW10_LD is None:
+        pytest.skip("no 80-bit long double on this platform")
+    midpoint = 2**54 + 2  # between the doubles 2**54 and 2**54 + 4
+    w = np.array([midpoint, midpoint * 10], dtype=np.uint64)
+    k = np.array([0, 1], dtype=np.int64)
+    done = numparse._divide_exact(w, k)
+    assert done is not None
+    assert done[1].tolist() == [True, True]
+
+
+@st.composite
+def face_blocks(draw) -> tuple[list[bytes], int, bool]:
+    """Lines ``k i1 .. ik`` of one degree, and whether each token is what the index block
+    parser reads (digits only, at most 16; every k right)."""
+    k = draw(st.integers(3, 9))
+    index = st.one_of(
+        st.integers(0, 10**7).map(str), st.text("0123456789", min_size=1, max_size=18)
+    )
+    readable = True
+    tokens = []
+    for _ in range(draw(st.integers(1, 30))):
+        line = [draw(index) for _ in range(k)]
+        head = str(k)
+        if draw(st.integers(0, 19)) == 0:
+            line[draw(st.integers(0, k - 1))] = draw(st.sampled_from(["-1", "1.0", "x", "1/2"]))
+            readable = False
+        if draw(st.integers(0, 19)) == 0:
+            head = draw(st.sampled_from([str(k + 1), "03", "a"]))
+            readable = False
+        readable &= all(len(t) <= 16 for t in line)
+        tokens += [head.encode()] + [t.encode() for t in line]
+    return tokens, k + 1, readable
+
+
+@PROPERTY
+@given(face_blocks(), blank_bytes)
+def test_index_blocks_read_exactly_or_decline(case, blank):
+    tokens, width, readable = case
+    buf, words, sep = _block(tokens, [blank] * (len(tokens) - 1))
+    out = np.empty(len(tokens) // width * (width - 1), dtype=np.int64)
+    read = parse_index_block(buf, words, sep, width, out, Scratch())
+    assert read == readable
+    if read:
+        indices = [t for i, t in enumerate(tokens) if i % width]
+        assert out.tolist() == [int(t) for t in indices]
+
+
 # --------------------------------------------------------------------------------------------
 # the bulk OBJ parser against the line parser
 # --------------------------------------------------------------------------------------------
@@ -285,13 +488,16 @@ def test_bulk_obj_parser_agrees_with_line_parser(text):
 
 @contextmanager
 def chunk_bytes(size: int):
-    """Cut texts into chunks of about ``size`` bytes (every layout then meets a boundary)."""
-    saved = tokens_module.CHUNK_BYTES
+    """Cut texts into chunks of about ``size`` bytes (every layout then meets a boundary), and
+    convert even a few tokens with the numpy paths (small files otherwise go to Python's)."""
+    saved = tokens_module.CHUNK_BYTES, tokens_module.PYTHON_BELOW, numparse.EXPONENTS_IN_BULK
     tokens_module.CHUNK_BYTES = size
+    tokens_module.PYTHON_BELOW = 0
+    numparse.EXPONENTS_IN_BULK = 1
     try:
         yield
     finally:
-        tokens_module.CHUNK_BYTES = saved
+        tokens_module.CHUNK_BYTES, tokens_module.PYTHON_BELOW, numparse.EXPONENTS_IN_BULK = saved
 
 
 @st.composite

@@ -31,8 +31,11 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "Scratch",
     "decimal_to_double",
+    "parse_decimal_block",
     "parse_floats",
+    "parse_index_block",
     "parse_ints",
     "parse_plain_floats",
     "runs",
@@ -47,6 +50,7 @@ _ABOVE_NINE = U64(0x7676767676767676)
 _HIGH_BITS = U64(0x8080808080808080)
 _B = 8  # bytes per word
 _ZERO = U64(48)  # '0'
+EXPONENTS_IN_BULK = 512  # fewer exponent tokens in a block are left slow (Python's, faster)
 PAD = 24  # bytes of padding a buffer needs before its first and after its last token
 
 _POW10_INT = np.array([10**k for k in range(20)], dtype=U64)
@@ -475,3 +479,337 @@ def token_marks(
     odd[sign_owner.take(np.flatnonzero(~(leading | after_exp)))] = True
     odd |= (exp >= 0) & (dot > exp)
     return dot, exp, odd
+
+
+class Scratch:
+    """Work arrays kept from one chunk to the next.
+
+    A fresh numpy array of a megabyte or more is memory newly mapped by the allocator, and its
+    first touch (a page fault every 4 KiB) costs more than the arithmetic done on it; the block
+    parsers below write their intermediate steps into these arrays instead (``out=``).
+    """
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def __call__(self, key: str, n: int, dtype: type = np.int64) -> np.ndarray:
+        """An uninitialised ``(n,)`` array of ``dtype`` under the name ``key`` (the same memory
+        as the previous call with that name when it was as large)."""
+        a = self._arrays.get(key)
+        if a is None or len(a) < n or a.dtype != dtype:
+            a = np.empty(n + n // 4 + 16, dtype=dtype)
+            self._arrays[key] = a
+        return a[:n]
+
+
+_NIBBLES = U64(0x0F0F0F0F0F0F0F0F)
+_SIGNS = np.array([1.0, -1.0])
+_SWAR_MUL = (
+    (U64(2561), U64(8), U64(0x00FF00FF00FF00FF)),  # 10 * 2**8 + 1
+    (U64(6553601), U64(16), U64(0x0000FFFF0000FFFF)),  # 100 * 2**16 + 1
+    (U64(42949672960001), U64(32), None),  # 10000 * 2**32 + 1
+)
+
+
+def _swar_digits(x: np.ndarray, low: np.ndarray) -> np.ndarray:
+    """Value of the digits in the top bytes of the words ``x`` (changed in place), the bytes
+    being known to be digits, below them ``low`` (``uint64``, 0 to 64) bits to ignore (``low``
+    is overwritten).
+
+    Masking the low nibble turns digit characters into their values and clears the bits
+    before the digits (leading zeros); three multiply-shift steps then merge neighbouring
+    digits, pairs and quadruples (Lemire's eight-digit trick)."""
+    x &= np.left_shift(_NIBBLES, low, out=low)  # a shift by 64 (no digit) gives 0
+    for scale, shift, mask in _SWAR_MUL:
+        x *= scale
+        x >>= shift
+        if mask is not None:
+            x &= mask
+    return x
+
+
+def _long_double_ok() -> bool:
+    """Whether ``np.longdouble`` is the x87 80-bit format with its 64-bit significand (stored
+    in 16 little-endian bytes, significand first) and divides to that precision now."""
+    info = np.finfo(np.longdouble)
+    if info.nmant != 63 or np.dtype(np.longdouble).itemsize != 16 or np.little_endian is False:
+        return False
+    third = np.ones(1, dtype=np.longdouble) / np.longdouble(3)
+    return bool(third.view(U64)[0] == U64(0xAAAAAAAAAAAAAAAB))
+
+
+def _pow10_long_double() -> np.ndarray:
+    """``10**k`` for k in 0..27, exact in the 64-bit significand (``5**27 < 2**64``), built
+    from integers without a detour through float64."""
+    fives = np.array([5**k for k in range(28)], dtype=U64).astype(np.longdouble)
+    return fives * np.array([2.0**k for k in range(28)]).astype(np.longdouble)
+
+
+_POW10_LD = _pow10_long_double() if _long_double_ok() else None
+_MIDPOINT_BITS = U64(0x7FF)
+_MIDPOINT = U64(0x400)
+
+
+def _divide_exact(w: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(w / 10**k correctly rounded to float64, undecided)`` for ``uint64`` ``w`` and
+    ``0 <= k <= 27``, by one 64-bit-significand division, or None where no such long double
+    exists (then :func:`decimal_to_double` does it).
+
+    ``w`` and ``10**k`` are exact long doubles, so the quotient is rounded once, to 64 bits;
+    rounding that to 53 bits gives the correctly rounded double unless the 64-bit quotient
+    lies exactly halfway between two doubles (a 53-bit rounding boundary strictly between the
+    exact quotient and its 64-bit rounding would be a nearer 64-bit number): those few, whose
+    11 dropped bits read ``10000000000``, are ``undecided``."""
+    if _POW10_LD is None or not _long_double_ok():
+        return None
+    q = w.astype(np.longdouble)
+    q /= _POW10_LD.take(k)
+    undecided = (q.view(U64)[0::2] & _MIDPOINT_BITS) == _MIDPOINT
+    return q.astype(np.float64), undecided
+
+
+def _word_loads(
+    words: np.ndarray, end: np.ndarray, spans: int, scratch: Scratch, key: str
+) -> list[np.ndarray]:
+    """The ``spans`` words ending at ``end``, ``end - 8``...: ``spans + 1`` gathers of aligned
+    words, each shared by two neighbouring words (see :func:`_load`)."""
+    n = len(end)
+    base = np.right_shift(end, 3, out=scratch(key + "base", n))
+    shift = np.bitwise_and(end, 7, out=scratch(key + "shift", n)).view(U64)
+    shift <<= U64(3)
+    back = np.subtract(U64(64), shift, out=scratch(key + "back", n, U64))
+    upper = words.take(base, out=scratch(key + "w0", n, U64), mode="clip")
+    out = []
+    for k in range(spans):
+        base -= 1
+        lower = words.take(base, out=scratch(key + f"w{k + 1}", n, U64), mode="clip")
+        x = np.right_shift(lower, shift, out=scratch(key + f"x{k}", n, U64))
+        upper <<= back  # a shift by 64 (end on a word boundary) gives 0
+        x |= upper
+        out.append(x)
+        upper = lower
+    return out
+
+
+def _block_digits(
+    words: np.ndarray, end: np.ndarray, count: np.ndarray, spans: int, scratch: Scratch, key: str
+) -> np.ndarray:
+    """Value (``uint64``) of the ``count`` (0 to ``8 * spans``, ``spans`` <= 3) digits ending
+    at ``end``, the bytes being known to be digits; a value of more than 19 digits wraps (the
+    caller checks).  Work arrays are ``scratch``'s, under names starting with ``key``; the
+    value is one of them."""
+    n = len(end)
+    # bits below the digits in the word ending 8k bytes before the end: 64 - 8 * (count - 8k),
+    # clipped to 0..64
+    bits = np.left_shift(count, 3, out=scratch(key + "bits", n))
+    low = scratch(key + "low", n)
+    value = None
+    for k, x in enumerate(_word_loads(words, end, spans, scratch, key)):
+        np.subtract(64 * (k + 1), bits, out=low)
+        if spans > 1:
+            np.clip(low, 0, 64, out=low)
+        x = _swar_digits(x, low.view(U64))
+        if value is None:
+            value = x
+        else:
+            x *= _POW10_INT[8 * k]
+            value += x
+    assert value is not None
+    return value
+
+
+def parse_decimal_block(
+    buf: np.ndarray, words: np.ndarray, sep: np.ndarray, out: np.ndarray, scratch: Scratch
+) -> np.ndarray:
+    """Values of the tokens between consecutive separators ``sep`` (``(n + 1,)`` positions of
+    single blank bytes: token i is ``buf[sep[i] + 1 : sep[i + 1]]``), written into ``out``
+    (``(n,)`` float64), for the tokens written ``[+-]digits[.digits]`` with at most 8 digits
+    before the point and 24 after it: what mesh writers print.
+
+    Returns the ``slow`` mask of the tokens left for :func:`parse_plain_floats` and Python
+    (another form, such as an exponent; no digit at all; more than 19 significant digits; a
+    quotient this path cannot round with certainty): their ``out`` is meaningless.
+
+    The form is checked on the block's bytes as a whole, not token by token: the points are
+    counted (and found by one search unless each token has one after its first digit), and
+    every byte but the blanks, the points and leading signs must be a digit; the few tokens
+    holding another byte are found from where those bytes are."""
+    n = len(sep) - 1
+    lo, hi = int(sep[0]) + 1, int(sep[-1])
+    start = np.add(sep[:-1], 1, out=scratch("start", n))
+    end = sep[1:]
+    region = buf[lo:hi]
+    slow = np.zeros(n, dtype=bool)
+    first = buf.take(start, out=scratch("first", n, np.uint8), mode="clip")
+    neg = np.equal(first, 45, out=scratch("neg", n, np.bool_))
+    signed = np.equal(first, 43, out=scratch("signed", n, np.bool_))
+    signed |= neg
+    n_signed = int(np.count_nonzero(signed))
+    is_dot = np.equal(region, 46, out=scratch("dots", hi - lo, np.bool_))
+    n_dots = int(np.count_nonzero(is_dot))
+    # one digit before each point (coordinates below 10, the usual): the points are where
+    # they must be, without a search, when each token has a point there and there are no
+    # others
+    point = np.add(start, 1, out=scratch("point", n))
+    if n_signed:
+        point += signed
+    if (
+        n_dots != n
+        or not (point < end).all()
+        or not (buf.take(point, out=scratch("at_point", n, np.uint8), mode="clip") == 46).all()
+    ):
+        dots = np.flatnonzero(is_dot)
+        dots += lo
+        if n_dots == n and (dots > sep[:-1]).all() and (dots < end).all():
+            point = dots
+        else:  # tokens without a point (or with two): the point of those with one, by search
+            owner = np.searchsorted(sep, dots) - 1
+            point = end.copy()  # none: the digits end the token
+            point[owner] = dots
+            slow[owner[1:][owner[1:] == owner[:-1]]] = True
+    digit = np.subtract(region, np.uint8(48), out=scratch("bytes", hi - lo, np.uint8))
+    nondigit = np.greater(digit, np.uint8(9), out=scratch("nondigit", hi - lo, np.bool_))
+    exponent = None
+    if int(np.count_nonzero(nondigit)) != (n - 1) + n_dots + n_signed:
+        # some token holds another byte: those tokens are slow, and read below when the
+        # bytes are an exponent's ``e`` and its sign
+        nondigit &= region > 32
+        nondigit &= region != 46
+        other = np.flatnonzero(nondigit)
+        other += lo
+        exponent = _exponents(buf, sep, point, other, slow)
+    n_int = np.subtract(point, start, out=scratch("n_int", n))
+    if n_signed:
+        n_int -= signed
+    n_frac = np.subtract(end, point, out=scratch("n_frac", n))
+    n_frac -= 1
+    np.maximum(n_frac, 0, out=n_frac)
+    slow |= n_int > 8
+    slow |= n_frac > 24
+    if slow.any():  # meaningless lengths of slow tokens: kept in the ranges read below
+        odd = np.flatnonzero(slow)
+        n_int[odd] = 0
+        n_frac[odd] = 0
+    longest_int, longest_frac = int(n_int.max()), int(n_frac.max())
+    # integer part: one byte each when no token has more (coordinates below 10)
+    if longest_int <= 1:
+        ipart = np.subtract(point, 1, out=scratch("at", n))
+        ipart = buf.take(ipart, out=scratch("ibyte", n, np.uint8), mode="clip")
+        ipart -= np.uint8(48)
+        ipart = np.multiply(ipart, n_int, out=scratch("ipart", n, U64), casting="unsafe")
+    else:
+        ipart = _block_digits(words, point, n_int, 1, scratch, "i")
+    spans = max((longest_frac + 7) // 8, 1)
+    fpart = _block_digits(words, end, n_frac, spans, scratch, "f")
+    total = np.add(n_int, n_frac, out=scratch("total", n))
+    slow |= total == 0
+    # more than 19 digits: exact only when the integer part is 0 and the fraction's value is
+    # below 10**19 (leading zeros), else left to Python
+    long = np.flatnonzero(total > 19)
+    if len(long):
+        fits = ipart.take(long) == 0
+        if spans == 3:
+            k = np.clip(n_frac.take(long) - 16, 0, 8)
+            top = _block_digits(words, end.take(long) - 16, k, 1, scratch, "t")
+            fits &= top < U64(1000)
+        slow[long] |= ~fits
+    k = np.minimum(n_frac, 19, out=scratch("k", n))
+    w = np.multiply(ipart, _POW10_INT.take(k, out=scratch("scale", n, U64), mode="clip"), out=ipart)
+    w += fpart
+    # w <= 2**53 and 10**k exact (k <= 22): one correctly rounded division (through int64:
+    # numpy converts it to float64 faster than uint64)
+    np.minimum(n_frac, 22, out=k)
+    np.divide(
+        w.view(np.int64),
+        _POW10_FLOAT.take(k, out=scratch("div", n, np.float64), mode="clip"),
+        out=out,
+    )
+    hard = np.greater(w, U64(2**53), out=scratch("hard", n, np.bool_))
+    hard |= n_frac > 22
+    hard = np.flatnonzero(hard)
+    if len(hard):
+        wh, kh = w.take(hard), n_frac.take(hard)
+        done = _divide_exact(wh, kh)
+        if done is None:
+            done = decimal_to_double(wh, np.negative(kh))
+        out[hard] = done[0]
+        slow[hard] |= done[1]
+    if n_signed:
+        out *= _SIGNS.take(neg.view(np.uint8), out=scratch("div", n, np.float64), mode="clip")
+    if exponent is not None and len(exponent[0]) >= EXPONENTS_IN_BULK:
+        tokens, e_at = exponent
+        dot = point.take(tokens)
+        t_start, t_end = start.take(tokens), end.take(tokens)
+        dot[dot == t_end] = -1  # no point
+        out[tokens], slow[tokens] = parse_floats(buf, words, t_start, t_end, dot, e_at)
+    return slow
+
+
+def _exponents(
+    buf: np.ndarray, sep: np.ndarray, point: np.ndarray, other: np.ndarray, slow: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """For :func:`parse_decimal_block`: ``(tokens, e)``, the tokens whose bytes other than
+    digits, point and leading sign (at ``other``) are one ``e``/``E`` after the point and,
+    right after it, at most one sign, with the position of the ``e``; every token holding
+    such a byte is marked ``slow``."""
+    byte = buf.take(other)
+    before = buf.take(other - 1)
+    sign = (byte == 45) | (byte == 43)
+    keep = ~(sign & (before <= 32))  # leading signs are no other byte
+    other, byte, before, sign = other[keep], byte[keep], before[keep], sign[keep]
+    owner = np.searchsorted(sep, other) - 1
+    odd = slow.copy()  # two points
+    slow[owner] = True
+    is_e = (byte | np.uint8(32)) == 101
+    after_e = sign & ((before | np.uint8(32)) == 101)
+    # tokens with any other byte, or two e's, or a point after the e, are not of the form
+    odd[owner[~(is_e | after_e)]] = True
+    e_owner = owner[is_e]
+    odd[e_owner[1:][e_owner[1:] == e_owner[:-1]]] = True
+    e_at = other[is_e]
+    e_point = point.take(e_owner)
+    odd[e_owner[(e_point > e_at) & (e_point < sep.take(e_owner + 1))]] = True  # point after e
+    good = ~odd.take(e_owner)
+    return e_owner[good], e_at[good]
+
+
+def parse_index_block(
+    buf: np.ndarray,
+    words: np.ndarray,
+    sep: np.ndarray,
+    width: int,
+    out: np.ndarray,
+    scratch: Scratch,
+) -> bool:
+    """Read lines of ``width`` tokens ``k i1 .. ik`` with ``k = width - 1`` (2 to 9, one digit),
+    ``sep`` the ``(lines * width + 1,)`` positions of the single blanks around the tokens (as
+    :func:`parse_decimal_block`): the indices, ``(lines * k,)``, written into ``out`` (int64).
+
+    False (``out`` then unspecified) when some token is not plain digits, a ``k`` differs or an
+    index has more than 16 digits: the caller then reads the lines another way."""
+    n = len(sep) - 1
+    lines = n // width
+    lo, hi = int(sep[0]) + 1, int(sep[-1])
+    region = buf[lo:hi]
+    digit = np.subtract(region, np.uint8(48), out=scratch("bytes", hi - lo, np.uint8))
+    nondigit = np.greater(digit, np.uint8(9), out=scratch("nondigit", hi - lo, np.bool_))
+    if int(np.count_nonzero(nondigit)) != n - 1:  # only the blanks between tokens
+        return False
+    before = sep[:-1].reshape(lines, width)
+    after = sep[1:].reshape(lines, width)
+    if not (after[:, 0] - before[:, 0] == 2).all():
+        return False
+    if not (buf.take(after[:, 0] - 1) == 48 + width - 1).all():
+        return False
+    k = width - 1
+    end = scratch("end", lines * k).reshape(lines, k)
+    np.copyto(end, after[:, 1:])
+    count = np.subtract(end, before[:, 1:], out=scratch("count", lines * k).reshape(lines, k))
+    count -= 1
+    longest = int(count.max()) if count.size else 0
+    if longest > 16:
+        return False
+    spans = max((longest + 7) // 8, 1)
+    values = _block_digits(words, end.reshape(-1), count.reshape(-1), spans, scratch, "f")
+    out[...] = values.view(np.int64)
+    return True

@@ -27,6 +27,7 @@ from .common import (
     plain_text,
     text_lines,
 )
+from .numparse import Scratch, parse_decimal_block, parse_index_block
 from .tokens import Chunk, chunks, runs
 
 _OFF_KEYWORD = re.compile(r"(?:ST|C|N)*OFF")
@@ -158,20 +159,22 @@ def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     indices: list[np.ndarray] = []
     extra = coloured = 0
     seen = 0  # content lines before the chunk
+    scratch = Scratch()
     try:
-        for chunk in chunks(text, body):
+        for chunk in chunks(text, body, scratch):
             first, count, _ = chunk.lines()
             if seen + len(count) > num_verts + num_faces:
                 return None  # data after the faces: the record parser names the line
             nv = min(max(num_verts - seen, 0), len(count))  # vertex lines in the chunk
             if nv:
-                vert_lines = _vertex_lines(chunk, first[:nv], count[:nv])
-                if vert_lines is None:
+                extra_lines = _vertex_lines(
+                    chunk, first[:nv], count[:nv], coords[3 * seen : 3 * (seen + nv)], scratch
+                )
+                if extra_lines is None:
                     return None
-                coords[3 * seen : 3 * (seen + nv)] = vert_lines[0]
-                extra += vert_lines[1]
+                extra += extra_lines
             if nv < len(count):
-                face_lines = _face_lines(chunk, first[nv:], count[nv:])
+                face_lines = _face_lines(chunk, first[nv:], count[nv:], scratch)
                 if face_lines is None:
                     return None
                 indices.append(face_lines[0])
@@ -181,6 +184,7 @@ def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
             seen += len(count)
     except BadNumber:
         return None
+    del scratch  # before the concatenation, the read's peak of memory
     if seen != num_verts + num_faces:
         return None
     index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
@@ -192,19 +196,31 @@ def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
 
 
 def _vertex_lines(
-    chunk: Chunk, first: np.ndarray, count: np.ndarray
-) -> tuple[np.ndarray, int] | None:
-    """``(x y z values, lines with extra values)`` of vertex lines; None for a short one."""
+    chunk: Chunk, first: np.ndarray, count: np.ndarray, out: np.ndarray, scratch: Scratch
+) -> int | None:
+    """Read vertex lines into ``out`` (``(3 * lines,)``); the number of lines with extra
+    values, or None for a short one."""
     if (count == 3).all():  # consecutive tokens
-        return chunk.floats(slice(int(first[0]), int(first[0]) + 3 * len(count))), 0
+        at = int(first[0])
+        if chunk.sep is not None:
+            sep = chunk.sep[at : at + len(out) + 1]
+            slow = np.flatnonzero(parse_decimal_block(chunk.buf, chunk.words, sep, out, scratch))
+            if len(slow):
+                sep = sep.take(np.stack([slow, slow + 1]))
+                sep[0] += 1
+                out[slow] = chunk.floats_at(sep[0], sep[1])
+        else:
+            out[...] = chunk.floats(slice(at, at + len(out)))
+        return 0
     if (count < 3).any():
         return None
     tokens = (first[:, None] + np.arange(3)).reshape(-1)
-    return chunk.floats(tokens), int((count > 3).sum())
+    out[...] = chunk.floats(tokens)
+    return int((count > 3).sum())
 
 
 def _face_lines(
-    chunk: Chunk, first: np.ndarray, count: np.ndarray
+    chunk: Chunk, first: np.ndarray, count: np.ndarray, scratch: Scratch
 ) -> tuple[np.ndarray, np.ndarray, int] | None:
     """``(indices, sizes, coloured faces)`` of face lines; None for a face wrapped over lines
     or broken."""
@@ -212,11 +228,16 @@ def _face_lines(
     if 4 <= width <= 10 and (count == width).all():
         # One degree, k = width - 1 a single digit on every line: the indices are a block.
         lines, at = len(count), int(first[0])
+        sizes = np.full(lines, width - 1, dtype=np.int64)
+        if chunk.sep is not None:
+            indices = np.empty(lines * (width - 1), dtype=np.int64)
+            sep = chunk.sep[at : at + lines * width + 1]
+            if parse_index_block(chunk.buf, chunk.words, sep, width, indices, scratch):
+                return indices, sizes, 0
         k_start = chunk.start[at : at + lines * width : width]
         k_end = chunk.end[at : at + lines * width : width]
         if (k_end - k_start == 1).all() and (chunk.buf.take(k_start) == 47 + width).all():
-            indices = chunk.ints_at(*chunk.block(at, lines, width, 1))
-            return indices, np.full(lines, width - 1, dtype=np.int64), 0
+            return chunk.ints_at(*chunk.block(at, lines, width, 1)), sizes, 0
     k = chunk.ints(first)
     if (k < 3).any() or (count < k + 1).any():
         return None

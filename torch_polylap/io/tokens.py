@@ -23,6 +23,8 @@ import numpy as np
 from .common import BadNumber, numbers
 from .numparse import (
     PAD,
+    U64,
+    Scratch,
     parse_floats,
     parse_ints,
     parse_plain_floats,
@@ -33,7 +35,8 @@ from .numparse import (
 
 __all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
 
-CHUNK_BYTES = 1 << 21
+CHUNK_BYTES = 1 << 20
+PYTHON_BELOW = 512  # fewer tokens than this are converted by Python's float
 
 Tokens: TypeAlias = np.ndarray | slice  # token indices, or a slice of consecutive tokens
 
@@ -44,6 +47,9 @@ class Chunk:
     Attributes:
         buf: the lines as ``uint8``, padded with spaces (and a final ``\\n`` when missing).
         words: the aligned ``uint64`` words over ``buf`` (see :func:`.numparse.text_buffer`).
+        sep: ``(T + 1,)`` int64 offsets of the blank before each token and after the last
+            when every blank stands alone (token i is ``buf[sep[i] + 1 : sep[i + 1]]``: the
+            block parsers of :mod:`.numparse` need no ``start``/``end``), else None.
         start, end: ``(T,)`` int64 byte offsets in ``buf`` of each token (end exclusive).
         per_line: ``(L,)`` int64 number of tokens on each line, blank lines included.
         first_token: ``(L,)`` index of each line's first token (of the next line's, for a
@@ -52,41 +58,74 @@ class Chunk:
         line0: 0-based index of the chunk's first line in the whole text.
     """
 
-    def __init__(self, text: bytes, begin: int, stop: int, line0: int) -> None:
-        """The lines ``text[begin:stop]`` (copied once, into the padded buffer)."""
+    def __init__(
+        self, text: bytes, begin: int, stop: int, line0: int, scratch: Scratch | None = None
+    ) -> None:
+        """The lines ``text[begin:stop]`` (copied once, into the padded buffer: the memory of
+        ``scratch``, when given, which the next chunk made with it then overwrites)."""
         size = stop - begin
         tail = 0 if text[stop - 1 : stop] == b"\n" else 1
         body = size + tail
-        buf, self.words = text_buffer(PAD + body + PAD)
+        if scratch is None:
+            buf, self.words = text_buffer(PAD + body + PAD)
+        else:
+            self.words = scratch("chunk", (PAD + body + PAD) // 8 + 2, U64)
+            buf = self.words.view(np.uint8)
+            buf[:PAD] = 32
+            buf[PAD + body :] = 32
         buf[PAD : PAD + size] = np.frombuffer(text, dtype=np.uint8, count=size, offset=begin)
         if tail:
             buf[PAD + size] = 10
         self.buf = buf
         self.line0 = line0
-        ws = buf <= 32
-        change = np.zeros(len(buf), dtype=bool)  # a token starts or ends here
-        np.not_equal(ws[:-1], ws[1:], out=change[1:])
-        # the padding is blank, so starts and ends alternate (copied: numpy is slower on
-        # strided arrays, and these are read many times)
-        bounds = np.flatnonzero(change)
-        self.start = bounds[0::2].copy()
-        self.end = bounds[1::2].copy()
-        del bounds
-        # Single blanks between tokens (what writers write) and no blank line: a line ends at
-        # each token followed by '\n', and no per-byte search for line breaks is needed.
-        inner = ws[PAD : PAD + body]
-        doubled = np.logical_and(inner[:-1], inner[1:], out=change[: body - 1])
-        if not inner[0] and not doubled.any():
-            last = np.flatnonzero(buf.take(self.end) == 10)
+        # Blank bytes, from the padding byte before the text (so a token starts after each);
+        # tokens lie between consecutive blanks that are not neighbours.  One search over the
+        # bytes, then work on the (several times fewer) blanks only.
+        text_bytes = buf[PAD - 1 : PAD + body]
+        if scratch is None:
+            sep = np.flatnonzero(text_bytes <= 32)
+        else:
+            blank = np.less_equal(text_bytes, 32, out=scratch("blank", body + 1, bool))
+            sep = np.flatnonzero(blank)
+        sep += PAD - 1
+        if scratch is None:
+            gap = sep[1:] - sep[:-1]
+        else:
+            gap = np.subtract(sep[1:], sep[:-1], out=scratch("gap", len(sep) - 1))
+        if int(gap.min(initial=2)) >= 2:
+            # Single blanks (what writers write): every blank ends a token, a line ends at
+            # each token followed by '\n', and there is no blank line.
+            self.sep: np.ndarray | None = sep
+            self._start: np.ndarray | None = None  # made when asked for
+            self.end = sep[1:]
+            if scratch is None:
+                last = np.flatnonzero(buf.take(self.end) == 10)
+            else:
+                ends = buf.take(self.end, out=scratch("ends", len(self.end), np.uint8), mode="clip")
+                last = np.flatnonzero(np.equal(ends, 10, out=scratch("breaks", len(ends), bool)))
             self.per_line = np.diff(last, prepend=-1)
             self.first_token = last + 1
             self.first_token -= self.per_line
             self.blank_lines = False
-        else:
-            before = np.searchsorted(self.start, np.flatnonzero(buf == 10))
-            self.per_line = np.diff(before, prepend=0)
-            self.first_token = before - self.per_line
-            self.blank_lines = bool((self.per_line == 0).any())
+            return
+        self.sep = None
+        token = np.flatnonzero(gap >= 2)
+        self._start = sep.take(token)
+        self._start += 1
+        token += 1
+        self.end = sep.take(token)
+        before = np.searchsorted(self.start, np.flatnonzero(buf == 10))
+        self.per_line = np.diff(before, prepend=0)
+        self.first_token = before - self.per_line
+        self.blank_lines = bool((self.per_line == 0).any())
+
+    @property
+    def start(self) -> np.ndarray:
+        """``(T,)`` int64 byte offsets in ``buf`` of each token."""
+        if self._start is None:
+            assert self.sep is not None
+            self._start = self.sep[:-1] + 1
+        return self._start
 
     def lines(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | slice]:
         """``(first token, token count, line index)`` of the lines holding tokens (the index is
@@ -129,8 +168,11 @@ class Chunk:
 
     def floats_at(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
         """float64 values of the tokens ``buf[start:end]`` (see :meth:`floats`)."""
-        if len(start) == 0:
-            return np.zeros(0, dtype=np.float64)
+        if len(start) < PYTHON_BELOW:  # a few (slow ones left by a block): the numpy paths'
+            # fixed cost of some fifty calls exceeds Python's per token
+            values = np.zeros(len(start), dtype=np.float64)
+            self._exact(values, start, end, np.arange(len(start)), float)
+            return values
         values, slow = parse_plain_floats(self.buf, self.words, start, end)
         if not slow.any():
             return values
@@ -195,8 +237,9 @@ class Chunk:
             raise BadNumber(int(where[e.position]), e.token) from None
 
 
-def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
-    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks."""
+def chunks(text: bytes, begin: int = 0, scratch: Scratch | None = None) -> Iterator[Chunk]:
+    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks (each in the memory of
+    ``scratch`` when given: then a chunk is valid only until the next one is made)."""
     pos, line0 = begin, 0
     size = len(text)
     while pos < size:
@@ -206,7 +249,7 @@ def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
             if cut < 0:
                 cut = text.find(b"\n", stop)
             stop = size if cut < 0 else cut + 1
-        chunk = Chunk(text, pos, stop, line0)
+        chunk = Chunk(text, pos, stop, line0, scratch)
         line0 += len(chunk.per_line)
         pos = stop
         yield chunk
