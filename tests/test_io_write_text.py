@@ -205,3 +205,14 @@ def test_index_lines_at_digit_count_boundaries(lines, prefix):
     head = [prefix.decode()] if prefix else []
     want = "".join(" ".join(head + list(map(str, line))) + "\n" for line in lines)
     assert int_lines(tokens, per_line, prefix) == want.encode()
+
+
+def test_sixteen_and_seventeen_digits_are_pythons_repr():
+    """Between 1e-6 and 1e15 the 16- and 17-digit decimals are settled exactly (Dekker's
+    product with an exact power of ten): 1e5 doubles of random bits there print as ``repr``,
+    no exceptions."""
+    rng = np.random.default_rng(11)
+    x = rng.choice([-1.0, 1.0], 100_000) * 10.0 ** rng.uniform(-6, 15, 100_000)
+    x = (x.view(np.int64) ^ rng.integers(0, 2**20, len(x))).view(np.float64)  # any last bits
+    want = "".join(f"{v!r}\n" for v in x.tolist()).encode()
+    assert float_lines(x.reshape(-1, 1), b"") == want

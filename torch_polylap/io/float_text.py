@@ -9,6 +9,11 @@ numpy operations on whole arrays:
   exponent, ``10**(14 - e)`` an exact double), is the only candidate, and one division
   ``s / 10**(14 - e)`` settles exactly whether it reads back as ``x`` (both operands are
   exact, so the quotient is the correctly rounded decimal);
+* 16 and 17 digits with ``-6 <= e <= 14``: Dekker's product with the exact ``10**(15 - e)``
+  and ``10**(16 - e)`` gives the nearest 16- and 17-digit significands exactly; the 16-digit
+  one (a double below ``2**53``) is checked by one division as above; where it fails, the
+  nearest 17-digit decimal is ``repr``'s and reads back as ``x`` by arithmetic alone (it is
+  within ``5e-17 * |x|``, half the spacing of doubles at least ``2**-54 * |x|``);
 * the others: ``|x|`` scaled by ``10**k`` (a double-double power of ten and Dekker's exact
   product: about 106 correct bits) gives the integer part and fraction of
   ``|x| * 10**(16 - e)``; from them the 17-, 16- and 15-digit significands rounded to nearest
@@ -17,7 +22,8 @@ numpy operations on whole arrays:
   conversion (:func:`.numparse.decimal_to_double`; Python's ``float`` for the few it leaves
   undecided): it must give ``x`` again, else Python's ``repr`` prints that number, as it does
   ``nan``, infinities, subnormals and magnitudes beyond ``1e290``.  The exact round trip is
-  thus guaranteed by a check, not by the arithmetic before it;
+  thus guaranteed by a check, or for the 17-digit decimals above by their exact rounding,
+  not by approximate arithmetic;
 * text: the digits four at a time from a table of ASCII, the decimal point put in with byte
   masks and shifts, laid out as ``repr`` does (positional for exponents ``-4 <= e < 16``,
   else ``d.ddde+XX``) in fixed 32-byte records, every piece at a fixed place (the lead
@@ -75,6 +81,8 @@ def _power_table() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 _H, _HH, _HL, _LO = _power_table()
 _SPLIT = 134217729.0  # 2**27 + 1: Veltkamp's split into two 26-bit halves
+# the exact powers 10**0 to 10**22, split for Dekker's product
+_P_HI, _P_LO = (np.array(t) for t in zip(*(_split26(float(10**k)) for k in range(23)), strict=True))
 _EXPONENT = U64(0x7FF0000000000000)
 _HALF_ULP = U64(53 << 52)
 
@@ -102,17 +110,65 @@ def _scaled(ax: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 def _decimals(ax: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For positive doubles in ``[_FAST_MIN, _FAST_MAX)``: ``(N, D, e, ok)``: the shortest
     decimal that reads back as ``ax`` (:func:`_short_decimals` where it has at most 15
-    significant digits, else :func:`_long_decimals`), its significand padded to 17 digits
+    significant digits, else :func:`_medium_decimals`, else :func:`_long_decimals`), its
+    significand padded to 17 digits
     (``N``, uint64), its count ``D`` of digits without trailing zeros, and the decimal
     exponent ``e`` of its first digit (the number is ``N * 10**(e - 16)``).  ``ok`` is False
     where no decimal was found that reads back as ``ax`` (``N``, ``D``, ``e`` are then
     meaningless: the caller prints those with ``repr``)."""
     e = np.floor(np.log10(ax)).astype(np.int64)
     n17, digits, e, short = _short_decimals(ax, e)
-    long = np.flatnonzero(~short)
-    if len(long):
-        n17[long], digits[long], e[long], short[long] = _long_decimals(ax[long], e[long])
+    rest = np.flatnonzero(~short)
+    if len(rest):
+        n17[rest], digits[rest], short[rest] = _medium_decimals(ax[rest], e[rest])
+        long = rest[~short[rest]]
+        if len(long):
+            n17[long], digits[long], e[long], short[long] = _long_decimals(ax[long], e[long])
     return n17, digits, e, short
+
+
+def _exact_product(ax: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(p, err)``: ``ax * 10**k = p + err`` exactly (``0 <= k <= 22``: ``10**k`` is a double;
+    Dekker's product, ``ax`` split by Veltkamp)."""
+    c = ax * _SPLIT
+    ah = c - (c - ax)
+    al = ax - ah
+    hh, hl = _P_HI.take(k), _P_LO.take(k)
+    p = ax * (hh + hl)
+    err = ((ah * hh - p) + ah * hl + al * hh) + al * hl
+    return p, err
+
+
+def _medium_decimals(ax: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(N, D, ok)`` of :func:`_decimals` for doubles whose shortest decimal has more than 15
+    digits, where ``e`` (``floor(log10(ax))`` or one off) is in ``[-6, 14]`` (``ok`` False
+    elsewhere, and where ``e`` is off or the 16-digit candidate is not below ``2**53``).
+
+    With ``10**k`` exact, Dekker's product gives ``ax * 10**k`` exactly as ``p + err``, so the
+    16- and 17-digit significands nearest ``ax`` (ties to even) follow exactly.  The 16-digit
+    one, a double below ``2**53``, reads back as ``ax`` exactly when one division says so (as
+    in :func:`_short_decimals`); if it does not, no 16-digit decimal does, and the nearest
+    17-digit one is ``repr``'s: a 17-digit decimal within half a unit of its last digit of
+    ``ax`` is always within half the spacing of doubles (``5e-17 * ax`` against at least
+    ``2**-54 * ax``), so it reads back as ``ax`` without a check."""
+    ok = (e >= -6) & (e <= 14)
+    k = np.clip(15 - e, 0, 21)
+    p, err = _exact_product(ax, k)
+    s = np.rint(p)
+    d = (p - s) + err  # ax * 10**k - s: exact but next to a half (the rare blurred ties)
+    half = s * 0.5
+    odd = np.floor(half) != half  # (np.fmod is a libm call per element)
+    s += (d > 0.5) | ((d == 0.5) & odd)
+    s -= (d < -0.5) | ((d == -0.5) & odd)
+    ok &= (s >= 1e15) & (s < 2.0**53)
+    sixteen = s / _POW10_FLOAT.take(k) == ax
+    p, err = _exact_product(ax, k + 1)  # p an integer: at least 1e16 > 2**53 where ok
+    r = np.rint(np.clip(err, -64.0, 64.0))  # (the clip only where not ok: |err| <= 8 else)
+    n17 = np.minimum(p, 1e17).astype(np.int64) + r.astype(np.int64)
+    ok &= (n17 >= _POW10_INT[16]) & (n17 < _POW10_INT[17])
+    n16 = np.minimum(s, 1e16).astype(np.int64) * 10
+    n17 += sixteen * (n16 - n17)
+    return n17.astype(U64), 17 - sixteen.astype(np.int64), ok
 
 
 def _short_decimals(
@@ -134,9 +190,12 @@ def _short_decimals(
     ok &= s < 1e15  # at most 15 digits: e was not one too small
     ok &= s >= 1e13  # at least 14: e was at most one too big
     ok &= (k >= 0) & (k <= 22)
+    at = np.flatnonzero(ok)  # the rest below on these only
+    s = s[at]
     fewer = s < 1e14  # e was one too big
-    e = e - fewer
-    digits = 15 - fewer
+    e = e.copy()
+    e[at] -= fewer
+    count = 15 - fewer
     # trailing zeros in doubles: s / 10**k is an integer exactly when 10**k divides s (the
     # quotient of s < 1e15 is correctly rounded, at least 10**-k off an integer otherwise)
     for p in (8, 4, 2, 1):
@@ -145,9 +204,11 @@ def _short_decimals(
         q -= s
         q *= zeros
         s += q
-        digits -= p * zeros
-    n17 = np.minimum(s, 1e15).astype(U64)  # (the others are not used)
-    n17 *= _POW10_INT.take(17 - digits).astype(U64)
+        count -= p * zeros
+    n17 = np.zeros(len(ax), dtype=U64)
+    n17[at] = s.astype(U64) * _POW10_INT.take(17 - count).astype(U64)
+    digits = np.full(len(ax), 17, dtype=np.int64)
+    digits[at] = count
     return n17, digits, e, ok
 
 
