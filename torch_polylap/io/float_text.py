@@ -363,7 +363,6 @@ def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
     last), as a uint8 array."""
     rows, m = values.shape
     x = values.reshape(-1)
-    n = len(x)
     ax = np.abs(x)
     fast = (ax >= _FAST_MIN) & (ax < _FAST_MAX)
     if fast.all():
@@ -424,16 +423,13 @@ def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
             | (mag % 10 + 48) << 32
         ).astype(U64)
         text <<= U64(16)  # to bytes 2-6 of the word (a zero byte for a 2-digit exponent)
-        place = rec.reshape(n, 4)  # a copy unless one number a line: assigned back below
-        place[sci, 3] |= text
-        rec[...] = place.reshape(rows, m, 4)
+        rec[sci // m, sci % m, 3] |= text
 
     if len(slow):  # nan, infinities, subnormals, huge and the few misjudged: Python's repr
         texts = np.array([repr(v).encode() for v in x[slow].tolist()], dtype="S24")
-        place = rec.reshape(n, 4)
-        place[slow, :3] = texts.view(U64).reshape(-1, 3)
-        place[slow, 3] &= U64(0xFF << 56)  # the separator
-        rec[...] = place.reshape(rows, m, 4)
+        row, col = slow // m, slow % m
+        rec[row, col, :3] = texts.view(U64).reshape(-1, 3)
+        rec[row, col, 3] &= U64(0xFF << 56)  # the separator
     return lines.view(np.uint8).reshape(-1)
 
 
