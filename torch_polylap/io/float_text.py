@@ -355,6 +355,20 @@ _LEAD_WORD = np.array(
 )
 
 
+def _insert_point(w: list[np.ndarray], point: np.ndarray) -> None:
+    """Put a decimal point at byte ``point`` (0-23) of the three words ``w`` of digits (in
+    place), the bytes from there on one byte later (the last one dropped)."""
+    carry = U64(0)
+    for k in range(3):
+        kept = w[k] & _KEEP[k].take(point)
+        moved = w[k] ^ kept
+        kept |= moved << U64(8)
+        kept |= _POINT[k].take(point)
+        kept |= carry
+        carry = moved >> U64(56)
+        w[k] = kept
+
+
 def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
     """The lines of :func:`float_lines` for the ``(rows, m)`` ``values``, with zero bytes in
     between (the text has none), to be dropped: per line a word of ``prefix`` (right-aligned)
@@ -376,7 +390,7 @@ def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
         e[other] = 0
         ok[other] = x[other] == 0
     slow = np.flatnonzero(~ok)
-    w = _digit_words(n17)
+    w = list(_digit_words(n17))
 
     # blends, not np.where (see _long_decimals)
     positional = (e >= -4) & (e < 16)
@@ -384,7 +398,7 @@ def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
     # the point's place in the digits (24: none): positional after the units digit (none below
     # one: the lead word has "0."), else after the first digit unless it is the only one
     point = 1 + 23 * (digits == 1)
-    point += positional * (e + 1 + 23 * below_one - point)
+    point += positional * (e + 1 + below_one * (23 - e) - point)
     # the end of the digits with the point: a positional number has its digits, zeros up to
     # the units (e >= 0) and a point, or a zero after it ("1.0"); the others their digits and
     # a point after the first if there are more
@@ -396,16 +410,18 @@ def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
     lines[:, 0] = int.from_bytes(prefix.rjust(8, b"\0"), "little")
     rec = lines[:, 1:].reshape(rows, m, 4)
     rec[:, :, 0] = _LEAD_WORD.take(lead_key).reshape(rows, m)
-    carry = U64(0)
+    # the point, on the numbers that have one in their digits (not those below one)
+    dotted = np.flatnonzero(point < 24)
+    if len(dotted) == len(point):
+        _insert_point(w, point)
+    elif len(dotted):
+        part = [word[dotted] for word in w]
+        _insert_point(part, point[dotted])
+        for word, done in zip(w, part, strict=True):
+            word[dotted] = done
     for k in range(3):
-        kept = w[k] & _KEEP[k].take(point)
-        moved = w[k] ^ kept
-        kept |= moved << U64(8)
-        kept |= _POINT[k].take(point)
-        kept |= carry
-        carry = moved >> U64(56)
-        kept &= _ZONE[k].take(zone)
-        rec[:, :, k + 1] = kept.reshape(rows, m)
+        w[k] &= _ZONE[k].take(zone)
+        rec[:, :, k + 1] = w[k].reshape(rows, m)
     # the exponent ("e-05", "e+100") at the record's bytes 26-30 and the separator at byte 31,
     # whatever the digits' length: the zero bytes in between are dropped
     rec[:, :-1, 3] |= U64(ord(" ") << 56)
