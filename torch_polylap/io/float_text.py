@@ -419,9 +419,9 @@ def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
         _insert_point(part, point[dotted])
         for word, done in zip(w, part, strict=True):
             word[dotted] = done
-    for k in range(3):
-        w[k] &= _ZONE[k].take(zone)
-        rec[:, :, k + 1] = w[k].reshape(rows, m)
+    zone = zone.reshape(rows, m)
+    for k in range(3):  # straight into the lines
+        np.bitwise_and(w[k].reshape(rows, m), _ZONE[k].take(zone), out=rec[:, :, k + 1])
     # the exponent ("e-05", "e+100") at the record's bytes 26-30 and the separator at byte 31,
     # whatever the digits' length: the zero bytes in between are dropped
     rec[:, :-1, 3] |= U64(ord(" ") << 56)

@@ -129,16 +129,16 @@ def _int_words(
     low = v - high * np.uint64(10**4)
     low += np.minimum(high, np.uint64(1)) * np.uint64(10**4)
     w = _LOW4.take(low)
-    w |= _HIGH3.take(high)
-    heads = np.cumsum(per_line) - per_line
     if prefix:
         out = np.empty(len(w) + len(per_line), dtype=np.uint64)
-        head_at = heads + np.arange(len(per_line))
         if (per_line == per_line[0]).all():  # one degree: a line is a row
             rows = out.reshape(len(per_line), -1)
             rows[:, 0] = _word(b"\n" + prefix)
-            rows[:, 1:] = w.reshape(len(per_line), -1)
+            shape = (len(per_line), -1)
+            np.bitwise_or(w.reshape(shape), _HIGH3.take(high).reshape(shape), out=rows[:, 1:])
         else:
+            w |= _HIGH3.take(high)
+            head_at = np.cumsum(per_line) - per_line + np.arange(len(per_line))
             out[head_at] = _word(b"\n" + prefix)
             is_token = np.ones(len(out), dtype=bool)
             is_token[head_at] = False
@@ -147,6 +147,8 @@ def _int_words(
             out[0] = _word(prefix)
     else:
         out = w
+        out |= _HIGH3.take(high)
+        heads = np.cumsum(per_line) - per_line
         first = out[heads]
         space = first & (np.uint64(0) - first)  # the lowest bit set: bit 5 of the space
         line_break = (space >> np.uint64(5)) * np.uint64(ord("\n"))
