@@ -369,12 +369,12 @@ def _insert_point(w: list[np.ndarray], point: np.ndarray) -> None:
         w[k] = kept
 
 
-def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
+def _records(values: np.ndarray, prefix: bytes, lines: np.ndarray) -> np.ndarray:
     """The lines of :func:`float_lines` for the ``(rows, m)`` ``values``, with zero bytes in
     between (the text has none), to be dropped: per line a word of ``prefix`` (right-aligned)
     and per number a 32-byte record of its text (the lead word, then the digits from byte 8,
     or ``repr``'s text from byte 0) and separator (a space, or a line break after a line's
-    last), as a uint8 array."""
+    last), written into ``lines`` (uint64, ``(rows, 1 + 4 m)``) and returned as uint8."""
     rows, m = values.shape
     x = values.reshape(-1)
     ax = np.abs(x)
@@ -406,7 +406,6 @@ def _records(values: np.ndarray, prefix: bytes) -> np.ndarray:
     zone += positional * (np.maximum(digits, e + 2) + 1 - below_one - zone)
     lead_key = (positional & below_one) * -e
     lead_key += 5 * np.signbit(x)
-    lines = np.empty((rows, 1 + 4 * m), dtype=U64)
     lines[:, 0] = int.from_bytes(prefix.rjust(8, b"\0"), "little")
     rec = lines[:, 1:].reshape(rows, m, 4)
     rec[:, :, 0] = _LEAD_WORD.take(lead_key).reshape(rows, m)
@@ -473,7 +472,10 @@ def float_pieces(values: np.ndarray, prefix: bytes) -> list[bytes | memoryview]:
     if len(prefix) > 8 or 0 in prefix:
         raise ValueError("float_lines takes a prefix of at most 8 bytes, none zero")
     pieces: list[bytes | memoryview] = []
+    # one buffer for every chunk: a fresh one costs a page fault every 4 kB
+    buffer = np.empty((min(n, _CHUNK_ROWS), 1 + 4 * m), dtype=U64)
     for lo in range(0, n, _CHUNK_ROWS):
-        text = _records(values[lo : lo + _CHUNK_ROWS], prefix)
+        chunk = values[lo : lo + _CHUNK_ROWS]
+        text = _records(chunk, prefix, buffer[: len(chunk)])
         pieces.append(memoryview(text[text != 0]))
     return pieces

@@ -82,6 +82,7 @@ def int_pieces(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> Piece
     if per_line.min() < 1 or len(prefix) > 6 or tokens.max() >= 10**8:
         return [_int_lines_by_place(tokens, per_line, prefix)]
     words = tokens.max() < 10**7
+    buffer = np.empty(0, dtype=np.uint64)  # one for every chunk: fresh ones cost page faults
     pieces: Pieces = []
     line_end = np.cumsum(per_line)
     for lo in range(0, len(per_line), _INT_CHUNK_LINES):
@@ -89,7 +90,9 @@ def int_pieces(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> Piece
         first = int(line_end[lo - 1]) if lo else 0
         chunk = tokens[first : line_end[hi - 1]]
         if words:
-            text = _int_words(chunk, per_line[lo:hi], prefix, first_line=lo == 0)
+            if len(buffer) < len(chunk) + hi - lo:
+                buffer = np.empty(len(chunk) + hi - lo, dtype=np.uint64)
+            text = _int_words(chunk, per_line[lo:hi], prefix, lo == 0, buffer)
             pieces.append(memoryview(text[text != 0]))
         else:
             rec, keep = _int_records(chunk, per_line[lo:hi], prefix, first_line=lo == 0)
@@ -117,20 +120,21 @@ _HIGH3 = np.array([0] + [_word(b" %d" % v) >> 32 for v in range(1, 1000)], dtype
 
 
 def _int_words(
-    tokens: np.ndarray, per_line: np.ndarray, prefix: bytes, first_line: bool
+    tokens: np.ndarray, per_line: np.ndarray, prefix: bytes, first_line: bool, buffer: np.ndarray
 ) -> np.ndarray:
     """The text of :func:`int_lines` (tokens below ``10**7``, lines not empty, no final line
     break) as bytes with zero bytes in between, to be dropped: per token a word (its space
     and digits, right-aligned, from two table lookups), per line with a prefix a word of the
     line break and the prefix before the line's tokens; without one, the line break takes the
-    place of the first token's space.  ``first_line``: no line break before the first line."""
+    place of the first token's space.  ``first_line``: no line break before the first line.
+    With a prefix the words go to the start of ``buffer`` (uint64, long enough)."""
     v = tokens.astype(np.uint64)
     high = v // np.uint64(10**4)
     low = v - high * np.uint64(10**4)
     low += np.minimum(high, np.uint64(1)) * np.uint64(10**4)
     w = _LOW4.take(low)
     if prefix:
-        out = np.empty(len(w) + len(per_line), dtype=np.uint64)
+        out = buffer[: len(w) + len(per_line)]
         if (per_line == per_line[0]).all():  # one degree: a line is a row
             rows = out.reshape(len(per_line), -1)
             rows[:, 0] = _word(b"\n" + prefix)
