@@ -140,3 +140,79 @@ def test_eight_digits_at_once(values):
     """The integer steps that turn a number below 10**8 into its eight ASCII digits."""
     words = ascii8(np.array(values, dtype=np.uint64))
     assert words.astype("<u8").tobytes() == "".join(f"{v:08d}" for v in values).encode()
+
+
+# decimals of at most 15 significant digits below 1e15 (above, ties at powers of ten are among
+# the documented exceptions)
+short_decimal = st.builds(
+    lambda m, q, neg: float(f"{'-' if neg else ''}{m}e{q}"),
+    st.integers(1, 10**15 - 1),
+    st.integers(-40, 0),
+    st.booleans(),
+)
+
+
+@PROPERTY
+@given(st.lists(short_decimal, min_size=1, max_size=60), st.sampled_from([1, 3]))
+def test_short_decimals_are_pythons_repr(xs, width):
+    """Short decimals (as read from files written with few digits) take the formatter's
+    one-division path; it settles them exactly, with no exceptions to ``repr``."""
+    values = np.array(xs[: len(xs) // width * width] or xs[:1] * width).reshape(-1, width)
+    want = "".join("vt " + " ".join(map(repr, row)) + "\n" for row in values.tolist())
+    assert float_lines(values, b"vt ") == want.encode()
+
+
+def test_next_to_powers_of_ten_are_pythons_repr():
+    """Where ``floor(log10(x))`` can be one off: powers of ten and their neighbouring doubles
+    (up to 1e22: the double nearest 1e23 is one of the documented ties)."""
+    tens = np.array([float(f"1e{k}") for k in range(-30, 23)])
+    values = np.concatenate([tens, np.nextafter(tens, 0), np.nextafter(tens, np.inf)])
+    values = np.concatenate([values, -values]).reshape(-1, 1)
+    want = "".join(f"{x!r}\n" for x in values.reshape(-1).tolist()).encode()
+    assert float_lines(values, b"") == want
+
+
+def test_longest_texts_between_others():
+    """24-character texts (``repr``'s, below the bulk path's range) and the longest of the
+    bulk path, among others in lines of three: each keeps its separator."""
+    longest = [-2.2250738585072014e-308, -1.2345678901234567e-299, -0.00012345678901234568]
+    bulk = [-1.2345678901234567e-200, -1.7976931348623157e308, -1.2345678901234567e200]
+    values = np.array([longest, bulk, longest[::-1], [1.5e-7, 1e22, -3e-5]])
+    want = "".join("v " + " ".join(map(repr, row)) + "\n" for row in values.tolist())
+    assert float_lines(values, b"v ") == want.encode()
+
+
+@PROPERTY
+@given(
+    st.lists(
+        st.lists(
+            st.sampled_from([0, 1, 9, 10, 99, 999, 1000, 9999, 10**4, 10**5 - 1, 10**5])
+            | st.sampled_from([10**6 - 1, 10**6, 10**7 - 1, 10**7, 10**8 - 1, 10**8])
+            | st.integers(0, 10**7),
+            min_size=1,
+            max_size=6,
+        ),
+        min_size=1,
+        max_size=40,
+    ),
+    st.sampled_from([b"", b"f", b"ab", b"abcdef"]),
+)
+def test_index_lines_at_digit_count_boundaries(lines, prefix):
+    """Face indices around every change of digit count (the word path below ``10**7``, the
+    record path below ``10**8``) format as ``str`` does, lines of one or mixed degrees."""
+    tokens = np.array([t for line in lines for t in line], dtype=np.int64)
+    per_line = np.array([len(line) for line in lines], dtype=np.int64)
+    head = [prefix.decode()] if prefix else []
+    want = "".join(" ".join(head + list(map(str, line))) + "\n" for line in lines)
+    assert int_lines(tokens, per_line, prefix) == want.encode()
+
+
+def test_sixteen_and_seventeen_digits_are_pythons_repr():
+    """Between 1e-6 and 1e15 the 16- and 17-digit decimals are settled exactly (Dekker's
+    product with an exact power of ten): 1e5 doubles of random bits there print as ``repr``,
+    no exceptions."""
+    rng = np.random.default_rng(11)
+    x = rng.choice([-1.0, 1.0], 100_000) * 10.0 ** rng.uniform(-6, 15, 100_000)
+    x = (x.view(np.int64) ^ rng.integers(0, 2**20, len(x))).view(np.float64)  # any last bits
+    want = "".join(f"{v!r}\n" for v in x.tolist()).encode()
+    assert float_lines(x.reshape(-1, 1), b"") == want

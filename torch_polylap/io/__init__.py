@@ -188,7 +188,8 @@ def write_mesh(
     """Write a polygon mesh as OBJ, OFF or PLY, chosen by the file extension, atomically.
 
     Coordinates are written as decimals that read back as the same doubles (text formats; each
-    is checked by parsing it back) or as doubles (binary PLY), so reading the file back with
+    is checked by parsing it back, or is a 17-digit decimal rounded exactly, which always does)
+    or as doubles (binary PLY), so reading the file back with
     ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The decimals are the shortest
     that do (Python's ``repr``: at most 17 significant digits) but in rare cases one digit
     longer (see :mod:`torch_polylap.io.float_text`).  The

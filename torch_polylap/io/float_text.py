@@ -4,20 +4,34 @@ The text writers print millions of coordinates; Python's ``repr`` of each (the s
 round-trip decimal) costs about a microsecond a number.  This module gives the same text with
 numpy operations on whole arrays:
 
-* candidates: ``|x|`` scaled by ``10**k`` (a double-double power of ten and Dekker's exact
+* short decimals (at most 15 significant digits, as files written with few digits hold):
+  ``s``, ``|x| * 10**(14 - e)`` rounded to an integer in double arithmetic (``e`` the decimal
+  exponent, ``10**(14 - e)`` an exact double), is the only candidate, and one division
+  ``s / 10**(14 - e)`` settles exactly whether it reads back as ``x`` (both operands are
+  exact, so the quotient is the correctly rounded decimal);
+* 16 and 17 digits with ``-6 <= e <= 14``: Dekker's product with the exact ``10**(15 - e)``
+  and ``10**(16 - e)`` gives the nearest 16- and 17-digit significands exactly; the 16-digit
+  one (a double below ``2**53``) is checked by one division as above; where it fails, the
+  nearest 17-digit decimal is ``repr``'s and reads back as ``x`` by arithmetic alone (it is
+  within ``5e-17 * |x|``, half the spacing of doubles at least ``2**-54 * |x|``);
+* the others: ``|x|`` scaled by ``10**k`` (a double-double power of ten and Dekker's exact
   product: about 106 correct bits) gives the integer part and fraction of
-  ``|x| * 10**(16 - e)``, ``e`` the decimal exponent; from them the 17-, 16- and 15-digit
-  significands rounded to nearest (ties to even), and the shortest one whose distance to
-  ``|x|`` is within half the spacing of doubles there is chosen;
-* verification: every chosen decimal is parsed back with the readers' exact decimal-to-double
+  ``|x| * 10**(16 - e)``; from them the 17-, 16- and 15-digit significands rounded to nearest
+  (ties to even), and the shortest one whose distance to ``|x|`` is within half the spacing
+  of doubles there is chosen, then parsed back with the readers' exact decimal-to-double
   conversion (:func:`.numparse.decimal_to_double`; Python's ``float`` for the few it leaves
-  undecided) and must give ``x`` again, else Python's ``repr`` prints that number, as it does
+  undecided): it must give ``x`` again, else Python's ``repr`` prints that number, as it does
   ``nan``, infinities, subnormals and magnitudes beyond ``1e290``.  The exact round trip is
-  thus guaranteed by the check itself, not by the arithmetic before it;
-* text: the digits eight at a time as ASCII (integer "SWAR" steps), the decimal point put in
-  with byte masks and shifts, laid out as ``repr`` does (positional for exponents
-  ``-4 <= e < 16``, else ``d.ddde+XX``) in fixed 40-byte records, which a byte mask then
-  packs into the file's text.
+  thus guaranteed by a check, or for the 17-digit decimals above by their exact rounding,
+  not by approximate arithmetic;
+* text: the digits four at a time from a table of ASCII, the decimal point put in with byte
+  masks and shifts, laid out as ``repr`` does (positional for exponents ``-4 <= e < 16``,
+  else ``d.ddde+XX``) in fixed 32-byte records, every piece at a fixed place (the lead
+  ``-0.000``, the digits, the exponent, the separator) with zero bytes in between, which are
+  then dropped: the file's text has none.
+
+``np.where`` is avoided in favour of blends (``b + m * (a - b)``): it costs several numpy
+passes' worth of time per call.
 
 The text is ``repr``'s (the shortest round-trip decimal, the nearest among those) except in
 rare cases, where a longer decimal, still exact, is written: a shorter one exactly half a
@@ -37,10 +51,10 @@ __all__ = ["ascii8", "float_lines", "float_pieces"]
 
 U64 = np.uint64
 _CHUNK_ROWS = 1 << 15  # lines per chunk: temporaries of a few megabytes, not of the whole mesh
-_W = 40  # bytes per number record: 8 of prefix ("-0.000"), 24 of digits, exponent, separator
 _FAST_MIN, _FAST_MAX = 1e-290, 1e290  # |x| the vectorised path handles
 _KMIN, _KMAX = -290, 308  # powers of ten it scales by
 _POW10_INT = np.array([10**k for k in range(19)], dtype=np.int64)
+_POW10_FLOAT = np.array([float(10**k) for k in range(23)])  # the exact ones
 
 
 def _split26(h: float) -> tuple[float, float]:
@@ -67,6 +81,8 @@ def _power_table() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 _H, _HH, _HL, _LO = _power_table()
 _SPLIT = 134217729.0  # 2**27 + 1: Veltkamp's split into two 26-bit halves
+# the exact powers 10**0 to 10**22, split for Dekker's product
+_P_HI, _P_LO = (np.array(t) for t in zip(*(_split26(float(10**k)) for k in range(23)), strict=True))
 _EXPONENT = U64(0x7FF0000000000000)
 _HALF_ULP = U64(53 << 52)
 
@@ -92,18 +108,133 @@ def _scaled(ax: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def _decimals(ax: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """For positive doubles in ``[_FAST_MIN, _FAST_MAX)``: ``(N, D, e, ok)``: the shortest of
-    the 15-, 16- and 17-digit significands that reads back as ``ax``, padded to 17 digits
+    """For positive doubles in ``[_FAST_MIN, _FAST_MAX)``: ``(N, D, e, ok)``: the shortest
+    decimal that reads back as ``ax`` (:func:`_short_decimals` where it has at most 15
+    significant digits, else :func:`_medium_decimals`, else :func:`_long_decimals`), its
+    significand padded to 17 digits
     (``N``, uint64), its count ``D`` of digits without trailing zeros, and the decimal
     exponent ``e`` of its first digit (the number is ``N * 10**(e - 16)``).  ``ok`` is False
-    where the chosen significand does not read back as ``ax`` (``N``, ``D``, ``e`` are then
-    meaningless: the caller prints those with ``repr``).
+    where no decimal was found that reads back as ``ax`` (``N``, ``D``, ``e`` are then
+    meaningless: the caller prints those with ``repr``)."""
+    e = np.floor(np.log10(ax)).astype(np.int64)
+    n17, digits, e, short = _short_decimals(ax, e)
+    rest = np.flatnonzero(~short)
+    if len(rest):
+        n17[rest], digits[rest], short[rest] = _medium_decimals(ax[rest], e[rest])
+        long = rest[~short[rest]]
+        if len(long):
+            n17[long], digits[long], e[long], short[long] = _long_decimals(ax[long], e[long])
+    return n17, digits, e, short
+
+
+def _exact_product(ax: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(p, err)``: ``ax * 10**k = p + err`` exactly (``0 <= k <= 22``: ``10**k`` is a double;
+    Dekker's product, ``ax`` split by Veltkamp)."""
+    c = ax * _SPLIT
+    ah = c - (c - ax)
+    al = ax - ah
+    hh, hl = _P_HI.take(k), _P_LO.take(k)
+    p = ax * (hh + hl)
+    err = ((ah * hh - p) + ah * hl + al * hh) + al * hl
+    return p, err
+
+
+def _medium_decimals(ax: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(N, D, ok)`` of :func:`_decimals` for doubles whose shortest decimal has more than 15
+    digits, where ``e`` (``floor(log10(ax))`` or one off) is in ``[-6, 14]`` (``ok`` False
+    elsewhere, and where ``e`` is off or the 16-digit candidate is not below ``2**53``).
+
+    With ``10**k`` exact, Dekker's product gives ``ax * 10**k`` exactly as ``p + err``, so the
+    16- and 17-digit significands nearest ``ax`` (ties to even) follow exactly.  The 16-digit
+    one, a double below ``2**53``, reads back as ``ax`` exactly when one division says so (as
+    in :func:`_short_decimals`); if it does not, no 16-digit decimal does, and the nearest
+    17-digit one is ``repr``'s: a 17-digit decimal within half a unit of its last digit of
+    ``ax`` is always within half the spacing of doubles (``5e-17 * ax`` against at least
+    ``2**-54 * ax``), so it reads back as ``ax`` without a check."""
+    ok = (e >= -6) & (e <= 14)
+    k = np.clip(15 - e, 0, 21)
+    p, err = _exact_product(ax, k)
+    s = np.rint(p)
+    d = (p - s) + err  # ax * 10**k - s: exact but next to a half (the rare blurred ties)
+    half = s * 0.5
+    odd = np.floor(half) != half  # (np.fmod is a libm call per element)
+    s += (d > 0.5) | ((d == 0.5) & odd)
+    s -= (d < -0.5) | ((d == -0.5) & odd)
+    ok &= (s >= 1e15) & (s < 2.0**53)
+    sixteen = s / _POW10_FLOAT.take(k) == ax
+    p, err = _exact_product(ax, k + 1)  # p an integer: at least 1e16 > 2**53 where ok
+    r = np.rint(np.clip(err, -64.0, 64.0))  # (the clip only where not ok: |err| <= 8 else)
+    n17 = np.minimum(p, 1e17).astype(np.int64) + r.astype(np.int64)
+    ok &= (n17 >= _POW10_INT[16]) & (n17 < _POW10_INT[17])
+    n16 = np.minimum(s, 1e16).astype(np.int64) * 10
+    n17 += sixteen * (n16 - n17)
+    return n17.astype(U64), 17 - sixteen.astype(np.int64), ok
+
+
+def _short_decimals(
+    ax: np.ndarray, e: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_decimals` where the shortest decimal has at most 15 digits (``ok`` False
+    elsewhere), ``e`` being ``floor(log10(ax))`` or one off.
+
+    ``s``, the double nearest ``ax * 10**k`` (``k = 14 - e``, ``10**k`` exact for
+    ``0 <= k <= 22``) rounded to an integer, is within ``0.18`` of ``ax * 10**k``, so it is
+    the only decimal of at most 15 digits that can read back as ``ax`` (those are at least
+    ``10**-15 * ax`` apart, more than the spacing of doubles).  Whether it does is then
+    settled exactly by one division: ``s`` and ``10**k`` are doubles, so ``s / 10**k``
+    rounds the decimal ``s * 10**-k`` correctly, as reading it does (Clinger)."""
+    k = 14 - e
+    scale = _POW10_FLOAT.take(np.clip(k, 0, 22))
+    s = np.rint(ax * scale)
+    ok = s / scale == ax
+    ok &= s < 1e15  # at most 15 digits: e was not one too small
+    ok &= s >= 1e13  # at least 14: e was at most one too big
+    ok &= (k >= 0) & (k <= 22)
+    at = np.flatnonzero(ok)  # the rest below on these only
+    s = s[at]
+    fewer = s < 1e14  # e was one too big
+    e = e.copy()
+    e[at] -= fewer
+    count = 15 - fewer
+    # trailing zeros in doubles: s / 10**k is an integer exactly when 10**k divides s (the
+    # quotient of s < 1e15 is correctly rounded, at least 10**-k off an integer otherwise)
+    for p in (8, 4, 2, 1):
+        q = s / _POW10_FLOAT[p]
+        zeros = np.floor(q) == q
+        q -= s
+        q *= zeros
+        s += q
+        count -= p * zeros
+    n17 = np.zeros(len(ax), dtype=U64)
+    n17[at] = s.astype(U64) * _POW10_INT.take(17 - count).astype(U64)
+    digits = np.full(len(ax), 17, dtype=np.int64)
+    digits[at] = count
+    return n17, digits, e, ok
+
+
+def _strip_zeros(sig: np.ndarray, digits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``sig`` (int64 of ``digits`` <= 17 digits, the first not 0) without its trailing zeros
+    (up to 15), and the count of digits left."""
+    for k in (8, 4, 2, 1):  # halving the count each step
+        q = sig // _POW10_INT[k]
+        zeros = q * _POW10_INT[k] == sig
+        q -= sig  # blends, not np.where (see _long_decimals)
+        q *= zeros
+        sig += q
+        digits = digits - k * zeros
+    return sig, digits
+
+
+def _long_decimals(
+    ax: np.ndarray, e: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_decimals` from the 15-, 16- and 17-digit significands, ``e`` being
+    ``floor(log10(ax))`` or one off.
 
     The candidate is chosen by its distance to ``ax`` against half the spacing of doubles
     there (a shorter candidate within it reads back as ``ax``, except on the short side of a
     power of two), then checked by parsing it back: a misjudged one is never written."""
     bits = ax.view(U64)
-    e = np.floor(np.log10(ax)).astype(np.int64)
     whole, frac, scale = _scaled(ax, 16 - e)
     for _ in range(2):  # log10 can be one off next to a power of ten
         off = np.flatnonzero((whole >= _POW10_INT[17]) | (whole < _POW10_INT[16]))
@@ -116,26 +247,27 @@ def _decimals(ax: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
     reach = ((bits & _EXPONENT) - _HALF_ULP).view(np.float64)
     reach *= scale
     even = (bits & U64(1)) == 0
-    sig = whole + ((frac > 0.5) | ((frac == 0.5) & (whole & 1 == 1)))  # 17 digits, ties to even
+    # np.where costs several times a multiplication (a mispredicted branch per element): the
+    # choices below are blends, b + m * (a - b) for a mask m
+    sig = whole + ((frac > 0.5) | ((frac == 0.5) & ((whole & 1) == 1)))  # 17 digits, ties even
     digits = np.full(len(ax), 17, dtype=np.int64)
     for p in (16, 15):  # shorter ones where they are near enough
         unit = _POW10_INT[17 - p]
         q = whole // unit
         rest = (whole - q * unit) + frac  # ax's distance above q * unit, in 17th-digit units
         half = float(unit) / 2
-        up = (rest > half) | ((rest == half) & (q & 1 == 1))
-        rest = np.where(up, unit - rest, rest)
+        up = (rest > half) | ((rest == half) & ((q & 1) == 1))
+        rest = np.abs(rest - up * float(unit))  # to q + 1 where up (exactly unit - rest)
         near = (rest < reach) | ((rest == reach) & even)
-        sig = np.where(near, q + up, sig)
-        digits = np.where(near, p, digits)
+        q += up
+        q -= sig
+        q *= near
+        sig += q
+        digits -= near * (digits - p)
     carry = sig == _POW10_INT.take(digits)  # rounded up to the next power of ten
     sig[carry] //= 10
     e += carry
-    for k in (8, 4, 2, 1):  # trailing zeros, halving the count each step
-        q = sig // _POW10_INT[k]
-        zeros = q * _POW10_INT[k] == sig
-        sig = np.where(zeros, q, sig)
-        digits -= k * zeros
+    sig, digits = _strip_zeros(sig, digits)
     q = e - digits + 1
     back, undecided = decimal_to_double(sig.astype(U64), q)
     # products too close to a rounding boundary (about one in two hundred): Python decides
@@ -168,13 +300,27 @@ def ascii8(v: np.ndarray) -> np.ndarray:
     return w | _ASCII_ZEROS
 
 
+# The four decimal digits of 0 <= v < 10**4 (zero-padded) as ASCII in the low half of a word
+_ASCII4 = np.array([int.from_bytes(b"%04d" % v, "little") for v in range(10**4)], dtype=U64)
+
+
+def _ascii8_table(v: np.ndarray) -> np.ndarray:
+    """:func:`ascii8` by two lookups of four digits (fewer numpy passes than its steps)."""
+    high = v // U64(10**4)
+    low = v - high * U64(10**4)
+    w = _ASCII4.take(low)
+    w <<= U64(32)
+    w |= _ASCII4.take(high)
+    return w
+
+
 def _digit_words(n17: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The 17 digits of each ``n17 < 10**17`` as ASCII bytes 0-16 of three words."""
     lead = n17 // U64(10**16)
     rest = n17 - lead * U64(10**16)
     a = rest // U64(10**8)
-    b = ascii8(rest - a * U64(10**8))
-    a = ascii8(a)
+    b = _ascii8_table(rest - a * U64(10**8))
+    a = _ascii8_table(a)
     return (lead + U64(48)) | (a << U64(8)), (a >> U64(56)) | (b << U64(8)), b >> U64(56)
 
 
@@ -193,9 +339,11 @@ _POINT = [
     np.array([0x2E << (8 * (p - 8 * k)) if 0 <= p - 8 * k < 8 else 0 for p in range(25)], U64)
     for k in range(3)
 ]
-
-# Record bytes kept: a range [a, b) of the 40, a <= 8, as a row of this table (index a * 41 + b)
-_MASKS = np.array([[a <= i < b for i in range(_W)] for a in range(9) for b in range(_W + 1)])
+# For text ending at byte z (0-24) of the three words: by word k, indexed by z, its bytes kept
+_ZONE = [
+    np.array([_low_bytes(min(max(z - 8 * k, 0), 8), 0xFF) for z in range(25)], dtype=U64)
+    for k in range(3)
+]
 
 # Text before the digits: "-" (sign) then "0." and zeros (exponents -1 to -4), right-aligned in
 # the record's first word; key = 5 * sign + (0 for no "0.", else -e)
@@ -205,37 +353,11 @@ _LEADS = [
 _LEAD_WORD = np.array(
     [int.from_bytes(t.encode().rjust(8, b"\0"), "little") for t in _LEADS], dtype=U64
 )
-_LEAD_LEN = np.array([len(t) for t in _LEADS], dtype=np.int64)
 
 
-def _records(x: np.ndarray, width: int, sep_last: bytes) -> tuple[np.ndarray, np.ndarray]:
-    """``(records, keep)``: each number of the row-major ``x`` (``width`` per line) as its text
-    and separator (a space, or ``sep_last`` after a line's last) in a 40-byte record, all in
-    one uint8 array, and the bytes of it to keep."""
-    n = len(x)
-    ax = np.abs(x)
-    fast = (ax >= _FAST_MIN) & (ax < _FAST_MAX)
-    if fast.all():
-        n17, digits, e, ok = _decimals(ax)
-    else:  # the others as 1.0, then zeros as "0.0" and the rest as repr
-        n17, digits, e, ok = _decimals(np.where(fast, ax, 1.0))
-        n17 = np.where(fast, n17, U64(0))
-        digits = np.where(fast, digits, 1)
-        e = np.where(fast, e, 0)
-        ok &= fast | (ax == 0)
-    slow = np.flatnonzero(~ok)
-    w = _digit_words(n17)
-
-    positional = (e >= -4) & (e < 16)
-    below_one = e < 0
-    # the point's place in the digits (24: none), and the digits' bytes with it
-    point = np.where(positional, np.where(below_one, 24, e + 1), np.where(digits == 1, 24, 1))
-    zone = np.where(below_one, digits, np.maximum(digits, e + 2) + 1)
-    zone = np.where(positional, zone, digits + (digits > 1))
-    lead_key = np.where(positional & below_one, -e, 0)
-    lead_key += 5 * np.signbit(x)
-    rec = np.empty((n, _W // 8), dtype=U64)  # every byte kept is written below
-    rec[:, 0] = _LEAD_WORD.take(lead_key)
+def _insert_point(w: list[np.ndarray], point: np.ndarray) -> None:
+    """Put a decimal point at byte ``point`` (0-23) of the three words ``w`` of digits (in
+    place), the bytes from there on one byte later (the last one dropped)."""
     carry = U64(0)
     for k in range(3):
         kept = w[k] & _KEEP[k].take(point)
@@ -243,40 +365,87 @@ def _records(x: np.ndarray, width: int, sep_last: bytes) -> tuple[np.ndarray, np
         kept |= moved << U64(8)
         kept |= _POINT[k].take(point)
         kept |= carry
-        rec[:, k + 1] = kept
         carry = moved >> U64(56)
-    start = 8 - _LEAD_LEN.take(lead_key)
-    end = zone + 8
-    flat = rec.view(np.uint8).reshape(-1)
-    row_at = np.arange(0, n * _W, _W, dtype=np.int64)
+        w[k] = kept
 
+
+def _records(values: np.ndarray, prefix: bytes, lines: np.ndarray) -> np.ndarray:
+    """The lines of :func:`float_lines` for the ``(rows, m)`` ``values``, with zero bytes in
+    between (the text has none), to be dropped: per line a word of ``prefix`` (right-aligned)
+    and per number a 32-byte record of its text (the lead word, then the digits from byte 8,
+    or ``repr``'s text from byte 0) and separator (a space, or a line break after a line's
+    last), written into ``lines`` (uint64, ``(rows, 1 + 4 m)``) and returned as uint8."""
+    rows, m = values.shape
+    x = values.reshape(-1)
+    ax = np.abs(x)
+    fast = (ax >= _FAST_MIN) & (ax < _FAST_MAX)
+    if fast.all():
+        n17, digits, e, ok = _decimals(ax)
+    else:  # the others as 1.0, then zeros as "0.0" and the rest as repr
+        other = np.flatnonzero(~fast)
+        ax[other] = 1.0
+        n17, digits, e, ok = _decimals(ax)
+        n17[other] = 0
+        digits[other] = 1
+        e[other] = 0
+        ok[other] = x[other] == 0
+    slow = np.flatnonzero(~ok)
+    w = list(_digit_words(n17))
+
+    # blends, not np.where (see _long_decimals)
+    positional = (e >= -4) & (e < 16)
+    below_one = e < 0
+    # the point's place in the digits (24: none): positional after the units digit (none below
+    # one: the lead word has "0."), else after the first digit unless it is the only one
+    point = 1 + 23 * (digits == 1)
+    point += positional * (e + 1 + below_one * (23 - e) - point)
+    # the end of the digits with the point: a positional number has its digits, zeros up to
+    # the units (e >= 0) and a point, or a zero after it ("1.0"); the others their digits and
+    # a point after the first if there are more
+    zone = digits + (digits > 1)
+    zone += positional * (np.maximum(digits, e + 2) + 1 - below_one - zone)
+    lead_key = (positional & below_one) * -e
+    lead_key += 5 * np.signbit(x)
+    lines[:, 0] = int.from_bytes(prefix.rjust(8, b"\0"), "little")
+    rec = lines[:, 1:].reshape(rows, m, 4)
+    rec[:, :, 0] = _LEAD_WORD.take(lead_key).reshape(rows, m)
+    # the point, on the numbers that have one in their digits (not those below one)
+    dotted = np.flatnonzero(point < 24)
+    if len(dotted) == len(point):
+        _insert_point(w, point)
+    elif len(dotted):
+        part = [word[dotted] for word in w]
+        _insert_point(part, point[dotted])
+        for word, done in zip(w, part, strict=True):
+            word[dotted] = done
+    zone = zone.reshape(rows, m)
+    for k in range(3):  # straight into the lines
+        np.bitwise_and(w[k].reshape(rows, m), _ZONE[k].take(zone), out=rec[:, :, k + 1])
+    # the exponent ("e-05", "e+100") at the record's bytes 26-30 and the separator at byte 31,
+    # whatever the digits' length: the zero bytes in between are dropped
+    rec[:, :-1, 3] |= U64(ord(" ") << 56)
+    rec[:, -1, 3] |= U64(ord("\n") << 56)
     sci = np.flatnonzero(~positional)
     if len(sci):
         ex = e[sci]
         mag = np.abs(ex)
         big = mag >= 100
-        base = row_at[sci] + end[sci]
-        flat[base] = ord("e")
-        flat[base + 1] = np.where(ex < 0, ord("-"), ord("+"))
-        flat[base + 2] = np.where(big, mag // 100, (mag // 10) % 10) + 48
-        flat[base + 3] = np.where(big, (mag // 10) % 10, mag % 10) + 48
-        flat[base + 4] = mag % 10 + 48  # overwritten by the separator below unless big
-        end[sci] += 4 + big
+        text = (
+            ord("e")
+            | np.where(ex < 0, ord("-"), ord("+")) << 8
+            | big * (mag // 100 + 48) << 16
+            | ((mag // 10) % 10 + 48) << 24
+            | (mag % 10 + 48) << 32
+        ).astype(U64)
+        text <<= U64(16)  # to bytes 2-6 of the word (a zero byte for a 2-digit exponent)
+        rec[sci // m, sci % m, 3] |= text
 
     if len(slow):  # nan, infinities, subnormals, huge and the few misjudged: Python's repr
         texts = np.array([repr(v).encode() for v in x[slow].tolist()], dtype="S24")
-        rec[slow, 1:4] = texts.view(U64).reshape(-1, 3)
-        start[slow] = 8
-        end[slow] = np.char.str_len(texts) + 8
-
-    sep_at = row_at + end
-    flat[sep_at] = ord(" ")
-    last = sep_at[width - 1 :: width]
-    for i, byte in enumerate(sep_last):
-        flat[last + i] = byte
-    end[width - 1 :: width] += len(sep_last) - 1
-    end += 1
-    return rec.view(np.uint8).reshape(-1), _MASKS.take(start * (_W + 1) + end, axis=0).reshape(-1)
+        row, col = slow // m, slow % m
+        rec[row, col, :3] = texts.view(U64).reshape(-1, 3)
+        rec[row, col, 3] &= U64(0xFF << 56)  # the separator
+    return lines.view(np.uint8).reshape(-1)
 
 
 def float_lines(values: np.ndarray, prefix: bytes) -> bytes:
@@ -300,12 +469,13 @@ def float_pieces(values: np.ndarray, prefix: bytes) -> list[bytes | memoryview]:
     n, m = values.shape
     if n == 0:
         return []
-    sep_last = b"\n" + prefix
-    pieces: list[bytes | memoryview] = [prefix]
+    if len(prefix) > 8 or 0 in prefix:
+        raise ValueError("float_lines takes a prefix of at most 8 bytes, none zero")
+    pieces: list[bytes | memoryview] = []
+    # one buffer for every chunk: a fresh one costs a page fault every 4 kB
+    buffer = np.empty((min(n, _CHUNK_ROWS), 1 + 4 * m), dtype=U64)
     for lo in range(0, n, _CHUNK_ROWS):
-        rec, keep = _records(values[lo : lo + _CHUNK_ROWS].reshape(-1), m, sep_last)
-        packed = rec[keep]
-        if lo + _CHUNK_ROWS >= n:  # no line after the last
-            packed = packed[: len(packed) - len(prefix)]
-        pieces.append(memoryview(packed))
+        chunk = values[lo : lo + _CHUNK_ROWS]
+        text = _records(chunk, prefix, buffer[: len(chunk)])
+        pieces.append(memoryview(text[text != 0]))
     return pieces

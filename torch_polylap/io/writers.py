@@ -70,30 +70,98 @@ def int_pieces(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> Piece
     a line break; without a prefix every line must hold a token.
 
     Built with numpy, no Python work per token (Python's ``%d`` formatting of millions of
-    indices takes several times as long): tokens below ``10**8`` in every line (mesh indices)
-    as 16-byte records, packed by a byte mask (:func:`_int_records`); others digit by digit
+    indices takes several times as long): tokens below ``10**7`` in every line (the indices of
+    meshes of up to ten million vertices) as one 8-byte word each (:func:`_int_words`), those
+    below ``10**8`` as 16-byte records (:func:`_int_records`), others digit by digit
     (:func:`_int_lines_by_place`)."""
     if len(per_line) == 0:
         return []
     tokens = np.asarray(tokens, dtype=np.int64)
     if len(tokens) and tokens.min() < 0:
         raise ValueError("int_lines writes non-negative integers only")
-    if len(prefix) <= 6 and per_line.min() >= 1 and tokens.max() < 10**8:
-        pieces: Pieces = []
-        line_end = np.cumsum(per_line)
-        for lo in range(0, len(per_line), _INT_CHUNK_LINES):
-            hi = min(lo + _INT_CHUNK_LINES, len(per_line))
-            first = int(line_end[lo - 1]) if lo else 0
-            rec, keep = _int_records(
-                tokens[first : line_end[hi - 1]], per_line[lo:hi], prefix, first_line=lo == 0
-            )
+    if per_line.min() < 1 or len(prefix) > 6 or tokens.max() >= 10**8:
+        return [_int_lines_by_place(tokens, per_line, prefix)]
+    words = tokens.max() < 10**7
+    buffer = np.empty(0, dtype=np.uint64)  # one for every chunk: fresh ones cost page faults
+    pieces: Pieces = []
+    line_end = np.cumsum(per_line)
+    for lo in range(0, len(per_line), _INT_CHUNK_LINES):
+        hi = min(lo + _INT_CHUNK_LINES, len(per_line))
+        first = int(line_end[lo - 1]) if lo else 0
+        chunk = tokens[first : line_end[hi - 1]]
+        if words:
+            if len(buffer) < len(chunk) + hi - lo:
+                buffer = np.empty(len(chunk) + hi - lo, dtype=np.uint64)
+            text = _int_words(chunk, per_line[lo:hi], prefix, lo == 0, buffer)
+            pieces.append(memoryview(text[text != 0]))
+        else:
+            rec, keep = _int_records(chunk, per_line[lo:hi], prefix, first_line=lo == 0)
             pieces.append(memoryview(rec[keep]))
-        pieces.append(b"\n")
-        return pieces
-    return [_int_lines_by_place(tokens, per_line, prefix)]
+    pieces.append(b"\n")
+    return pieces
 
 
 _INT_CHUNK_LINES = 1 << 15  # lines per chunk: the temporaries stay in cache
+
+
+def _word(text: bytes) -> int:
+    """``text`` (at most 8 bytes) right-aligned in a little-endian word, zero bytes before."""
+    return int.from_bytes(text.rjust(8, b"\0"), "little")
+
+
+# Tokens below 10**7 as " " and their digits right-aligned in a word, zero bytes before: the
+# word of v is _LOW4[v] for v < 10**4, else _LOW4[10**4 + v % 10**4] | _HIGH3[v // 10**4]
+# (the last four digits in the high half, the others and the space in the low half)
+_LOW4 = np.array(
+    [_word(b" %d" % v) for v in range(10**4)] + [_word(b"%04d" % v) for v in range(10**4)],
+    dtype=np.uint64,
+)
+_HIGH3 = np.array([0] + [_word(b" %d" % v) >> 32 for v in range(1, 1000)], dtype=np.uint64)
+
+
+def _int_words(
+    tokens: np.ndarray, per_line: np.ndarray, prefix: bytes, first_line: bool, buffer: np.ndarray
+) -> np.ndarray:
+    """The text of :func:`int_lines` (tokens below ``10**7``, lines not empty, no final line
+    break) as bytes with zero bytes in between, to be dropped: per token a word (its space
+    and digits, right-aligned, from two table lookups), per line with a prefix a word of the
+    line break and the prefix before the line's tokens; without one, the line break takes the
+    place of the first token's space.  ``first_line``: no line break before the first line.
+    With a prefix the words go to the start of ``buffer`` (uint64, long enough)."""
+    v = tokens.astype(np.uint64)
+    high = v // np.uint64(10**4)
+    low = v - high * np.uint64(10**4)
+    low += np.minimum(high, np.uint64(1)) * np.uint64(10**4)
+    w = _LOW4.take(low)
+    if prefix:
+        out = buffer[: len(w) + len(per_line)]
+        if (per_line == per_line[0]).all():  # one degree: a line is a row
+            rows = out.reshape(len(per_line), -1)
+            rows[:, 0] = _word(b"\n" + prefix)
+            shape = (len(per_line), -1)
+            np.bitwise_or(w.reshape(shape), _HIGH3.take(high).reshape(shape), out=rows[:, 1:])
+        else:
+            w |= _HIGH3.take(high)
+            head_at = np.cumsum(per_line) - per_line + np.arange(len(per_line))
+            out[head_at] = _word(b"\n" + prefix)
+            is_token = np.ones(len(out), dtype=bool)
+            is_token[head_at] = False
+            out[is_token] = w
+        if first_line:
+            out[0] = _word(prefix)
+    else:
+        out = w
+        out |= _HIGH3.take(high)
+        heads = np.cumsum(per_line) - per_line
+        first = out[heads]
+        space = first & (np.uint64(0) - first)  # the lowest bit set: bit 5 of the space
+        line_break = (space >> np.uint64(5)) * np.uint64(ord("\n"))
+        out[heads] = first - space + line_break
+        if first_line:
+            out[0] -= line_break[0]
+    return out.view(np.uint8)
+
+
 _POW10_U32 = np.array([10**k for k in range(1, 8)], dtype=np.uint32)
 # A 16-byte record keeps bytes [a, b) with a <= 8: row a * 17 + b of this table
 _INT_MASKS = np.array([[a <= i < b for i in range(16)] for a in range(9) for b in range(17)])
