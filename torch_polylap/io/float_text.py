@@ -47,7 +47,7 @@ import numpy as np
 
 from .numparse import decimal_to_double
 
-__all__ = ["ascii8", "float_lines", "float_pieces"]
+__all__ = ["ascii8", "float_lines", "float_pieces", "without_zero_bytes"]
 
 U64 = np.uint64
 _CHUNK_ROWS = 1 << 15  # lines per chunk: temporaries of a few megabytes, not of the whole mesh
@@ -477,5 +477,13 @@ def float_pieces(values: np.ndarray, prefix: bytes) -> list[bytes | memoryview]:
     for lo in range(0, n, _CHUNK_ROWS):
         chunk = values[lo : lo + _CHUNK_ROWS]
         text = _records(chunk, prefix, buffer[: len(chunk)])
-        pieces.append(memoryview(text[text != 0]))
+        pieces.append(without_zero_bytes(text))
     return pieces
+
+
+def without_zero_bytes(text: np.ndarray) -> bytes:
+    """The ``uint8`` ``text`` without its zero bytes (the gaps of fixed-place records).
+
+    ``bytes.translate`` deletes them in one C loop: faster than numpy's boolean mask, which
+    makes a mask, counts it and then compacts."""
+    return text.tobytes().translate(None, b"\0")

@@ -11,7 +11,7 @@ from typing import TypeAlias
 
 import numpy as np
 
-from .float_text import ascii8, float_pieces
+from .float_text import ascii8, float_pieces, without_zero_bytes
 
 # Consecutive pieces of a file's text
 Pieces: TypeAlias = list[bytes | memoryview]
@@ -93,7 +93,7 @@ def int_pieces(tokens: np.ndarray, per_line: np.ndarray, prefix: bytes) -> Piece
             if len(buffer) < len(chunk) + hi - lo:
                 buffer = np.empty(len(chunk) + hi - lo, dtype=np.uint64)
             text = _int_words(chunk, per_line[lo:hi], prefix, lo == 0, buffer)
-            pieces.append(memoryview(text[text != 0]))
+            pieces.append(without_zero_bytes(text))
         else:
             rec, keep = _int_records(chunk, per_line[lo:hi], prefix, first_line=lo == 0)
             pieces.append(memoryview(rec[keep]))
