@@ -184,7 +184,8 @@ def _chunks(
     out = []
     for a in range(0, f, step):
         b = min(a + step, f)
-        part = ginv[:, a:b]
+        # one intp copy serves both gathers (numpy converts an int32 index array for each)
+        part = ginv[:, a:b].astype(np.intp)
         out.append(
             GroupChunk(
                 a,
