@@ -13,9 +13,7 @@ warm-up call each:
   torch's profiler does not see), the functions by their own time;
 * with ``--compiled``, ``reassembly_compiled`` and ``fwd_bwd_compiled``: the same two through
   ``tp.CompiledLaplacian`` (compiled before profiling; each compiled graph is one row, named
-  forward or backward), and ``compiled_stages``: its wall time cut after the corner gather
-  and after the per-face kernel, each stage compiled alone (what the gathers onto the
-  stored values cost against the arithmetic).
+  forward or backward).
 
 Each table lists the ``--top`` entries with their share of the profiled total, so the rows say
 which passes a faster implementation would have to remove, whatever the machine's speed.
@@ -26,9 +24,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import pstats
-import statistics
 import sys
-import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -115,52 +111,6 @@ def python_profile(fn: Callable[[], object], top: int) -> tuple[list[str], list[
     return ["function", "calls", "own ms", "share"], rows
 
 
-def compiled_stages(
-    verts: torch.Tensor, topo: tp.Topology, compiled: tp.CompiledLaplacian, repeat: int = 5
-) -> tuple[list[str], list[list[str]]]:
-    """Wall time of the compiled re-assembly cut after each stage, each stage compiled alone
-    (medians of ``repeat`` interleaved calls): the corner gather of the coordinates, that plus
-    the per-face kernel (every degree group's blocks and corner masses), and the whole
-    assembly (plus the sums onto the stored values, the per-vertex sums and the checks)."""
-    from torch_polylap.assembly import gather_plan_of
-    from torch_polylap.kernels import block_kernel
-
-    view = topo.on(verts.device)
-    plan = gather_plan_of(topo, view)
-    kernel = block_kernel("aw11", 1.0)
-
-    def corners(x: torch.Tensor) -> torch.Tensor:
-        return plan.vertex.corners(x.t())
-
-    def blocks(x: torch.Tensor) -> list[torch.Tensor]:
-        at, start = plan.vertex.corners(x.t()), 0
-        out: list[torch.Tensor] = []
-        for grp in view.groups:
-            k, count = grp.corners_t.shape
-            corner_xyz = at[:, start : start + k * count].view(3, k, count)
-            start += k * count
-            out.extend(kernel.on_corners(corner_xyz, grp)[:2])
-        return out
-
-    corners_c = torch.compile(corners, fullgraph=True)
-    blocks_c = torch.compile(blocks, fullgraph=True)
-    stages: dict[str, Callable[[], object]] = {
-        "corner gather": lambda: corners_c(verts),
-        "+ per-face kernel": lambda: blocks_c(verts),
-        "+ sums onto L's values and M0, checks": lambda: compiled(verts),
-    }
-    samples: dict[str, list[float]] = {name: [] for name in stages}
-    for fn in stages.values():
-        fn()
-    for _ in range(repeat):
-        for name, fn in stages.items():
-            start = time.perf_counter()
-            fn()
-            samples[name].append(time.perf_counter() - start)
-    rows = [[name, f"{1e3 * statistics.median(t):,.1f}"] for name, t in samples.items()]
-    return ["compiled re-assembly up to", "ms"], rows
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--n", type=int, default=1000, help="grid side (n x n quads)")
@@ -199,7 +149,6 @@ def main(argv: list[str] | None = None) -> int:
                 args.top,
                 dict.fromkeys(forward, "compiled forward graph (saves for backward)"),
             )
-            profiles["compiled_stages"] = compiled_stages(verts, topo, compiled)
     for name, (header, rows) in profiles.items():
         print(f"\n{name}, {faces.shape[0]:,} quads\n")
         print(markdown_table(header, rows))
