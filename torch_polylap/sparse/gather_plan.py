@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..moved import moved
+
 __all__ = ["GatherPlan", "VertexSums", "gather_plan"]
 
 # dense (V,) layers of a vertex sum while at least this share of the vertices has that many
@@ -45,12 +47,7 @@ class VertexSums:
     """``(num_corners,)`` the vertex of every corner (the backward's gather)."""
 
     def to(self, device: torch.device) -> VertexSums:
-        return VertexSums(
-            self.layers.to(device),
-            self.rest_vertex.to(device),
-            self.rest.to(device),
-            self.corner_vertex.to(device),
-        )
+        return moved(self, device)
 
     def corners(self, verts_t: torch.Tensor) -> torch.Tensor:
         """``(3, num_corners)`` the positions ``verts_t`` ``(3, V)`` of every corner; its
@@ -93,17 +90,7 @@ class GatherPlan:
     """Number of per-face off-diagonal entries (the start of ``d`` in ``S``)."""
 
     def to(self, device: torch.device) -> GatherPlan:
-        return GatherPlan(
-            self.first.to(device),
-            self.second.to(device),
-            self.rest_pos.to(device),
-            self.rest.to(device),
-            self.vertex.to(device),
-            self.pos_upper.to(device),
-            self.pos_lower.to(device),
-            self.diag_pos.to(device),
-            self.num_off,
-        )
+        return moved(self, device)
 
     def values(self, off: torch.Tensor, diagonal: torch.Tensor) -> torch.Tensor:
         """``(nnz,)`` values from every group's off-diagonal entries ``off`` (flattened and

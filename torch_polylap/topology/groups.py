@@ -13,6 +13,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from ..moved import moved
+
 # Faces are processed in chunks whose largest temporary, a (3, P, chunk) array, holds about
 # this many elements (8 MB in float64): large enough that per-op overhead is negligible, small
 # enough that the allocator recycles the memory instead of mapping fresh pages for every op
@@ -41,14 +43,7 @@ class GroupChunk:
     pos_diag: torch.Tensor
 
     def to(self, device: torch.device) -> GroupChunk:
-        return GroupChunk(
-            self.start,
-            self.stop,
-            *(
-                t.to(device)
-                for t in (self.corners_t, self.pos_upper, self.pos_lower, self.pos_diag)
-            ),
-        )
+        return moved(self, device)
 
 
 @dataclass(frozen=True)
@@ -72,14 +67,7 @@ class DegreeGroup:
     chunks: tuple[GroupChunk, ...]
 
     def to(self, device: torch.device) -> DegreeGroup:
-        return DegreeGroup(
-            self.k,
-            self.face_ids.to(device),
-            self.corners_t.to(device),
-            self.pair_i.to(device),
-            self.pair_j.to(device),
-            tuple(c.to(device) for c in self.chunks),
-        )
+        return moved(self, device)
 
 
 class _DegreeBlock(NamedTuple):
