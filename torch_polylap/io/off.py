@@ -156,6 +156,10 @@ def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     verts = np.empty((num_verts, 3))
     coords = verts.reshape(-1)
     size = np.empty(num_faces, dtype=np.int64)
+    # Faces of the first face's degree k, read as blocks, go straight into ``block`` (F * k);
+    # the first other face switches to pieces joined at the end.
+    block: np.ndarray | None = None
+    filled = 0
     indices: list[np.ndarray] = []
     extra = coloured = 0
     seen = 0  # content lines before the chunk
@@ -174,10 +178,19 @@ def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
                     return None
                 extra += extra_lines
             if nv < len(count):
-                face_lines = _face_lines(chunk, first[nv:], count[nv:], scratch)
+                if block is None and not indices and 4 <= count[nv] <= 10:
+                    block = np.empty(num_faces * (int(count[nv]) - 1), dtype=np.int64)
+                dest = None if block is None else block[filled:]
+                face_lines = _face_lines(chunk, first[nv:], count[nv:], scratch, dest)
                 if face_lines is None:
                     return None
-                indices.append(face_lines[0])
+                if block is not None and face_lines[0].base is block:
+                    filled += len(face_lines[0])
+                else:
+                    if block is not None:
+                        indices.append(block[:filled])
+                        block = None
+                    indices.append(face_lines[0])
                 faces_before = seen + nv - num_verts
                 size[faces_before : faces_before + len(face_lines[1])] = face_lines[1]
                 coloured += face_lines[2]
@@ -187,7 +200,10 @@ def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
     del scratch  # before the concatenation, the read's peak of memory
     if seen != num_verts + num_faces:
         return None
-    index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
+    if block is not None:
+        index = block[:filled]
+    else:
+        index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
     if index.size and (index.min() < 0 or index.max() >= num_verts):
         return None
     skipped.add(_vertex_extras(keyword), extra)
@@ -220,17 +236,26 @@ def _vertex_lines(
 
 
 def _face_lines(
-    chunk: Chunk, first: np.ndarray, count: np.ndarray, scratch: Scratch
+    chunk: Chunk,
+    first: np.ndarray,
+    count: np.ndarray,
+    scratch: Scratch,
+    dest: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int] | None:
     """``(indices, sizes, coloured faces)`` of face lines; None for a face wrapped over lines
-    or broken."""
+    or broken.  A block of one degree is parsed into the front of ``dest`` when given and
+    large enough (the indices returned are then that view)."""
     width = int(count[0])
     if 4 <= width <= 10 and (count == width).all():
         # One degree, k = width - 1 a single digit on every line: the indices are a block.
         lines, at = len(count), int(first[0])
         sizes = np.full(lines, width - 1, dtype=np.int64)
         if chunk.sep is not None:
-            indices = np.empty(lines * (width - 1), dtype=np.int64)
+            m = lines * (width - 1)
+            if dest is not None and len(dest) >= m:
+                indices = dest[:m]
+            else:
+                indices = np.empty(m, dtype=np.int64)
             sep = chunk.sep[at : at + lines * width + 1]
             if parse_index_block(chunk.buf, chunk.words, sep, width, indices, scratch):
                 return indices, sizes, 0
