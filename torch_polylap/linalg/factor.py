@@ -104,17 +104,20 @@ class CholeskyFactorization:
         from cholespy import CholeskySolverD, MatrixType
 
         device = A.device if isinstance(A, torch.Tensor) else torch.device(device or "cpu")
-        S = sp.coo_matrix(
+        S = sp.csr_matrix(
             (to_scipy(A) if isinstance(A, torch.Tensor) else A).astype(np.float64, copy=False)
         )
-        S.sum_duplicates()  # a no-op on what a compressed matrix converts to
+        # CSR handed over as is: cholespy's COO input costs a sort of the entries (0.2-0.3 s
+        # of a 1.3 s factorization at 70k vertices), on top of scipy's own canonical form,
+        # which the operators already have (the check is one pass)
+        S.sum_duplicates()
         try:
             self.factor = CholeskySolverD(
                 S.shape[0],
-                torch.from_numpy(S.row.astype(np.int32)).to(device),
-                torch.from_numpy(S.col.astype(np.int32)).to(device),
+                torch.from_numpy(S.indptr.astype(np.int32)).to(device),
+                torch.from_numpy(S.indices.astype(np.int32)).to(device),
                 torch.from_numpy(S.data).to(device),
-                MatrixType.COO,
+                MatrixType.CSR,
             )
         except (RuntimeError, ValueError) as err:
             raise ValueError(_not_positive_definite_message(A, str(err))) from None
@@ -127,7 +130,7 @@ class CholeskyFactorization:
             rhs = torch.from_numpy(b).to(self.device)[:, None]
             return self._solve64(rhs)[:, 0].cpu().numpy()
 
-        # the check's product and norm read the COO arrays (no tocsc copy)
+        # the check's product and norm read the CSR arrays (no copy)
         problem = _solution_problem(S, solve_numpy)
         if problem is not None:
             raise ValueError(_not_positive_definite_message(A, problem))
