@@ -161,10 +161,12 @@ class LDLFactorization:
     fill-reducing ordering, in float64 on the CPU, via the optional ``qdldl``.
 
     A simplicial factorization (one column at a time, no dense blocks): on the mesh matrices
-    of up to some 10^5 vertices it factors about twice as fast as :class:`CholeskyFactorization`
-    (cholespy's CHOLMOD runs without postordering, on reference BLAS), while its triangular
-    solves are about 1.2x slower (``benchmarks/README.md``, "Heat geodesics"). So it pays
-    where a factorization serves few solves, as in :class:`~torch_polylap.HeatGeodesicSolver`.
+    of 10^4 to 3 * 10^4 vertices it factors about twice as fast as
+    :class:`CholeskyFactorization` (cholespy's CHOLMOD runs without postordering, on
+    reference BLAS), above some 4 * 10^4 more slowly (as the factor fills, CHOLMOD's dense
+    supernodal blocks win), while its triangular solves are about 1.2x slower
+    (``benchmarks/README.md``, "Heat geodesics"). So it pays where a factorization serves few
+    solves, as in :class:`~torch_polylap.HeatGeodesicSolver`.
     Without pivoting, an indefinite matrix may factor; ``check`` (one solve with a random
     ``b``) refuses a numerically singular one as for :class:`Factorization`, and one with
     ``b^T A^{-1} b <= 0``, which is not positive definite.
