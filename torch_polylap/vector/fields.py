@@ -44,11 +44,28 @@ def smoothest_field(
         ``theta = arg(X) / n`` (the others are its rotations by ``2 pi k / n``);
         ``magnitude`` ``(V,)``: ``|X|`` with ``X^* M X = 1``, small near singularities;
         ``energy``: the eigenvalue ``mu`` (0-dim), ``X^* A_n X``.  Differentiable in ``verts``
-        through :func:`~torch_polylap.eigs` while the smallest eigenvalue is simple.
+        through :func:`~torch_polylap.eigs` while the smallest eigenvalue is simple.  At a
+        vertex where ``X = 0`` exactly (a singularity on a vertex) the direction is the
+        frame's ``e_x`` and the magnitude 0, both with a zero gradient there.
     """
     A, M, frames = connection_laplacian(verts, faces, lam, method=method, symmetry=symmetry)
     mu, X = eigs(A, M, k=1)
-    x, y = X[0::2, 0], X[1::2, 0]
-    theta = torch.atan2(y, x) / symmetry
+    theta, magnitude = polar(X[0::2, 0], X[1::2, 0])
+    theta = theta / symmetry
     directions = torch.cos(theta)[:, None] * frames.e_x + torch.sin(theta)[:, None] * frames.e_y
-    return directions, torch.hypot(x, y), mu[0]
+    return directions, magnitude, mu[0]
+
+
+def polar(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(arg, |.|)`` of ``x + i y`` (any matching shapes), with finite gradients everywhere.
+
+    ``atan2`` and ``hypot`` have ``0 / 0`` derivatives at the origin, which autograd turns
+    into NaN for every input the result depends on.  There the angle is taken as 0 and the
+    length as 0, both constant near the point, so their gradient is 0: the origin is fed to
+    the functions as ``1 + 0 i`` and the length masked (``where`` passes no gradient to the
+    branch it does not select, and the substituted branch has a finite one)."""
+    origin = (x == 0) & (y == 0)
+    safe_x = torch.where(origin, torch.ones_like(x), x)
+    safe_y = torch.where(origin, torch.zeros_like(y), y)
+    length = torch.hypot(safe_x, safe_y)
+    return torch.atan2(safe_y, safe_x), torch.where(origin, torch.zeros_like(length), length)
