@@ -763,16 +763,19 @@ def off_texts(draw) -> tuple[bytes, bool]:
 
 @st.composite
 def uniform_off_texts(draw) -> tuple[bytes, bool]:
-    """OFF in the block layout: ``x y z`` lines, then faces of one degree."""
+    """OFF in the block layout: ``x y z`` lines, then runs of faces of one degree each (the
+    first run's degree sizes the index array; a later one switches to joined pieces)."""
     num_verts = draw(st.integers(3, 12))
-    k = draw(st.integers(3, 5))
-    faces = draw(st.integers(1, 10))
-    lines = [f"OFF\n{num_verts} {faces} 0"]
+    degree, count = st.integers(3, 5), st.integers(1, 10)
+    runs = [(draw(degree), draw(count)) for _ in range(draw(st.integers(1, 2)))]
+    lines = [f"OFF\n{num_verts} {sum(n for _, n in runs)} 0"]
     for _ in range(num_verts):
         fmt = draw(st.sampled_from([repr, "{:.6f}".format, "{:.3e}".format]))
         lines.append(" ".join(fmt(draw(doubles)) for _ in "xyz"))
-    for _ in range(faces):
-        lines.append(f"{k} " + " ".join(str(draw(st.integers(0, num_verts - 1))) for _ in range(k)))
+    for k, faces in runs:
+        for _ in range(faces):
+            corners = (str(draw(st.integers(0, num_verts - 1))) for _ in range(k))
+            lines.append(f"{k} " + " ".join(corners))
     return ("\n".join(lines) + "\n").encode(), False
 
 
