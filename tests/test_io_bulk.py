@@ -23,7 +23,7 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from torch_polylap.io import SkippedContentWarning, numparse, read_mesh, write_mesh
@@ -178,9 +178,13 @@ def test_plain_floats_are_exact_or_left_slow(tokens):
         min_size=1, max_size=100,
     )
 )  # fmt: skip
+@example([("", "90100", True, "76093836566")])  # near a rounding boundary: left to the others
 def test_plain_floats_read_fixed_notation_in_bulk(parts):
-    """Fixed notation with at most 7 integer digits and 19 in all (integers: 8 digits) is never
-    left to the other paths, and reads exactly; a token without digits is slow."""
+    """Fixed notation with at most 7 integer digits and 19 in all (integers: 8 digits) reads
+    exactly whenever it is not left to the other paths, and is never left when its digits
+    make an integer of at most 2**53 (Clinger's case: one exact division); a token without
+    digits is slow. Longer significands may be left where the product lands too near a
+    rounding boundary for the 64-bit arithmetic to decide."""
     tokens = [
         (sign + whole + ("." if point else "") + frac).encode()
         for sign, whole, point, frac in parts
@@ -192,8 +196,8 @@ def test_plain_floats_read_fixed_notation_in_bulk(parts):
         if not whole + frac:  # "", "-", ".", "+."
             assert left, token
         elif len(whole) + len(frac) <= (19 if point else 8):
-            assert not left, token
-            assert same_bits(value, float(token)), (token, value, float(token))
+            assert left or same_bits(value, float(token)), (token, value, float(token))
+            assert not left or int(whole + frac) > 2**53, token
 
 
 def test_token_marks_find_points_exponents_and_odd_tokens():
