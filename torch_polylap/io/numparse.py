@@ -178,20 +178,10 @@ def _digits_dense(
     words: np.ndarray, end: np.ndarray, count: np.ndarray, bad: np.ndarray, spans: int
 ) -> np.ndarray:
     """:func:`_digits` for ``spans`` (2-3) words of digits when most strings are that long: the
-    words ending at ``end``, ``end - 8``... for every string, from ``spans + 1`` aligned loads
-    (each shared by two neighbouring words), with no index arrays."""
-    base = end >> 3
-    shift = (end & 7).view(U64)
-    shift <<= U64(3)
-    back = U64(64) - shift
-    upper = words.take(base)
+    words ending at ``end``, ``end - 8``... for every string (:func:`_word_loads`), with no
+    index arrays."""
     value = np.zeros(len(end), dtype=U64)
-    for k in range(spans):
-        base -= 1
-        lower = words.take(base)
-        x = lower >> shift
-        upper <<= back  # a shift by 64 (end on a word boundary) gives 0
-        x |= upper
+    for k, x in enumerate(_word_loads(words, end, spans, Scratch(), "")):
         c = count - 8 * k
         np.clip(c, 0, 8, out=c)
         x = _swar(x, c, bad)
@@ -199,7 +189,6 @@ def _digits_dense(
             bad |= (x >= U64(1000)).astype(U64)
         x *= _POW10_INT[8 * k]
         value += x
-        upper = lower
     return value
 
 

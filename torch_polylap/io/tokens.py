@@ -29,7 +29,6 @@ from .numparse import (
     parse_ints,
     parse_plain_floats,
     runs,
-    text_buffer,
     token_marks,
 )
 
@@ -66,13 +65,13 @@ class Chunk:
         size = stop - begin
         tail = 0 if text[stop - 1 : stop] == b"\n" else 1
         body = size + tail
-        if scratch is None:
-            buf, self.words = text_buffer(PAD + body + PAD)
-        else:
-            self.words = scratch("chunk", (PAD + body + PAD) // 8 + 2, U64)
-            buf = self.words.view(np.uint8)
-            buf[:PAD] = 32
-            buf[PAD + body :] = 32
+        if scratch is None:  # work arrays of this chunk alone
+            scratch = Scratch()
+        # the words of text_buffer: a spare one after the padding (see numparse._load)
+        self.words = scratch("chunk", (PAD + body + PAD) // 8 + 2, U64)
+        buf = self.words.view(np.uint8)
+        buf[:PAD] = 32
+        buf[PAD + body :] = 32
         buf[PAD : PAD + size] = np.frombuffer(text, dtype=np.uint8, count=size, offset=begin)
         if tail:
             buf[PAD + size] = 10
@@ -82,27 +81,18 @@ class Chunk:
         # tokens lie between consecutive blanks that are not neighbours.  One search over the
         # bytes, then work on the (several times fewer) blanks only.
         text_bytes = buf[PAD - 1 : PAD + body]
-        if scratch is None:
-            sep = np.flatnonzero(text_bytes <= 32)
-        else:
-            blank = np.less_equal(text_bytes, 32, out=scratch("blank", body + 1, bool))
-            sep = np.flatnonzero(blank)
+        blank = np.less_equal(text_bytes, 32, out=scratch("blank", body + 1, bool))
+        sep = np.flatnonzero(blank)
         sep += PAD - 1
-        if scratch is None:
-            gap = sep[1:] - sep[:-1]
-        else:
-            gap = np.subtract(sep[1:], sep[:-1], out=scratch("gap", len(sep) - 1))
+        gap = np.subtract(sep[1:], sep[:-1], out=scratch("gap", len(sep) - 1))
         if int(gap.min(initial=2)) >= 2:
             # Single blanks (what writers write): every blank ends a token, a line ends at
             # each token followed by '\n', and there is no blank line.
             self.sep: np.ndarray | None = sep
             self._start: np.ndarray | None = None  # made when asked for
             self.end = sep[1:]
-            if scratch is None:
-                last = np.flatnonzero(buf.take(self.end) == 10)
-            else:
-                ends = buf.take(self.end, out=scratch("ends", len(self.end), np.uint8), mode="clip")
-                last = np.flatnonzero(np.equal(ends, 10, out=scratch("breaks", len(ends), bool)))
+            ends = buf.take(self.end, out=scratch("ends", len(self.end), np.uint8), mode="clip")
+            last = np.flatnonzero(np.equal(ends, 10, out=scratch("breaks", len(ends), bool)))
             self.per_line = np.diff(last, prepend=-1)
             self.first_token = last + 1
             self.first_token -= self.per_line

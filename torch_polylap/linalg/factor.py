@@ -386,19 +386,15 @@ def _checked_solves(
     return solves
 
 
-def _upper_triangle(S: sp.csr_matrix) -> sp.csc_matrix:
+def _upper_parts(S: sp.csr_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
     """The upper triangle (diagonal included) of a symmetric CSR matrix, as CSC.
 
     Read as CSC, the CSR arrays of a symmetric matrix are its transpose, that is itself: column
     ``j`` is row ``j``, and its upper part the entries with column index ``<= j``. One mask
     over the entries replaces scipy's ``triu`` (a COO round trip), which qdldl calls otherwise.
+
+    Returns the upper triangle (CSC) and the ``(nnz,)`` mask of the entries of ``S`` it holds.
     """
-    return _upper_parts(S)[0]
-
-
-def _upper_parts(S: sp.csr_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
-    """:func:`_upper_triangle` of ``S`` and the ``(nnz,)`` mask of the entries of ``S`` it
-    holds."""
     n = S.shape[0]
     rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(S.indptr))
     keep = S.indices <= rows
