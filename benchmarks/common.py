@@ -23,6 +23,7 @@ import os
 import platform
 import re
 import resource
+import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -165,7 +166,8 @@ def run_meta(argv: Sequence[str] | None = None, threads: int | None = None) -> d
     """
     return {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "command": " ".join(["python", *(sys.argv if argv is None else argv)]),
+        # quoted as a shell needs it ("roof 300x200" is one argument), so it reruns as is
+        "command": shlex.join(["python", *(sys.argv if argv is None else argv)]),
         "machine": {"cpu": cpu_model(), "cores": os.cpu_count()},
         "os": platform.platform(),
         "versions": {
