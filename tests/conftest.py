@@ -28,7 +28,9 @@ import torch  # noqa: E402
 
 from torch_polylap.timing import pinned_threads  # noqa: E402
 
-DATA = Path(__file__).resolve().parent / "data"
+# the repository root and the in-repository test meshes, for the test modules in every subfolder
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data"
 
 
 def mixed_mesh():

@@ -22,14 +22,13 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import DATA
+from conftest import DATA, ROOT
 
 from torch_polylap import atomic, timing
 from torch_polylap.cli import COMMANDS, build_parser, main
 from torch_polylap.cli import timing as cli_timing
 from torch_polylap.cli.common import Output
 
-ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
 TEMPORARY = re.compile(r"\.(.+)\.(\d+)-[0-9a-f]{8}\.tmp")
 
