@@ -146,12 +146,15 @@ MOMENTS = {
     ),
 }
 
+# the late moments take 12-16 s each (the figure is drawn first): the default run keeps the two
+# early ones, the full run (--runslow, as CI) all of them
+_LATE = pytest.mark.slow
 CASES = [
-    ("drawing the figure", "SIGINT"),
-    ("drawing the figure", "SIGTERM"),
-    ("finishing the npz", "SIGINT"),
-    ("finishing the json", "SIGTERM"),
-    ("finishing the mesh", "SIGHUP"),
+    pytest.param("drawing the figure", "SIGINT", marks=_LATE),
+    pytest.param("drawing the figure", "SIGTERM", marks=_LATE),
+    pytest.param("finishing the npz", "SIGINT", marks=_LATE),
+    pytest.param("finishing the json", "SIGTERM", marks=_LATE),
+    pytest.param("finishing the mesh", "SIGHUP", marks=_LATE),
     ("computing", "SIGINT"),
     ("smoothing", "SIGINT"),
 ]
