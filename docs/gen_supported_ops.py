@@ -8,7 +8,7 @@ repository root after changing the dispatch table::
     python docs/gen_supported_ops.py          # rewrite the table in the page
     python docs/gen_supported_ops.py --check  # exit 1 if the page is out of date
 
-``tests/test_docs_house.py`` runs the check.
+``tests/project/test_docs_house.py`` runs the check.
 """
 
 from __future__ import annotations

@@ -20,12 +20,12 @@ Laplacians of ``tp.laplacian(..., method=...)``: ``"aw11"`` (Alexa and Wardetzky
 Each experiment gets one table with the methods as columns, then one with AW11 for every
 lambda of ``--lams`` (the lambda study of AW11 sec. 5), and the report ends with the observed
 orders between the last two levels. The definitions follow the reference values of the
-polyLaplace implementation (reproduced in ``tests/test_reference_values.py``). Observed orders are
+polyLaplace implementation (reproduced in ``tests/assembly/test_reference_values.py``). Observed orders are
 ``log(e_prev / e) / log(h_prev / h)`` with ``h = |V|^-1/2``. Writes a Markdown report (default
 ``examples/output/convergence.md``) and ``convergence.png`` beside it (AW11's errors against
 ``h``, one panel per experiment).
 
-The experiments are the ones ``tests/test_reference_values.py`` checks against the numbers
+The experiments are the ones ``tests/assembly/test_reference_values.py`` checks against the numbers
 printed by the polyLaplace research code (that test imports them from here; it keeps its own
 copy of the published numbers and its own definition of ``Y_3^2``). PLMS's ``M0`` is this
 package's, which lumps the fan's Galerkin mass as polyLaplace does.

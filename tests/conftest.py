@@ -3,8 +3,9 @@
 Generated meshes (grids, cube spheres, tori, the lantern) come from :mod:`torch_polylap.shapes`;
 the two meshes here are fixed, hand-written inputs with mixed degrees.
 
-* ``--runslow``: also run the tests marked ``slow`` (the examples re-run end to end and the
-  two-process DDP training); the default run skips them.
+* ``--runslow``: also run the tests marked ``slow`` (the examples re-run end to end, the
+  two-process DDP training, inductor's C++ compile and the late-signal CLI cases); the default
+  run skips them.
 * ``device``, ``dtype``: parametrize a test over the CPU and, where one is available, a CUDA
   device; over float32 and float64.
 * ``one_thread``: torch pinned to one intra-op thread for the test's duration.
@@ -28,7 +29,9 @@ import torch  # noqa: E402
 
 from torch_polylap.timing import pinned_threads  # noqa: E402
 
-DATA = Path(__file__).resolve().parent / "data"
+# the repository root and the in-repository test meshes, for the test modules in every subfolder
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data"
 
 
 def mixed_mesh():

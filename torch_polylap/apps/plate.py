@@ -15,7 +15,7 @@ also penalizes the boundary flux of ``grad u`` and converges to the *clamped* pl
 center deflection 0.00126 q (the classical clamped value) rather than the Navier plate's
 0.00406 q, a relative L2 error near 0.74 at every level of the paper's grids, whereas the mixed
 form converges to the Navier solution (``examples/plate_bending_study.py``,
-``tests/test_apps_plate.py``).
+``tests/apps/test_apps_plate.py``).
 """
 
 from __future__ import annotations

@@ -15,14 +15,13 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.linalg
 import scipy.sparse.linalg
 import torch
-from conftest import DATA
+from conftest import DATA, ROOT
 from meshes import dumbbell
 
 import torch_polylap as tp
@@ -211,7 +210,7 @@ def test_smooth_stops_before_the_neck_pinches(tmp_path, capsys, one_thread, dt):
         taken = int(re.search(r"stopped after (\d+) of 20", captured.err)[1])
         assert 0 < taken < 20
     # that the unguarded flow pinches this dumbbell is tested with the library's guard
-    # (tests/test_apps_flow.py); here: the command turns the guard on and says where it stopped
+    # (tests/apps/test_apps_flow.py); here: the command turns the guard on and says where it stopped
 
 
 def test_bad_files_give_one_line_errors(tmp_path, capsys, one_thread):
@@ -537,7 +536,7 @@ def test_benchmarks_share_the_timing_helpers():
     """benchmarks/common.py imports the package's timing helpers instead of keeping a copy."""
     from torch_polylap import timing
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "common.py"
+    path = ROOT / "benchmarks" / "common.py"
     spec = importlib.util.spec_from_file_location("benchmarks_common", path)
     common = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(common)
@@ -548,12 +547,12 @@ def test_benchmarks_share_the_timing_helpers():
 def test_console_script_entry_point():
     """The installed ``polylap`` is the launcher setup.py declares, which runs ``main`` after
     importing the package (it catches Ctrl-C during those imports, see
-    tests/test_reliability_cli.py)."""
+    tests/cli/test_reliability_cli.py)."""
     from importlib.metadata import entry_points
 
     import _polylap_launcher
 
-    setup = (Path(__file__).resolve().parents[1] / "setup.py").read_text()
+    setup = (ROOT / "setup.py").read_text()
     assert '"polylap=_polylap_launcher:main"' in setup
     (script,) = [e for e in entry_points(group="console_scripts") if e.name == "polylap"]
     if script.value != "_polylap_launcher:main":

@@ -289,7 +289,6 @@ def test_union_pattern_is_computed_once_per_pair():
     assert L1.pattern is L2.pattern and A1.pattern is L1.pattern and A2.pattern is A1.pattern
 
 
-
 def test_sum_with_the_mass_equals_the_dense_sum():
     """``M0 + t L`` (L stores its whole diagonal: answered from the diagonal positions, L's own
     pattern) and ``M0 + B`` for a ``B`` with empty diagonal entries (a true union of patterns),

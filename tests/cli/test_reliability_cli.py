@@ -22,14 +22,13 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import DATA
+from conftest import DATA, ROOT
 
 from torch_polylap import atomic, timing
 from torch_polylap.cli import COMMANDS, build_parser, main
 from torch_polylap.cli import timing as cli_timing
 from torch_polylap.cli.common import Output
 
-ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
 TEMPORARY = re.compile(r"\.(.+)\.(\d+)-[0-9a-f]{8}\.tmp")
 
@@ -147,12 +146,15 @@ MOMENTS = {
     ),
 }
 
+# the late moments take 12-16 s each (the figure is drawn first): the default run keeps the two
+# early ones, the full run (--runslow, as CI) all of them
+_LATE = pytest.mark.slow
 CASES = [
-    ("drawing the figure", "SIGINT"),
-    ("drawing the figure", "SIGTERM"),
-    ("finishing the npz", "SIGINT"),
-    ("finishing the json", "SIGTERM"),
-    ("finishing the mesh", "SIGHUP"),
+    pytest.param("drawing the figure", "SIGINT", marks=_LATE),
+    pytest.param("drawing the figure", "SIGTERM", marks=_LATE),
+    pytest.param("finishing the npz", "SIGINT", marks=_LATE),
+    pytest.param("finishing the json", "SIGTERM", marks=_LATE),
+    pytest.param("finishing the mesh", "SIGHUP", marks=_LATE),
     ("computing", "SIGINT"),
     ("smoothing", "SIGINT"),
 ]

@@ -16,8 +16,8 @@ import warnings
 from pathlib import Path
 
 import pytest
+from conftest import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 FIGURES = ROOT / "examples" / "output"
 SPOT = ROOT / "torch_polylap" / "data" / "spot_control_mesh.obj"

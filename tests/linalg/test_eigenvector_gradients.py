@@ -4,17 +4,15 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import torch
-from conftest import assert_directional_derivative, hex_pent_mesh, mixed_mesh
+from conftest import ROOT, assert_directional_derivative, hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
 from torch_polylap.shapes import quad_grid
 
 D64 = {"dtype": torch.float64}
-ROOT = Path(__file__).resolve().parents[1]
 MESHES = {
     "quad_grid": lambda: quad_grid(4, bump=0.3, seed=2),
     "mixed": mixed_mesh,

@@ -98,6 +98,7 @@ def test_gathered_assembly_gradients():
     assert torch.autograd.gradgradcheck(energy, (X,), eps=1e-6, atol=1e-5, fast_mode=True)
 
 
+@pytest.mark.slow  # inductor generates and compiles C++: about 40 s
 @pytest.mark.usefixtures("fresh_dynamo")
 def test_compiled_laplacian_equals_eager_with_inductor():
     """The default (inductor) compilation: values, masses and gradients as eager's."""

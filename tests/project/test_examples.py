@@ -5,12 +5,12 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from conftest import ROOT
 from meshes import require_shared
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = ROOT / "examples"
 PNG = b"\x89PNG\r\n\x1a\n"  # the first bytes of every PNG file
 
 pytestmark = pytest.mark.slow  # every test runs an example script in a subprocess
@@ -45,7 +45,7 @@ def test_denoising_reduces_radial_error(tmp_path):
 
 def test_convergence_study_reproduces_reference_values(tmp_path):
     """The study run end to end: its report's level-3 numbers equal the polyLaplace reference
-    values (tests/test_reference_values.py checks its experiment functions against all of them;
+    values (tests/assembly/test_reference_values.py checks its experiment functions against all of them;
     here the script's tables and figure are checked as a user gets them)."""
     shared = require_shared()
     out = tmp_path / "convergence.md"

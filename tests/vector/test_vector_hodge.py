@@ -10,12 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import DATA
 
 import torch_polylap as tp
 import torch_polylap.vector as tv
 from torch_polylap.sparse import to_scipy
-
-DATA = Path(__file__).resolve().parent / "data"
 
 
 def read(path: Path) -> tuple[torch.Tensor, tp.PolygonFaces]:

@@ -12,11 +12,11 @@ import importlib.util
 import json
 import re
 import sys
-from pathlib import Path
 
 import pytest
+from conftest import ROOT
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCH = ROOT / "benchmarks"
 README = BENCH / "README.md"
 RESULTS = BENCH / "results"
 

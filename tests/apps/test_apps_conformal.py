@@ -108,7 +108,7 @@ def test_pinned_at_true_positions_reproduces_planar_mesh_exactly():
 
 def test_planar_annulus_with_two_boundary_loops():
     """The pinned map takes holes; the free-boundary map refuses them (not a disk: its area
-    form over several loops folds curved meshes over, see tests/test_reliability_cli.py)."""
+    form over several loops folds curved meshes over, see tests/cli/test_reliability_cli.py)."""
     xy, F = _annulus()
     V3 = torch.cat((xy, torch.zeros_like(xy[:, :1])), 1) @ _rotation(11).T
     uv = conformal_parameterization(V3, F)

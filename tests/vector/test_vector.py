@@ -5,19 +5,18 @@ against adobe-lagrange's ``polyddg`` and potpourri3d, and by gradcheck."""
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.linalg as sl
 import torch
+from conftest import DATA
 from meshes import load, shared_path
 
 import torch_polylap as tp
 import torch_polylap.vector as tv
 from torch_polylap.sparse import to_scipy
 
-DATA = Path(__file__).resolve().parent / "data"
 METHODS = ("aw11", "plms", "degoes")
 SPHERES = ("quad_3", "hex_3", "voronoi_3", "concave_3", "hex_cos_3")
 

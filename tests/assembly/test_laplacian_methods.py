@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import DATA, hex_pent_mesh, mixed_mesh
+from conftest import DATA, ROOT, hex_pent_mesh, mixed_mesh
 from meshes import plms_galerkin_mass
 
 import torch_polylap as tp
@@ -21,7 +21,7 @@ from torch_polylap.sparse import sparse_values, to_scipy
 igl = pytest.importorskip("igl", reason="libigl (PLMS reference) missing: pip install libigl")
 
 METHODS = ("aw11", "plms", "degoes")
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "real"
+REAL = ROOT.parent / "shared" / "data" / "meshes" / "real"
 GRID = REAL.parent / "grid"
 # Real meshes whose faces are all either planar to round-off or clearly non-planar. On the
 # others some faces are planar to 1e-6 .. 1e-14 of their size, where PLMS's minimum-norm weights

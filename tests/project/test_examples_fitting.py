@@ -7,12 +7,12 @@ examples (12 x 12 x 6 quads, 200-300 steps) are in examples/output/*.md.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import pytest
 import torch
+from conftest import ROOT
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+sys.path.insert(0, str(ROOT / "examples"))
 
 import fit_quad_sphere_to_target as fitting_example  # noqa: E402
 import large_steps_fit  # noqa: E402

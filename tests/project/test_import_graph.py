@@ -18,8 +18,9 @@ import ast
 from pathlib import Path
 
 import pytest
+from conftest import ROOT
 
-PACKAGE = Path(__file__).resolve().parents[1] / "torch_polylap"
+PACKAGE = ROOT / "torch_polylap"
 NAME = PACKAGE.name
 
 

@@ -12,11 +12,11 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import ROOT
 
 from torch_polylap import atomic
 from torch_polylap.atomic import atomic_write
 
-ROOT = Path(__file__).resolve().parents[1]
 # the documented ages: a killed writer's temporary is stale after 10 minutes, any after a day
 STALE, ABANDONED = 10 * 60, 24 * 3600
 
