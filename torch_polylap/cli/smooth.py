@@ -10,6 +10,7 @@ import torch
 
 from ..apps.flow import (
     SINGULARITY_FACTOR,
+    FlowOptions,
     enclosed_volume,
     mean_curvature_flow,
     scale_free_mean_curvature,
@@ -87,19 +88,15 @@ def compute(args: argparse.Namespace) -> Result:
     default_dt = args.dt is None
     dt = 0.1 * float(mean_edge_length(verts, topo)) ** 2 if default_dt else args.dt
     start = time.perf_counter()
-    flow = mean_curvature_flow(
-        verts,
-        topo,
-        dt,
-        args.steps,
-        args.lam,
+    options = FlowOptions(
         frozen=args.frozen,
         normalize=None if args.normalize == "none" else args.normalize,
         progress=not args.no_progress,
-        method=args.method,
         stop_at_singularity=True,
         max_halvings=MAX_HALVINGS if default_dt and not args.frozen else 0,
-        return_result=True,
+    )
+    flow = mean_curvature_flow(
+        verts, topo, dt, args.steps, args.lam, method=args.method, options=options
     )
     seconds = time.perf_counter() - start
     smoothed, kept, dt = flow.verts, flow.steps, flow.dt
