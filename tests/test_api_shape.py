@@ -67,14 +67,16 @@ def _callables() -> dict[str, Callable[..., object]]:
         for name in _public_names(module):
             value = getattr(module, name, None)
             if inspect.isclass(value):
-                if not value.__module__.startswith(torch_polylap.__name__):
-                    continue
-                for attribute, member in vars(value).items():
-                    if attribute.startswith("_") and attribute != "__init__":
+                # the class's own methods and those it inherits from the package's classes
+                for klass in value.__mro__:
+                    if not klass.__module__.startswith(torch_polylap.__name__):
                         continue
-                    function = _own_source(member)
-                    if function is not None:
-                        found[f"{function.__module__}.{function.__qualname__}"] = function
+                    for attribute, member in vars(klass).items():
+                        if attribute.startswith("_") and attribute != "__init__":
+                            continue
+                        function = _own_source(member)
+                        if function is not None:
+                            found[f"{function.__module__}.{function.__qualname__}"] = function
             else:
                 function = _own_source(value)
                 if function is not None:
@@ -100,7 +102,7 @@ def test_the_walk_finds_the_api():
     assert len(found) > 300
     for name in ("apps.flow.mean_curvature_flow", "fitting.chamfer_distance", "plot.plot_mesh"):
         assert f"torch_polylap.{name}" in found
-    assert "torch_polylap.sparse.operator.SparseOperator.matmul" in found
+    assert "torch_polylap.sparse.operator.SparseOperator.with_values" in found
 
 
 def test_at_most_ten_parameters():

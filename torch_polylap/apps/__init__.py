@@ -15,7 +15,7 @@ from .flow import (
     scale_free_mean_curvature,
     schwarz_lantern,
 )
-from .planarize import PlanarizeResult, planarize
+from .planarize import PlanarizeOptions, PlanarizeResult, planarize
 from .plate import navier_deflection, plate_bending, plate_error
 
 __all__ = [
@@ -34,5 +34,6 @@ __all__ = [
     "angle_distortion",
     "AngleDistortion",
     "planarize",
+    "PlanarizeOptions",
     "PlanarizeResult",
 ]

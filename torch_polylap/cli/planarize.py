@@ -78,21 +78,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def compute(args: argparse.Namespace) -> Result:
-    from ..apps.planarize import planarize
+    from ..apps.planarize import PlanarizeOptions, planarize
 
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
+    options = PlanarizeOptions(
+        closeness=args.closeness,
+        time_limit=args.time_limit,
+        progress=not args.no_progress,
+        warn=False,
+    )
     res = planarize(
         verts,
         topo,
         lam=args.lam,
         tol=args.tol,
         max_iter=args.max_iter,
-        progress=not args.no_progress,
         method=args.method,
-        closeness=args.closeness,
-        time_limit=args.time_limit,
-        warn=False,
+        options=options,
     )
     rows = [
         ("vertices / faces", f"{verts.shape[0]} / {faces.num_faces}"),
