@@ -16,6 +16,7 @@ from ..apps.flow import (
     scale_free_mean_curvature,
 )
 from ..measures import face_areas, mean_edge_length
+from ..plot import PlotOptions
 from ..topology import get_topology
 from .common import (
     Result,
@@ -159,7 +160,8 @@ def compute(args: argparse.Namespace) -> Result:
         after = h_after.where(interior, h_after[interior].mean())
         # the 95th percentile as the top color keeps a few sharp corners from washing it out
         top = float(torch.quantile(h_before[interior], 0.95))
-        panel = dict(faces=faces, label="|H| sqrt(A/4pi)", up=up_axis(args, verts), clim=(0.0, top))
+        style = PlotOptions(label="|H| sqrt(A/4pi)", up=up_axis(args, verts), clim=(0.0, top))
+        panel = dict(faces=faces, options=style)
         panels = [
             dict(verts=verts, values=before, title="input", **panel),
             dict(
