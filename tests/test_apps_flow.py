@@ -171,6 +171,20 @@ def test_trajectory_progress_and_argument_checks():
         )
 
 
+def test_trajectory_is_the_flow_restarted_from_each_state():
+    """Each state of a rebuilt flow's trajectory is one step from the one before, bit for bit:
+    the trajectory records the states the steps went through and nothing else."""
+    verts, faces = unit_sphere("hex_2.obj")
+    verts = verts * torch.tensor([1.0, 0.8, 0.6], dtype=torch.float64)
+    result = mean_curvature_flow(
+        verts, faces, 0.01, 3, lam=2.0, options=FlowOptions(trajectory=True)
+    )
+    assert result.trajectory is not None and result.steps == 3
+    for before, after in zip(result.trajectory[:-1], result.trajectory[1:], strict=True):
+        assert torch.equal(mean_curvature_flow(before, faces, 0.01, 1, lam=2.0).verts, after)
+    assert torch.equal(result.trajectory[-1], result.verts)
+
+
 def lantern_symmetry_defects(X: torch.Tensor, sides: int, rings: int) -> tuple[float, float]:
     """Largest vertex mismatch under rotation by 2 pi / sides and under the mirror y -> -y."""
     c, s = math.cos(2 * math.pi / sides), math.sin(2 * math.pi / sides)
