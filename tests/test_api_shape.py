@@ -44,7 +44,7 @@ def _public_names(module: ModuleType) -> list[str]:
 
 def _own_source(function: object) -> Callable[..., object] | None:
     """The plain function behind ``function`` when it is written in this package, else None."""
-    function = inspect.unwrap(function)  # type: ignore[arg-type]
+    function = inspect.unwrap(function)
     if isinstance(function, (staticmethod, classmethod)):
         function = function.__func__
     if isinstance(function, property):

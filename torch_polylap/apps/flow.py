@@ -357,20 +357,20 @@ def mean_curvature_flow(
     guard = None
     if options.stop_at_singularity:
         guard = _Guard(verts, topo, lam, method, options.singularity_factor)
-    return _run(flow, verts, (float(dt), steps), system, guard, options)
+    return _run(flow, verts, float(dt), steps, system, guard, options)
 
 
 def _run(
     flow: _Flow,
     verts: torch.Tensor,
-    schedule: tuple[float, int],
+    dt: float,
+    steps: int,
     system: _StepSystem | None,
     guard: _Guard | None,
     options: FlowOptions,
 ) -> FlowResult:
-    """Take the ``schedule``'s ``(dt, steps)`` steps from ``verts``, halving ``dt`` or stopping
+    """Take ``steps`` steps of ``dt`` from ``verts``, halving ``dt`` or stopping
     where the guard refuses one."""
-    dt, steps = schedule
     X, trajectory, taken, halvings_left, stopped = verts, [verts], 0, options.max_halvings, ""
     bar = None
     if options.progress:

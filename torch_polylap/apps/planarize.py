@@ -282,12 +282,13 @@ class PlanarizeOptions:
 @dataclass
 class _Problem:
     """What both optimizers need: the centered, scaled start ``y0`` (bounding-box units), the
-    free vertices, the stopping rule and the progress bar."""
+    free vertices, the method and its stopping rule, and the progress bar."""
 
     y0: torch.Tensor
     topo: Topology
     free: torch.Tensor
     free_mask: torch.Tensor
+    method: str
     lam: float
     tol: float
     max_iter: int
@@ -369,6 +370,7 @@ def planarize(
         topo=topo,
         free=free,
         free_mask=free_mask,
+        method=method,
         lam=lam,
         tol=tol,
         max_iter=max_iter,
@@ -392,7 +394,7 @@ def planarize(
         # add the displacement, so that vertices that did not move keep their exact input values
         moved = ((run[0][free] - y0[free]) * scale).to(x0.dtype)
         out = x0.index_put((free,), x0[free] + moved)
-    return _result(out, x0, before, scale, run, (method, seconds, problem))
+    return _result(out, x0, before, scale, run, seconds, problem)
 
 
 def _checked_max_iter(
@@ -418,12 +420,12 @@ def _result(
     before: torch.Tensor,
     scale: float,
     run: _Run,
-    how: tuple[str, float, _Problem],
+    seconds: float,
+    problem: _Problem,
 ) -> PlanarizeResult:
-    """The :class:`PlanarizeResult` of positions ``out`` reached from ``x0`` by ``run``, with
-    the message (and warning) of a stop above the tolerance; ``how``: method, seconds and the
-    problem solved."""
-    method, seconds, problem = how
+    """The :class:`PlanarizeResult` of positions ``out`` reached from ``x0`` by ``run`` in
+    ``seconds``, with the message (and warning) of a stop above the tolerance."""
+    method = problem.method
     _, iterations, energies, objectives, reason = run
     with torch.no_grad():
         after = face_nonplanarity(out, problem.topo)

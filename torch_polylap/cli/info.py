@@ -208,7 +208,9 @@ def _statistics(
     )
 
 
-def _mesh_rows(stats: _Stats, faces: PolygonFaces, topo: Topology) -> tuple[Rows, int | None, list]:
+def _mesh_rows(
+    stats: _Stats, faces: PolygonFaces, topo: Topology
+) -> tuple[Rows, int | None, list[str]]:
     """The mesh section's rows, the genus (None unless closed, connected, orientable manifold)
     and the topology defects."""
     sizes = faces.sizes.tolist()
