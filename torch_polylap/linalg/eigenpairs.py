@@ -413,20 +413,18 @@ def eigs(
     tiny residual, so the number of eigenvalues below the cluster of the largest returned one
     is counted by Sylvester's law of inertia (one sparse ``LDL^T`` of ``L - s M``: SuperLU,
     on the CPU; measured at 1-2% of the eigensolve's time on 10k and 22k vertices, k = 64 and
-    128, and 8-9% on a 100k-vertex grid, k = 64). Missing eigenpairs are
-    then computed on the ``M``-orthogonal complement of those found (block Lanczos with a block
-    as large as the count, or ARPACK) and merged in, until the count agrees.
+    128, and 8-9% on a 100k-vertex grid, k = 64). Missing eigenpairs are then computed on the
+    ``M``-orthogonal complement of those found (block Lanczos with a block as large as the
+    count, or ARPACK) and merged in, until the count agrees.
     ``L`` and ``M`` must be symmetric: operators declared so (``L, M0`` of
     :func:`~torch_polylap.laplacian`) are trusted, others compared with their transposes.
 
-    Eigenvector gradients solve one adjoint system per column of ``evecs`` that the loss uses
-    (``(L - mu M) w = (I - M phi phi^T) g`` with ``phi^T M w = 0``, by Nelson's method: one
-    sparse LU of ``L - mu M`` less a row and column, on the CPU in float64, freed before the
-    next; memory that factor's fill plus O(nnz + n k)); the gradients with respect to ``L`` and
-    ``M`` are sampled on their patterns. Eigenvalues within ``1e-8 * max |mu|``
+    Eigenvector gradients solve one adjoint system per column of ``evecs`` that the loss uses,
+    by Nelson's method (one sparse LU of ``L - mu M`` less a row and column, on the CPU in
+    float64; memory that factor's fill plus O(nnz + n k)). Eigenvalues within ``1e-8 max |mu|``
     (``EIGENVECTOR_GAP_RTOL``) form a cluster whose eigenvectors have a gradient only for
     losses that see them through their span. The derivation, Nelson's method and the rule for
-    clusters are in ``docs/math/spectral.md`` ("Eigenpairs and their derivatives").
+    clusters: ``docs/math/spectral.md`` ("Eigenpairs and their derivatives").
 
     Args:
         L: ``(n, n)`` sparse symmetric matrix; values may require grad.
