@@ -8,9 +8,10 @@ backward-Euler solve
 
     (M0 + dt L) X_{t+1} = M0 X_t,
 
-with ``L`` and ``M0`` rebuilt from the current positions (or, ``frozen=True``, taken once from the
-initial positions so that one factorization serves every step).  The steps are differentiable
-with respect to the initial vertex positions through :func:`torch_polylap.solve`.
+with ``L`` and ``M0`` rebuilt from the current positions (or, with :attr:`FlowOptions.frozen`,
+taken once from the initial positions so that one factorization serves every step).  The steps
+are differentiable with respect to the initial vertex positions through
+:func:`torch_polylap.solve`.
 """
 
 from __future__ import annotations
@@ -369,8 +370,8 @@ def _run(
     guard: _Guard | None,
     options: FlowOptions,
 ) -> FlowResult:
-    """Take ``steps`` steps of ``dt`` from ``verts``, halving ``dt`` or stopping
-    where the guard refuses one."""
+    """Take ``steps`` steps of ``dt`` from ``verts``, halving ``dt`` or stopping where the guard
+    refuses one."""
     X, trajectory, taken, halvings_left, stopped = verts, [verts], 0, options.max_halvings, ""
     bar = None
     if options.progress:
