@@ -60,7 +60,7 @@ def curvature_error(verts: torch.Tensor, faces, method: str) -> float:
 
 def flow_error(verts: torch.Tensor, faces, method: str) -> float:
     dt = FLOW_TIME / FLOW_STEPS
-    X = tp.apps.mean_curvature_flow(verts, faces, dt, FLOW_STEPS, method=method)
+    X = tp.apps.mean_curvature_flow(verts, faces, dt, FLOW_STEPS, method=method).verts
     m = tp.mass(X, faces)
     centre = (m[:, None] * X).sum(0) / m.sum()
     radius = float((m * (X - centre).norm(dim=1)).sum() / m.sum())

@@ -63,7 +63,7 @@ from common import markdown_table, run_meta, table_data, write_results
 from shapeup import ShapeUp
 
 import torch_polylap as tp
-from torch_polylap.apps import planarize
+from torch_polylap.apps import PlanarizeOptions, planarize
 from torch_polylap.linalg.factor import CholeskyFactorization
 
 GN = importlib.import_module("torch_polylap.apps.planarize")
@@ -195,11 +195,13 @@ def solved_in_positions() -> Iterator[None]:
         GN._damped_step = original
 
 
-def run_ours(V: torch.Tensor, F: Any, tol: float, **kw: object) -> dict:
+def run_ours(V: torch.Tensor, F: Any, tol: float, max_iter: int | None = None, **kw: Any) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # stopping above tol is reported in the table
         start = time.perf_counter()
-        res = planarize(V, F, tol=tol, **kw)  # type: ignore[arg-type]
+        method = kw.pop("method", "gauss-newton")
+        options = PlanarizeOptions(**kw)
+        res = planarize(V, F, tol=tol, max_iter=max_iter, method=method, options=options)
         seconds = time.perf_counter() - start
     return shape(res.verts, V, F) | {
         "seconds": seconds,
@@ -321,23 +323,20 @@ def report(records: list[dict], tol: float) -> dict:
                 else []
             )
         )
-    header = (
-        [
-            "mesh",
-            "V",
-            "max before",
-            "ours: iters, s",
-            "ours: max after",
-            "ours: disp max / area",
-            "L-BFGS: iters, s, max",
-            "Shape-Up (vectorized): iters, s, max",
-            "Shape-Up: disp max / area",
-            "Shape-Up at ours' time: iters: max",
-            "max ratio at equal time (SU/ours)",
-            "time to tol (SU/ours)",
-        ]
-        + (["GN solved in the positions (old): iters, s"] if positions else [])
-    )
+    header = [
+        "mesh",
+        "V",
+        "max before",
+        "ours: iters, s",
+        "ours: max after",
+        "ours: disp max / area",
+        "L-BFGS: iters, s, max",
+        "Shape-Up (vectorized): iters, s, max",
+        "Shape-Up: disp max / area",
+        "Shape-Up at ours' time: iters: max",
+        "max ratio at equal time (SU/ours)",
+        "time to tol (SU/ours)",
+    ] + (["GN solved in the positions (old): iters, s"] if positions else [])
     print(markdown_table(header, body))
     # the large meshes' results: the comparison with the positions solve in place of this one
     if positions:

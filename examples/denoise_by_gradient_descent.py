@@ -75,15 +75,20 @@ def main() -> None:
         results[name] = fit(noisy, faces, args.steps, weight, args.lam)
         report(name, results[name])
 
-    from torch_polylap.plot import plot_meshes
+    from torch_polylap.plot import PlotOptions, plot_meshes
 
+    last = next(reversed(results))
     panels = [
-        dict(verts=X, faces=faces, values=(X.norm(dim=1) - 1).abs(), title=name, cmap="magma")
+        dict(
+            verts=X,
+            faces=faces,
+            values=(X.norm(dim=1) - 1).abs(),
+            title=name,
+            # one colorbar, on the last panel: the color limits are shared
+            options=PlotOptions(cmap="magma", colorbar=name == last, label="| |x| - 1 |"),
+        )
         for name, X in results.items()
     ]
-    for panel in panels[:-1]:
-        panel["colorbar"] = False
-    panels[-1]["label"] = "| |x| - 1 |"
     png = args.out / "denoise.png"
     args.out.mkdir(parents=True, exist_ok=True)
     plot_meshes(panels, path=png, shared_clim=True, panel_size=3.5)

@@ -274,7 +274,7 @@ def findings(rows: dict[str, dict]) -> str:
 def figure(rows: dict[str, dict], path: Path) -> None:
     """The initial quad sphere and the quad fits side by side (tp.plot), faces colored by their
     non-planarity on a shared scale."""
-    from torch_polylap.plot import plot_meshes
+    from torch_polylap.plot import PlotOptions, plot_meshes
 
     quads = [k for k, r in rows.items() if r["faces"].shape[1] == 4]
     panels = [
@@ -283,12 +283,11 @@ def figure(rows: dict[str, dict], path: Path) -> None:
             faces=rows[k]["faces"],
             values=tp.face_nonplanarity(rows[k]["verts"], rows[k]["faces"]),
             title=k.replace("quads, ", "").replace("initial sphere, quads", "initial sphere"),
-            colorbar=False,
-            cmap="viridis",
+            options=PlotOptions(colorbar=False, cmap="viridis"),
         )
         for k in quads
     ]
-    panels[-1].update(colorbar=True, label="face non-planarity")
+    panels[-1]["options"] = PlotOptions(cmap="viridis", label="face non-planarity")
     # one row: tp.plot's saving fails on a grid with empty panels (hidden 3D axes)
     plot_meshes(panels, path=path, ncols=len(panels), shared_clim=True, panel_size=3.0)
 

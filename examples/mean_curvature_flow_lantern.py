@@ -72,7 +72,8 @@ def main() -> None:
         fixed = tp.build_topology(faces, verts.shape[0]).boundary_vertices
         dt = 0.25 * mean_edge_length(verts, faces) ** 2
         meshes[kind] = (verts, faces)
-        results[kind] = mean_curvature_flow(verts, faces, dt, args.steps, lam=args.lam, fixed=fixed)
+        flow = mean_curvature_flow(verts, faces, dt, args.steps, lam=args.lam, fixed=fixed)
+        results[kind] = flow.verts
 
     waist = args.rings // 2
     print(f"Schwarz lantern, {args.sides} sides x {args.rings} rings, {args.steps} steps")

@@ -20,7 +20,7 @@ import torch
 
 import torch_polylap as tp
 from torch_polylap.apps import planarize
-from torch_polylap.plot import new_figure, plot_mesh, save_figure
+from torch_polylap.plot import PlotOptions, new_figure, plot_mesh, save_figure
 
 DEFAULT = Path(tp.__file__).resolve().parent / "data" / "spot_control_mesh.obj"
 
@@ -62,9 +62,9 @@ def main() -> int:
     clim = (float(torch.minimum(before.min(), after.min())), float(before.max()))
     fig, axes = new_figure(1, 2, three_d=True, panel_size=4.5)
     up = "y"  # the OBJ models here are y-up
-    common = dict(cmap="viridis", clim=clim, label="log10 non-planarity", up=up)
-    plot_mesh(V, F, before, ax=axes[0], title="input", **common)
-    plot_mesh(res.verts, F, after, ax=axes[1], title="planarized", **common)
+    style = PlotOptions(cmap="viridis", clim=clim, label="log10 non-planarity", up=up)
+    plot_mesh(V, F, before, ax=axes[0], title="input", options=style)
+    plot_mesh(res.verts, F, after, ax=axes[1], title="planarized", options=style)
     png = args.out / "planarize_quad_mesh.png"
     save_figure(fig, png)
     print(f"\nwrote {png}")

@@ -56,12 +56,13 @@ def main(path: Path, out: Path) -> None:
     print(f"scipy: {type(S).__name__} {S.shape}, symmetric: {abs(S - S.T).max() == 0}")
 
     # A figure (matplotlib): faces colored by the mean curvature of their corners
-    from torch_polylap.plot import plot_mesh
+    from torch_polylap.plot import PlotOptions, plot_mesh
 
     out.mkdir(parents=True, exist_ok=True)
     png = out / "quickstart.png"
     label = "mean curvature |H| / 2"
-    plot_mesh(verts, faces, curvature, path=png, title=path.name, label=label, up="y")
+    style = PlotOptions(label=label, up="y")
+    plot_mesh(verts, faces, curvature, path=png, title=path.name, options=style)
     print(f"wrote {png}")
 
 

@@ -15,6 +15,7 @@ from conftest import DATA
 
 import torch_polylap as tp
 from torch_polylap.apps import (
+    FlowOptions,
     conformal_parameterization,
     enclosed_volume,
     mean_curvature_flow,
@@ -25,6 +26,8 @@ from torch_polylap.apps.planarize import planarize
 from torch_polylap.fitting import mesh_quality
 from torch_polylap.repair import orient_faces
 from torch_polylap.shapes import quad_grid
+
+VOLUME = FlowOptions(normalize="volume")
 
 pytestmark = pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")
 
@@ -199,16 +202,16 @@ def test_flow_volume_normalization_checks_at_entry_and_the_flow_runs_on_any_mesh
     flipped = [f[::-1] if i == 2 else f for i, f in enumerate(F)]
     hint = r".*Use normalize='area' or None\."
     with pytest.raises(ValueError, match="normalize='volume' " + MISORIENTED + ORIENT_FACES + hint):
-        mean_curvature_flow(V, flipped, 0.01, 1, normalize="volume")
+        mean_curvature_flow(V, flipped, 0.01, 1, options=VOLUME)
     with pytest.raises(ValueError, match="normalize='volume' " + NON_ORIENTABLE + hint):
-        mean_curvature_flow(*moebius(), 0.01, 1, normalize="volume")
+        mean_curvature_flow(*moebius(), 0.01, 1, options=VOLUME)
     with pytest.raises(ValueError, match=r"normalize='volume' needs a closed mesh.*" + hint):
-        mean_curvature_flow(*fin(), 0.01, 1, normalize="volume")
+        mean_curvature_flow(*fin(), 0.01, 1, options=VOLUME)
     # the flow itself needs L and M0 only
     for verts, faces in (flipped_grid(), moebius(), fin(), (V, flipped)):
-        X = mean_curvature_flow(verts, faces, 0.01, 2)
+        X = mean_curvature_flow(verts, faces, 0.01, 2).verts
         assert X.shape == verts.shape and torch.isfinite(X).all()
-    X = mean_curvature_flow(*moebius(), 0.01, 1, normalize="area")
+    X = mean_curvature_flow(*moebius(), 0.01, 1, options=FlowOptions(normalize="area")).verts
     assert torch.isfinite(X).all()
 
 

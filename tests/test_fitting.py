@@ -10,7 +10,13 @@ import torch
 from conftest import DATA, mixed_mesh
 
 import torch_polylap as tp
-from torch_polylap.fitting import chamfer_distance, mesh_quality, nearest_neighbors, sample_points
+from torch_polylap.fitting import (
+    ChamferOptions,
+    chamfer_distance,
+    mesh_quality,
+    nearest_neighbors,
+    sample_points,
+)
 from torch_polylap.shapes import quad_grid
 
 
@@ -28,10 +34,13 @@ def test_chamfer_matches_brute_force(backend):
     b = torch.rand(90, 3, generator=gen, dtype=torch.float64) * 1.3
     D = ((a[:, None] - b[None]) ** 2).sum(-1)  # full matrix, independent of the chunked search
     expected = D.min(1).values.mean() + D.min(0).values.mean()
-    got, got_normals = chamfer_distance(a, b, backend=backend, chunk_size=50)
+    got, got_normals = chamfer_distance(
+        a, b, options=ChamferOptions(backend=backend, chunk_size=50)
+    )
     assert got_normals is None
     assert torch.allclose(got, expected, rtol=1e-12, atol=0)
-    got_sum, _ = chamfer_distance(a, b, backend=backend, point_reduction="sum")
+    summed = ChamferOptions(backend=backend, point_reduction="sum")
+    got_sum, _ = chamfer_distance(a, b, options=summed)
     assert torch.allclose(got_sum, D.min(1).values.sum() + D.min(0).values.sum(), rtol=1e-12)
     d, idx = nearest_neighbors(a, b, backend=backend, chunk_size=7)
     assert torch.equal(idx, D.argmin(1))
@@ -65,9 +74,9 @@ def test_bad_point_sets_raise():
     with pytest.raises(ValueError, match="backend"):
         nearest_neighbors(a, a, backend="faiss")
     with pytest.raises(ValueError, match="point_reduction"):
-        chamfer_distance(a, a, point_reduction="median")
+        chamfer_distance(a, a, options=ChamferOptions(point_reduction="median"))
     with pytest.raises(ValueError, match="batch_reduction"):
-        chamfer_distance(a, a, batch_reduction="max")
+        chamfer_distance(a, a, options=ChamferOptions(batch_reduction="max"))
 
 
 def test_sample_points_density_is_proportional_to_area():

@@ -20,7 +20,7 @@ from conftest import DATA, hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes
-from torch_polylap.fitting import chamfer_distance
+from torch_polylap.fitting import ChamferOptions, chamfer_distance
 from torch_polylap.interop import (
     from_pyg,
     from_pytorch3d,
@@ -534,17 +534,20 @@ def test_chamfer_matches_brute_force_reference(batch_reduction, point_reduction,
     normals = point_reduction != "max"
     for single in (False, True):
         for weights in (None, torch.tensor([0.5, 2.0, 0.0], dtype=torch.float64)):
-            kwargs = dict(
+            data = dict(
                 x_normals=xn if normals else None,
                 y_normals=yn if normals else None,
                 weights=weights,
+            )
+            knobs = dict(
                 batch_reduction=batch_reduction,
                 point_reduction=point_reduction,
                 norm=norm,
                 single_directional=single,
             )
-            got = chamfer_distance(x, y, lx, ly, **kwargs, backend=backend, chunk_size=7)
-            expected = _brute_force_chamfer(x, y, lx.tolist(), ly.tolist(), **kwargs)
+            options = ChamferOptions(**knobs, backend=backend, chunk_size=7)
+            got = chamfer_distance(x, y, lx, ly, **data, options=options)
+            expected = _brute_force_chamfer(x, y, lx.tolist(), ly.tolist(), **data, **knobs)
             _assert_same(got, expected)
 
 
@@ -560,9 +563,8 @@ def test_chamfer_defaults_and_the_single_cloud_extension():
     # abs_cosine: flipped normals cost nothing with it, 2 per point without
     same, n_same = chamfer_distance(x[:1], x[:1], x_normals=xn[:1], y_normals=-xn[:1])
     assert float(same) == 0.0 and float(n_same) < 1e-12
-    _, n_flip = chamfer_distance(
-        x[:1], x[:1], x_normals=xn[:1], y_normals=-xn[:1], abs_cosine=False
-    )
+    signed = ChamferOptions(abs_cosine=False)
+    _, n_flip = chamfer_distance(x[:1], x[:1], x_normals=xn[:1], y_normals=-xn[:1], options=signed)
     torch.testing.assert_close(n_flip, torch.tensor(4.0, dtype=torch.float64))
 
 
@@ -584,7 +586,8 @@ def test_chamfer_gradients_with_padding():
     lx, ly = torch.tensor([12, 5, 9]), torch.tensor([10, 10, 4])
 
     def f(a, b):
-        loss, _ = chamfer_distance(a, b, lx, ly, batch_reduction="sum", point_reduction="mean")
+        options = ChamferOptions(batch_reduction="sum", point_reduction="mean")
+        loss, _ = chamfer_distance(a, b, lx, ly, options=options)
         return loss
 
     assert torch.autograd.gradcheck(f, (x, y), eps=1e-7)
@@ -596,16 +599,19 @@ def test_chamfer_edge_cases():
     x, y, _, _, _, _ = _clouds(seed=4)
     zero, normals = chamfer_distance(x, y, weights=torch.zeros(3, dtype=torch.float64))
     assert float(zero) == 0.0 and normals is None
+    per_cloud = ChamferOptions(batch_reduction=None)
     empty, _ = chamfer_distance(
-        x, y, torch.tensor([0, 40, 40]), torch.tensor([0, 30, 30]), batch_reduction=None
+        x, y, torch.tensor([0, 40, 40]), torch.tensor([0, 30, 30]), options=per_cloud
     )
     assert float(empty[0]) == 0.0 and bool((empty[1:] > 0).all())
     with pytest.raises(ValueError, match="none on the other"):
         chamfer_distance(x, y, torch.tensor([3, 40, 40]), torch.tensor([0, 30, 30]))
     with pytest.raises(ValueError, match="takes no normals"):
-        chamfer_distance(x, y, x_normals=x, y_normals=y, point_reduction="max")
+        chamfer_distance(
+            x, y, x_normals=x, y_normals=y, options=ChamferOptions(point_reduction="max")
+        )
     with pytest.raises(ValueError, match="norm"):
-        chamfer_distance(x, y, norm=3)
+        chamfer_distance(x, y, options=ChamferOptions(norm=3))
     with pytest.raises(ValueError, match="non-negative"):
         chamfer_distance(x, y, weights=torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64))
     with pytest.raises(ValueError, match="x_lengths"):

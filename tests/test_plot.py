@@ -49,7 +49,8 @@ def test_face_values_average_vertex_values_per_face():
 def test_plot_mesh_draws_every_polygon_with_its_color(tmp_path):
     verts, faces = mixed_mesh()
     values = np.array([0.0, 1, 2, 3, 4, 5, 6])
-    ax = plot.plot_mesh(verts, faces, values, cmap="viridis", clim=(0.0, 6.0))
+    style = plot.PlotOptions(cmap="viridis", clim=(0.0, 6.0))
+    ax = plot.plot_mesh(verts, faces, values, options=style)
     (collection,) = [c for c in ax.collections if isinstance(c, Poly3DCollection)]
     # the face colors (matplotlib depth-sorts the faces, so compare as sorted rows)
     expected = colormaps["viridis"](values / 6.0)
@@ -74,13 +75,13 @@ def test_plot_mesh_draws_every_polygon_with_its_color(tmp_path):
 def test_up_axis_permutes_cyclically():
     verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 2, 0], [0, 2, 0]]) + torch.tensor([0, 0, 5])
     faces = [[0, 1, 2, 3]]
-    ax = plot.plot_mesh(verts, faces, up="y")
+    ax = plot.plot_mesh(verts, faces, options=plot.PlotOptions(up="y"))
     # y (0..2) is drawn vertically; x moves to the second axis, z to the first
     assert np.mean(ax.get_zlim()) == pytest.approx(1.0)
     assert np.mean(ax.get_ylim()) == pytest.approx(0.5)
     assert np.mean(ax.get_xlim()) == pytest.approx(5.0)
     with pytest.raises(ValueError, match="up must be"):
-        plot.plot_mesh(verts, faces, up="w")
+        plot.plot_mesh(verts, faces, options=plot.PlotOptions(up="w"))
     with pytest.raises(ValueError, match=r"\(V, 3\)"):
         plot.plot_mesh(verts[:, :2], faces)
 
@@ -129,6 +130,13 @@ def test_plot_meshes_shares_color_limits(tmp_path):
     assert np.allclose(rows(own[0]), viridis(np.full(4, 0.5)))
     assert np.allclose(rows(own[1]), rows(viridis((b.numpy() - 2.0) / 3.0)))
     assert (tmp_path / "two.png").read_bytes()[:8] == PNG_MAGIC
+    # a panel's own limits win over the shared ones, and its other options stay
+    own_limits = plot.PlotOptions(cmap="magma", clim=(0.0, 10.0))
+    panels[1]["options"] = own_limits
+    mixed = colors(plot.plot_meshes(panels, shared_clim=True))
+    assert np.allclose(rows(mixed[0]), viridis(np.zeros(4)))
+    assert np.allclose(rows(mixed[1]), rows(colormaps["magma"](b.numpy() / 10.0)))
+    assert panels[1]["options"] is own_limits  # the caller's panels are not changed
 
 
 def test_plot_lines_log_scale(tmp_path):

@@ -2,17 +2,18 @@
 
 :func:`sample_points` draws points uniformly by area on polygon faces (a fan around each
 face's centroid), as differentiable functions of the vertex positions.
-:func:`chamfer_distance` is pytorch3d's ``chamfer_distance`` (same signature, reductions and
-``(loss, loss_normals)`` result) on nearest-neighbour searches (a KD-tree on the CPU, chunked
-``torch.cdist`` elsewhere, so memory stays ``O(chunk * M)``) whose autograd graph is
-``O(N + M)``. :func:`mesh_quality` summarizes what a regularizer is meant to protect:
-planar, convex, well-shaped, unfolded faces.
+:func:`chamfer_distance` is pytorch3d's ``chamfer_distance`` (same arguments, with its keyword
+options in a :class:`ChamferOptions`; same reductions and ``(loss, loss_normals)`` result) on
+nearest-neighbour searches (a KD-tree on the CPU, chunked ``torch.cdist`` elsewhere, so memory
+stays ``O(chunk * M)``) whose autograd graph is ``O(N + M)``. :func:`mesh_quality` summarizes
+what a regularizer is meant to protect: planar, convex, well-shaped, unfolded faces.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -23,7 +24,13 @@ from .kernels.frames import corner_terms, gather_corners
 from .measures import edge_lengths, face_nonplanarity, face_normals
 from .topology import Topology, get_topology
 
-__all__ = ["nearest_neighbors", "chamfer_distance", "sample_points", "mesh_quality"]
+__all__ = [
+    "nearest_neighbors",
+    "chamfer_distance",
+    "ChamferOptions",
+    "sample_points",
+    "mesh_quality",
+]
 
 
 def _check_points(points: torch.Tensor, name: str) -> None:
@@ -196,6 +203,32 @@ def _reduce(
     return total
 
 
+@dataclass(frozen=True)
+class ChamferOptions:
+    """How :func:`chamfer_distance` measures and reduces: pytorch3d's keyword arguments after
+    ``weights`` (same names, values and defaults), and the nearest-neighbour search.
+
+    Attributes:
+        batch_reduction: ``"mean"`` (default), ``"sum"`` or ``None`` (per cloud, ``(N,)``).
+        point_reduction: ``"mean"`` (default) over each cloud's points, ``"sum"``, ``"max"``
+            (the directed Hausdorff distance; no normals) or ``None``.
+        norm: ``2`` (squared L2) or ``1`` (L1).
+        single_directional: only the ``x -> y`` term.
+        abs_cosine: the normal term is ``1 - |cos|`` (orientation ignored; default) or
+            ``1 - cos``, of each point's normal and that of its nearest neighbour.
+        chunk_size: the nearest-neighbour search's chunk size, see :func:`nearest_neighbors`.
+        backend: the nearest-neighbour search's backend, see :func:`nearest_neighbors`.
+    """
+
+    batch_reduction: str | None = "mean"
+    point_reduction: str | None = "mean"
+    norm: int = 2
+    single_directional: bool = False
+    abs_cosine: bool = True
+    chunk_size: int = 2048
+    backend: str = "auto"
+
+
 def chamfer_distance(
     x: torch.Tensor | Any,
     y: torch.Tensor | Any,
@@ -204,24 +237,18 @@ def chamfer_distance(
     x_normals: torch.Tensor | None = None,
     y_normals: torch.Tensor | None = None,
     weights: torch.Tensor | None = None,
-    batch_reduction: str | None = "mean",
-    point_reduction: str | None = "mean",
-    norm: int = 2,
-    *,
-    single_directional: bool = False,
-    abs_cosine: bool = True,
-    chunk_size: int = 2048,
-    backend: str = "auto",
+    options: ChamferOptions | None = None,
 ) -> tuple[Any, Any]:
-    """Chamfer distance between two batches of point clouds, pytorch3d's signature and result.
+    """Chamfer distance between two batches of point clouds, pytorch3d's arguments and result.
 
-    Arguments, defaults, reductions and return values are those of
-    ``pytorch3d.loss.chamfer_distance``: for every point of ``x`` the distance to its nearest
-    point of ``y`` (the *squared* Euclidean distance for ``norm=2``, the L1 distance for
-    ``norm=1``), reduced over the points of each cloud (``point_reduction``) and then over the
-    batch (``batch_reduction``), plus the same from ``y`` to ``x`` unless
-    ``single_directional``. The nearest-neighbour search is a KD-tree on the CPU and chunked
-    ``torch.cdist`` elsewhere (see :func:`nearest_neighbors`); no ``P1 x P2`` matrix is held.
+    The first seven arguments, the reductions and the return values are those of
+    ``pytorch3d.loss.chamfer_distance``; its keyword arguments after ``weights`` are the fields
+    of ``options``: for every point of ``x`` the distance to its nearest point of ``y`` (the
+    *squared* Euclidean distance for ``norm=2``, the L1 distance for ``norm=1``), reduced over
+    the points of each cloud (``point_reduction``) and then over the batch
+    (``batch_reduction``), plus the same from ``y`` to ``x`` unless ``single_directional``. The
+    nearest-neighbour search is a KD-tree on the CPU and chunked ``torch.cdist`` elsewhere (see
+    :func:`nearest_neighbors`); no ``P1 x P2`` matrix is held.
 
     Args:
         x: ``(N, P1, D)`` padded clouds, or a pytorch3d ``Pointclouds`` (read through
@@ -236,16 +263,8 @@ def chamfer_distance(
         y_normals: ``(N, P2, D)`` normals of ``y``.
         weights: ``(N,)`` non-negative weights of the clouds, multiplying their terms; the
             batch ``"mean"`` then divides by ``weights.sum()``.
-        batch_reduction: ``"mean"`` (default), ``"sum"`` or ``None`` (per cloud, ``(N,)``).
-        point_reduction: ``"mean"`` (default) over each cloud's points, ``"sum"``, ``"max"``
-            (the directed Hausdorff distance; no normals) or ``None``.
-        norm: ``2`` (squared L2) or ``1`` (L1).
-        single_directional: only the ``x -> y`` term.
-        abs_cosine: the normal term is ``1 - |cos|`` (orientation ignored; default) or
-            ``1 - cos``, of each point's normal and that of its nearest neighbour.
-        chunk_size: the nearest-neighbour search's chunk size, see
-            :func:`nearest_neighbors`.
-        backend: the nearest-neighbour search's backend, see :func:`nearest_neighbors`.
+        options: a :class:`ChamferOptions`: reductions, norm, direction, the normal term's
+            cosine and the search; default ``ChamferOptions()``, pytorch3d's defaults.
 
     Returns:
         ``(loss, loss_normals)``: the reduced ``x -> y`` plus ``y -> x`` terms, and the same for
@@ -261,24 +280,21 @@ def chamfer_distance(
 
     Examples:
         >>> import torch
-        >>> from torch_polylap.fitting import chamfer_distance
+        >>> from torch_polylap.fitting import ChamferOptions, chamfer_distance
         >>> x = torch.tensor([[0.0, 0, 0], [1, 0, 0]])
         >>> y = torch.tensor([[0.0, 0, 0], [1, 1, 0], [1, 0, 0]])
         >>> loss, _ = chamfer_distance(x, y)   # (0 + 0) / 2 + (0 + 1 + 0) / 3
         >>> round(float(loss), 6)
         0.333333
+        >>> loss, _ = chamfer_distance(x, y, options=ChamferOptions(point_reduction="sum"))
+        >>> round(float(loss), 6)  # (0 + 0) + (0 + 1 + 0)
+        1.0
     """
-    if batch_reduction not in ("mean", "sum", None):
-        raise ValueError(f"batch_reduction must be 'mean', 'sum' or None, got {batch_reduction!r}.")
-    if point_reduction not in ("mean", "sum", "max", None):
-        raise ValueError(
-            f"point_reduction must be 'mean', 'sum', 'max' or None, got {point_reduction!r}."
-        )
-    if norm not in (1, 2):
-        raise ValueError(f"norm must be 1 (L1) or 2 (squared L2), got {norm!r}.")
+    options = options or ChamferOptions()
+    _check_chamfer_options(options)
     x, x_lengths, x_normals = _clouds(x, x_lengths, x_normals, "x")
     y, y_lengths, y_normals = _clouds(y, y_lengths, y_normals, "y")
-    if point_reduction == "max" and (x_normals is not None or y_normals is not None):
+    if options.point_reduction == "max" and (x_normals is not None or y_normals is not None):
         raise ValueError("point_reduction='max' takes no normals (as in pytorch3d).")
     n, _, dim = x.shape
     if y.shape[0] != n or y.shape[2] != dim or y.dtype != x.dtype:
@@ -287,35 +303,66 @@ def chamfer_distance(
             "number of clouds, point dimension and dtype."
         )
     if weights is not None:
-        if weights.shape != (n,):
-            raise ValueError(f"weights must have shape ({n},), got {tuple(weights.shape)}.")
-        if bool((weights < 0).any()):
-            raise ValueError("weights must be non-negative.")
+        _check_weights(weights, n)
         if float(weights.sum()) == 0.0:  # every cloud weighs nothing: a zero that keeps the graph
             zero = (x.sum((1, 2)) * weights) * 0.0
-            zero = zero.sum() if batch_reduction is not None else zero
+            zero = zero.sum() if options.batch_reduction is not None else zero
             with_normals = x_normals is not None and y_normals is not None
             return zero, (zero if with_normals else None)
     nx, ny = x_lengths.tolist(), y_lengths.tolist()
     one_direction = functools.partial(
-        _one_direction, abs_cosine=abs_cosine, chunk_size=chunk_size, backend=backend
+        _one_direction,
+        abs_cosine=options.abs_cosine,
+        chunk_size=options.chunk_size,
+        backend=options.backend,
     )
-    forward = one_direction(x, y, nx, ny, x_normals, y_normals, weights, norm)
+    forward = one_direction(x, y, nx, ny, x_normals, y_normals, weights, options.norm)
     directions = [(forward, x_lengths)]
-    if not single_directional:
-        backward = one_direction(y, x, ny, nx, y_normals, x_normals, weights, norm)
+    if not options.single_directional:
+        backward = one_direction(y, x, ny, nx, y_normals, x_normals, weights, options.norm)
         directions.append((backward, y_lengths))
-    if point_reduction is None:
-        if single_directional:
+    if options.point_reduction is None:
+        if options.single_directional:
             return forward
         return (forward[0], backward[0]), (
             None if forward[1] is None else (forward[1], backward[1])
         )
+    return _reduced(directions, weights, options.batch_reduction, options.point_reduction)
+
+
+def _check_chamfer_options(options: ChamferOptions) -> None:
+    batch_reduction, point_reduction = options.batch_reduction, options.point_reduction
+    if batch_reduction not in ("mean", "sum", None):
+        raise ValueError(f"batch_reduction must be 'mean', 'sum' or None, got {batch_reduction!r}.")
+    if point_reduction not in ("mean", "sum", "max", None):
+        raise ValueError(
+            f"point_reduction must be 'mean', 'sum', 'max' or None, got {point_reduction!r}."
+        )
+    if options.norm not in (1, 2):
+        raise ValueError(f"norm must be 1 (L1) or 2 (squared L2), got {options.norm!r}.")
+
+
+def _check_weights(weights: torch.Tensor, n: int) -> None:
+    if weights.shape != (n,):
+        raise ValueError(f"weights must have shape ({n},), got {tuple(weights.shape)}.")
+    if bool((weights < 0).any()):
+        raise ValueError("weights must be non-negative.")
+
+
+def _reduced(
+    directions: list[tuple[tuple[torch.Tensor, torch.Tensor | None], torch.Tensor]],
+    weights: torch.Tensor | None,
+    batch_reduction: str | None,
+    point_reduction: str,
+) -> tuple[Any, Any]:
+    """``(loss, loss_normals)``: the sums over the directions of their reduced distance and
+    normal terms (``loss_normals`` None without normals); each direction is its
+    ``((distances, normal terms or None), lengths)``."""
     loss = sum(
         _reduce(d, lengths, weights, batch_reduction, point_reduction)
         for (d, _), lengths in directions
     )
-    if forward[1] is None:
+    if directions[0][0][1] is None:
         return loss, None
     loss_normals = sum(
         _reduce(c, lengths, weights, batch_reduction, point_reduction)

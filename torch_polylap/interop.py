@@ -522,26 +522,8 @@ def to_diffusionnet(
         ValueError: no faces (DiffusionNet's point-cloud operators are not built here), an
             invalid mesh, ``k_eig`` out of range, or a ``cache_dir`` that names a file.
     """
-    check_verts(verts)
-    check_method(method)
-    if isinstance(k_eig, bool) or not isinstance(k_eig, int | np.integer):
-        raise TypeError(f"to_diffusionnet: k_eig must be an integer, got {k_eig!r}.")
-    n = verts.shape[0]
-    if not 0 <= k_eig < n:
-        raise ValueError(
-            f"to_diffusionnet: k_eig={k_eig} eigenpairs of a mesh with {n} vertices; pass "
-            f"0 <= k_eig < {n} (0 for DiffusionNet's implicit_dense diffusion)."
-        )
-    cache = None if cache_dir is None else Path(cache_dir)
-    if cache is not None:
-        check_cache_dir(cache)  # before any work
-    given = faces.faces if isinstance(faces, Topology) else as_faces(faces)
-    if given.num_faces == 0:
-        raise ValueError(
-            "to_diffusionnet needs a mesh with faces; for a point cloud use DiffusionNet's own "
-            "diffusion_net.geometry.get_operators."
-        )
-    topo = get_topology(faces, n)  # cached on a faces tensor across calls
+    cache = _check_diffusionnet_args(verts, faces, k_eig, cache_dir, method)
+    topo = get_topology(faces, verts.shape[0])  # cached on a faces tensor across calls
     v64 = verts.detach().to(device="cpu", dtype=torch.float64)
     with torch.no_grad():
         L, M0 = mesh_laplacian(v64, topo, lam, method=method)
@@ -565,6 +547,36 @@ def to_diffusionnet(
         coo(grad_x),
         coo(grad_y),
     )
+
+
+def _check_diffusionnet_args(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    k_eig: int,
+    cache_dir: str | Path | None,
+    method: str,
+) -> Path | None:
+    """Check :func:`to_diffusionnet`'s arguments before any work; the cache folder or None."""
+    check_verts(verts)
+    check_method(method)
+    if isinstance(k_eig, bool) or not isinstance(k_eig, int | np.integer):
+        raise TypeError(f"to_diffusionnet: k_eig must be an integer, got {k_eig!r}.")
+    n = verts.shape[0]
+    if not 0 <= k_eig < n:
+        raise ValueError(
+            f"to_diffusionnet: k_eig={k_eig} eigenpairs of a mesh with {n} vertices; pass "
+            f"0 <= k_eig < {n} (0 for DiffusionNet's implicit_dense diffusion)."
+        )
+    cache = None if cache_dir is None else Path(cache_dir)
+    if cache is not None:
+        check_cache_dir(cache)
+    given = faces.faces if isinstance(faces, Topology) else as_faces(faces)
+    if given.num_faces == 0:
+        raise ValueError(
+            "to_diffusionnet needs a mesh with faces; for a point cloud use DiffusionNet's own "
+            "diffusion_net.geometry.get_operators."
+        )
+    return cache
 
 
 def _diffusionnet_eigs(

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
@@ -33,6 +34,7 @@ __all__ = [
     "face_values",
     "new_figure",
     "plot_mesh",
+    "PlotOptions",
     "plot_meshes",
     "plot_uv",
     "plot_lines",
@@ -105,6 +107,32 @@ def _face_colors(
     return mappable.to_rgba(values), mappable
 
 
+@dataclass(frozen=True)
+class PlotOptions:
+    """How :func:`plot_mesh` draws: colors, colorbar, view and outlines.
+
+    Attributes:
+        cmap: colormap name.
+        clim: color limits ``(low, high)``; default: the data range.
+        colorbar: add a colorbar when values are given.
+        label: the colorbar's label.
+        elev: view elevation in degrees.
+        azim: view azimuth in degrees.
+        edges: draw the polygon outlines.
+        up: the coordinate axis drawn vertically, ``"x"``, ``"y"`` (common for OBJ models) or
+            ``"z"``; the axes are permuted cyclically, so the view is not mirrored.
+    """
+
+    cmap: str = "viridis"
+    clim: tuple[float, float] | None = None
+    colorbar: bool = True
+    label: str | None = None
+    elev: float = 20.0
+    azim: float = -60.0
+    edges: bool = True
+    up: str = "z"
+
+
 def plot_mesh(
     verts: ArrayLike,
     faces: FacesLike,
@@ -112,15 +140,7 @@ def plot_mesh(
     ax: Axes3D | None = None,
     path: str | os.PathLike | None = None,
     title: str | None = None,
-    cmap: str = "viridis",
-    clim: tuple[float, float] | None = None,
-    *,
-    colorbar: bool = True,
-    label: str | None = None,
-    elev: float = 20.0,
-    azim: float = -60.0,
-    edges: bool = True,
-    up: str = "z",
+    options: PlotOptions | None = None,
 ) -> Axes3D:
     """Draw a polygon mesh in 3D, faces colored by ``values`` (or gray-shaded without them).
 
@@ -131,15 +151,8 @@ def plot_mesh(
         ax: a 3D axes to draw into (``projection="3d"``); a new figure when ``None``.
         path: save the figure there (PNG, or any format matplotlib infers from the suffix).
         title: axes title.
-        cmap: colormap name.
-        clim: color limits ``(low, high)``; default: the data range.
-        colorbar: add a colorbar when ``values`` is given.
-        label: the colorbar's label.
-        elev: view elevation in degrees.
-        azim: view azimuth in degrees.
-        edges: draw the polygon outlines.
-        up: the coordinate axis drawn vertically, ``"x"``, ``"y"`` (common for OBJ models) or
-            ``"z"``; the axes are permuted cyclically, so the view is not mirrored.
+        options: a :class:`PlotOptions`: colormap and limits, colorbar and its label, view,
+            outlines and the vertical axis; default ``PlotOptions()``.
 
     Returns:
         The axes drawn into.
@@ -147,17 +160,18 @@ def plot_mesh(
     import mpl_toolkits.mplot3d  # noqa: F401  (registers the "3d" projection)
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
+    options = options or PlotOptions()
     pts = check_verts_array(verts)
-    if up not in _UP:
-        raise ValueError(f"plot_mesh: up must be 'x', 'y' or 'z', got {up!r}.")
-    pts = pts[:, _UP[up]]
+    if options.up not in _UP:
+        raise ValueError(f"plot_mesh: up must be 'x', 'y' or 'z', got {options.up!r}.")
+    pts = pts[:, _UP[options.up]]
     if ax is None:
         ax = cast("Axes3D", new_figure(1, 1, three_d=True)[1][0])  # new_figure types it as Axes
     pf = as_faces(faces)
     polys = _polygons(pts, pf)
     mappable = None
     if values is not None:
-        rgba, mappable = _face_colors(face_values(values, pf, len(pts)), cmap, clim)
+        rgba, mappable = _face_colors(face_values(values, pf, len(pts)), options.cmap, options.clim)
     else:
         # Lambert shading by the face normals (vector area, sign-free so back faces show too)
         normals = vector_area(torch.from_numpy(pts), pf).numpy()
@@ -167,7 +181,7 @@ def plot_mesh(
     collection = Poly3DCollection(
         polys,
         facecolors=rgba,
-        edgecolors=(0.1, 0.1, 0.1, 0.35) if edges else "none",
+        edgecolors=(0.1, 0.1, 0.1, 0.35) if options.edges else "none",
         linewidths=0.3,
     )
     ax.add_collection3d(collection)
@@ -177,12 +191,12 @@ def plot_mesh(
     ax.set_ylim(center[1] - half, center[1] + half)
     ax.set_zlim(center[2] - half, center[2] + half)
     ax.set_box_aspect((1, 1, 1))  # equal aspect: the limits above are a cube
-    ax.view_init(elev=elev, azim=azim)
+    ax.view_init(elev=options.elev, azim=options.azim)
     ax.set_axis_off()
     if title:
         ax.set_title(title, fontsize=10)
-    if mappable is not None and colorbar:
-        ax.figure.colorbar(mappable, ax=ax, shrink=0.6, pad=0.02, label=label)
+    if mappable is not None and options.colorbar:
+        ax.figure.colorbar(mappable, ax=ax, shrink=0.6, pad=0.02, label=options.label)
     if path is not None:
         save_figure(ax.figure.figure, path)  # the whole figure, also from a subfigure
     return ax
@@ -201,11 +215,11 @@ def plot_meshes(
 
     Args:
         panels: one mapping per panel with :func:`plot_mesh`'s keyword arguments (``verts``,
-            ``faces``, and optionally ``values``, ``title``, ``cmap``, ``clim``, ``label``...).
+            ``faces``, and optionally ``values``, ``title`` and ``options``).
         path: save the figure there.
         ncols: panels per row (default: all in one row, at most 4).
-        shared_clim: give every panel with values the same color limits (the union of their
-            ranges), so that before/after panels compare by color.
+        shared_clim: give every panel with values and no color limits of its own the same
+            limits (the union of their ranges), so that before/after panels compare by color.
         suptitle: figure title.
         panel_size: inches per panel.
 
@@ -225,7 +239,9 @@ def plot_meshes(
         if ranges:
             clim = (min(r[0] for r in ranges), max(r[1] for r in ranges))
             for p in specs:
-                p.setdefault("clim", clim)
+                options = p.get("options") or PlotOptions()
+                if options.clim is None:
+                    p["options"] = replace(options, clim=clim)
     fig, axes = new_figure(nrows, ncols, three_d=True, panel_size=panel_size)
     for ax, panel in zip(axes, specs, strict=False):
         plot_mesh(ax=ax, **panel)

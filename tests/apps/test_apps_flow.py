@@ -13,14 +13,17 @@ from meshes import dumbbell
 
 import torch_polylap as tp
 from torch_polylap.apps import (
+    FlowOptions,
     FlowResult,
-    FlowStoppedWarning,
     enclosed_volume,
     mean_curvature_flow,
     scale_free_mean_curvature,
 )
 from torch_polylap.apps.flow import SINGULARITY_FACTOR
 from torch_polylap.shapes import quad_grid, schwarz_lantern, torus
+
+FROZEN = FlowOptions(frozen=True)
+GUARDED = FlowOptions(stop_at_singularity=True)
 
 
 def unit_sphere(name: str):
@@ -52,7 +55,7 @@ def test_round_sphere_shrinks_at_the_mean_curvature_rate(device):
     for name in ("quad_2.obj", "quad_3.obj"):
         verts, faces = unit_sphere(name)
         verts = verts.to(device)
-        X = mean_curvature_flow(verts, faces, dt, steps, lam=1.0)
+        X = mean_curvature_flow(verts, faces, dt, steps, lam=1.0).verts
         assert X.device == verts.device
         # the shape stays round, so the squared radius is the area ratio
         r2 = float(tp.face_areas(X, faces).sum() / tp.face_areas(verts, faces).sum())
@@ -68,26 +71,27 @@ def test_frozen_and_rebuilt_flows_agree_to_second_order_in_dt():
     verts = verts * torch.tensor([1.0, 0.8, 0.6], dtype=torch.float64)  # an ellipsoid
     gaps = []
     for dt in (2e-3, 1e-3):
-        frozen = mean_curvature_flow(verts, faces, dt, 3, frozen=True)
-        rebuilt = mean_curvature_flow(verts, faces, dt, 3)
+        frozen = mean_curvature_flow(verts, faces, dt, 3, options=FROZEN).verts
+        rebuilt = mean_curvature_flow(verts, faces, dt, 3).verts
         moved = float((rebuilt - verts).norm(dim=1).max())
         assert moved > 1e-3  # the flow moved by O(dt)
         gaps.append(float((frozen - rebuilt).norm(dim=1).max()))
     # dt is a fifth of the squared edge length: the fastest modes relax within one step
     assert gaps[1] < 0.35 * gaps[0] and gaps[0] < 0.1 * moved, gaps
-    one_frozen = mean_curvature_flow(verts, faces, 1e-3, 1, frozen=True)
-    torch.testing.assert_close(one_frozen, mean_curvature_flow(verts, faces, 1e-3, 1))
+    one_frozen = mean_curvature_flow(verts, faces, 1e-3, 1, options=FROZEN).verts
+    torch.testing.assert_close(one_frozen, mean_curvature_flow(verts, faces, 1e-3, 1).verts)
 
 
 def test_area_and_volume_normalization_keep_their_measure():
     verts, faces = unit_sphere("hex_2.obj")
     verts = verts * torch.tensor([1.0, 0.7, 0.5], dtype=torch.float64)
     area0 = tp.face_areas(verts, faces).sum()
-    X = mean_curvature_flow(verts, faces, 0.01, 4, normalize="area")
+    X = mean_curvature_flow(verts, faces, 0.01, 4, options=FlowOptions(normalize="area")).verts
     torch.testing.assert_close(tp.face_areas(X, faces).sum(), area0, rtol=1e-12, atol=0)
     assert float((X - verts).norm(dim=1).max()) > 1e-2  # the shape did change
     vol0 = enclosed_volume(verts, faces)
-    Y = mean_curvature_flow(verts, faces, 0.01, 4, normalize="volume")
+    Y = mean_curvature_flow(verts, faces, 0.01, 4, options=FlowOptions(normalize="volume"))
+    Y = Y.verts
     torch.testing.assert_close(enclosed_volume(Y, faces), vol0, rtol=1e-12, atol=0)
 
 
@@ -114,10 +118,10 @@ def test_flat_mesh_with_fixed_boundary_is_a_fixed_point_and_stays_in_its_plane()
     normal = rot[:, 2]
     boundary = tp.build_topology(faces, verts.shape[0]).boundary_vertices
     # linear precision: (L X)_p = 0 at interior vertices of a planar mesh
-    X = mean_curvature_flow(verts, faces, 0.05, 3, fixed=boundary)
+    X = mean_curvature_flow(verts, faces, 0.05, 3, fixed=boundary).verts
     torch.testing.assert_close(X, verts, rtol=0, atol=1e-12)
     # with a free boundary the rim shrinks, but every vertex stays in the plane
-    Y = mean_curvature_flow(verts, faces, 0.05, 3)
+    Y = mean_curvature_flow(verts, faces, 0.05, 3).verts
     assert float((Y - verts).norm(dim=1).max()) > 1e-3
     offsets = (Y - verts[0]) @ normal
     assert float(offsets.abs().max()) < 1e-12
@@ -130,11 +134,11 @@ def test_flow_is_differentiable_in_the_initial_positions(device):
     weights = torch.randn(verts.shape, generator=gen, dtype=torch.float64).to(device)
 
     def loss(X):
-        return (mean_curvature_flow(X, faces, 0.05, 3, lam=2.0) * weights).sum()
+        return (mean_curvature_flow(X, faces, 0.05, 3, lam=2.0).verts * weights).sum()
 
     def loss_fixed_frozen(X):
-        flowed = mean_curvature_flow(X, faces, 0.05, 3, frozen=True, fixed=torch.tensor([6, 7]))
-        return (flowed * weights).sum()
+        flowed = mean_curvature_flow(X, faces, 0.05, 3, fixed=torch.tensor([6, 7]), options=FROZEN)
+        return (flowed.verts * weights).sum()
 
     assert_directional_derivative(loss, verts, rtol=1e-6)
     assert_directional_derivative(loss_fixed_frozen, verts, rtol=1e-6)
@@ -142,11 +146,14 @@ def test_flow_is_differentiable_in_the_initial_positions(device):
 
 def test_trajectory_progress_and_argument_checks():
     verts, faces = unit_sphere("quad_2.obj")
-    traj = mean_curvature_flow(verts, faces, 0.01, 2, return_trajectory=True, progress=True)
-    assert traj.shape == (3, *verts.shape)
-    assert torch.equal(traj[0], verts)
-    torch.testing.assert_close(traj[-1], mean_curvature_flow(verts, faces, 0.01, 2))
-    assert torch.equal(mean_curvature_flow(verts, faces, 0.01, 0), verts)
+    options = FlowOptions(trajectory=True, progress=True)
+    result = mean_curvature_flow(verts, faces, 0.01, 2, options=options)
+    traj = result.trajectory
+    assert traj is not None and traj.shape == (3, *verts.shape)
+    assert torch.equal(traj[0], verts) and torch.equal(traj[-1], result.verts)
+    torch.testing.assert_close(traj[-1], mean_curvature_flow(verts, faces, 0.01, 2).verts)
+    assert mean_curvature_flow(verts, faces, 0.01, 2).trajectory is None
+    assert torch.equal(mean_curvature_flow(verts, faces, 0.01, 0).verts, verts)
     with pytest.raises(ValueError, match="dt"):
         mean_curvature_flow(verts, faces, 0.0, 2)
     with pytest.raises(ValueError, match="dt"):
@@ -154,12 +161,28 @@ def test_trajectory_progress_and_argument_checks():
     with pytest.raises(ValueError, match="steps"):
         mean_curvature_flow(verts, faces, 0.01, -1)
     with pytest.raises(ValueError, match="normalize"):
-        mean_curvature_flow(verts, faces, 0.01, 1, normalize="length")
+        mean_curvature_flow(verts, faces, 0.01, 1, options=FlowOptions(normalize="length"))
     flat, quads = quad_grid(3)
     with pytest.raises(ValueError, match="closed mesh"):
-        mean_curvature_flow(flat, quads, 0.01, 1, normalize="volume")
+        mean_curvature_flow(flat, quads, 0.01, 1, options=FlowOptions(normalize="volume"))
     with pytest.raises(ValueError, match="fixed"):
-        mean_curvature_flow(verts, faces, 0.01, 1, normalize="area", fixed=torch.tensor([0]))
+        mean_curvature_flow(
+            verts, faces, 0.01, 1, fixed=torch.tensor([0]), options=FlowOptions(normalize="area")
+        )
+
+
+def test_trajectory_is_the_flow_restarted_from_each_state():
+    """Each state of a rebuilt flow's trajectory is one step from the one before, bit for bit:
+    the trajectory records the states the steps went through and nothing else."""
+    verts, faces = unit_sphere("hex_2.obj")
+    verts = verts * torch.tensor([1.0, 0.8, 0.6], dtype=torch.float64)
+    result = mean_curvature_flow(
+        verts, faces, 0.01, 3, lam=2.0, options=FlowOptions(trajectory=True)
+    )
+    assert result.trajectory is not None and result.steps == 3
+    for before, after in zip(result.trajectory[:-1], result.trajectory[1:], strict=True):
+        assert torch.equal(mean_curvature_flow(before, faces, 0.01, 1, lam=2.0).verts, after)
+    assert torch.equal(result.trajectory[-1], result.verts)
 
 
 def lantern_symmetry_defects(X: torch.Tensor, sides: int, rings: int) -> tuple[float, float]:
@@ -182,11 +205,11 @@ def test_lantern_quad_flow_keeps_the_symmetry_that_triangulations_break():
     for kind in ("quad", "horizontal", "vertical", "alternating"):
         verts, faces = schwarz_lantern(sides, rings, triangulation=kind)
         fixed = tp.build_topology(faces, verts.shape[0]).boundary_vertices
-        results[kind] = mean_curvature_flow(verts, faces, 0.02, 10, lam=2.0, fixed=fixed)
+        results[kind] = mean_curvature_flow(verts, faces, 0.02, 10, lam=2.0, fixed=fixed).verts
         if kind == "quad":
             # relabeling each quad cyclically (another "choice" a quad mesh does not have)
             shifted = [f[1:] + f[:1] for f in faces]
-            again = mean_curvature_flow(verts, shifted, 0.02, 10, lam=2.0, fixed=fixed)
+            again = mean_curvature_flow(verts, shifted, 0.02, 10, lam=2.0, fixed=fixed).verts
             torch.testing.assert_close(again, results[kind], rtol=0, atol=1e-12)
     rotation, mirror = lantern_symmetry_defects(results["quad"], sides, rings)
     assert rotation < 1e-10 and mirror < 1e-10
@@ -215,7 +238,7 @@ def largest_scale_free_curvature(verts: torch.Tensor, faces) -> float:
 def unguarded_flow_degenerates(verts, faces, dt: float, steps: int, bound: float) -> bool:
     """Whether the plain flow passes ``bound`` or breaks down (a singular system)."""
     try:
-        raw = mean_curvature_flow(verts, faces, dt, steps)
+        raw = mean_curvature_flow(verts, faces, dt, steps).verts
     except ValueError:
         return True
     return not largest_scale_free_curvature(raw, faces) <= bound
@@ -231,9 +254,7 @@ def test_guard_stops_before_a_thin_part_pinches(shape, dt, steps):
     bound = SINGULARITY_FACTOR * max(before, 1.0)
     # the plain flow with this step does degenerate: without the guard this test would fail
     assert unguarded_flow_degenerates(verts, faces, dt, steps, bound)
-    result = mean_curvature_flow(
-        verts, faces, dt, steps, stop_at_singularity=True, return_result=True
-    )
+    result = mean_curvature_flow(verts, faces, dt, steps, options=GUARDED)
     assert isinstance(result, FlowResult)
     assert 0 < result.steps < steps and result.dt == dt  # a chosen step is kept
     assert result.stopped.startswith(f"at step {result.steps + 1} ")
@@ -242,28 +263,15 @@ def test_guard_stops_before_a_thin_part_pinches(shape, dt, steps):
     # plain flow's state after as many steps: the guard only chooses where to stop
     assert largest_scale_free_curvature(result.verts, faces) <= bound
     plain = mean_curvature_flow(verts, faces, dt, result.steps)
-    assert torch.equal(result.verts, plain)
-    # without return_result the same stop is a warning that says after how many steps
-    with pytest.warns(FlowStoppedWarning, match=rf"stopped after {result.steps} of {steps}"):
-        warned = mean_curvature_flow(verts, faces, dt, steps, stop_at_singularity=True)
-    assert torch.equal(warned, result.verts)
+    assert torch.equal(result.verts, plain.verts) and not plain.stopped
 
 
 def test_guard_halves_the_step_before_giving_up():
     verts, faces = torus(24, 8, major=1.0, minor=0.15)
     dt, steps, halvings = 0.002, 10, 6
-    kept = mean_curvature_flow(
-        verts, faces, dt, steps, stop_at_singularity=True, return_result=True
-    )
-    halved = mean_curvature_flow(
-        verts,
-        faces,
-        dt,
-        steps,
-        stop_at_singularity=True,
-        max_halvings=halvings,
-        return_result=True,
-    )
+    kept = mean_curvature_flow(verts, faces, dt, steps, options=GUARDED)
+    options = FlowOptions(stop_at_singularity=True, max_halvings=halvings)
+    halved = mean_curvature_flow(verts, faces, dt, steps, options=options)
     # the smaller steps went further; a singularity in time still stops the flow, and only
     # once every halving is spent
     assert halved.steps > kept.steps
@@ -277,26 +285,17 @@ def test_guard_that_never_fires_changes_nothing():
     trajectory and gradients included."""
     verts, faces = unit_sphere("quad_2.obj")
     verts = verts.clone().requires_grad_(True)
-    plain = mean_curvature_flow(verts, faces, 0.01, 3, return_trajectory=True)
-    guarded = mean_curvature_flow(
-        verts,
-        faces,
-        0.01,
-        3,
-        return_trajectory=True,
-        stop_at_singularity=True,
-        max_halvings=2,
-        return_result=True,
-    )
+    plain = mean_curvature_flow(verts, faces, 0.01, 3, options=FlowOptions(trajectory=True))
+    options = FlowOptions(trajectory=True, stop_at_singularity=True, max_halvings=2)
+    guarded = mean_curvature_flow(verts, faces, 0.01, 3, options=options)
     assert (guarded.steps, guarded.dt, guarded.stopped) == (3, 0.01, "")
-    assert torch.equal(guarded.verts, plain)
+    assert (plain.steps, plain.dt, plain.stopped) == (3, 0.01, "")
+    assert guarded.trajectory is not None and plain.trajectory is not None
+    assert torch.equal(guarded.trajectory, plain.trajectory)
     weights = torch.linspace(-1, 1, verts.numel(), dtype=torch.float64).reshape(verts.shape)
-    (g_plain,) = torch.autograd.grad((plain[-1] * weights).sum(), verts)
-    (g_guarded,) = torch.autograd.grad((guarded.verts[-1] * weights).sum(), verts)
+    (g_plain,) = torch.autograd.grad((plain.verts * weights).sum(), verts)
+    (g_guarded,) = torch.autograd.grad((guarded.verts * weights).sum(), verts)
     assert torch.equal(g_plain, g_guarded)
-    # return_result alone (no guard) wraps the plain result
-    wrapped = mean_curvature_flow(verts, faces, 0.01, 3, return_result=True)
-    assert torch.equal(wrapped.verts, plain[-1]) and wrapped.steps == 3 and not wrapped.stopped
 
 
 def test_scale_free_mean_curvature_is_one_on_round_spheres_of_any_size():
@@ -310,12 +309,12 @@ def test_scale_free_mean_curvature_is_one_on_round_spheres_of_any_size():
 def test_guard_argument_checks():
     verts, faces = unit_sphere("quad_2.obj")
     with pytest.raises(ValueError, match="stop_at_singularity"):
-        mean_curvature_flow(verts, faces, 0.01, 1, max_halvings=2)
-    with pytest.raises(ValueError, match="frozen"):
-        mean_curvature_flow(
-            verts, faces, 0.01, 1, frozen=True, stop_at_singularity=True, max_halvings=2
-        )
-    with pytest.raises(ValueError, match="singularity_factor"):
-        mean_curvature_flow(verts, faces, 0.01, 1, stop_at_singularity=True, singularity_factor=1)
-    with pytest.raises(ValueError, match="max_halvings"):
-        mean_curvature_flow(verts, faces, 0.01, 1, stop_at_singularity=True, max_halvings=-1)
+        mean_curvature_flow(verts, faces, 0.01, 1, options=FlowOptions(max_halvings=2))
+    refused = {
+        "frozen": FlowOptions(frozen=True, stop_at_singularity=True, max_halvings=2),
+        "singularity_factor": FlowOptions(stop_at_singularity=True, singularity_factor=1),
+        "max_halvings": FlowOptions(stop_at_singularity=True, max_halvings=-1),
+    }
+    for match, options in refused.items():
+        with pytest.raises(ValueError, match=match):
+            mean_curvature_flow(verts, faces, 0.01, 1, options=options)

@@ -11,8 +11,10 @@ import torch
 from conftest import DATA
 
 import torch_polylap as tp
-from torch_polylap.apps.planarize import planarize
+from torch_polylap.apps.planarize import PlanarizeOptions, planarize
 from torch_polylap.shapes import quad_grid
+
+QUIET = PlanarizeOptions(warn=False)
 
 
 def _perturbed_grid(n: int = 8, noise: float = 0.02, seed: int = 0):
@@ -56,7 +58,8 @@ def test_random_perturbation_of_planar_grid_is_planarized():
 
 def test_energy_decreases_monotonically():
     V, F = quad_grid(6, bump=0.3, seed=1)
-    res = planarize(V, F, tol=1e-7, max_iter=200, check_every=1, method="lbfgs")
+    options = PlanarizeOptions(check_every=1)
+    res = planarize(V, F, tol=1e-7, max_iter=200, method="lbfgs", options=options)
     e = np.asarray(res.energies)
     assert len(e) == res.iterations + 1 and len(e) > 5
     assert np.all(np.diff(e) <= 0)
@@ -85,7 +88,7 @@ def test_float32():
 
 def test_progress_bar_and_errors(capsys):
     V, F = _perturbed_grid(3)
-    res = planarize(V, F, tol=1e-5, progress=True)
+    res = planarize(V, F, tol=1e-5, options=PlanarizeOptions(progress=True))
     assert res.converged
     assert "planarize" in capsys.readouterr().err
     with pytest.raises(ValueError, match="shape"):
@@ -147,11 +150,11 @@ def test_warns_when_it_cannot_converge():
             res = planarize(V, F, tol=1e-9, max_iter=1, method=method)
         assert not res.converged and "raise max_iter" in res.message
     with pytest.warns(UserWarning, match="raise time_limit"):
-        res = planarize(V, F, tol=1e-12, time_limit=0.0)
+        res = planarize(V, F, tol=1e-12, options=PlanarizeOptions(time_limit=0.0))
     assert not res.converged
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        planarize(V, F, tol=1e-9, max_iter=1, warn=False)
+        planarize(V, F, tol=1e-9, max_iter=1, options=QUIET)
 
 
 @pytest.mark.parametrize("method", ["gauss-newton", "lbfgs"])
@@ -167,18 +170,18 @@ def test_fixed_boundary_stays_put_exactly(method, device):
 def test_closeness_reduces_displacement():
     V, F = _perturbed_grid(8, noise=0.03, seed=6)
     free = planarize(V, F, tol=1e-3)
-    close = planarize(V, F, tol=1e-3, closeness=1e-3, warn=False)
+    close = planarize(V, F, tol=1e-3, options=PlanarizeOptions(closeness=1e-3, warn=False))
     assert free.converged
     assert close.displacement[1] < free.displacement[1]
     with pytest.raises(ValueError, match="closeness"):
-        planarize(V, F, closeness=-1.0)
+        planarize(V, F, options=PlanarizeOptions(closeness=-1.0))
     with pytest.raises(ValueError, match="method"):
         planarize(V, F, method="newton")
 
 
 def test_gauss_newton_objective_never_increases():
     V, F = _perturbed_grid(8, noise=0.05, seed=7)
-    res = planarize(V, F, tol=1e-10, closeness=1e-6, warn=False)
+    res = planarize(V, F, tol=1e-10, options=PlanarizeOptions(closeness=1e-6, warn=False))
     o = np.asarray(res.objectives)
     assert len(o) >= 3 and np.all(np.diff(o) <= 0)
 

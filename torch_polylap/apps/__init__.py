@@ -8,20 +8,20 @@ from .conformal import (
     conformal_parameterization,
 )
 from .flow import (
+    FlowOptions,
     FlowResult,
-    FlowStoppedWarning,
     enclosed_volume,
     mean_curvature_flow,
     scale_free_mean_curvature,
     schwarz_lantern,
 )
-from .planarize import PlanarizeResult, planarize
+from .planarize import PlanarizeOptions, PlanarizeResult, planarize
 from .plate import navier_deflection, plate_bending, plate_error
 
 __all__ = [
     "mean_curvature_flow",
+    "FlowOptions",
     "FlowResult",
-    "FlowStoppedWarning",
     "scale_free_mean_curvature",
     "enclosed_volume",
     "schwarz_lantern",
@@ -34,5 +34,6 @@ __all__ = [
     "angle_distortion",
     "AngleDistortion",
     "planarize",
+    "PlanarizeOptions",
     "PlanarizeResult",
 ]

@@ -8,16 +8,16 @@ backward-Euler solve
 
     (M0 + dt L) X_{t+1} = M0 X_t,
 
-with ``L`` and ``M0`` rebuilt from the current positions (or, ``frozen=True``, taken once from the
-initial positions so that one factorization serves every step).  The steps are differentiable
-with respect to the initial vertex positions through :func:`torch_polylap.solve`.
+with ``L`` and ``M0`` rebuilt from the current positions (or, with :attr:`FlowOptions.frozen`,
+taken once from the initial positions so that one factorization serves every step).  The steps
+are differentiable with respect to the initial vertex positions through
+:func:`torch_polylap.solve`.
 """
 
 from __future__ import annotations
 
 import math
-import warnings
-from typing import Literal, NamedTuple, overload
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -35,8 +35,8 @@ from ..topology import Topology, get_topology, half_edge_vertices
 
 __all__ = [
     "mean_curvature_flow",
+    "FlowOptions",
     "FlowResult",
-    "FlowStoppedWarning",
     "scale_free_mean_curvature",
     "enclosed_volume",
     "schwarz_lantern",
@@ -52,27 +52,68 @@ _NORMALIZE = (None, "area", "volume")
 SINGULARITY_FACTOR = 4.0
 
 
-class FlowResult(NamedTuple):
-    """What :func:`mean_curvature_flow` did (``return_result=True``).
+@dataclass(frozen=True)
+class FlowOptions:
+    """How :func:`mean_curvature_flow` steps: the operator's updates, rescaling, what it keeps,
+    and the singularity guard. The defaults take every step asked for, rebuilding ``L`` and
+    ``M0`` from the current positions each time.
 
     Attributes:
-        verts: ``(V, 3)`` positions after the last step taken, or ``(steps + 1, V, 3)`` with
-            ``return_trajectory`` (index 0 is the input).
+        frozen: build ``L`` and ``M0`` once from the input positions and reuse them (and their
+            sparse factorization) for every step: the linearized flow, much cheaper, close to
+            the true flow for small ``dt * steps``.
+        normalize: ``None``; ``"area"`` or ``"volume"``: after each step, scale the mesh about
+            its area-weighted centroid so that the total area (sum of ``|f|``) or the enclosed
+            volume (:func:`enclosed_volume`, closed consistently oriented meshes only) keeps its
+            initial value. Cannot be combined with ``fixed`` vertices.
+        trajectory: also keep every intermediate state (:attr:`FlowResult.trajectory`).
+        progress: show a tqdm progress bar over the steps.
+        stop_at_singularity: guard the flow against the singularities it develops in finite
+            time (a thin part pinching off, faces folding over, a small closed part shrinking
+            to a point). A step is refused when the largest
+            :func:`scale_free_mean_curvature` over the interior vertices (all vertices of a
+            mesh without interior) rises above ``singularity_factor`` times the input's, or a
+            round sphere's (1) if that is larger, or when the step fails (its system singular,
+            the normalized measure vanishing). The flow then stops at the last state before it
+            and :attr:`FlowResult.stopped` says why. The check runs without gradient; the steps
+            taken stay differentiable. Off by default: every step is taken, whatever it does.
+        singularity_factor: the guard's bound, ``> 1`` (default 4, what ``polylap smooth``
+            keeps).
+        max_halvings: with the guard, retry a refused step with half the time step up to this
+            many times in all before stopping (default 0: the ``dt`` asked for is kept;
+            ``polylap smooth`` halves its default step up to 6 times). Needs ``frozen=False``,
+            whose operator depends on ``dt``.
+    """
+
+    frozen: bool = False
+    normalize: str | None = None
+    trajectory: bool = False
+    progress: bool = False
+    stop_at_singularity: bool = False
+    singularity_factor: float = SINGULARITY_FACTOR
+    max_halvings: int = 0
+
+
+@dataclass(frozen=True)
+class FlowResult:
+    """What :func:`mean_curvature_flow` did.
+
+    Attributes:
+        verts: ``(V, 3)`` positions after the last step taken (the input itself after zero
+            steps); dtype and device follow the input.
         steps: steps taken; fewer than asked where the singularity guard stopped the flow.
         dt: the time step of the last step (smaller than asked after halvings).
         stopped: why the guard stopped the flow, e.g. ``"at step 7 the scale-free mean
             curvature at vertex 12 would reach ..."``; empty when every step ran.
+        trajectory: with :attr:`FlowOptions.trajectory`, ``(steps + 1, V, 3)``: every state,
+            index 0 the input, the last one ``verts``; else ``None``.
     """
 
     verts: torch.Tensor
     steps: int
     dt: float
     stopped: str
-
-
-class FlowStoppedWarning(UserWarning):
-    """The singularity guard of :func:`mean_curvature_flow` stopped the flow before the steps
-    asked for (issued unless ``return_result=True``, whose :class:`FlowResult` says it)."""
+    trajectory: torch.Tensor | None = None
 
 
 def scale_free_mean_curvature(
@@ -180,7 +221,9 @@ def _check_count(name: str, value: int) -> None:
         raise ValueError(f"{name} must be an integer >= 0, got {value!r}.")
 
 
-def _check_args(verts: torch.Tensor, dt: float, steps: int, normalize: str | None) -> None:
+def _check_args(
+    verts: torch.Tensor, dt: float, steps: int, method: str, options: FlowOptions
+) -> None:
     check_verts(verts)
     _check_count("steps", steps)
     dt_value = float(dt)
@@ -189,8 +232,19 @@ def _check_args(verts: torch.Tensor, dt: float, steps: int, normalize: str | Non
             f"dt must be a finite time step > 0, got {dt!r}; a sensible start is "
             "0.01-1 times the squared mean edge length."
         )
-    if normalize not in _NORMALIZE:
-        raise ValueError(f"normalize must be None, 'area' or 'volume', got {normalize!r}.")
+    if options.normalize not in _NORMALIZE:
+        raise ValueError(f"normalize must be None, 'area' or 'volume', got {options.normalize!r}.")
+    check_method(method)
+    _check_count("max_halvings", options.max_halvings)
+    factor = options.singularity_factor
+    if not float(factor) > 1.0 or math.isinf(float(factor)):
+        raise ValueError(f"singularity_factor must be a finite number > 1, got {factor!r}.")
+    if options.max_halvings and not options.stop_at_singularity:
+        raise ValueError("max_halvings halves refused steps: it needs stop_at_singularity=True.")
+    if options.max_halvings and options.frozen:
+        raise ValueError(
+            "max_halvings needs frozen=False: a frozen flow factors M0 + dt L once, for one dt."
+        )
 
 
 def _fixed_mask(fixed: torch.Tensor | None, num_verts: int, device: torch.device) -> torch.Tensor:
@@ -240,48 +294,6 @@ def _measure(X: torch.Tensor, topo: Topology, normalize: str) -> torch.Tensor:
     return face_areas(X, topo).sum() if normalize == "area" else _volume(X, topo)
 
 
-@overload
-def mean_curvature_flow(
-    verts: torch.Tensor,
-    faces: MeshFaces,
-    dt: float,
-    steps: int,
-    lam: float | torch.Tensor = ...,
-    *,
-    frozen: bool = ...,
-    normalize: str | None = ...,
-    return_trajectory: bool = ...,
-    progress: bool = ...,
-    fixed: torch.Tensor | None = ...,
-    method: str = ...,
-    stop_at_singularity: bool = ...,
-    singularity_factor: float = ...,
-    max_halvings: int = ...,
-    return_result: Literal[False] = ...,
-) -> torch.Tensor: ...
-
-
-@overload
-def mean_curvature_flow(
-    verts: torch.Tensor,
-    faces: MeshFaces,
-    dt: float,
-    steps: int,
-    lam: float | torch.Tensor = ...,
-    *,
-    frozen: bool = ...,
-    normalize: str | None = ...,
-    return_trajectory: bool = ...,
-    progress: bool = ...,
-    fixed: torch.Tensor | None = ...,
-    method: str = ...,
-    stop_at_singularity: bool = ...,
-    singularity_factor: float = ...,
-    max_halvings: int = ...,
-    return_result: Literal[True],
-) -> FlowResult: ...
-
-
 def mean_curvature_flow(
     verts: torch.Tensor,
     faces: MeshFaces,
@@ -289,17 +301,10 @@ def mean_curvature_flow(
     steps: int,
     lam: float | torch.Tensor = 1.0,
     *,
-    frozen: bool = False,
-    normalize: str | None = None,
-    return_trajectory: bool = False,
-    progress: bool = False,
-    fixed: torch.Tensor | None = None,
     method: str = "aw11",
-    stop_at_singularity: bool = False,
-    singularity_factor: float = SINGULARITY_FACTOR,
-    max_halvings: int = 0,
-    return_result: bool = False,
-) -> torch.Tensor | FlowResult:
+    fixed: torch.Tensor | None = None,
+    options: FlowOptions | None = None,
+) -> FlowResult:
     """Implicit mean-curvature flow ``(M0 + dt L) X' = M0 X`` (AW11 sec. 5.1; Desbrun et al. 1999).
 
     Args:
@@ -313,44 +318,18 @@ def mean_curvature_flow(
             larger steps smooth faster but shrink less faithfully.
         steps: number of implicit steps, ``>= 0``.
         lam: the Laplacian's ``lambda`` (AW11 eq. 9; the paper's flow uses 2).
-        frozen: build ``L`` and ``M0`` once from ``verts`` and reuse them (and their sparse
-            factorization) for every step: the linearized flow, much cheaper, close to the true
-            flow for small ``dt * steps``. Default: rebuilt from the current positions each step.
-        normalize: ``None``; ``"area"`` or ``"volume"``: after each step, scale the mesh about
-            its area-weighted centroid so that the total area (sum of ``|f|``) or the enclosed
-            volume (:func:`enclosed_volume`, closed consistently oriented meshes only) keeps its
-            initial value.
-        return_trajectory: also return every intermediate state.
-        progress: show a tqdm progress bar over the steps.
-        fixed: optional vertex indices (each once) or a ``(V,)`` bool mask, held in place, e.g.
-            a boundary to fair a patch towards a minimal surface (checked by
-            :func:`torch_polylap.checks.check_index_or_mask`). Cannot be combined with
-            ``normalize``.
         method: the Laplacian, ``"aw11"`` (default), ``"plms"`` (``lam`` unused) or
             ``"degoes"`` (see :func:`torch_polylap.laplacian`).
-        stop_at_singularity: guard the flow against the singularities it develops in finite
-            time (a thin part pinching off, faces folding over, a small closed part shrinking
-            to a point). A step is refused when the largest
-            :func:`scale_free_mean_curvature` over the interior vertices (all vertices of a
-            mesh without interior) rises above ``singularity_factor`` times the input's, or a
-            round sphere's (1) if that is larger, or when the step fails (its system singular,
-            the normalized measure vanishing). The flow then stops at the last state before it
-            and warns (:class:`FlowStoppedWarning`), unless ``return_result``. The check runs
-            without gradient; the steps taken stay differentiable. Off by default: every step
-            is taken, whatever it does.
-        singularity_factor: the guard's bound, ``> 1`` (default 4, what ``polylap smooth``
-            keeps).
-        max_halvings: with the guard, retry a refused step with half the time step up to this
-            many times in all before stopping (default 0: the ``dt`` asked for is kept;
-            ``polylap smooth`` halves its default step up to 6 times). Needs ``frozen=False``,
-            whose operator depends on ``dt``.
-        return_result: return a :class:`FlowResult` (positions, steps taken, last ``dt``, why
-            the guard stopped) instead of the positions alone.
+        fixed: optional vertex indices (each once) or a ``(V,)`` bool mask, held in place, e.g.
+            a boundary to fair a patch towards a minimal surface (checked by
+            :func:`torch_polylap.checks.check_index_or_mask`).
+        options: a :class:`FlowOptions`: a frozen operator, rescaling, the trajectory, a
+            progress bar and the singularity guard; default ``FlowOptions()``.
 
     Returns:
-        ``(V, 3)`` final positions, or ``(steps + 1, V, 3)`` with ``return_trajectory`` (index 0
-        is ``verts``; with the guard, only the steps taken). dtype and device follow ``verts``.
-        With ``return_result``, a :class:`FlowResult` holding them.
+        A :class:`FlowResult`: the final ``(V, 3)`` positions (dtype and device of ``verts``),
+        the steps taken and the last ``dt`` (fewer steps and a smaller ``dt`` only with the
+        guard), why the guard stopped, and the trajectory where asked for.
 
     Raises:
         ValueError: ``dt <= 0``, ``steps < 0``, an unknown ``normalize``, ``"volume"`` on a mesh
@@ -360,94 +339,71 @@ def mean_curvature_flow(
             a ``singularity_factor <= 1``, or bad mesh input (``fixed`` out of range, repeated,
             or a mask of the wrong length).
 
-    Warns:
-        FlowStoppedWarning: the guard stopped the flow early (without ``return_result``): the
-            message says after how many steps, at which vertex and why.
-
     Examples:
         The tube of a thin torus pinches in finite time; the guard stops the flow before:
 
-        >>> import warnings
-        >>> import torch
-        >>> from torch_polylap.apps import FlowStoppedWarning, mean_curvature_flow
+        >>> from torch_polylap.apps import FlowOptions, mean_curvature_flow
         >>> from torch_polylap.shapes import torus
         >>> verts, faces = torus(24, 8, major=1.0, minor=0.15)
-        >>> result = mean_curvature_flow(verts, faces, 0.01, 20, stop_at_singularity=True,
-        ...                              return_result=True)
+        >>> guarded = FlowOptions(stop_at_singularity=True)
+        >>> result = mean_curvature_flow(verts, faces, 0.01, 20, options=guarded)
         >>> 0 < result.steps < 20 and "pinching off" in result.stopped
         True
     """
-    _check_args(verts, dt, steps, normalize)
-    check_method(method)
-    _check_guard(stop_at_singularity, singularity_factor, max_halvings, frozen)
+    options = options or FlowOptions()
+    _check_args(verts, dt, steps, method, options)
     topo = get_topology(faces, verts.shape[0])
-    if normalize == "volume":
-        _require_closed_oriented(topo, "normalize='volume'", "Use normalize='area' or None.")
-    fixed_mask = _fixed_mask(fixed, verts.shape[0], verts.device)
-    if normalize is not None and bool(fixed_mask.any()):
-        raise ValueError("`fixed` vertices cannot be kept in place while normalize rescales.")
-    target = _measure(verts, topo, normalize) if normalize else None
-    if target is not None and not float(target.abs()) > 0.0:
-        raise ValueError(f"the initial {normalize} is zero; it cannot be kept by rescaling.")
+    flow = _Flow.start(verts, topo, lam, method, fixed, options.normalize)
+    system = flow.system(verts, float(dt)) if options.frozen else None
+    guard = None
+    if options.stop_at_singularity:
+        guard = _Guard(verts, topo, lam, method, options.singularity_factor)
+    return _run(flow, verts, float(dt), steps, system, guard, options)
 
-    flow = _Flow(topo, lam, method, fixed_mask, normalize, target)
-    system = flow.system(verts, float(dt)) if frozen else None
-    guard = _Guard(verts, topo, lam, method, singularity_factor) if stop_at_singularity else None
-    X, trajectory, taken, halvings_left, stopped = verts, [verts], 0, max_halvings, ""
+
+def _run(
+    flow: _Flow,
+    verts: torch.Tensor,
+    dt: float,
+    steps: int,
+    system: _StepSystem | None,
+    guard: _Guard | None,
+    options: FlowOptions,
+) -> FlowResult:
+    """Take ``steps`` steps of ``dt`` from ``verts``, halving ``dt`` or stopping where the guard
+    refuses one."""
+    X, trajectory, taken, halvings_left, stopped = verts, [verts], 0, options.max_halvings, ""
     bar = None
-    if progress:
+    if options.progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=steps, desc="mean curvature flow", unit="step")
     try:
         while taken < steps:
             if guard is None:
-                new = flow.step(X, system, float(dt))
+                new = flow.step(X, system, dt)
             else:
                 try:
-                    new = flow.step(X, system, float(dt))
+                    new = flow.step(X, system, dt)
                     reason = guard.check(new)
                 except ValueError as err:
                     reason = f"the step fails ({err}): a small closed part shrank to a point"
                 if reason:
                     if halvings_left:
-                        dt, halvings_left = float(dt) / 2, halvings_left - 1
+                        dt, halvings_left = dt / 2, halvings_left - 1
                         continue
                     stopped = f"at step {taken + 1} {reason}"
                     break
             X, taken = new, taken + 1
-            if return_trajectory:
+            if options.trajectory:
                 trajectory.append(X)
             if bar is not None:
                 bar.update()
     finally:  # also when interrupted: a bar left open would take the next message's line
         if bar is not None:
             bar.close()
-    out = torch.stack(trajectory) if return_trajectory else X
-    if return_result:
-        return FlowResult(out, taken, float(dt), stopped)
-    if stopped:
-        warnings.warn(
-            f"mean_curvature_flow stopped after {taken} of {steps} steps (dt = {float(dt):.3g}): "
-            f"{stopped}. Mean-curvature flow develops such singularities in finite time; for "
-            "more smoothing take a smaller dt with more steps, or frozen=True (one linear "
-            "operator from the input: thin parts shrink instead of pinching).",
-            FlowStoppedWarning,
-            stacklevel=2,
-        )
-    return out
-
-
-def _check_guard(guard: bool, factor: float, max_halvings: int, frozen: bool) -> None:
-    _check_count("max_halvings", max_halvings)
-    if not float(factor) > 1.0 or math.isinf(float(factor)):
-        raise ValueError(f"singularity_factor must be a finite number > 1, got {factor!r}.")
-    if max_halvings and not guard:
-        raise ValueError("max_halvings halves refused steps: it needs stop_at_singularity=True.")
-    if max_halvings and frozen:
-        raise ValueError(
-            "max_halvings needs frozen=False: a frozen flow factors M0 + dt L once, for one dt."
-        )
+    path = torch.stack(trajectory) if options.trajectory else None
+    return FlowResult(X, taken, dt, stopped, path)
 
 
 class _Flow:
@@ -464,6 +420,27 @@ class _Flow:
     ) -> None:
         self.topo, self.lam, self.method, self.fixed = topo, lam, method, fixed
         self.normalize, self.target = normalize, target
+
+    @classmethod
+    def start(
+        cls,
+        verts: torch.Tensor,
+        topo: Topology,
+        lam: float | torch.Tensor,
+        method: str,
+        fixed: torch.Tensor | None,
+        normalize: str | None,
+    ) -> _Flow:
+        """The flow from ``verts``: the fixed vertices as a mask, the measure to keep."""
+        if normalize == "volume":
+            _require_closed_oriented(topo, "normalize='volume'", "Use normalize='area' or None.")
+        fixed_mask = _fixed_mask(fixed, verts.shape[0], verts.device)
+        if normalize is not None and bool(fixed_mask.any()):
+            raise ValueError("`fixed` vertices cannot be kept in place while normalize rescales.")
+        target = _measure(verts, topo, normalize) if normalize else None
+        if target is not None and not float(target.abs()) > 0.0:
+            raise ValueError(f"the initial {normalize} is zero; it cannot be kept by rescaling.")
+        return cls(topo, lam, method, fixed_mask, normalize, target)
 
     def system(self, X: torch.Tensor, dt: float) -> _StepSystem:
         return _StepSystem(*laplacian(X, self.topo, self.lam, method=self.method), dt, self.fixed)

@@ -56,7 +56,7 @@ from ..linalg import CholeskyFactorization, cholespy_available, spd_splu
 from ..measures import face_nonplanarity, mean_edge_length, planarity_energy
 from ..topology import Topology, get_topology
 
-__all__ = ["planarize", "PlanarizeResult"]
+__all__ = ["planarize", "PlanarizeOptions", "PlanarizeResult"]
 
 
 @dataclass
@@ -252,6 +252,67 @@ METHODS = ("gauss-newton", "lbfgs")
 DEFAULT_MAX_ITER = {"gauss-newton": 100, "lbfgs": 500}
 
 
+@dataclass(frozen=True)
+class PlanarizeOptions:
+    """The knobs of :func:`planarize` beyond the tolerance and the iteration limit.
+
+    Attributes:
+        closeness: weight of ``closeness/2 sum_i |x_i - x0_i|^2 / h^2`` (``h``: mean edge length;
+            for ``"lbfgs"`` ``closeness * lam/2 sum_i |y_i - y0_i|^2`` in bounding-box units,
+            comparable to ``E_plan``). Default 0: nothing pulls towards the input but the
+            damping of the steps, which already keeps the displacement small. A positive weight
+            trades planarity for closeness: the residual non-planarity at the optimum grows
+            about like ``closeness`` times the displacement in edge lengths, so with ``tol =
+            1e-4`` weights above about ``1e-5`` can stop above ``tol`` (with a warning).
+        time_limit: optional wall-clock budget in seconds, checked after every iteration.
+        history_size: L-BFGS memory (``"lbfgs"`` only).
+        check_every: L-BFGS iterations between two checks of the stopping criterion.
+        progress: show a tqdm progress bar with the current largest non-planarity.
+        warn: issue a ``UserWarning`` when it stops above ``tol``.
+    """
+
+    closeness: float = 0.0
+    time_limit: float | None = None
+    history_size: int = 20
+    check_every: int = 5
+    progress: bool = False
+    warn: bool = True
+
+
+@dataclass
+class _Problem:
+    """What both optimizers need: the centered, scaled start ``y0`` (bounding-box units), the
+    free vertices, the method and its stopping rule, and the progress bar."""
+
+    y0: torch.Tensor
+    topo: Topology
+    free: torch.Tensor
+    free_mask: torch.Tensor
+    method: str
+    lam: float
+    tol: float
+    max_iter: int
+    h: float  # the mean edge length of y0
+    worst: float  # the largest non-planarity of the input
+    options: PlanarizeOptions
+    bar: Any = None  # a tqdm bar, or None
+    deadline: float | None = None
+
+    def stop(self, iterations: int) -> str:
+        """Why to stop before the next iteration (``"max_iter"``, ``"time"``), or ``""``."""
+        if iterations >= self.max_iter:
+            return "max_iter"
+        if self.deadline is not None and time.perf_counter() > self.deadline:
+            return "time"
+        return ""
+
+    def report(self, done: int, worst: float) -> None:
+        """Advance the progress bar by ``done`` iterations, showing ``worst``."""
+        if self.bar is not None:
+            self.bar.update(done)
+            self.bar.set_postfix(max_nonplanarity=f"{worst:.2e}")
+
+
 def planarize(
     verts: torch.Tensor,
     faces: MeshFaces,
@@ -260,13 +321,8 @@ def planarize(
     max_iter: int | None = None,
     fixed: torch.Tensor | list[int] | None = None,
     *,
-    progress: bool = False,
-    history_size: int = 20,
-    check_every: int = 5,
     method: str = "gauss-newton",
-    closeness: float = 0.0,
-    time_limit: float | None = None,
-    warn: bool = True,
+    options: PlanarizeOptions | None = None,
 ) -> PlanarizeResult:
     """Make every face planar (AW11 sec. 5.3); see the module docstring for the two methods.
 
@@ -279,19 +335,9 @@ def planarize(
         max_iter: iteration limit; default 100 Gauss-Newton solves or 500 L-BFGS iterations.
         fixed: optional vertex indices (each once) or a ``(V,)`` bool mask of vertices that do
             not move; they keep their exact input values.
-        progress: show a tqdm progress bar with the current largest non-planarity.
-        history_size: L-BFGS memory (``"lbfgs"`` only).
-        check_every: L-BFGS iterations between two checks of the stopping criterion.
         method: ``"gauss-newton"`` (default) or ``"lbfgs"`` (the paper's quasi-Newton descent).
-        closeness: weight of ``closeness/2 sum_i |x_i - x0_i|^2 / h^2`` (``h``: mean edge length;
-            for ``"lbfgs"`` ``closeness * lam/2 sum_i |y_i - y0_i|^2`` in bounding-box units,
-            comparable to ``E_plan``). Default 0: nothing pulls towards the input but the
-            damping of the steps, which already keeps the displacement small. A positive weight
-            trades planarity for closeness: the residual non-planarity at the optimum grows
-            about like ``closeness`` times the displacement in edge lengths, so with ``tol =
-            1e-4`` weights above about ``1e-5`` can stop above ``tol`` (with a warning).
-        time_limit: optional wall-clock budget in seconds, checked after every iteration.
-        warn: issue a ``UserWarning`` when it stops above ``tol``.
+        options: a :class:`PlanarizeOptions`: a closeness term, a time limit, the L-BFGS memory
+            and check interval, a progress bar, the warning; default ``PlanarizeOptions()``.
 
     Returns:
         :class:`PlanarizeResult`; ``converged`` is False (and a ``UserWarning`` says so, with
@@ -301,15 +347,8 @@ def planarize(
     Positions are optimized in units of the bounding-box diagonal (centered), in float64 for
     ``"gauss-newton"``; tolerances are scale free.
     """
-    check_verts(verts)
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}.")
-    if max_iter is None:
-        max_iter = DEFAULT_MAX_ITER[method]
-    if tol <= 0 or max_iter < 0:
-        raise ValueError(f"need tol > 0 and max_iter >= 0, got tol={tol}, max_iter={max_iter}.")
-    if not closeness >= 0 or not math.isfinite(closeness):
-        raise ValueError(f"closeness must be finite and >= 0, got {closeness}.")
+    options = options or PlanarizeOptions()
+    max_iter = _checked_max_iter(verts, tol, max_iter, method, options)
     n = verts.shape[0]
     topo = get_topology(faces, n)
     x0 = verts.detach()
@@ -323,46 +362,77 @@ def planarize(
     free = torch.nonzero(free_mask).reshape(-1)
     before = face_nonplanarity(x0, topo)
 
-    run = _gauss_newton if method == "gauss-newton" else _lbfgs
     work = torch.float64 if method == "gauss-newton" else verts.dtype
     y0 = (x0.to(work) - center.to(work)) / scale
     h = float(mean_edge_length(y0, topo, validate=False))
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=max_iter, desc="planarize", unit="it")
-    start = time.perf_counter()
-    y, iterations, energies, objectives, reason = run(
+    problem = _Problem(
         y0=y0,
         topo=topo,
         free=free,
         free_mask=free_mask,
+        method=method,
         lam=lam,
         tol=tol,
         max_iter=max_iter,
-        closeness=closeness,
         h=max(h, torch.finfo(work).tiny),
         worst=float(before.max()) if before.numel() else 0.0,
-        bar=bar,
-        deadline=None if time_limit is None else start + time_limit,
-        history_size=history_size,
-        check_every=check_every,
+        options=options,
     )
+    if options.progress:
+        from tqdm.auto import tqdm
+
+        problem.bar = tqdm(total=max_iter, desc="planarize", unit="it")
+    start = time.perf_counter()
+    if options.time_limit is not None:
+        problem.deadline = start + options.time_limit
+    run = (_gauss_newton if method == "gauss-newton" else _lbfgs)(problem)
     seconds = time.perf_counter() - start
-    if bar is not None:
-        bar.close()
+    if problem.bar is not None:
+        problem.bar.close()
 
     with torch.no_grad():
         # add the displacement, so that vertices that did not move keep their exact input values
-        moved = ((y[free] - y0[free]) * scale).to(x0.dtype)
+        moved = ((run[0][free] - y0[free]) * scale).to(x0.dtype)
         out = x0.index_put((free,), x0[free] + moved)
-        after = face_nonplanarity(out, topo)
+    return _result(out, x0, before, scale, run, seconds, problem)
+
+
+def _checked_max_iter(
+    verts: torch.Tensor, tol: float, max_iter: int | None, method: str, options: PlanarizeOptions
+) -> int:
+    """Check :func:`planarize`'s arguments; ``max_iter`` with the method's default filled in."""
+    check_verts(verts)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}.")
+    if max_iter is None:
+        max_iter = DEFAULT_MAX_ITER[method]
+    if tol <= 0 or max_iter < 0:
+        raise ValueError(f"need tol > 0 and max_iter >= 0, got tol={tol}, max_iter={max_iter}.")
+    closeness = options.closeness
+    if not closeness >= 0 or not math.isfinite(closeness):
+        raise ValueError(f"closeness must be finite and >= 0, got {closeness}.")
+    return max_iter
+
+
+def _result(
+    out: torch.Tensor,
+    x0: torch.Tensor,
+    before: torch.Tensor,
+    scale: float,
+    run: _Run,
+    seconds: float,
+    problem: _Problem,
+) -> PlanarizeResult:
+    """The :class:`PlanarizeResult` of positions ``out`` reached from ``x0`` by ``run`` in
+    ``seconds``, with the message (and warning) of a stop above the tolerance."""
+    method = problem.method
+    _, iterations, energies, objectives, reason = run
+    with torch.no_grad():
+        after = face_nonplanarity(out, problem.topo)
         disp = torch.linalg.vector_norm(out - x0, dim=1) / scale
-    converged = bool(after.numel() == 0 or float(after.max()) < tol)
+    converged = bool(after.numel() == 0 or float(after.max()) < problem.tol)
     message = "converged"
     if not converged:
-        worst = float(after.max())
         hint = {
             "max_iter": "raise max_iter",
             "time": "raise time_limit",
@@ -371,12 +441,12 @@ def planarize(
         }[reason]
         other = "lbfgs" if method == "gauss-newton" else "gauss-newton"
         message = (
-            f"planarize ({method}) stopped at max non-planarity {worst:.3g} >= tol {tol:g} "
-            f"after {iterations} iterations and {seconds:.1f} s ({reason}); {hint}, "
-            f"or try method={other!r}."
+            f"planarize ({method}) stopped at max non-planarity {float(after.max()):.3g} >= tol "
+            f"{problem.tol:g} after {iterations} iterations and {seconds:.1f} s ({reason}); "
+            f"{hint}, or try method={other!r}."
         )
-        if warn:
-            warnings.warn(message, UserWarning, stacklevel=2)
+        if problem.options.warn:
+            warnings.warn(message, UserWarning, stacklevel=3)
     return PlanarizeResult(
         verts=out.detach(),
         nonplanarity_before=_stats(before),
@@ -392,25 +462,11 @@ def planarize(
     )
 
 
-def _gauss_newton(
-    *,
-    y0: torch.Tensor,
-    topo: Topology,
-    free: torch.Tensor,
-    free_mask: torch.Tensor,
-    lam: float,
-    tol: float,
-    max_iter: int,
-    closeness: float,
-    h: float,
-    worst: float,
-    bar: Any,  # a tqdm bar, or None
-    deadline: float | None,
-    **_: Any,
-) -> _Run:
-    parts, free_dofs = _dof_setup(topo, free_mask, y0.shape[0])
+def _gauss_newton(problem: _Problem) -> _Run:
+    y0, topo, lam, worst = problem.y0, problem.topo, problem.lam, problem.worst
+    parts, free_dofs = _dof_setup(topo, problem.free_mask, y0.shape[0])
     m = free_dofs.numel()
-    wc = closeness / h**2
+    wc = problem.options.closeness / problem.h**2
     y = y0.clone()
 
     def total(z: torch.Tensor) -> float:
@@ -422,18 +478,12 @@ def _gauss_newton(
     mu = _MU_START
     iterations, reason = 0, "max_iter"
     model = None  # the linearization at y, kept while steps from y are rejected
-    while worst >= tol and m:
-        if iterations >= max_iter:
-            reason = "max_iter"
-            break
-        if deadline is not None and time.perf_counter() > deadline:
-            reason = "time"
-            break
-        if mu > 1e6:
-            reason = "stalled"
+    while worst >= problem.tol and m:
+        reason = problem.stop(iterations) or ("stalled" if mu > 1e6 else "")
+        if reason:
             break
         if model is None:
-            model = _plane_conditions(y, parts, free_dofs, h)
+            model = _plane_conditions(y, parts, free_dofs, problem.h)
         C, c, stiffness = model
         pull = (wc * (y - y0).reshape(-1)[free_dofs]).cpu().numpy()
         try:
@@ -455,30 +505,15 @@ def _gauss_newton(
             worst = float(face_nonplanarity(y, topo).max())
         else:
             mu *= 10
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(max_nonplanarity=f"{worst:.2e}")
-    return y, iterations, energies, objectives, reason
+        problem.report(1, worst)
+    return y, iterations, energies, objectives, reason or "max_iter"
 
 
-def _lbfgs(
-    *,
-    y0: torch.Tensor,
-    topo: Topology,
-    free: torch.Tensor,
-    lam: float,
-    tol: float,
-    max_iter: int,
-    closeness: float,
-    worst: float,
-    bar: Any,  # a tqdm bar, or None
-    deadline: float | None,
-    history_size: int,
-    check_every: int,
-    **_: Any,
-) -> _Run:
+def _lbfgs(problem: _Problem) -> _Run:
+    y0, topo, free, lam, worst = problem.y0, problem.topo, problem.free, problem.lam, problem.worst
+    check_every = problem.options.check_every
     param = y0[free].clone().requires_grad_(True)
-    wc = closeness * lam
+    wc = problem.options.closeness * lam
 
     def positions(p: torch.Tensor) -> torch.Tensor:
         return y0.index_put((free,), p)
@@ -491,14 +526,14 @@ def _lbfgs(
         e0 = float(planarity_energy(y0, topo, lam))
     # L-BFGS has absolute thresholds (it skips curvature pairs with y^T s <= 1e-10); rescale the
     # objective so that it is O(1) at the target tolerance (E_plan ~ non-planarity squared).
-    weight = (worst / tol) ** 2 / e0 if e0 > 0 else 1.0
+    weight = (worst / problem.tol) ** 2 / e0 if e0 > 0 else 1.0
     eps = torch.finfo(y0.dtype).eps
     optimizer = torch.optim.LBFGS(
         [param],
         lr=1.0,
         max_iter=check_every,
         max_eval=25 * check_every,  # the default (5/4 max_iter) starves short line searches
-        history_size=history_size,
+        history_size=problem.options.history_size,
         line_search_fn="strong_wolfe",
         tolerance_grad=0.0,
         tolerance_change=eps * 1e-3,
@@ -512,14 +547,11 @@ def _lbfgs(
 
     energies, objectives = [e0], [e0]
     iterations, reason = 0, "max_iter"
-    while worst >= tol and free.numel():
-        if iterations >= max_iter:
-            reason = "max_iter"
+    while worst >= problem.tol and free.numel():
+        reason = problem.stop(iterations)
+        if reason:
             break
-        if deadline is not None and time.perf_counter() > deadline:
-            reason = "time"
-            break
-        chunk = min(check_every, max_iter - iterations)
+        chunk = min(check_every, problem.max_iter - iterations)
         optimizer.param_groups[0].update(max_iter=chunk, max_eval=25 * chunk)
         optimizer.step(closure)
         done = optimizer.state[param]["n_iter"] - iterations
@@ -528,10 +560,8 @@ def _lbfgs(
             energies.append(float(planarity_energy(positions(param), topo, lam)))
             objectives.append(float(energy(param)))
             worst = float(face_nonplanarity(positions(param), topo).max())
-        if bar is not None:
-            bar.update(done)
-            bar.set_postfix(max_nonplanarity=f"{worst:.2e}")
+        problem.report(done, worst)
         if objectives[-1] >= objectives[-2]:
             reason = "stalled"
             break  # no progress left at this precision
-    return positions(param.detach()), iterations, energies, objectives, reason
+    return positions(param.detach()), iterations, energies, objectives, reason or "max_iter"

@@ -177,26 +177,18 @@ def plate(*, with_plot: bool, method: str = "aw11") -> Result:
 def _plate_figure(
     verts: torch.Tensor, faces: PolygonFaces, u: torch.Tensor, reference: torch.Tensor
 ) -> Figure:
-    from ..plot import new_figure, plot_mesh
+    from ..plot import PlotOptions, new_figure, plot_mesh
 
     fig, (ax1, ax2) = new_figure(1, 2, three_d=True, panel_size=4.5)
     # exaggerate the deflection so that the shape is visible next to the unit square
     shown = verts.clone()
     shown[:, 2] = -u * (0.3 / float(u.max()))
-    plot_mesh(shown, faces, u, ax=ax1, title="deflection u (z exaggerated)", up="z", label="u")
-    plot_mesh(
-        verts,
-        faces,
-        u - reference,
-        ax=ax2,
-        title="u - Navier",
-        cmap="RdBu_r",
-        clim=_symmetric(u - reference),
-        up="z",
-        elev=90,
-        azim=-90,
-        label="error",
+    title = "deflection u (z exaggerated)"
+    plot_mesh(shown, faces, u, ax=ax1, title=title, options=PlotOptions(up="z", label="u"))
+    style = PlotOptions(
+        cmap="RdBu_r", clim=_symmetric(u - reference), up="z", elev=90, azim=-90, label="error"
     )
+    plot_mesh(verts, faces, u - reference, ax=ax2, title="u - Navier", options=style)
     return fig
 
 

@@ -126,12 +126,13 @@ def _figure(
     up: str,
 ) -> Figure:
     """The mesh and its conformal image, faces colored by their mean angle error."""
-    from ..plot import new_figure, plot_mesh, plot_uv
+    from ..plot import PlotOptions, new_figure, plot_mesh, plot_uv
 
     fig, (ax3, ax2) = new_figure(1, 2, three_d=[True, False], panel_size=4.5)
     hi = float(np.nanmax(face_err_deg.numpy())) or 1.0
     common: dict[str, Any] = dict(cmap="magma", clim=(0.0, hi), label="mean |angle error| (deg)")
-    plot_mesh(verts, faces, face_err_deg, ax=ax3, title="input", colorbar=False, up=up, **common)
+    style = PlotOptions(colorbar=False, up=up, **common)
+    plot_mesh(verts, faces, face_err_deg, ax=ax3, title="input", options=style)
     plot_uv(uv, faces, face_err_deg, ax=ax2, title="conformal map", **common)
     return fig
 

@@ -78,21 +78,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def compute(args: argparse.Namespace) -> Result:
-    from ..apps.planarize import planarize
+    from ..apps.planarize import PlanarizeOptions, planarize
 
     verts, faces, path, label = load_mesh(args)
     topo = get_topology(faces, verts.shape[0])
+    options = PlanarizeOptions(
+        closeness=args.closeness,
+        time_limit=args.time_limit,
+        progress=not args.no_progress,
+        warn=False,
+    )
     res = planarize(
         verts,
         topo,
         lam=args.lam,
         tol=args.tol,
         max_iter=args.max_iter,
-        progress=not args.no_progress,
         method=args.method,
-        closeness=args.closeness,
-        time_limit=args.time_limit,
-        warn=False,
+        options=options,
     )
     rows = [
         ("vertices / faces", f"{verts.shape[0]} / {faces.num_faces}"),
@@ -136,27 +139,18 @@ def _figure(
     up: str,
 ) -> Figure:
     """Input and result colored by face non-planarity, and the energy per iteration."""
-    from ..plot import new_figure, plot_lines, plot_mesh
+    from ..plot import PlotOptions, new_figure, plot_lines, plot_mesh
 
     before = face_nonplanarity(verts, topo)
     after = face_nonplanarity(res.verts, topo)
     fig, axes = new_figure(1, 3, three_d=[True, True, False], panel_size=4.0)
     clim = (0.0, float(before.max()) or 1.0)
+    style = PlotOptions(cmap="inferno", clim=clim, up=up, label="non-planarity")
     for ax, x, values, title in (
         (axes[0], verts, before, f"input, max {res.nonplanarity_before[0]:.2e}"),
         (axes[1], res.verts, after, f"planarized, max {res.nonplanarity_after[0]:.2e}"),
     ):
-        plot_mesh(
-            x,
-            faces,
-            values,
-            ax=ax,
-            title=title,
-            cmap="inferno",
-            clim=clim,
-            up=up,
-            label="non-planarity",
-        )
+        plot_mesh(x, faces, values, ax=ax, title=title, options=style)
     if res.energies:
         energies = np.maximum(np.asarray(res.energies), np.finfo(float).tiny)
         plot_lines(

@@ -10,11 +10,13 @@ import torch
 
 from ..apps.flow import (
     SINGULARITY_FACTOR,
+    FlowOptions,
     enclosed_volume,
     mean_curvature_flow,
     scale_free_mean_curvature,
 )
 from ..measures import face_areas, mean_edge_length
+from ..plot import PlotOptions
 from ..topology import get_topology
 from .common import (
     Result,
@@ -87,19 +89,15 @@ def compute(args: argparse.Namespace) -> Result:
     default_dt = args.dt is None
     dt = 0.1 * float(mean_edge_length(verts, topo)) ** 2 if default_dt else args.dt
     start = time.perf_counter()
-    flow = mean_curvature_flow(
-        verts,
-        topo,
-        dt,
-        args.steps,
-        args.lam,
+    options = FlowOptions(
         frozen=args.frozen,
         normalize=None if args.normalize == "none" else args.normalize,
         progress=not args.no_progress,
-        method=args.method,
         stop_at_singularity=True,
         max_halvings=MAX_HALVINGS if default_dt and not args.frozen else 0,
-        return_result=True,
+    )
+    flow = mean_curvature_flow(
+        verts, topo, dt, args.steps, args.lam, method=args.method, options=options
     )
     seconds = time.perf_counter() - start
     smoothed, kept, dt = flow.verts, flow.steps, flow.dt
@@ -162,7 +160,8 @@ def compute(args: argparse.Namespace) -> Result:
         after = h_after.where(interior, h_after[interior].mean())
         # the 95th percentile as the top color keeps a few sharp corners from washing it out
         top = float(torch.quantile(h_before[interior], 0.95))
-        panel = dict(faces=faces, label="|H| sqrt(A/4pi)", up=up_axis(args, verts), clim=(0.0, top))
+        style = PlotOptions(label="|H| sqrt(A/4pi)", up=up_axis(args, verts), clim=(0.0, top))
+        panel = dict(faces=faces, options=style)
         panels = [
             dict(verts=verts, values=before, title="input", **panel),
             dict(

@@ -136,7 +136,7 @@ def _figure(
     show: int,
     up: str,
 ) -> Figure:
-    from ..plot import new_figure, plot_lines, plot_mesh
+    from ..plot import PlotOptions, new_figure, plot_lines, plot_mesh
 
     # skip the constant eigenfunction (mu_0 = 0) when there is more than one pair
     first = 1 if evals.numel() > 1 else 0
@@ -151,10 +151,7 @@ def _figure(
             phi,
             ax=ax,
             title=f"phi_{i}, mu = {float(evals[i]):.4g}",
-            cmap="RdBu_r",
-            clim=(-bound, bound),
-            colorbar=False,
-            up=up,
+            options=PlotOptions(cmap="RdBu_r", clim=(-bound, bound), colorbar=False, up=up),
         )
     idx = np.arange(evals.numel())
     plot_lines(

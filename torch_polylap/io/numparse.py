@@ -692,6 +692,34 @@ def parse_decimal_block(
     fpart = _block_digits(words, end, n_frac, spans, scratch, "f")
     total = np.add(n_int, n_frac, out=scratch("total", n))
     slow |= total == 0
+    _mark_long(words, end, (ipart, n_frac, total), spans, slow, scratch)
+    k = np.minimum(n_frac, 19, out=scratch("k", n))
+    w = np.multiply(ipart, _POW10_INT.take(k, out=scratch("scale", n, U64), mode="clip"), out=ipart)
+    w += fpart
+    _divide_into(out, w, n_frac, slow, scratch)
+    if n_signed:
+        out *= _SIGNS.take(neg.view(np.uint8), out=scratch("div", n, np.float64), mode="clip")
+    if exponent is not None and len(exponent[0]) >= EXPONENTS_IN_BULK:
+        tokens, e_at = exponent
+        dot = point.take(tokens)
+        t_start, t_end = start.take(tokens), end.take(tokens)
+        dot[dot == t_end] = -1  # no point
+        out[tokens], slow[tokens] = parse_floats(buf, words, t_start, t_end, dot, e_at)
+    return slow
+
+
+def _mark_long(
+    words: np.ndarray,
+    end: np.ndarray,
+    parts: tuple[np.ndarray, np.ndarray, np.ndarray],
+    spans: int,
+    slow: np.ndarray,
+    scratch: Scratch,
+) -> None:
+    """For :func:`parse_decimal_block`: mark ``slow`` the tokens of more than 19 digits whose
+    value this path cannot hold; ``parts``: each token's integer part, fraction digit count
+    and digit count."""
+    ipart, n_frac, total = parts
     # more than 19 digits: exact only when the integer part is 0 and the fraction's value is
     # below 10**19 (leading zeros), else left to Python
     long = np.flatnonzero(total > 19)
@@ -702,12 +730,17 @@ def parse_decimal_block(
             top = _block_digits(words, end.take(long) - 16, k, 1, scratch, "t")
             fits &= top < U64(1000)
         slow[long] |= ~fits
-    k = np.minimum(n_frac, 19, out=scratch("k", n))
-    w = np.multiply(ipart, _POW10_INT.take(k, out=scratch("scale", n, U64), mode="clip"), out=ipart)
-    w += fpart
+
+
+def _divide_into(
+    out: np.ndarray, w: np.ndarray, n_frac: np.ndarray, slow: np.ndarray, scratch: Scratch
+) -> None:
+    """For :func:`parse_decimal_block`: ``out = w / 10**n_frac`` correctly rounded, the tokens
+    it cannot round with certainty marked ``slow``."""
+    n = len(w)
     # w <= 2**53 and 10**k exact (k <= 22): one correctly rounded division (through int64:
     # numpy converts it to float64 faster than uint64)
-    np.minimum(n_frac, 22, out=k)
+    k = np.minimum(n_frac, 22, out=scratch("k", n))
     np.divide(
         w.view(np.int64),
         _POW10_FLOAT.take(k, out=scratch("div", n, np.float64), mode="clip"),
@@ -723,15 +756,6 @@ def parse_decimal_block(
             done = decimal_to_double(wh, np.negative(kh))
         out[hard] = done[0]
         slow[hard] |= done[1]
-    if n_signed:
-        out *= _SIGNS.take(neg.view(np.uint8), out=scratch("div", n, np.float64), mode="clip")
-    if exponent is not None and len(exponent[0]) >= EXPONENTS_IN_BULK:
-        tokens, e_at = exponent
-        dot = point.take(tokens)
-        t_start, t_end = start.take(tokens), end.take(tokens)
-        dot[dot == t_end] = -1  # no point
-        out[tokens], slow[tokens] = parse_floats(buf, words, t_start, t_end, dot, e_at)
-    return slow
 
 
 def _exponents(

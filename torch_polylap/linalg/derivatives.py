@@ -15,7 +15,6 @@ import torch
 
 from ..sparse import SparseOperator, to_scipy
 from ..sparse.construct import sampled_gradient
-from .factor import OpaqueOperator
 
 _SECOND_ORDER_MESSAGE = (
     "torch_polylap.eigs: second derivatives of eigenvalues and eigenvectors (create_graph=True "
@@ -28,19 +27,17 @@ _SECOND_ORDER_MESSAGE = (
 class _EigenpairFunction(torch.autograd.Function):
     """What the eigenpair Functions share: the forward saves the eigenpairs ``evals`` ``(k,)``,
     ``evecs`` ``(n, k)`` and the operators ``L``, ``M`` for the backward, which refuses second
-    derivatives. Inputs ``(l_values, m_values, evals, evecs, opaque_l, opaque_m)``: autograd
-    differentiates only the value arrays."""
+    derivatives. Inputs ``(l_values, m_values, evals, evecs, opaque_l, opaque_m)``, the last two
+    ``OpaqueOperator`` wrappers of ``L`` and ``M``: autograd differentiates only the value
+    arrays."""
 
     @staticmethod
-    def _save(
-        ctx: Any,
-        evals: torch.Tensor,
-        evecs: torch.Tensor,
-        opaque_l: OpaqueOperator,
-        opaque_m: OpaqueOperator,
-    ) -> None:
+    def _save(ctx: Any, inputs: tuple[Any, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Save what the backward needs from the forward's ``inputs``; ``(evals, evecs)``."""
+        _, _, evals, evecs, opaque_l, opaque_m = inputs
         ctx.save_for_backward(evals, evecs)
         ctx.operators = (opaque_l.A, opaque_m.A)
+        return evals, evecs
 
     @staticmethod
     def _saved(ctx: Any) -> tuple[torch.Tensor, torch.Tensor, SparseOperator, SparseOperator]:
@@ -55,16 +52,8 @@ class Eigenvalues(_EigenpairFunction):
     """Eigenvalues ``mu`` of ``L phi = mu M phi`` with the first-order perturbation gradient."""
 
     @staticmethod
-    def forward(
-        ctx: Any,
-        l_values: torch.Tensor,
-        m_values: torch.Tensor,
-        evals: torch.Tensor,
-        evecs: torch.Tensor,
-        opaque_l: OpaqueOperator,
-        opaque_m: OpaqueOperator,
-    ) -> torch.Tensor:
-        _EigenpairFunction._save(ctx, evals, evecs, opaque_l, opaque_m)
+    def forward(ctx: Any, *inputs: Any) -> torch.Tensor:
+        evals, _ = _EigenpairFunction._save(ctx, inputs)
         return evals.clone()
 
     @staticmethod
@@ -185,16 +174,8 @@ class Eigenvectors(_EigenpairFunction):
     gradient (see :func:`eigs`)."""
 
     @staticmethod
-    def forward(
-        ctx: Any,
-        l_values: torch.Tensor,
-        m_values: torch.Tensor,
-        evals: torch.Tensor,
-        evecs: torch.Tensor,
-        opaque_l: OpaqueOperator,
-        opaque_m: OpaqueOperator,
-    ) -> torch.Tensor:
-        _EigenpairFunction._save(ctx, evals, evecs, opaque_l, opaque_m)
+    def forward(ctx: Any, *inputs: Any) -> torch.Tensor:
+        _, evecs = _EigenpairFunction._save(ctx, inputs)
         return evecs.clone()
 
     @staticmethod

@@ -413,45 +413,18 @@ def eigs(
     tiny residual, so the number of eigenvalues below the cluster of the largest returned one
     is counted by Sylvester's law of inertia (one sparse ``LDL^T`` of ``L - s M``: SuperLU,
     on the CPU; measured at 1-2% of the eigensolve's time on 10k and 22k vertices, k = 64 and
-    128, and 8-9% on a 100k-vertex grid, k = 64). Missing eigenpairs are
-    then computed on the ``M``-orthogonal complement of those found (block Lanczos with a block
-    as large as the count, or ARPACK) and merged in, until the count agrees.
+    128, and 8-9% on a 100k-vertex grid, k = 64). Missing eigenpairs are then computed on the
+    ``M``-orthogonal complement of those found (block Lanczos with a block as large as the
+    count, or ARPACK) and merged in, until the count agrees.
     ``L`` and ``M`` must be symmetric: operators declared so (``L, M0`` of
     :func:`~torch_polylap.laplacian`) are trusted, others compared with their transposes.
 
-    Eigenvector gradients (adjoint method). Differentiating ``(L - mu M) phi = 0`` and
-    ``phi^T M phi = 1`` gives ``dphi = v - (phi^T dM phi / 2) phi`` with ``phi^T M v = 0`` and
-    ``(L - mu M) v = -(dL - mu dM) phi + dmu M phi``. For an upstream gradient ``g`` of one
-    column, the adjoint ``w`` solves ``(L - mu M) w = (I - M phi phi^T) g`` with
-    ``phi^T M w = 0`` (then ``g^T v = -w^T (dL - mu dM) phi``, the ``dmu`` term vanishing), so
-
-        dLoss/dL = -sym(w phi^T),   dLoss/dM = mu sym(w phi^T) - (phi^T g / 2) phi phi^T,
-
-    sampled on each operator's pattern (``sym(A) = (A + A^T) / 2``: the gradient among symmetric
-    matrices, which is what the symmetric eigensolver sees). The singular, indefinite system is
-    solved by Nelson's method: delete the row and column of ``phi``'s largest entry, factor the
-    rest with SuperLU (partial pivoting; no Cholesky, ``L - mu M`` is indefinite), one step of
-    iterative refinement, project out ``phi``. Cost, per column of ``evecs`` whose gradient is
-    not zero (columns that the loss does not use are skipped): one sparse LU of an
-    ``(n-1) x (n-1)`` matrix with ``L``'s pattern, on the CPU in float64, freed before the next;
-    memory is that factor's fill plus O(nnz + n k) for the gradients. The sign convention is
-    locally constant, so it does not enter the derivative (a column whose largest entries tie in
-    magnitude flips sign under perturbation and has no derivative there).
-
-    Repeated eigenvalues: eigenvalues within ``1e-8 * max |mu|`` of their neighbour
-    (``EIGENVECTOR_GAP_RTOL``, relative to the largest computed eigenvalue) form a cluster ``C``
-    whose eigenvectors are any ``M``-orthonormal basis of the eigenspace, not functions of ``L``
-    and ``M``. A loss that sees them only through their span (the projector
-    ``Phi_C Phi_C^T M``, e.g. ``sum_{i in C} (phi_i^T M u)^2``) still has a gradient: its
-    ``A_ij = phi_i^T g_j`` is symmetric on ``C`` (checked to ``sqrt(eps)``), the rotation terms
-    ``A_ij phi_j^T (dL - mu_i dM) phi_i / (mu_i - mu_j)`` of ``i, j`` and ``j, i`` sum to
-    ``-A_ij phi_i^T dM phi_j`` (finite), and each ``w_i`` solves the system above with the
-    whole cluster projected out (Nelson's method deleting ``|C|`` rows chosen by pivoted QR of
-    ``Phi_C^T``); the ``M`` term becomes ``-(1/2) sum_{ij in C} A_ij phi_i phi_j^T``. Any
-    other loss through a cluster's columns raises a ``RuntimeError`` in the backward that names
-    the cluster (indices and values) and what to use instead; so does a cluster that may go on
-    past the last computed eigenvalue (four inverse-iteration steps with the same factorization
-    bound the distance to the next, uncomputed one: compute more eigenpairs).
+    Eigenvector gradients solve one adjoint system per column of ``evecs`` that the loss uses,
+    by Nelson's method (one sparse LU of ``L - mu M`` less a row and column, on the CPU in
+    float64; memory that factor's fill plus O(nnz + n k)). Eigenvalues within ``1e-8 max |mu|``
+    (``EIGENVECTOR_GAP_RTOL``) form a cluster whose eigenvectors have a gradient only for
+    losses that see them through their span. The derivation, Nelson's method and the rule for
+    clusters: ``docs/math/spectral.md`` ("Eigenpairs and their derivatives").
 
     Args:
         L: ``(n, n)`` sparse symmetric matrix; values may require grad.
@@ -469,7 +442,7 @@ def eigs(
         for a repeated eigenvalue only symmetric functions of the cluster (e.g. its sum) have
         a well-defined gradient. ``evecs`` is differentiable too (first order; ``create_graph=True``
         raises): for simple eigenvalues, and for losses that see a repeated one's eigenvectors
-        only through their span (see above).
+        only through their span.
 
     Raises:
         ValueError: ``k`` out of range, ``L`` or ``M`` not symmetric (names the entry), ``M``
@@ -496,6 +469,24 @@ def eigs(
         True
     """
     L, M = as_operator(L), as_operator(M)
+    k, Ls, Ms = _check_input(L, M, k, tol)
+    evals, evecs = _solve(Ls, Ms, k, sigma, tol, L.device)
+    l_values, m_values = sparse_values(L), sparse_values(M)
+    evals_t = torch.from_numpy(evals).to(l_values)
+    evecs_t = torch.from_numpy(evecs).to(l_values)
+    opaque = OpaqueOperator(L), OpaqueOperator(M)
+    mu = Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, *opaque)
+    if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
+        evecs_t = Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, *opaque)
+    return mu, evecs_t
+
+
+def _check_input(
+    L: SparseOperator, M: SparseOperator, k: int, tol: float
+) -> tuple[int, sp.csr_matrix, sp.csr_matrix]:
+    """Check :func:`eigs`'s input: ``k``, the shapes and ``tol``, then ``L`` and ``M`` symmetric
+    and ``M``'s masses positive. Returns ``k`` as an int and the float64 scipy forms of ``L``
+    and ``M``."""
     n = L.shape[0]
     if isinstance(k, bool) or not isinstance(k, int | np.integer):
         raise TypeError(f"eigs: k must be an integer, got {k!r} ({type(k).__name__}).")
@@ -514,6 +505,20 @@ def eigs(
     _check_symmetric(L, Ls, "L")
     _check_symmetric(M, Ms, "M")
     _check_positive_mass(Ms)
+    return k, Ls, Ms
+
+
+def _solve(
+    Ls: sp.csr_matrix,
+    Ms: sp.csr_matrix,
+    k: int,
+    sigma: float | None,
+    tol: float,
+    device: torch.device,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` smallest eigenpairs by the route :func:`eigs_route` picks, the sparse routes'
+    answer verified; ascending, ``M``-orthonormal, signs fixed."""
+    n = Ls.shape[0]
     scale = float(abs(Ls).max()) / max(float(Ms.diagonal().max()), np.finfo(float).tiny)
     # -1e-6 of the spectral radius estimate: closer to zero makes L - shift M so ill-conditioned
     # that the block solves lose digits (eigenvalues off by 1e-9 relative at -1e-8 on a
@@ -525,11 +530,11 @@ def eigs(
     if route == "dense":
         result = scipy.linalg.eigh(Ls.toarray(), Ms.toarray(), subset_by_index=(0, k - 1))
     elif route == "lanczos":
-        result = _eigs_block_lanczos(Ls, Ms.diagonal(), k, shift, tol or 1e-10, L.device)
+        result = _eigs_block_lanczos(Ls, Ms.diagonal(), k, shift, tol or 1e-10, device)
     if result is None:
-        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol, diagonal_mass=diagonal, device=L.device)
+        result = _eigs_arpack(Ls, Ms, k, sigma, scale, tol, diagonal_mass=diagonal, device=device)
     if route != "dense":
-        result = _verified(result, Ls, Ms, scale, tol, L.device)
+        result = _verified(result, Ls, Ms, scale, tol, device)
     evals, evecs = result
     order = np.argsort(evals)
     evals, evecs = evals[order], evecs[:, order]
@@ -537,11 +542,4 @@ def eigs(
     evecs = evecs / np.sqrt(np.einsum("ik,ik->k", evecs, Ms @ evecs))
     signs = np.sign(evecs[np.abs(evecs).argmax(0), np.arange(k)])
     evecs = evecs * np.where(signs == 0, 1.0, signs)
-    l_values, m_values = sparse_values(L), sparse_values(M)
-    evals_t = torch.from_numpy(evals).to(l_values)
-    evecs_t = torch.from_numpy(evecs).to(l_values)
-    opaque = OpaqueOperator(L), OpaqueOperator(M)
-    mu = Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, *opaque)
-    if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):
-        evecs_t = Eigenvectors.apply(l_values, m_values, evals_t, evecs_t, *opaque)
-    return mu, evecs_t
+    return evals, evecs

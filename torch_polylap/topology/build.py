@@ -20,6 +20,7 @@ from .groups import (
     _chunks,
     _cycle_pair_rows,
     _degree_block,
+    _DegreeBlock,
     _write_pair_keys,
 )
 from .structure import Topology
@@ -33,6 +34,29 @@ MAX_FACE_PAIRS = 1 << 25
 _BYTES_PER_PAIR = 100
 # Keys packed with their positions per step of _sort_keys (512 KiB of int64: stays in L2)
 _PACK_STEP = 1 << 16
+
+
+def _private_copy(faces: FacesLike) -> PolygonFaces:
+    """``faces`` as a CPU :class:`PolygonFaces` of its own memory: the topology is cached and
+    outlives the call, so it must neither see later in-place edits of the caller's tensor nor
+    keep that tensor alive (a view would)."""
+    pf = as_faces(faces)
+    cpu = pf if pf.device.type == "cpu" else pf.to("cpu")
+    # numpy copies: numpy asks for huge pages, which first touch far faster at this size
+    return PolygonFaces(
+        torch.from_numpy(cpu.indices.numpy().copy()), offsets=cpu.offsets.numpy().copy()
+    )
+
+
+def _pair_keys(blocks: list[_DegreeBlock], nv: np.int64) -> np.ndarray:
+    """The keys ``lo * V + hi`` of every block's corner pairs, block after block."""
+    all_keys = np.empty(sum(pi.size * fid.size for _, fid, _, pi, _ in blocks), np.int64)
+    start = 0
+    for _, fid, corners_t, pi, pj in blocks:
+        stop = start + pi.size * fid.size
+        _write_pair_keys(corners_t, pi, pj, nv, all_keys[start:stop])
+        start = stop
+    return all_keys
 
 
 def build_topology(
@@ -54,14 +78,7 @@ def build_topology(
             high a degree that indexing its ``k (k - 1) / 2`` corner pairs exceeds
             :data:`MAX_FACE_PAIRS`. The message names the face and the vertex.
     """
-    pf = as_faces(faces)
-    cpu = pf if pf.device.type == "cpu" else pf.to("cpu")
-    # A private copy: the topology is cached and outlives the call, so it must neither see
-    # later in-place edits of the caller's tensor nor keep that tensor alive (a view would).
-    # (numpy copies: numpy asks for huge pages, which first touch far faster at this size)
-    own = PolygonFaces(
-        torch.from_numpy(cpu.indices.numpy().copy()), offsets=cpu.offsets.numpy().copy()
-    )
+    own = _private_copy(faces)
     idx, sizes, offsets = own.indices.numpy(), own.sizes.numpy(), own.offsets.numpy()
     if num_verts is None:
         num_verts = int(idx.max()) + 1 if idx.size else 0
@@ -75,15 +92,7 @@ def build_topology(
     degrees = _degrees(sizes)
     uniform = len(degrees) == 1
     blocks = [_degree_block(k, idx, sizes, offsets, uniform=uniform) for k in degrees]
-    all_keys = np.empty(sum(pi.size * fid.size for _, fid, _, pi, _ in blocks), np.int64)
-    start = 0
-    for _, fid, corners_t, pi, pj in blocks:
-        stop = start + pi.size * fid.size
-        _write_pair_keys(corners_t, pi, pj, nv, all_keys[start:stop])
-        start = stop
-
-    ulo, uhi, inv = _unique_pairs(all_keys, nv)
-    del all_keys
+    ulo, uhi, inv = _unique_pairs(_pair_keys(blocks, nv), nv)  # the keys freed on return
     if bool((ulo == uhi).any()):  # a face visits a vertex twice: find and name it
         for _, fid, corners_t, pi, pj in blocks:
             _check_simple_faces(corners_t, fid, pi, pj)
