@@ -294,7 +294,8 @@ def _output_ok(
 ) -> torch.Tensor:
     """Finite values, and masses that neither overflow nor underflow."""
     ok = _finite(values)
-    if masses_n is not None and masses is not None:
+    # no vertex, no mass to check (amin of an empty tensor raises)
+    if masses_n is not None and masses is not None and masses.numel():
         tiny = torch.finfo(masses.dtype).tiny
         smallest = torch.where(masses_n == 0, tiny, masses).abs().amin()
         ok = ok & _finite(masses) & (smallest >= tiny)
@@ -556,9 +557,11 @@ def assemble_gathered(
         degenerate.append(_any_degenerate(area, size2, eps))
         if verts.dtype == torch.float32:
             accurate.append(error.amax() * eps <= FLOAT32_TOLERANCE)
-    diagonal = -plan.vertex.total(torch.cat(sums))
-    values = plan.values(torch.cat(offs), diagonal)
-    masses_n = plan.vertex.total(torch.cat(corner_masses)) if want_mass else None
+    # an empty piece each, for a mesh without faces
+    none = verts_t.new_zeros(0)
+    diagonal = -plan.vertex.total(torch.cat([*sums, none]))
+    values = plan.values(torch.cat([*offs, none]), diagonal)
+    masses_n = plan.vertex.total(torch.cat([*corner_masses, none])) if want_mass else None
     masses = _unscaled(masses_n, unscale)
     ok = _input_ok(finite, degenerate) & _output_ok(values, masses_n, masses)
     all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
