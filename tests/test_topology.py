@@ -61,12 +61,6 @@ def test_corner_maps_walk_each_face_cyclically(degrees):
     assert torch.equal(moved.next_corner, nxt) and torch.equal(moved.corner_face, face)
 
 
-def test_face_ids_is_a_deprecated_alias():
-    faces = tp.as_faces([[0, 1, 2], [2, 1, 3, 4]])
-    with pytest.warns(DeprecationWarning, match="corner_face"):
-        assert torch.equal(faces.face_ids(), faces.corner_face)
-
-
 @pytest.mark.parametrize(
     "faces,num_verts,match",
     [

@@ -49,7 +49,6 @@ def operator_from_parts(
     shape: tuple[int, int],
     *,
     symmetric: bool = False,
-    layout: torch.layout = torch.sparse_csr,
 ) -> SparseOperator:
     """A :class:`SparseOperator` from CSR arrays with sorted, unique columns in every row.
 
@@ -58,7 +57,7 @@ def operator_from_parts(
     which shares the pattern and its cached transposes and unions.
     """
     pattern = SparsityPattern(crow, col, shape)
-    return operator_on(pattern, values, symmetric=symmetric, layout=layout)
+    return operator_on(pattern, values, symmetric=symmetric)
 
 
 def from_coo(
@@ -116,7 +115,7 @@ def as_operator(A: Any) -> SparseOperator:
                 raise TypeError(_native_grad_message())
             row, col = A.indices()
             pattern = SparsityPattern.from_rows(row, col, _shape2(A))
-            return operator_on(pattern, values, layout=torch.sparse_coo)
+            return operator_on(pattern, values)
         raise TypeError(
             "torch_polylap: expected a sparse matrix (an operator from torch_polylap, a torch "
             f"sparse CSR/COO tensor or a scipy sparse matrix), got a dense tensor of shape "
@@ -197,14 +196,14 @@ def solver_cache(A: Any, key: str, build: Callable[[], T]) -> T:
     return value
 
 
-def diag(d: torch.Tensor, *, layout: torch.layout = torch.sparse_csr) -> SparseOperator:
+def diag(d: torch.Tensor) -> SparseOperator:
     """The ``n x n`` diagonal operator with diagonal ``d`` ``(n,)`` (differentiable)."""
     if d.dim() != 1:
         raise ValueError(f"diag: expected a 1-D tensor, got shape {tuple(d.shape)}.")
     # int(): under torch.compile with dynamic shapes the size is specialized (the pattern is
     # one per size anyway)
     pattern = run_eagerly(diagonal_pattern, int(d.shape[0]), d.device)
-    return operator_on(pattern, d, symmetric=True, layout=layout)
+    return operator_on(pattern, d, symmetric=True)
 
 
 _DIAGONALS: dict[tuple[int, torch.device], SparsityPattern] = {}

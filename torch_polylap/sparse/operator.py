@@ -13,8 +13,8 @@ instead of silently building a dense ``V x V`` matrix.
 Why a wrapper subclass and not a torch sparse tensor: torch's sparse tensors cannot be subclassed
 (``as_subclass`` fails on CSR and COO), their autograd materializes dense gradients, and any torch
 op on them drops whatever link a library keeps to the differentiable values.  The wrapper reports
-the sparse layout it models (``torch.sparse_csr`` by default) while its storage is the pattern and
-value array; nothing reaches torch's dispatcher with it.
+the sparse layout it stores (``torch.sparse_csr``: sorted CSR indices) while its storage is the
+pattern and value array; nothing reaches torch's dispatcher with it.
 """
 
 from __future__ import annotations
@@ -31,8 +31,6 @@ from .index_ops import diagonal_indices, positions_in, transpose_indices, union_
 from .pattern import SparsityPattern, block_diagonal_indices
 
 __all__ = ["SparseOperator", "UnsupportedOperation", "is_operator", "operator_on"]
-
-_LAYOUTS = (torch.sparse_csr, torch.sparse_coo)
 
 
 class UnsupportedOperation(RuntimeError):
@@ -62,7 +60,6 @@ class SparseOperator(torch.Tensor):
     _crow: torch.Tensor
     _col: torch.Tensor
     _row: torch.Tensor
-    _reported_layout: torch.layout
     _pattern_key: int
     _pattern_obj: SparsityPattern | None
     _solver_cache: dict[str, Any]
@@ -79,7 +76,6 @@ class SparseOperator(torch.Tensor):
         row: torch.Tensor,
         shape: tuple[int, int],
         symmetric: bool = False,
-        layout: torch.layout = torch.sparse_csr,
         pattern_key: int = -1,
     ) -> SparseOperator:
         if values.dim() not in (1, 2) or values.shape[-1] != col.shape[0]:
@@ -88,8 +84,6 @@ class SparseOperator(torch.Tensor):
                 f"them): the pattern has {col.shape[0]}, the values have shape "
                 f"{tuple(values.shape)}."
             )
-        if layout not in _LAYOUTS:
-            raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
         # a batch of value arrays on one pattern is a (B, n, m) batch of operators
         A = torch.Tensor._make_wrapper_subclass(
             cls,
@@ -101,7 +95,6 @@ class SparseOperator(torch.Tensor):
         A._vals = values
         A._crow, A._col, A._row = crow, col, row
         A.symmetric = bool(symmetric and shape[0] == shape[1])
-        A._reported_layout = layout
         A._pattern_key = pattern_key
         # the pattern object itself where known (eagerly): it keeps its caches, and its entry in
         # the registry that traced code looks it up in, alive as long as the operator
@@ -121,7 +114,7 @@ class SparseOperator(torch.Tensor):
     def with_values(
         self, values: torch.Tensor, symmetric: bool | None = None, *, share_cache: bool = False
     ) -> SparseOperator:
-        """The operator on the same pattern with other values (same layout).
+        """The operator on the same pattern with other values.
 
         ``share_cache``: share the solver cache (factorizations) with this operator, for values
         that are this operator's values (a detached view, or a solve's saved input in its
@@ -135,7 +128,6 @@ class SparseOperator(torch.Tensor):
             self._row,
             _shape2(self),
             self.symmetric if symmetric is None else symmetric,
-            self._reported_layout,
             self._pattern_key,
         )
         A._pattern_obj = self._pattern_obj
@@ -194,7 +186,7 @@ class SparseOperator(torch.Tensor):
         return (
             f"SparseOperator(shape={_shape2(self)}, nnz={self._col.shape[0]}, "
             f"dtype={values.dtype}, device={values.device}, symmetric={self.symmetric}, "
-            f"layout={self._reported_layout}{grad},\n       values={body})"
+            f"layout={torch.sparse_csr}{grad},\n       values={body})"
         )
 
     def __reduce_ex__(self, protocol: SupportsIndex) -> tuple[Any, ...]:
@@ -206,7 +198,6 @@ class SparseOperator(torch.Tensor):
                 _shape2(self),
                 self._vals,
                 self.symmetric,
-                str(self._reported_layout),
             ),
         )
 
@@ -217,17 +208,17 @@ class SparseOperator(torch.Tensor):
     # flatten protocol tells its tracer what an operator holds: the value array and the index
     # tensors, with the flags as constant metadata.
     def __tensor_flatten__(self) -> tuple[list[str], tuple[Any, ...]]:
-        meta = (self.symmetric, self._reported_layout, self._pattern_key)
+        meta = (self.symmetric, self._pattern_key)
         return ["_vals", "_crow", "_col", "_row"], meta
 
     @staticmethod
     def __tensor_unflatten__(
         inner: dict[str, torch.Tensor], meta: tuple[Any, ...], outer_size: Any, outer_stride: Any
     ) -> SparseOperator:
-        symmetric, layout, key = meta
+        symmetric, key = meta
         shape = (int(outer_size[0]), int(outer_size[1]))
         parts = (inner["_crow"], inner["_col"], inner["_row"])
-        return SparseOperator(inner["_vals"], *parts, shape, symmetric, layout, key)
+        return SparseOperator(inner["_vals"], *parts, shape, symmetric, key)
 
 
 def _rebuild(
@@ -236,19 +227,13 @@ def _rebuild(
     shape: tuple[int, int],
     values: torch.Tensor,
     symmetric: bool,
-    layout: str,
 ) -> SparseOperator:
-    return operator_on(
-        SparsityPattern(crow, col, shape),
-        values,
-        symmetric=symmetric,
-        layout=torch.sparse_coo if layout == str(torch.sparse_coo) else torch.sparse_csr,
-    )
+    return operator_on(SparsityPattern(crow, col, shape), values, symmetric=symmetric)
 
 
 # torch.load(weights_only=True), torch's default, unpickles only allow-listed globals: an
 # operator (a state dict's buffer, a module's attribute) is rebuilt by _rebuild from tensors,
-# a tuple, a bool and a string, all of which that unpickler accepts.
+# a tuple and a bool, all of which that unpickler accepts.
 torch.serialization.add_safe_globals([_rebuild])
 
 
@@ -269,13 +254,12 @@ def operator_on(
     values: torch.Tensor,
     *,
     symmetric: bool = False,
-    layout: torch.layout = torch.sparse_csr,
 ) -> SparseOperator:
     """The operator with ``values`` ``(nnz,)`` on ``pattern`` (moved to the values' device)."""
     if values.device != pattern.device:
         pattern = pattern.to(values.device)
     parts = (pattern.crow, pattern.col, pattern.row)
-    A = SparseOperator(values, *parts, pattern.shape, symmetric, layout, pattern.key)
+    A = SparseOperator(values, *parts, pattern.shape, symmetric, pattern.key)
     if not tracing():
         A._pattern_obj = pattern
     return A
@@ -579,7 +563,7 @@ def _combine(A: SparseOperator, B: SparseOperator, alpha: Any) -> SparseOperator
     else:
         values = A._vals.new_zeros(*_batch(A), pattern.nnz).index_add(-1, at_a, A._vals)
         values = values.index_add(-1, at_b, b_vals)
-    return operator_on(pattern, values, symmetric=symmetric, layout=A._reported_layout)
+    return operator_on(pattern, values, symmetric=symmetric)
 
 
 def _nesting(A: SparseOperator, B: SparseOperator) -> int:
@@ -610,7 +594,7 @@ def _combine_traced(
         at_a = positions_in(B._crow, B._col, A._crow, A._col, m)
         values = b_vals.index_add(-1, at_a, A._vals)
         parts = (B._crow, B._col, B._row)
-        return SparseOperator(values, *parts, (n, m), symmetric, A._reported_layout, B._pattern_key)
+        return SparseOperator(values, *parts, (n, m), symmetric, B._pattern_key)
     if not torch._dynamo.config.capture_dynamic_output_shape_ops:
         raise UnsupportedOperation(
             "torch_polylap: inside torch.compile, A + B of operators whose patterns do not "
@@ -623,7 +607,7 @@ def _combine_traced(
     crow, col, row, at_a, at_b = union_indices(A._crow, A._col, B._crow, B._col, m)
     values = A._vals.new_zeros(*_batch(A), col.shape[0]).index_add(-1, at_a, A._vals)
     values = values.index_add(-1, at_b, b_vals)
-    return SparseOperator(values, crow, col, row, (n, m), symmetric, A._reported_layout)
+    return SparseOperator(values, crow, col, row, (n, m), symmetric)
 
 
 def _is_zero(x: object) -> bool:
@@ -697,11 +681,9 @@ def _transpose(A: SparseOperator, *args: Any) -> SparseOperator:
     if tracing():
         n, m = _shape2(A)
         crow, col, row, perm_t = transpose_indices(A._crow, A._col, m)
-        return SparseOperator(
-            A._vals[..., perm_t], crow, col, row, (m, n), False, A._reported_layout
-        )
+        return SparseOperator(A._vals[..., perm_t], crow, col, row, (m, n), False)
     transposed, perm = A.pattern.transpose()
-    return operator_on(transposed, A._vals[..., perm], layout=A._reported_layout)
+    return operator_on(transposed, A._vals[..., perm])
 
 
 def _to(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
@@ -735,7 +717,7 @@ def _to(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
         return A
     if values.device == A._col.device:
         return A.with_values(values)
-    return operator_on(A.pattern, values, symmetric=A.symmetric, layout=A._reported_layout)
+    return operator_on(A.pattern, values, symmetric=A.symmetric)
 
 
 def _cast(dtype: torch.dtype) -> Callable[..., SparseOperator]:
@@ -751,13 +733,6 @@ def _cuda(
     if isinstance(device, int):
         device = f"cuda:{device}"
     return _to(A, torch.device(device or "cuda"))
-
-
-def _layout_as(layout: torch.layout) -> Callable[..., SparseOperator]:
-    def convert(A: SparseOperator, *args: Any, **kwargs: Any) -> SparseOperator:
-        return SparseOperator(A._vals, A._crow, A._col, A._row, _shape2(A), A.symmetric, layout)
-
-    return convert
 
 
 def _to_dense(A: SparseOperator, *args: Any, **kwargs: Any) -> torch.Tensor:
@@ -877,9 +852,9 @@ def _metadata(name: str) -> Callable[..., Any]:
             # operator as what it is to torch, a strided wrapper around its tensors
             return {"layout": torch.strided, "is_sparse": False, "is_sparse_csr": False}[name]
         return {
-            "layout": A._reported_layout,
-            "is_sparse": A._reported_layout == torch.sparse_coo,
-            "is_sparse_csr": A._reported_layout == torch.sparse_csr,
+            "layout": torch.sparse_csr,
+            "is_sparse": False,
+            "is_sparse_csr": True,
             "requires_grad": A._vals.requires_grad,
             "grad_fn": A._vals.grad_fn,
             "is_leaf": A._vals.grad_fn is None,
@@ -973,10 +948,9 @@ def _build_handlers() -> dict[Callable, Callable]:
     add(batch, "operator", [T.__getitem__], _getitem)
     add(batch, "operator", [T.unbind, torch.unbind], _unbind)
     add(batch, "operator", [T.__iter__], lambda A: iter(_unbind(A)))
-    layout = "reported layout (the storage is sorted CSR either way)"
-    add(layout, "operator", [T.to_sparse_csr], _layout_as(torch.sparse_csr))
-    add(layout, "operator", [T.to_sparse_coo, T.to_sparse], _layout_as(torch.sparse_coo))
-    add(layout, "operator", [T.coalesce], lambda A: A)
+    layout = "the operator itself: it is sorted CSR, whose `indices()` are also COO's, coalesced"
+    conversions = [T.to_sparse_csr, T.to_sparse_coo, T.to_sparse, T.coalesce]
+    add(layout, "operator", conversions, lambda A, *a, **k: A)
     add("whether the entries are coalesced (they always are)", "`True`", [T.is_coalesced], _true)
     reductions = "the value array, the main diagonal, row or column sums, the dense matrix"
     add(reductions, "dense, differentiable", [T.values, T._values], lambda A: A._vals)
