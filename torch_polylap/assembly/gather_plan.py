@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..moved import moved
+from ..topology.groups import moved
 
 __all__ = ["GatherPlan", "VertexSums", "gather_plan"]
 
