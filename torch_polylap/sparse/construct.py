@@ -16,7 +16,8 @@ import torch
 
 from ..tracing import run_eagerly
 from .autograd import sampled_product
-from .operator import SparseOperator, apply, operator_on
+from .dispatch import apply
+from .operator import SparseOperator, operator_on
 from .pattern import SparsityPattern
 
 __all__ = [
