@@ -33,6 +33,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from .._torch_compat import forward_ad_active
 from ..tracing import in_functorch, tracing
 from .index_ops import int32_indices, transposed
 from .pattern import SparsityPattern, block_diagonal_indices
@@ -486,11 +487,7 @@ def _sum(terms: list[torch.Tensor]) -> torch.Tensor:
 def _differentiated(*tensors: torch.Tensor) -> bool:
     """Whether an autograd graph, a forward-mode tangent or a torch.func transform may need
     the derivatives of a product of these tensors."""
-    return (
-        any(t.requires_grad for t in tensors)
-        or in_functorch()
-        or torch.autograd.forward_ad._current_level >= 0
-    )
+    return any(t.requires_grad for t in tensors) or in_functorch() or forward_ad_active()
 
 
 def spmm(

@@ -14,6 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from .._torch_compat import version_counter
 from ..tracing import run_eagerly
 from .autograd import sampled_product
 from .dispatch import apply
@@ -188,7 +189,13 @@ def solver_cache(A: Any, key: str, build: Callable[[], T]) -> T:
     """
     A = as_operator(A)
     values = A._vals
-    stamp = (values.data_ptr(), values._version, values.numel(), values.dtype, values.device)
+    stamp = (
+        values.data_ptr(),
+        version_counter(values),
+        values.numel(),
+        values.dtype,
+        values.device,
+    )
     cached = A._solver_cache.get(key)
     if cached is not None and cached[0] == stamp:
         return cached[1]

@@ -18,6 +18,11 @@ from typing import Any
 
 import torch
 
+from .._torch_compat import (
+    capture_dynamic_output_shape_ops,
+    disable_current_modes,
+    sparse_internal_accessors,
+)
 from ..tracing import tracing
 from .autograd import spmm as csr_product_parts
 from .index_ops import diagonal_indices, positions_in, transpose_indices, union_indices
@@ -290,7 +295,7 @@ def _nesting(A: SparseOperator, B: SparseOperator) -> int:
     pb = SparsityPattern.registered(B._pattern_key) if B._pattern_key >= 0 else None
     if pa is None or pb is None:
         return 0
-    with torch.utils._python_dispatch._disable_current_modes():
+    with disable_current_modes():
         return 1 if pa.contains(pb) else (-1 if pb.contains(pa) else 0)
 
 
@@ -311,7 +316,7 @@ def _combine_traced(
         values = b_vals.index_add(-1, at_a, A._vals)
         parts = (B._crow, B._col, B._row)
         return SparseOperator(values, *parts, (n, m), symmetric, B._pattern_key)
-    if not torch._dynamo.config.capture_dynamic_output_shape_ops:
+    if not capture_dynamic_output_shape_ops():
         raise UnsupportedOperation(
             "torch_polylap: inside torch.compile, A + B of operators whose patterns do not "
             "contain one another (a mesh's M0 + t L does; a mesh with isolated vertices does "
@@ -595,6 +600,7 @@ def _true(A: SparseOperator) -> bool:
 
 def _build_handlers() -> dict[Callable, Callable]:
     T = torch.Tensor
+    internal = sparse_internal_accessors()
     handlers: dict[Callable, Callable] = {}
 
     def add(what: str, result: str, funcs: list, handler: Callable) -> None:
@@ -669,15 +675,20 @@ def _build_handlers() -> dict[Callable, Callable]:
     add(layout, "operator", conversions, lambda A, *a, **k: A)
     add("whether the entries are coalesced (they always are)", "`True`", [T.is_coalesced], _true)
     reductions = "the value array, the main diagonal, row or column sums, the dense matrix"
-    add(reductions, "dense, differentiable", [T.values, T._values], lambda A: A._vals)
+    add(reductions, "dense, differentiable", [T.values, internal["_values"]], lambda A: A._vals)
     add(reductions, "dense, differentiable", [T.diagonal, torch.diagonal], _diagonal)
     add(reductions, "dense, differentiable", [T.sum, torch.sum], _sum)
     add(reductions, "dense, differentiable", [T.to_dense], _to_dense)
     indices = "the stored indices (CSR, and COO's `(2, nnz)`), the number of stored entries"
     add(indices, "index tensors", [T.crow_indices], lambda A: A._crow)
     add(indices, "index tensors", [T.col_indices], lambda A: A._col)
-    add(indices, "index tensors", [T.indices, T._indices], lambda A: torch.stack((A._row, A._col)))
-    add(indices, "index tensors", [T._nnz], lambda A: A._col.shape[0])
+    add(
+        indices,
+        "index tensors",
+        [T.indices, internal["_indices"]],
+        lambda A: torch.stack((A._row, A._col)),
+    )
+    add(indices, "index tensors", [internal["_nnz"]], lambda A: A._col.shape[0])
     for name in ("layout", "is_sparse", "is_sparse_csr", "requires_grad", "grad_fn", "is_leaf"):
         add(
             "metadata of a sparse tensor, `requires_grad` and `grad_fn` of the value array",

@@ -24,6 +24,7 @@ from typing import Any, SupportsIndex
 
 import torch
 
+from .._torch_compat import disable_torch_function_subclass, make_wrapper_subclass
 from ..tracing import run_eagerly, tracing
 from .pattern import SparsityPattern
 
@@ -95,12 +96,8 @@ class SparseOperator(torch.Tensor):
                 f"{tuple(values.shape)}."
             )
         # a batch of value arrays on one pattern is a (B, n, m) batch of operators
-        A = torch.Tensor._make_wrapper_subclass(
-            cls,
-            (*values.shape[:-1], *shape),
-            dtype=values.dtype,
-            device=values.device,
-            requires_grad=False,
+        A: SparseOperator = make_wrapper_subclass(
+            cls, (*values.shape[:-1], *shape), values.dtype, values.device
         )
         A._vals = values
         A._crow, A._col, A._row = crow, col, row
@@ -160,7 +157,7 @@ class SparseOperator(torch.Tensor):
         # torch.compile's tracer inspects the operator like any tensor (strides, storage
         # offset); what reaches torch's dispatcher from there is refused by __torch_dispatch__
         if func in PASSTHROUGH or tracing():
-            with torch._C.DisableTorchFunctionSubclass():
+            with disable_torch_function_subclass():
                 return func(*args, **kwargs)
         raise UnsupportedOperation(_unsupported_message(func))
 
@@ -191,7 +188,7 @@ class SparseOperator(torch.Tensor):
         grad = f", grad_fn=<{type(values.grad_fn).__name__}>" if values.grad_fn is not None else ""
         if values.grad_fn is None and values.requires_grad:
             grad = ", requires_grad=True"
-        with torch._C.DisableTorchFunctionSubclass():
+        with disable_torch_function_subclass():
             body = repr(values.detach()).replace("\n", "\n" + " " * 7)
         return (
             f"SparseOperator(shape={_shape2(self)}, nnz={self._col.shape[0]}, "
@@ -249,7 +246,7 @@ torch.serialization.add_safe_globals([_rebuild])
 
 def _shape2(A: torch.Tensor) -> tuple[int, int]:
     """``(n, m)`` of an operator (of each operator of a batch)."""
-    with torch._C.DisableTorchFunctionSubclass():
+    with disable_torch_function_subclass():
         n, m = A.shape[-2:]
     return int(n), int(m)
 
