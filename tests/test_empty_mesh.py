@@ -73,3 +73,12 @@ def test_gathered_assembly_of_no_faces(method, num_verts):
     assert values.shape == (topo.nnz,) and not values.any()
     assert masses is not None and torch.equal(masses, torch.zeros(num_verts, dtype=torch.float64))
     assert bool(ok) and bool(accurate)
+
+
+@pytest.mark.parametrize("num_verts", [0, 3])
+def test_compiled_laplacian_of_no_faces(num_verts):
+    topo = tp.build_topology([], num_verts)
+    lap = tp.CompiledLaplacian(topo, options={"backend": "aot_eager"})
+    L, M0 = lap(torch.zeros(num_verts, 3, dtype=torch.float64))
+    _assert_zero(L, (num_verts, num_verts), torch.float64)
+    _assert_zero(M0, (num_verts, num_verts), torch.float64)
