@@ -20,7 +20,7 @@ __all__ = ["assemble_gathered", "gather_plan_of"]
 
 
 def gather_plan_of(topo: Topology, view: TopologyView) -> GatherPlan:
-    """``topo``'s :class:`~torch_polylap.sparse.gather_plan.GatherPlan` on ``view``'s device,
+    """``topo``'s :class:`~torch_polylap.assembly.gather_plan.GatherPlan` on ``view``'s device,
     computed once per topology and device."""
     key = ("gather_plan", view.col.device)
     plan = topo.derived.get(key)
