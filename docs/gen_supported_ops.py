@@ -1,7 +1,7 @@
 """Write the table of supported operator operations into docs/operator-algebra.md.
 
 The table is generated from ``SparseOperator``'s dispatch table (the rows that
-``torch_polylap/sparse/operator.py`` records while it builds its ``__torch_function__``
+``torch_polylap/sparse/dispatch.py`` records while it builds its ``__torch_function__``
 handlers), so the documentation lists exactly what the operator routes. Run from the
 repository root after changing the dispatch table::
 
@@ -68,13 +68,13 @@ def spelling(func: Callable) -> str:
 def table() -> str:
     """The markdown table of the supported operations, one row per group of the dispatch table."""
     sys.path.insert(0, str(ROOT))
-    from torch_polylap.sparse import operator
+    from torch_polylap.sparse import dispatch, operator
 
     lines = ["| operation | what you write | result |", "|---|---|---|"]
-    for what, result, funcs in operator._SUPPORTED:
+    for what, result, funcs in dispatch._SUPPORTED:
         names = list(dict.fromkeys(spelling(f) for f in funcs))  # aliases spell alike
         lines.append(f"| {what} | {', '.join(f'`{n}`' for n in names)} | {result} |")
-    passthrough = sorted(dict.fromkeys(spelling(f) for f in operator._PASSTHROUGH))
+    passthrough = sorted(dict.fromkeys(spelling(f) for f in operator.PASSTHROUGH))
     lines.append(
         f"| shape, dtype, device and size queries | {', '.join(f'`{n}`' for n in passthrough)} "
         "| as for any tensor |"

@@ -8,7 +8,6 @@ Python sequences and numpy arrays all convert to this one form through :func:`as
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Iterable, Sequence
 
 import numpy as np
@@ -166,15 +165,6 @@ class PolygonFaces:
             if not tracing():
                 self._corner_cycle = cycle
         return cycle
-
-    def face_ids(self) -> torch.Tensor:
-        """Deprecated alias of :attr:`corner_face`."""
-        warnings.warn(
-            "PolygonFaces.face_ids() is deprecated; use the property PolygonFaces.corner_face.",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return self.corner_face
 
     def flipped(self) -> PolygonFaces:
         """The same faces with reversed orientation (corner order reversed within each face)."""

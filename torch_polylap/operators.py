@@ -21,8 +21,6 @@ wraps the values as :class:`~torch_polylap.sparse.SparseOperator`. Face measures
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 from torch import nn
 
@@ -64,33 +62,9 @@ def _checked_lam(lam: Lam, *, validate: bool = True) -> Lam:
 _BAD_LAM = "torch_polylap: lam must be a finite number >= 0."
 
 
-def _check_layout(layout: torch.layout) -> None:
-    if layout not in (torch.sparse_csr, torch.sparse_coo):
-        raise ValueError(f"layout must be torch.sparse_csr or torch.sparse_coo, got {layout}.")
-
-
-_LAYOUT_DEPRECATED = (
-    "{where}(layout=...) is deprecated and will be removed: it changed only the layout the "
-    "operators report, not their storage (the same sorted CSR pattern, which answers "
-    "crow_indices() and the COO indices() alike). Leave it out; L.to_sparse_coo() gives the "
-    "operator labelled torch.sparse_coo, and tp.sparse.to_torch_sparse(L, "
-    "layout=torch.sparse_coo) a plain torch COO tensor."
-)
-
-
-def _reported_layout(layout: torch.layout | None, where: str) -> torch.layout:
-    """The layout the operators report: ``torch.sparse_csr``, or what the deprecated
-    ``layout=`` of ``where`` asks for (with a DeprecationWarning)."""
-    if layout is None:
-        return torch.sparse_csr
-    warnings.warn(_LAYOUT_DEPRECATED.format(where=where), DeprecationWarning, stacklevel=3)
-    _check_layout(layout)
-    return layout
-
-
-def _operator(view: TopologyView, values: torch.Tensor, layout: torch.layout) -> SparseOperator:
+def _operator(view: TopologyView, values: torch.Tensor) -> SparseOperator:
     """The symmetric ``V x V`` operator with ``values`` on the view's cached pattern."""
-    return operator_on(view.pattern, values, symmetric=True, layout=layout)
+    return operator_on(view.pattern, values, symmetric=True)
 
 
 def laplacian(
@@ -98,7 +72,6 @@ def laplacian(
     faces: MeshFaces,
     lam: Lam = 1.0,
     *,
-    layout: torch.layout | None = None,
     validate: bool = True,
     method: str = "aw11",
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -116,11 +89,6 @@ def laplacian(
             ``U = lambda Id``);
             a float or a 0-dim tensor (which may require grad). Default 1 (the paper finds
             ``1 <= lambda <= 3`` comparable). Triangles do not depend on it (Theorem 2).
-        layout: deprecated, to be removed. It only relabelled the operators (which report
-            ``torch.sparse_csr`` and store one sorted pattern that offers ``crow_indices()``,
-            ``col_indices()`` and the COO ``indices()`` alike); passing it warns. Use
-            ``L.to_sparse_coo()`` for the operator labelled ``torch.sparse_coo``, or
-            :func:`torch_polylap.sparse.to_torch_sparse` for a plain torch COO tensor.
         validate: check the input and the result (one device sync): finite coordinates, no
             zero-area face, finite ``L`` and masses the dtype represents; for float32, faces
             whose blocks float32 would get wrong by more than 1e-2 (thin or nearly degenerate
@@ -153,30 +121,10 @@ def laplacian(
         ValueError: bad connectivity (see :func:`~torch_polylap.topology.build_topology`),
             non-finite coordinates or zero-area faces, naming the vertex or face.
     """
-    return _laplacian(
-        verts,
-        faces,
-        lam,
-        layout=_reported_layout(layout, "laplacian"),
-        validate=validate,
-        method=method,
-    )
-
-
-def _laplacian(
-    verts: torch.Tensor,
-    faces: MeshFaces,
-    lam: Lam,
-    *,
-    layout: torch.layout,
-    validate: bool,
-    method: str,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`laplacian` with the reported layout resolved."""
     lam = _checked_lam(lam, validate=validate)
     check_method(method)
     if isinstance(verts, torch.Tensor) and verts.dim() == 3:
-        return _laplacian_batch(verts, faces, lam, layout=layout, validate=validate, method=method)
+        return _laplacian_batch(verts, faces, lam, validate=validate, method=method)
     verts = check_verts(verts, finite=False)
     topo = topology_of(faces, verts)
     view = topo.on(verts.device)
@@ -184,8 +132,8 @@ def _laplacian(
         verts, view, topo, block_kernel(method, lam), want_mass=True, validate=validate
     )
     assert masses is not None
-    M0 = operator_on(view.diagonal, masses, symmetric=True, layout=layout)
-    return _operator(view, values, layout), M0
+    M0 = operator_on(view.diagonal, masses, symmetric=True)
+    return _operator(view, values), M0
 
 
 def _laplacian_batch(
@@ -193,7 +141,6 @@ def _laplacian_batch(
     faces: MeshFaces,
     lam: Lam,
     *,
-    layout: torch.layout,
     validate: bool,
     method: str,
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -231,8 +178,8 @@ def _laplacian_batch(
         values = torch.stack([p[0] for p in pairs])
         masses = torch.stack([p[1] for p in pairs if p[1] is not None])
     assert masses is not None
-    M0 = operator_on(view.diagonal, masses, symmetric=True, layout=layout)
-    return _operator(view, values, layout), M0
+    M0 = operator_on(view.diagonal, masses, symmetric=True)
+    return _operator(view, values), M0
 
 
 def planarity_laplacian(
@@ -240,23 +187,21 @@ def planarity_laplacian(
     faces: MeshFaces,
     lam: Lam = 1.0,
     *,
-    layout: torch.layout | None = None,
     validate: bool = True,
 ) -> torch.Tensor:
     """The planarity operator of AW11 sec. 5.3, ``sum_f P_f^T (lambda d^T Pi d) P_f``, ``(V, V)``.
 
     ``1/2 sum_c X_c^T Lplan X_c`` is zero exactly when every face is planar; see
     :func:`planarity_energy` for that energy without building the matrix. Triangles contribute
-    nothing. ``layout`` is deprecated, as for :func:`laplacian`.
+    nothing.
     """
-    layout = _reported_layout(layout, "planarity_laplacian")
     verts = check_verts(verts, finite=False)
     lam = _checked_lam(lam, validate=validate)
     topo = topology_of(faces, verts)
     view = topo.on(verts.device)
     kernel = block_kernel("aw11", lam, geometric=False)
     values, _ = assemble(verts, view, topo, kernel, want_mass=False, validate=validate)
-    return _operator(view, values, layout)
+    return _operator(view, values)
 
 
 def strong_laplacian(L: torch.Tensor, M0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -289,7 +234,6 @@ class PolygonLaplacian(nn.Module):
     Args:
         lam: stabilizer weight (see :func:`laplacian`).
         learn_lam: make ``lam`` a learnable ``nn.Parameter``.
-        layout: deprecated, as for :func:`laplacian`.
         validate: see :func:`laplacian`.
         method: ``"aw11"`` (default), ``"plms"`` or ``"degoes"`` (see :func:`laplacian`).
 
@@ -310,12 +254,10 @@ class PolygonLaplacian(nn.Module):
         lam: float = 1.0,
         *,
         learn_lam: bool = False,
-        layout: torch.layout | None = None,
         validate: bool = True,
         method: str = "aw11",
     ) -> None:
         super().__init__()
-        self.layout = _reported_layout(layout, "PolygonLaplacian")
         self.method = check_method(method)
         value = float(check_lam(lam))
         self.lam: float | nn.Parameter = nn.Parameter(torch.tensor(value)) if learn_lam else value
@@ -349,13 +291,8 @@ class PolygonLaplacian(nn.Module):
             verts = check_verts(verts, finite=False)
         topo = self._topology_for(faces, verts)
         lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam
-        return _laplacian(
-            verts, topo, lam, layout=self.layout, validate=self.validate, method=self.method
-        )
+        return laplacian(verts, topo, lam, validate=self.validate, method=self.method)
 
     def extra_repr(self) -> str:
         lam = float(self.lam) if isinstance(self.lam, torch.Tensor) else self.lam
-        return (
-            f"lam={lam}, method={self.method!r}, layout={self.layout}, "
-            f"cached={self.topology is not None}"
-        )
+        return f"lam={lam}, method={self.method!r}, cached={self.topology is not None}"

@@ -18,6 +18,8 @@ from typing import Any, TypeVar
 
 import torch
 
+from ._torch_compat import assert_async, functorch_active, mark_constant_result, vmap_active
+
 __all__ = ["tracing", "in_functorch", "in_vmap", "functional", "require", "run_eagerly"]
 
 T = TypeVar("T")
@@ -60,10 +62,8 @@ def _pin(fn: Callable[..., Any], *args: Any) -> str:
     return name
 
 
-# What torch._dynamo.assume_constant_result does (torch 2.13), without importing torch._dynamo
-# at import time: that import alone takes about a second, in every process (DataLoader
-# workers, the command line) whether or not it ever compiles.
-_pin._dynamo_marked_constant = True  # type: ignore[attr-defined]
+# run at trace time, its result (the name of the pinned attribute) a constant of the graph
+mark_constant_result(_pin)
 
 
 def run_eagerly(fn: Callable[..., T], *args: Any) -> T:
@@ -84,19 +84,12 @@ def in_functorch() -> bool:
     """Whether a torch.func transform (grad, vjp, jvp, jacrev, jacfwd, vmap) is active
     (eagerly: torch.compile traces transforms itself and lets the code below see plain
     tensors)."""
-    return not tracing() and torch._C._functorch.peek_interpreter_stack() is not None
+    return not tracing() and functorch_active()
 
 
 def in_vmap() -> bool:
     """Whether a ``torch.func.vmap`` is active eagerly (data cannot steer control flow)."""
-    if not in_functorch():
-        return False
-    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
-
-    return any(
-        i.key() == torch._C._functorch.TransformType.Vmap
-        for i in retrieve_all_functorch_interpreters()
-    )
+    return in_functorch() and vmap_active()
 
 
 def functional() -> bool:
@@ -139,7 +132,7 @@ def require(cond: torch.Tensor, message: str) -> bool:
     vmap, checks every batch entry (a ``ValueError`` with ``message``) and returns True.
     """
     if tracing():
-        torch._assert_async(cond.all(), message)
+        assert_async(cond.all(), message)
         return True
     if in_vmap():
         _require_op(cond, message)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import pytest
@@ -326,11 +325,9 @@ def test_float32_matches_float64():
 
 def test_operators_report_the_csr_layout_they_store(mixed):
     V, F = mixed
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", DeprecationWarning)  # the default path does not warn
-        L, M = tp.laplacian(V, F)
-        P = tp.planarity_laplacian(V, F)
-        lap = tp.PolygonLaplacian()
+    L, M = tp.laplacian(V, F)
+    P = tp.planarity_laplacian(V, F)
+    lap = tp.PolygonLaplacian()
     for A in (L, M, P, lap(V, F)[0]):
         assert A.layout == torch.sparse_csr and A.is_sparse_csr and not A.is_sparse
         # the reported layout is the storage: scipy's CSR arrays of the same matrix
@@ -340,26 +337,13 @@ def test_operators_report_the_csr_layout_they_store(mixed):
         assert torch.equal(A.col_indices(), torch.from_numpy(ref.indices).long())
 
 
-def test_layout_argument_is_deprecated_and_still_honoured(mixed, device):
+def test_layout_is_no_argument(mixed):
+    """The operators store and report sorted CSR; there is no label to choose."""
     V, F = mixed
-    V = V.to(device)
-    L, M = tp.laplacian(V, F)
-    with pytest.warns(DeprecationWarning, match=r"laplacian\(layout=...\) is deprecated"):
-        Lc, Mc = tp.laplacian(V, F, layout=torch.sparse_coo)
-    assert Lc.layout == torch.sparse_coo and Lc.is_coalesced() and Lc.device == V.device
-    assert torch.equal(dense(Lc), dense(L)) and torch.equal(dense(Mc), dense(M))
-    X = torch.randn(V.shape[0], 2, **D64, device=device)
-    assert torch.allclose(tp.sparse.spmm(Lc, X), tp.sparse.spmm(L, X))
-    # the replacement the warning names gives the same operator
-    coo = L.to_sparse_coo()
-    assert coo.layout == torch.sparse_coo and torch.equal(dense(coo), dense(Lc))
-    with pytest.warns(DeprecationWarning, match="PolygonLaplacian"):
-        lap = tp.PolygonLaplacian(layout=torch.sparse_coo)
-    assert lap(V, F)[0].layout == torch.sparse_coo
-    with pytest.warns(DeprecationWarning, match="planarity_laplacian"):
-        assert tp.planarity_laplacian(V, F, layout=torch.sparse_coo).layout == torch.sparse_coo
-    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match="layout must be"):
-        tp.laplacian(V, F, layout=torch.strided)
+    with pytest.raises(TypeError, match="layout"):
+        tp.laplacian(V, F, layout=torch.sparse_coo)
+    with pytest.raises(TypeError, match="layout"):
+        tp.PolygonLaplacian(layout=torch.sparse_coo)
 
 
 def test_scipy_roundtrip(mixed):

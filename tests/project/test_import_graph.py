@@ -159,6 +159,40 @@ def test_the_parts_are_layered():
     assert not circles, f"parts of the package that import each other: {circles}"
 
 
+def _reaches(graph: dict[str, set[str]], start: str) -> set[str]:
+    """Every module that ``start`` imports, directly or through others."""
+    seen, todo = set(), [start]
+    while todo:
+        for target in graph[todo.pop()] - seen:
+            seen.add(target)
+            todo.append(target)
+    return seen
+
+
+def _part_modules(part: str) -> list[str]:
+    return [m for m in MODULES if m == part or m.startswith(part + ".")]
+
+
+def test_the_torch_compat_module_is_the_bottom_layer():
+    """The wrappers of private torch APIs depend on torch alone, so every layer may use them."""
+    assert _reaches(_graph(), f"{NAME}._torch_compat") == set()
+
+
+@pytest.mark.parametrize("lower", ["kernels", "topology", "sparse", "tracing"])
+def test_the_assembly_sits_above_what_it_assembles(lower):
+    """The assembly imports the per-face kernels, the topology, the operator and the tracing
+    helpers; none of them reaches back into it (kernels/ holds the blocks alone, sparse/ the
+    operator alone)."""
+    graph = _graph()
+    assembly = f"{NAME}.assembly"
+    assert any(
+        t.startswith(f"{NAME}.{lower}") for m in _part_modules(assembly) for t in _reaches(graph, m)
+    )
+    for module in _part_modules(f"{NAME}.{lower}"):
+        reached = {t for t in _reaches(graph, module) if t.startswith(assembly)}
+        assert not reached, f"{module} reaches {sorted(reached)}"
+
+
 def test_no_library_module_imports_the_command_line():
     cli = f"{NAME}.cli"
     offenders = [

@@ -156,8 +156,9 @@ def test_operator_is_a_tensor_with_the_interop_users_expect():
     # indices and differentiable values, CSR and COO views
     assert L.crow_indices().shape == (n + 1,) and L.col_indices().shape == (L._nnz(),)
     assert L.values().requires_grad and L.values().shape == (L._nnz(),)
+    # sorted CSR is coalesced COO too: the conversions keep the operator and its gradients
     coo = L.to_sparse_coo()
-    assert coo.layout == torch.sparse_coo and coo.is_sparse and coo.is_coalesced()
+    assert coo is L and coo.is_coalesced() and L.to_sparse() is L and L.to_sparse_csr() is L
     assert coo.indices().shape == (2, L._nnz())
     assert torch.equal(coo.indices()[0].diff() >= 0, torch.ones(L._nnz() - 1, dtype=torch.bool))
     # row sums vanish (L 1 = 0), M0's diagonal is the mass vector

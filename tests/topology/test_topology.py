@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import os
 import time
@@ -17,7 +18,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torch_polylap as tp
+from torch_polylap.assembly import gather_plan_of
 from torch_polylap.shapes import quad_grid
+from torch_polylap.topology.groups import moved
 
 
 def test_face_forms_agree():
@@ -59,12 +62,6 @@ def test_corner_maps_walk_each_face_cyclically(degrees):
     assert faces.next_corner is nxt  # computed once
     moved = faces.to("cpu")
     assert torch.equal(moved.next_corner, nxt) and torch.equal(moved.corner_face, face)
-
-
-def test_face_ids_is_a_deprecated_alias():
-    faces = tp.as_faces([[0, 1, 2], [2, 1, 3, 4]])
-    with pytest.warns(DeprecationWarning, match="corner_face"):
-        assert torch.equal(faces.face_ids(), faces.corner_face)
 
 
 @pytest.mark.parametrize(
@@ -491,3 +488,44 @@ def test_cache_is_bounded(monkeypatch):
         tp.get_topology(f, V.shape[0])
     assert len(tp.topology.cache._CACHE) == 3
     assert tp.get_topology(keep[-1], V.shape[0]) is tp.get_topology(keep[-1], V.shape[0])
+
+
+# the topology's layouts reach another device whole, field by field
+META = torch.device("meta")
+
+
+def _tensors(obj: object) -> list[torch.Tensor]:
+    """Every tensor reachable through dataclass fields and tuples."""
+    if isinstance(obj, torch.Tensor):
+        return [obj]
+    if dataclasses.is_dataclass(obj):
+        return [t for f in dataclasses.fields(obj) for t in _tensors(getattr(obj, f.name))]
+    if isinstance(obj, tuple):
+        return [t for v in obj for t in _tensors(v)]
+    return []
+
+
+def test_groups_and_plan_move_every_tensor_and_keep_the_rest() -> None:
+    V, F = quad_grid(3, bump=0.1)
+    topo = tp.build_topology(F, V.shape[0])
+    view = topo.on(V.device)
+    plan = gather_plan_of(topo, view)
+    for layout in (*view.groups, *view.groups[0].chunks, plan, plan.vertex):
+        out = layout.to(META)
+        assert type(out) is type(layout)
+        before, after = _tensors(layout), _tensors(out)
+        assert len(after) == len(before) > 0
+        for a, b in zip(before, after, strict=True):
+            assert b.device == META and a.device.type == "cpu"
+            assert (a.shape, a.dtype) == (b.shape, b.dtype)
+        for f in dataclasses.fields(layout):
+            value = getattr(layout, f.name)
+            if isinstance(value, int):
+                assert getattr(out, f.name) == value
+
+
+def test_moved_leaves_the_original_alone() -> None:
+    V, F = quad_grid(2)
+    group = tp.build_topology(F, V.shape[0]).on(V.device).groups[0]
+    out = moved(group, META)
+    assert group.face_ids.device.type == "cpu" and out.face_ids.device == META

@@ -45,7 +45,7 @@ def masses_of(M0: torch.Tensor) -> torch.Tensor:
         return M0
     M0 = as_operator(M0)
     d = M0.diagonal()
-    if M0._nnz() != d.numel() or M0.shape[0] != M0.shape[1]:
+    if M0.pattern.nnz != d.numel() or M0.shape[0] != M0.shape[1]:
         raise ValueError(
             "M0 must be a diagonal matrix (as torch_polylap.laplacian returns it); pass the (V,) "
             "masses instead."

@@ -8,7 +8,8 @@ per-operator solver cache, scipy conversion -- lives in this package and nowhere
 What is exported here is what users build, combine and convert operators with.  The plumbing
 the rest of the package shares (the solver cache, sampled gradients, patterns, symmetry marks,
 eliminating fixed rows) is imported from the modules :mod:`.construct`, :mod:`.operator` and
-:mod:`.pattern` by the package itself and is not part of the public API.
+:mod:`.pattern` by the package itself and is not part of the public API. :mod:`.dispatch` holds
+the operator's torch dispatch table (what each torch function does with an operator).
 """
 
 from .construct import (

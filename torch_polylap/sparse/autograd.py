@@ -27,12 +27,14 @@ an ``autograd.Function`` with a forward-mode rule, so traced code calls the oper
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import torch
 
+from .._torch_compat import forward_ad_active
 from ..tracing import in_functorch, tracing
 from .index_ops import int32_indices, transposed
 from .pattern import SparsityPattern, block_diagonal_indices
@@ -185,9 +187,21 @@ class _Products(NamedTuple):
     sampled: Callable[..., torch.Tensor]
 
 
-def _spmm_grads(
-    ops: _Products, ctx: Any, G: torch.Tensor, needs: Sequence[bool]
-) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+# Each product is bilinear in two of its inputs (the rest are the pattern and constants), so
+# its derivatives in either mode are sums of the three products: one rule per product gives the
+# reverse-mode gradients and the forward-mode tangent, written with whichever products the
+# caller's mode needs (the operators for their registered backward, the eager functions below
+# for derivatives of any order).
+Pair = tuple[torch.Tensor | None, torch.Tensor | None]
+
+
+def _spmm_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+    values, crow, col, row, X, symmetric = inputs
+    ctx.save_for_backward(values, crow, col, row, X)
+    ctx.parts, ctx.symmetric = (crow, col, row), symmetric
+
+
+def _spmm_grads(ops: _Products, ctx: Any, G: torch.Tensor, needs: Sequence[bool]) -> Pair:
     """``(dvalues, dX)`` of ``Y = A X`` for ``G = dY``."""
     values, crow, col, row, X = ctx.saved_tensors
     grad_values = ops.sampled(G, X, crow, col, row) if needs[0] else None
@@ -201,9 +215,24 @@ def _spmm_grads(
     return grad_values, grad_X
 
 
-def _spmm_t_grads(
-    ops: _Products, ctx: Any, H: torch.Tensor, needs: Sequence[bool]
-) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+def _spmm_tangents(
+    ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
+) -> list[torch.Tensor]:
+    """The terms of ``d(A X) = A(dvalues) X + A dX`` (``A(dvalues)`` need not be symmetric)."""
+    (values, X), (dv, dX), (crow, col, row) = primal, tangent, ctx.parts
+    terms = [] if dv is None else [ops.spmm(dv, crow, col, row, X, False)]
+    if dX is not None:
+        terms.append(ops.spmm(values, crow, col, row, dX, ctx.symmetric))
+    return terms
+
+
+def _spmm_t_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+    values, crow, col, row, G, m = inputs
+    ctx.save_for_backward(values, crow, col, row, G)
+    ctx.parts, ctx.m = (crow, col, row), m
+
+
+def _spmm_t_grads(ops: _Products, ctx: Any, H: torch.Tensor, needs: Sequence[bool]) -> Pair:
     """``(dvalues, dG)`` of ``Z = A^T G`` for ``H = dZ``."""
     values, crow, col, row, G = ctx.saved_tensors
     grad_values = ops.sampled(G, H, crow, col, row) if needs[0] else None
@@ -211,9 +240,23 @@ def _spmm_t_grads(
     return grad_values, grad_G
 
 
-def _sampled_grads(
-    ops: _Products, ctx: Any, w: torch.Tensor, needs: Sequence[bool]
-) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+def _spmm_t_tangents(
+    ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
+) -> list[torch.Tensor]:
+    """The terms of ``d(A^T G) = A(dvalues)^T G + A^T dG``."""
+    (values, G), (dv, dG), (crow, col, row) = primal, tangent, ctx.parts
+    terms = [] if dv is None else [ops.spmm_t(dv, crow, col, row, G, ctx.m)]
+    if dG is not None:
+        terms.append(ops.spmm_t(values, crow, col, row, dG, ctx.m))
+    return terms
+
+
+def _sampled_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
+    ctx.save_for_backward(*inputs)
+    ctx.parts = inputs[2:5]
+
+
+def _sampled_grads(ops: _Products, ctx: Any, w: torch.Tensor, needs: Sequence[bool]) -> Pair:
     """``(dG, dX)`` of ``s = (G X^T)|_A`` for ``w = ds``."""
     G, X, crow, col, row = ctx.saved_tensors
     grad_G = ops.spmm(w, crow, col, row, X, False) if needs[0] else None
@@ -221,42 +264,58 @@ def _sampled_grads(
     return grad_G, grad_X
 
 
-def _spmm_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-    values, crow, col, row, X, symmetric = inputs
-    ctx.save_for_backward(values, crow, col, row, X)
-    ctx.symmetric = symmetric
+def _sampled_tangents(
+    ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
+) -> list[torch.Tensor]:
+    """The terms of ``d((G X^T)|_A) = (dG X^T)|_A + (G dX^T)|_A``."""
+    (G, X), (dG, dX) = primal, tangent
+    terms = [] if dG is None else [ops.sampled(dG, X, *ctx.parts)]
+    if dX is not None:
+        terms.append(ops.sampled(G, dX, *ctx.parts))
+    return terms
 
 
-def _spmm_t_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-    values, crow, col, row, G, m = inputs
-    ctx.save_for_backward(values, crow, col, row, G)
+class _Rule(NamedTuple):
+    """The derivatives of one product."""
+
+    op: Callable[..., torch.Tensor]
+    """The custom operator: the arithmetic."""
+    setup: Callable[[Any, tuple[Any, ...], torch.Tensor], None]
+    """Saves what the derivatives need (its ``setup_context``)."""
+    grads: Callable[[_Products, Any, torch.Tensor, Sequence[bool]], Pair]
+    """The reverse-mode gradients of the two inputs ``diff``."""
+    tangents: Callable[[_Products, Any, Sequence[torch.Tensor], Pair], list[torch.Tensor]]
+    """The terms of the forward-mode tangent, from the two inputs and their tangents."""
+    diff: tuple[int, int]
+    """The positions of the two inputs the product is bilinear in."""
 
 
-def _sampled_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-    ctx.save_for_backward(*inputs)
+_SPMM = _Rule(spmm_op, _spmm_setup, _spmm_grads, _spmm_tangents, (0, 4))
+_SPMM_T = _Rule(spmm_t_op, _spmm_t_setup, _spmm_t_grads, _spmm_t_tangents, (0, 4))
+_SAMPLED = _Rule(sampled_op, _sampled_setup, _sampled_grads, _sampled_tangents, (0, 1))
+
+
+def _gradients(
+    rule: _Rule, ops: _Products, ctx: Any, grad: torch.Tensor
+) -> tuple[torch.Tensor | None, ...]:
+    """The backward of ``rule``'s product, written with ``ops``: a gradient for each of its
+    two differentiable inputs, ``None`` for the others."""
+    needs = [ctx.needs_input_grad[i] for i in rule.diff]
+    pair = rule.grads(ops, ctx, grad, needs)
+    out: list[torch.Tensor | None] = [None] * len(ctx.needs_input_grad)
+    out[rule.diff[0]], out[rule.diff[1]] = pair
+    return tuple(out)
 
 
 _OPS = _Products(spmm_op, spmm_t_op, sampled_op)
 
-
-def _spmm_backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-    dv, dX = _spmm_grads(_OPS, ctx, G, (ctx.needs_input_grad[0], ctx.needs_input_grad[4]))
-    return dv, None, None, None, dX, None
-
-
-def _spmm_t_backward(ctx: Any, H: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-    dv, dG = _spmm_t_grads(_OPS, ctx, H, (ctx.needs_input_grad[0], ctx.needs_input_grad[4]))
-    return dv, None, None, None, dG, None
-
-
-def _sampled_backward(ctx: Any, w: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-    dG, dX = _sampled_grads(_OPS, ctx, w, ctx.needs_input_grad[:2])
-    return dG, dX, None, None, None
-
-
-spmm_op.register_autograd(_spmm_backward, setup_context=_spmm_setup)
-spmm_t_op.register_autograd(_spmm_t_backward, setup_context=_spmm_t_setup)
-sampled_op.register_autograd(_sampled_backward, setup_context=_sampled_setup)
+spmm_op.register_autograd(functools.partial(_gradients, _SPMM, _OPS), setup_context=_spmm_setup)
+spmm_t_op.register_autograd(
+    functools.partial(_gradients, _SPMM_T, _OPS), setup_context=_spmm_t_setup
+)
+sampled_op.register_autograd(
+    functools.partial(_gradients, _SAMPLED, _OPS), setup_context=_sampled_setup
+)
 
 
 # --------------------------------------------------------------------------------------------
@@ -363,117 +422,40 @@ for _op in ("torch_polylap::spmm", "torch_polylap::spmm_t", "torch_polylap::samp
 # cannot hold an autograd.Function with a forward-mode rule, calls the operators directly.
 
 
-class _Product(torch.autograd.Function):
-    """``A X`` (eager): reverse mode as the operator's, forward mode, vmap through its rule."""
+def _eager_function(rule: _Rule, name: str, doc: str) -> type[torch.autograd.Function]:
+    """The eager ``autograd.Function`` of ``rule``'s product: the operator's arithmetic, reverse
+    mode as the operator's (written with the eager products, so differentiable again), forward
+    mode, and vmap through its own rule."""
 
-    generate_vmap_rule = True
+    def forward(*inputs: Any) -> torch.Tensor:
+        return rule.op(*inputs)
 
-    @staticmethod
-    def forward(
-        values: torch.Tensor,
-        crow: torch.Tensor,
-        col: torch.Tensor,
-        row: torch.Tensor,
-        X: torch.Tensor,
-        symmetric: bool,
-    ) -> torch.Tensor:
-        return spmm_op(values, crow, col, row, X, symmetric)
-
-    @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-        _spmm_setup(ctx, inputs, output)
-        ctx.save_for_forward(inputs[0], inputs[4])
-        ctx.parts = inputs[1:4]
+        rule.setup(ctx, inputs, output)
+        ctx.save_for_forward(*(inputs[i] for i in rule.diff))
 
-    @staticmethod
-    def backward(ctx: Any, G: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        dv, dX = _spmm_grads(_EAGER, ctx, G, (ctx.needs_input_grad[0], ctx.needs_input_grad[4]))
-        return dv, None, None, None, dX, None
+    # the eager products (_EAGER) are defined below, and looked up when a derivative is taken
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        return _gradients(rule, _EAGER, ctx, grad)
 
-    @staticmethod
-    def jvp(ctx: Any, dv: torch.Tensor | None, *tangents: Any) -> torch.Tensor:
-        values, X = ctx.saved_tensors
-        crow, col, row = ctx.parts
-        dX = tangents[3]
-        terms = []
-        if dv is not None:
-            terms.append(spmm(dv, crow, col, row, X, False))
-        if dX is not None:
-            terms.append(spmm(values, crow, col, row, dX, ctx.symmetric))
-        return _sum(terms)
+    def jvp(ctx: Any, *tangents: Any) -> torch.Tensor:
+        pair = (tangents[rule.diff[0]], tangents[rule.diff[1]])
+        return _sum(rule.tangents(_EAGER, ctx, ctx.saved_tensors, pair))
 
-
-class _TransposedProduct(torch.autograd.Function):
-    """``A^T G`` (eager), as :class:`_Product`."""
-
-    generate_vmap_rule = True
-
-    @staticmethod
-    def forward(
-        values: torch.Tensor,
-        crow: torch.Tensor,
-        col: torch.Tensor,
-        row: torch.Tensor,
-        G: torch.Tensor,
-        m: int,
-    ) -> torch.Tensor:
-        return spmm_t_op(values, crow, col, row, G, m)
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-        _spmm_t_setup(ctx, inputs, output)
-        ctx.save_for_forward(inputs[0], inputs[4])
-        ctx.parts, ctx.m = inputs[1:4], inputs[5]
-
-    @staticmethod
-    def backward(ctx: Any, H: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        dv, dG = _spmm_t_grads(_EAGER, ctx, H, (ctx.needs_input_grad[0], ctx.needs_input_grad[4]))
-        return dv, None, None, None, dG, None
-
-    @staticmethod
-    def jvp(ctx: Any, dv: torch.Tensor | None, *tangents: Any) -> torch.Tensor:
-        values, G = ctx.saved_tensors
-        crow, col, row = ctx.parts
-        dG = tangents[3]
-        terms = []
-        if dv is not None:
-            terms.append(spmm_t(dv, crow, col, row, G, ctx.m))
-        if dG is not None:
-            terms.append(spmm_t(values, crow, col, row, dG, ctx.m))
-        return _sum(terms)
+    namespace = {
+        "__doc__": doc,
+        "generate_vmap_rule": True,
+        "forward": staticmethod(forward),
+        "setup_context": staticmethod(setup_context),
+        "backward": staticmethod(backward),
+        "jvp": staticmethod(jvp),
+    }
+    return type(name, (torch.autograd.Function,), namespace)
 
 
-class _Sampled(torch.autograd.Function):
-    """``(G X^T)|_A`` (eager), as :class:`_Product`."""
-
-    generate_vmap_rule = True
-
-    @staticmethod
-    def forward(
-        G: torch.Tensor, X: torch.Tensor, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor
-    ) -> torch.Tensor:
-        return sampled_op(G, X, crow, col, row)
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-        _sampled_setup(ctx, inputs, output)
-        ctx.save_for_forward(inputs[0], inputs[1])
-        ctx.parts = inputs[2:5]
-
-    @staticmethod
-    def backward(ctx: Any, w: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        dG, dX = _sampled_grads(_EAGER, ctx, w, ctx.needs_input_grad[:2])
-        return dG, dX, None, None, None
-
-    @staticmethod
-    def jvp(ctx: Any, dG: torch.Tensor | None, dX: torch.Tensor | None, *_: Any) -> torch.Tensor:
-        G, X = ctx.saved_tensors
-        terms = []
-        if dG is not None:
-            terms.append(sampled(dG, X, *ctx.parts))
-        if dX is not None:
-            terms.append(sampled(G, dX, *ctx.parts))
-        return _sum(terms)
+_Product = _eager_function(_SPMM, "_Product", "``A X`` (eager).")
+_TransposedProduct = _eager_function(_SPMM_T, "_TransposedProduct", "``A^T G`` (eager).")
+_Sampled = _eager_function(_SAMPLED, "_Sampled", "``(G X^T)|_A`` (eager).")
 
 
 def _sum(terms: list[torch.Tensor]) -> torch.Tensor:
@@ -486,11 +468,7 @@ def _sum(terms: list[torch.Tensor]) -> torch.Tensor:
 def _differentiated(*tensors: torch.Tensor) -> bool:
     """Whether an autograd graph, a forward-mode tangent or a torch.func transform may need
     the derivatives of a product of these tensors."""
-    return (
-        any(t.requires_grad for t in tensors)
-        or in_functorch()
-        or torch.autograd.forward_ad._current_level >= 0
-    )
+    return any(t.requires_grad for t in tensors) or in_functorch() or forward_ad_active()
 
 
 def spmm(

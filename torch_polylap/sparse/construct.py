@@ -14,9 +14,11 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from .._torch_compat import version_counter
 from ..tracing import run_eagerly
 from .autograd import sampled_product
-from .operator import SparseOperator, apply, operator_on
+from .dispatch import apply
+from .operator import SparseOperator, operator_on
 from .pattern import SparsityPattern
 
 __all__ = [
@@ -49,7 +51,6 @@ def operator_from_parts(
     shape: tuple[int, int],
     *,
     symmetric: bool = False,
-    layout: torch.layout = torch.sparse_csr,
 ) -> SparseOperator:
     """A :class:`SparseOperator` from CSR arrays with sorted, unique columns in every row.
 
@@ -58,7 +59,7 @@ def operator_from_parts(
     which shares the pattern and its cached transposes and unions.
     """
     pattern = SparsityPattern(crow, col, shape)
-    return operator_on(pattern, values, symmetric=symmetric, layout=layout)
+    return operator_on(pattern, values, symmetric=symmetric)
 
 
 def from_coo(
@@ -116,7 +117,7 @@ def as_operator(A: Any) -> SparseOperator:
                 raise TypeError(_native_grad_message())
             row, col = A.indices()
             pattern = SparsityPattern.from_rows(row, col, _shape2(A))
-            return operator_on(pattern, values, layout=torch.sparse_coo)
+            return operator_on(pattern, values)
         raise TypeError(
             "torch_polylap: expected a sparse matrix (an operator from torch_polylap, a torch "
             f"sparse CSR/COO tensor or a scipy sparse matrix), got a dense tensor of shape "
@@ -188,7 +189,13 @@ def solver_cache(A: Any, key: str, build: Callable[[], T]) -> T:
     """
     A = as_operator(A)
     values = A._vals
-    stamp = (values.data_ptr(), values._version, values.numel(), values.dtype, values.device)
+    stamp = (
+        values.data_ptr(),
+        version_counter(values),
+        values.numel(),
+        values.dtype,
+        values.device,
+    )
     cached = A._solver_cache.get(key)
     if cached is not None and cached[0] == stamp:
         return cached[1]
@@ -197,14 +204,14 @@ def solver_cache(A: Any, key: str, build: Callable[[], T]) -> T:
     return value
 
 
-def diag(d: torch.Tensor, *, layout: torch.layout = torch.sparse_csr) -> SparseOperator:
+def diag(d: torch.Tensor) -> SparseOperator:
     """The ``n x n`` diagonal operator with diagonal ``d`` ``(n,)`` (differentiable)."""
     if d.dim() != 1:
         raise ValueError(f"diag: expected a 1-D tensor, got shape {tuple(d.shape)}.")
     # int(): under torch.compile with dynamic shapes the size is specialized (the pattern is
     # one per size anyway)
     pattern = run_eagerly(diagonal_pattern, int(d.shape[0]), d.device)
-    return operator_on(pattern, d, symmetric=True, layout=layout)
+    return operator_on(pattern, d, symmetric=True)
 
 
 _DIAGONALS: dict[tuple[int, torch.device], SparsityPattern] = {}

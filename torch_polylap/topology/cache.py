@@ -9,6 +9,7 @@ from collections import OrderedDict
 
 import torch
 
+from .._torch_compat import disable_functorch, functorch_unwrapped, version_counter
 from ..faces import FacesLike, PolygonFaces
 from ..tracing import require, run_eagerly, tracing
 from .build import build_topology
@@ -114,7 +115,7 @@ def _tensor_stamp(t: torch.Tensor) -> tuple:
     crc = None
     if t.device.type == "cpu" and t.numel() <= CHECKSUM_MAX_ELEMENTS:
         crc = zlib.crc32(t.detach().contiguous().numpy().data)
-    return (t._version, t.data_ptr(), tuple(t.shape), t.stride(), t.dtype, t.device, crc)
+    return (version_counter(t), t.data_ptr(), tuple(t.shape), t.stride(), t.dtype, t.device, crc)
 
 
 def get_topology(faces: FacesLike | Topology, num_verts: int) -> Topology:
@@ -166,10 +167,10 @@ def _lookup(faces: FacesLike, num_verts: int) -> Topology:
     elif isinstance(faces, PolygonFaces):
         indices, offsets = _unwrapped(faces.indices), _unwrapped(faces.offsets)
         if indices is not faces.indices or offsets is not faces.offsets:
-            with torch._C._DisableFuncTorch():
+            with disable_functorch():
                 faces = PolygonFaces(indices, offsets=offsets)
     # the plain tensors are read on the host (stamp, build) with torch.func's layers paused
-    with torch._C._DisableFuncTorch():
+    with disable_functorch():
         return _lookup_plain(faces, num_verts)
 
 
@@ -189,15 +190,14 @@ def _unwrapped(t: torch.Tensor) -> torch.Tensor:
     """The plain tensor under torch.func's wrappers: inside a transform, tensor arguments are
     wrapped (without storage), but connectivity is never differentiated, so its content is
     that of the plain tensor."""
-    while torch._C._functorch.is_functorch_wrapped_tensor(t):
-        if torch._C._functorch.is_batchedtensor(t):
-            raise ValueError(
-                "torch_polylap: the faces are batched by torch.func.vmap; one mesh's operators "
-                "need one connectivity. vmap over the vertices with the faces passed unbatched "
-                "(in_dims=None), or loop over meshes of different connectivity."
-            )
-        t = torch._C._functorch.get_unwrapped(t)
-    return t
+    return functorch_unwrapped(t, _BATCHED_FACES)
+
+
+_BATCHED_FACES = (
+    "torch_polylap: the faces are batched by torch.func.vmap; one mesh's operators need one "
+    "connectivity. vmap over the vertices with the faces passed unbatched (in_dims=None), or "
+    "loop over meshes of different connectivity."
+)
 
 
 # Under torch.compile the faces' content is not known while the graph is traced, but the

@@ -1,4 +1,6 @@
-"""The corner positions of many chunks of faces as one autograd node.
+"""Corner positions: of every degree group of a mesh, and of many chunks as one autograd node.
+
+:func:`face_groups` is the loop every face measure and DEC view runs.
 
 The eager assembly evaluates its kernels chunk by chunk so that their temporaries stay in
 cache. Were each chunk's corners gathered by its own differentiable gather, the backward would
@@ -10,11 +12,17 @@ into a single ``(3, V)`` array.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import torch
 
-__all__ = ["gather_chunks"]
+from .._typing import MeshFaces
+from ..checks import check_verts
+from ..kernels.frames import gather_corners
+from ..topology import DegreeGroup, Topology, get_topology
+
+__all__ = ["face_groups", "gather_chunks"]
 
 
 def _gather(verts_t: torch.Tensor, corners_t: torch.Tensor) -> torch.Tensor:
@@ -68,3 +76,15 @@ def gather_chunks(verts_t: torch.Tensor, corners: list[torch.Tensor]) -> list[to
     """``(3, k, c)`` corner positions of each chunk's ``(k, c)`` corners, differentiable in
     ``verts_t`` ``(3, V)`` as one node (see :class:`CornerGather`)."""
     return list(CornerGather.apply(verts_t, *corners))
+
+
+def face_groups(
+    verts: torch.Tensor, faces: MeshFaces
+) -> Iterator[tuple[Topology, DegreeGroup, torch.Tensor]]:
+    """``(topology, group, corners (3, k, F_k))`` for each degree group of the faces, in one
+    device-bound view: the loop every face measure and DEC view runs."""
+    check_verts(verts, finite=False)
+    topo = get_topology(faces, verts.shape[0])
+    verts_t = verts.t().contiguous()
+    for grp in topo.on(verts.device).groups:
+        yield topo, grp, gather_corners(verts_t, grp.corners_t)

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..moved import moved
+from ..topology.groups import moved
 
 __all__ = ["GatherPlan", "VertexSums", "gather_plan"]
 
@@ -193,8 +193,13 @@ def _ranks(target: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     return order, rank
 
 
+def _flat(arrays: list[np.ndarray]) -> np.ndarray:
+    """The arrays flattened and concatenated (int64; empty for a mesh without faces)."""
+    return np.concatenate([a.reshape(-1) for a in arrays] + [np.zeros(0, np.int64)])
+
+
 def _vertex_sums(corners: list[np.ndarray], num_verts: int) -> VertexSums:
-    vertex = np.concatenate([c.reshape(-1) for c in corners]) if corners else np.zeros(0, np.int64)
+    vertex = _flat(corners)
     zero = vertex.size
     order, rank = _ranks(vertex, num_verts)
     depth = np.bincount(rank) if rank.size else np.zeros(0, np.int64)
@@ -228,9 +233,9 @@ def gather_plan(
         nnz: number of stored entries.
     """
     num_verts = diag_pos.size
-    up = [p.reshape(-1) for p in pos_upper]
-    num_off = sum(p.size for p in up)
-    target = np.concatenate(up + [p.reshape(-1) for p in pos_lower] + [diag_pos])
+    up, low = _flat(pos_upper), _flat(pos_lower)
+    num_off = up.size
+    target = np.concatenate((up, low, diag_pos))
     source = np.concatenate(
         (np.tile(np.arange(num_off, dtype=np.int64), 2), num_off + np.arange(num_verts))
     )
@@ -246,8 +251,8 @@ def gather_plan(
         torch.from_numpy(target[rest]),
         torch.from_numpy(source[rest]),
         _vertex_sums(corners, num_verts),
-        torch.from_numpy(np.concatenate(up)),
-        torch.from_numpy(np.concatenate([p.reshape(-1) for p in pos_lower])),
+        torch.from_numpy(up),
+        torch.from_numpy(low),
         torch.from_numpy(diag_pos),
         num_off,
     )
