@@ -17,18 +17,18 @@ Laplacians of ``tp.laplacian(..., method=...)``: ``"aw11"`` (Alexa and Wardetzky
     against ``l (l + 1)`` with multiplicities 1, 3, 5, 7; error = largest relative error of
     eigenvalues 1..15 (``torch_polylap.eigs``).
 
-Each experiment gets one table with the methods as columns, then one with AW11 for every
-lambda of ``--lams`` (the lambda study of AW11 sec. 5), and the report ends with the observed
-orders between the last two levels. The definitions follow the reference values of the
-polyLaplace implementation (reproduced in ``tests/assembly/test_reference_values.py``). Observed orders are
+Each experiment gets one table with the methods as columns, then one with AW11 for every lambda
+of ``--lams`` (the lambda study of AW11 sec. 5), and the report ends with the observed orders
+between the last two levels. The definitions follow the reference values of the polyLaplace
+implementation (reproduced in ``tests/assembly/test_reference_values.py``). Observed orders are
 ``log(e_prev / e) / log(h_prev / h)`` with ``h = |V|^-1/2``. Writes a Markdown report (default
 ``examples/output/convergence.md``) and ``convergence.png`` beside it (AW11's errors against
 ``h``, one panel per experiment).
 
-The experiments are the ones ``tests/assembly/test_reference_values.py`` checks against the numbers
-printed by the polyLaplace research code (that test imports them from here; it keeps its own
-copy of the published numbers and its own definition of ``Y_3^2``). PLMS's ``M0`` is this
-package's, which lumps the fan's Galerkin mass as polyLaplace does.
+The experiments are the ones ``tests/assembly/test_reference_values.py`` checks against the
+numbers printed by the polyLaplace research code (that test imports them from here; it keeps
+its own copy of the published numbers and its own definition of ``Y_3^2``). PLMS's ``M0`` is
+this package's, which lumps the fan's Galerkin mass as polyLaplace does.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 torch offers no public way to do the few things below (or offers one only in versions newer
 than the oldest the package supports), so the package reaches into its internals here and
 nowhere else: a torch release that moves one of them breaks this module alone, and
-``tests/test_torch_compat.py`` checks with an AST scan that no other module names a private
+``tests/project/test_torch_compat.py`` checks with an AST scan that no other module names a private
 torch attribute or module.
 """
 

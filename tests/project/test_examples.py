@@ -45,8 +45,8 @@ def test_denoising_reduces_radial_error(tmp_path):
 
 def test_convergence_study_reproduces_reference_values(tmp_path):
     """The study run end to end: its report's level-3 numbers equal the polyLaplace reference
-    values (tests/assembly/test_reference_values.py checks its experiment functions against all of them;
-    here the script's tables and figure are checked as a user gets them)."""
+    values (tests/assembly/test_reference_values.py checks its experiment functions against all
+    of them; here the script's tables and figure are checked as a user gets them)."""
     shared = require_shared()
     out = tmp_path / "convergence.md"
     run(

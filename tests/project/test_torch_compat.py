@@ -20,12 +20,12 @@ only code counts.
 from __future__ import annotations
 
 import ast
-from pathlib import Path
 
 import pytest
 import torch
+from conftest import ROOT
 
-PACKAGE = Path(__file__).resolve().parents[1] / "torch_polylap"
+PACKAGE = ROOT / "torch_polylap"
 COMPAT = PACKAGE / "_torch_compat.py"
 
 # private attributes of tensors, as torch defines them
