@@ -75,10 +75,10 @@ from .faces import FacesLike, PolygonFaces, as_faces
 from .io import triangulate_faces
 from .kernels import check_method
 from .linalg import eigs
-from .nn.gradient_features import vertex_gradient_operators, vertex_tangent_frames
 from .operators import laplacian as mesh_laplacian
 from .sparse import as_operator, sparse_values, to_torch_sparse
 from .spectral import check_cache_dir, eigs_cache_key, load_cached_eigs
+from .tangent import tangent_frames, vertex_gradient_operators
 from .topology import Topology, get_topology
 
 if TYPE_CHECKING:
@@ -485,11 +485,11 @@ def to_diffusionnet(
       (:func:`torch_polylap.eigs`), ascending, ``M0``-orthonormal, eigenvalues clipped at zero
       as DiffusionNet clips them.
     - ``frames``: ``(e_x, e_y, n)`` per vertex, DiffusionNet's order (``frames[:, 2]`` is the
-      normal), from :func:`~torch_polylap.nn.vertex_tangent_frames` (area-weighted normals; the
+      normal), from :func:`~torch_polylap.tangent.vertex_tangent_frames` (area-weighted normals; the
       tangent axis is chosen otherwise than DiffusionNet's, which its gradient features do not
       see: they are invariant to the choice).
     - ``gradX``, ``gradY``: the tangent gradient in the frames,
-      :func:`~torch_polylap.nn.vertex_gradient_operators` (the area-weighted mean of the face
+      :func:`~torch_polylap.tangent.vertex_gradient_operators` (the area-weighted mean of the face
       gradients around a vertex, exact for linear functions; DiffusionNet fits a gradient to
       the edges by least squares).
 
@@ -516,7 +516,7 @@ def to_diffusionnet(
         ``(V, k_eig)`` dense; ``L``, ``gradX``, ``gradY`` ``(V, V)`` coalesced torch sparse COO
         tensors with int64 indices. None carries a gradient (precomputed operators, as in
         DiffusionNet); for differentiable ones use :func:`torch_polylap.laplacian`,
-        :func:`torch_polylap.eigs` and :func:`~torch_polylap.nn.vertex_gradient_operators`.
+        :func:`torch_polylap.eigs` and :func:`~torch_polylap.tangent.vertex_gradient_operators`.
 
     Raises:
         ValueError: no faces (DiffusionNet's point-cloud operators are not built here), an
@@ -545,7 +545,7 @@ def to_diffusionnet(
     v64 = verts.detach().to(device="cpu", dtype=torch.float64)
     with torch.no_grad():
         L, M0 = mesh_laplacian(v64, topo, lam, method=method)
-        normal, e_x, e_y = vertex_tangent_frames(v64, topo)
+        normal, e_x, e_y = tangent_frames(v64, topo)
         grad_x, grad_y = vertex_gradient_operators(v64, topo, frames=(e_x, e_y))
         evals, evecs = _diffusionnet_eigs(v64, topo, L, M0, int(k_eig), cache, lam, method)
 

@@ -23,7 +23,7 @@ gives ``+1 / R`` on a sphere of radius ``R``.
 
 Which normals are differentiated.  ``S_f`` is a derivative of the vertex normals, so an error
 ``O(h^p)`` in the normals becomes ``O(h^(p-1))`` in ``S``.  The area-weighted normals of
-:func:`~torch_polylap.nn.vertex_tangent_frames` are only first-order accurate on irregular
+:func:`~torch_polylap.tangent.vertex_tangent_frames` are only first-order accurate on irregular
 meshes (``O(h)``: the imbalance of the faces around a vertex does not shrink under refinement),
 and ``S`` built from them does not converge there (measured mean errors on the unit-sphere
 families: 5% on jittered hexagons and 12% on Voronoi cells at every level; ``docs/vector.md``).
@@ -107,7 +107,7 @@ def fitted_frames(
         verts: ``(V, 3)`` vertex positions.
         faces: faces in any accepted form, or a :class:`~torch_polylap.topology.Topology`.
         frames: the frames whose normals ``n_0`` set the fit's height direction; default
-            :func:`~torch_polylap.nn.vertex_tangent_frames` (area-weighted normals).
+            :func:`~torch_polylap.tangent.vertex_tangent_frames` (area-weighted normals).
 
     Returns:
         :class:`~torch_polylap.vector.TangentFrames`: ``frames`` carried by the minimal rotation

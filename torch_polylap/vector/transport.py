@@ -2,7 +2,7 @@
 
 Every vertex ``v`` carries an orthonormal frame ``(n_v, e_x(v), e_y(v))`` (``n_v`` the normalized
 sum of the vector areas of the faces around ``v``, see
-:func:`torch_polylap.nn.vertex_tangent_frames`); a tangent vector at ``v`` is stored as its two
+:func:`torch_polylap.tangent.vertex_tangent_frames`); a tangent vector at ``v`` is stored as its two
 coordinates in ``(e_x(v), e_y(v))``, or as the complex number ``X = x + i y``.
 
 A vector at ``v`` is carried into the plane of a face ``f`` around it by the *minimal rotation*
@@ -23,14 +23,12 @@ vertices: smooth wherever the normals are defined and ``n_v != -n_f``.
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 
 from ..faces import PolygonFaces
 from ..kernels.frames import stable_norm
 from ..measures import vector_area
-from ..nn.gradient_features import vertex_tangent_frames
+from ..tangent import TangentFrames, tangent_frames
 from ..topology import Topology
 
 __all__ = [
@@ -41,19 +39,6 @@ __all__ = [
     "to_ambient",
     "to_tangent",
 ]
-
-
-class TangentFrames(NamedTuple):
-    """Per-vertex orthonormal frames, each field ``(V, 3)``: ``e_y = normal x e_x``."""
-
-    normal: torch.Tensor
-    e_x: torch.Tensor
-    e_y: torch.Tensor
-
-
-def tangent_frames(verts: torch.Tensor, topo: Topology) -> TangentFrames:
-    """The frames of :func:`torch_polylap.nn.vertex_tangent_frames` (area-weighted normals)."""
-    return TangentFrames(*vertex_tangent_frames(verts, topo))
 
 
 def minimal_rotation(n: torch.Tensor, m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
