@@ -100,6 +100,31 @@ def test_check_positive_int(value):
             checks.check_positive_int(value, "k")
 
 
+@SETTINGS
+@given(st.one_of(st.integers(-5, 5), st.floats(-5, 5), st.booleans(), st.text(max_size=2)))
+def test_check_int_with_a_lower_bound(value):
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        assert checks.check_int(value, "n", least=0) == value
+    elif isinstance(value, int) and not isinstance(value, bool):
+        with pytest.raises(ValueError, match=f"n must be an integer >= 0, got {value}"):
+            checks.check_int(value, "n", least=0)
+    else:
+        # a wrong kind of object is a TypeError, and a ValueError for the entries that once
+        # raised that
+        with pytest.raises(checks.NotAnIntegerError, match="n must be an integer >= 0") as err:
+            checks.check_int(value, "n", least=0)
+        assert isinstance(err.value, TypeError) and isinstance(err.value, ValueError)
+
+
+def test_inverse_or_zero_is_zero_on_empty_rows_and_has_finite_gradients():
+    d = torch.tensor([2.0, 0.0, 0.5, -0.0], dtype=torch.float64, requires_grad=True)
+    inv = checks.inverse_or_zero(d)
+    torch.testing.assert_close(inv, torch.tensor([0.5, 0.0, 2.0, 0.0], dtype=torch.float64))
+    inv.sum().backward()
+    # d(1/d) = -1/d^2 where d > 0, and no NaN from the masked branch
+    torch.testing.assert_close(d.grad, torch.tensor([-0.25, 0.0, -4.0, 0.0], dtype=torch.float64))
+
+
 # Every public entry that takes vertex positions refuses a (V, 2) array with the same words.
 ENTRIES = {
     "laplacian": lambda v, f: tp.laplacian(v, f),

@@ -60,7 +60,6 @@ scipy
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -68,16 +67,15 @@ import numpy as np
 import torch
 
 from ._typing import MeshFaces
-from .atomic import atomic_write
 from .batch import PolygonMeshes
-from .checks import check_verts, check_verts_array
+from .checks import check_int, check_verts, check_verts_array
 from .faces import FacesLike, PolygonFaces, as_faces
 from .io import triangulate_faces
 from .kernels import check_method
 from .linalg import eigs
 from .operators import laplacian as mesh_laplacian
 from .sparse import as_operator, sparse_values, to_torch_sparse
-from .spectral import check_cache_dir, eigs_cache_key, load_cached_eigs
+from .spectral import check_cache_dir, eigs_through_cache
 from .tangent import tangent_frames, vertex_gradient_operators
 from .topology import Topology, get_topology
 
@@ -504,8 +502,9 @@ def to_diffusionnet(
             ``k_eig``, ``method`` and ``lam`` and shared with :func:`torch_polylap.cached_eigs`
             (and so with :class:`torch_polylap.datasets.PolygonMeshDataset`). The other
             operators are recomputed on every call (one assembly each, no eigensolve). A cache
-            that cannot be written (read-only, a path through a file) gives a warning and the
-            uncached result; an unreadable entry gives a warning and is recomputed.
+            that cannot be written (read-only, a path through a file) gives a
+            :class:`~torch_polylap.spectral.CacheWriteWarning` (once per folder and process)
+            and the uncached result; an unreadable entry gives a warning and is recomputed.
         lam: the AW11 parameter ``lambda`` (see :func:`torch_polylap.laplacian`).
         method: ``"aw11"``, ``"plms"`` or ``"degoes"``.
 
@@ -524,8 +523,7 @@ def to_diffusionnet(
     """
     check_verts(verts)
     check_method(method)
-    if isinstance(k_eig, bool) or not isinstance(k_eig, int | np.integer):
-        raise TypeError(f"to_diffusionnet: k_eig must be an integer, got {k_eig!r}.")
+    k_eig = check_int(k_eig, "k_eig", least=0)
     n = verts.shape[0]
     if not 0 <= k_eig < n:
         raise ValueError(
@@ -547,7 +545,12 @@ def to_diffusionnet(
         L, M0 = mesh_laplacian(v64, topo, lam, method=method)
         normal, e_x, e_y = tangent_frames(v64, topo)
         grad_x, grad_y = vertex_gradient_operators(v64, topo, frames=(e_x, e_y))
-        evals, evecs = _diffusionnet_eigs(v64, topo, L, M0, int(k_eig), cache, lam, method)
+        if k_eig == 0:
+            evals, evecs = v64.new_zeros(0), v64.new_zeros(n, 0)
+        elif cache is None:
+            evals, evecs = eigs(L, M0, k_eig)
+        else:
+            evals, evecs = eigs_through_cache(v64, topo, k_eig, cache, lam, method, (L, M0))
 
     def cast(t: torch.Tensor) -> torch.Tensor:
         return t.to(device=verts.device, dtype=verts.dtype)
@@ -565,38 +568,3 @@ def to_diffusionnet(
         coo(grad_x),
         coo(grad_y),
     )
-
-
-def _diffusionnet_eigs(
-    verts: torch.Tensor,
-    topo: Topology,
-    L: torch.Tensor,
-    M0: torch.Tensor,
-    k: int,
-    cache: Path | None,
-    lam: float,
-    method: str,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``eigs(L, M0, k)`` through the eigenpair cache of :func:`~torch_polylap.cached_eigs`
-    (same file name and content), warning instead of failing when it cannot be written."""
-    if k == 0:
-        return verts.new_zeros(0), verts.new_zeros(verts.shape[0], 0)
-    if cache is None:
-        return eigs(L, M0, k)
-    path = cache / f"eigs-{eigs_cache_key(verts, topo, k, lam, method)}.npz"
-    hit = load_cached_eigs(path, k, verts.shape[0]) if path.exists() else None
-    if hit is not None:
-        return torch.from_numpy(hit[0]), torch.from_numpy(hit[1])
-    evals, evecs = eigs(L, M0, k)
-    evals_np, evecs_np = evals.numpy(), evecs.numpy()
-    try:
-        cache.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, lambda f: np.savez(f, evals=evals_np, evecs=evecs_np))
-    except OSError as err:
-        warnings.warn(
-            f"to_diffusionnet: the eigenpair cache {path} cannot be written ({err}); returning "
-            "the operators without caching them. Pass a writable cache_dir, or None.",
-            UserWarning,
-            stacklevel=3,
-        )
-    return evals, evecs

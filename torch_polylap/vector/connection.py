@@ -42,7 +42,7 @@ from __future__ import annotations
 import torch
 
 from .._typing import MeshFaces
-from ..checks import Lam, check_verts
+from ..checks import Lam, check_int, check_verts
 from ..faces import PolygonFaces
 from ..kernels import check_method
 from ..operators import laplacian
@@ -177,10 +177,7 @@ def connection_laplacian(
     """
     check_verts(verts)
     check_method(method)
-    if isinstance(symmetry, bool) or not isinstance(symmetry, int) or symmetry < 1:
-        raise ValueError(
-            f"symmetry must be a positive integer (n of n-direction fields), got {symmetry!r}."
-        )
+    symmetry = check_int(symmetry, "symmetry")  # n of n-direction fields
     topo = get_topology(faces, verts.shape[0])
     frames = None if frames is None else _checked_frames(frames, topo.num_verts)
     return connection_laplacian_of(verts, topo, lam, method, symmetry, frames)
