@@ -38,6 +38,7 @@ __all__ = [
     "vertex_tangent_frames",
     "tangent_frames",
     "vertex_gradient_operators",
+    "reference_neighbours",
 ]
 
 
@@ -60,16 +61,32 @@ def _corner_sums(face_values: torch.Tensor, faces: PolygonFaces, num_verts: int)
     return out.index_add(0, idx, per_corner)
 
 
+# An edge whose tangent part is shorter than this fraction of its length (within 0.06 degrees
+# of the normal) does not give the vertex a tangent axis: the next reference is taken.
+_EDGE_SINE_MIN = 1e-3
+
+
 def vertex_tangent_frames(verts: torch.Tensor, faces: MeshFaces) -> TangentFrames:
-    """Per-vertex orthonormal frames :class:`TangentFrames` ``(normal, e_x, e_y)``, each ``(V, 3)``.
+    """Per-vertex orthonormal frames :class:`TangentFrames` ``(normal, e_x, e_y)``, each
+    ``(V, 3)``, smooth functions of the vertex positions.
 
     ``normal`` is the normalized sum of the vector areas of the faces around the vertex (the
-    area-weighted face normals).  ``e_x`` is the projection onto the tangent plane of the
-    coordinate axis least aligned with the normal (the first of the smallest ``|n_i|``),
-    normalized; ``e_y = normal x e_x``.  The choice is deterministic; the features of
-    :class:`SpatialGradientFeatures` do not depend on it.  Isolated vertices (and vertices whose
-    faces' vector areas cancel) get the normal ``(0, 0, 1)``.  Differentiable in ``verts``
-    (except where the choice of axis switches).
+    area-weighted face normals).  ``e_x`` is the vertex's reference edge projected onto the
+    tangent plane and normalized (as geometry-central's vertex tangent basis): the first
+    outgoing edge ``v -> w`` of its first corner in the packed face order, a choice made once
+    from the faces, so that the frames are differentiable in ``verts`` wherever the normal is
+    defined, and turn with the mesh (``R`` applied to the mesh applies ``R`` to the frames).
+    ``e_y = normal x e_x``.  The features of
+    :class:`~torch_polylap.nn.SpatialGradientFeatures` do not depend on the choice of ``e_x``;
+    vector fields stored in frame coordinates do.
+
+    What remains a choice made from the positions, only at degenerate vertices: where the
+    reference edge lies within 0.06 degrees of the normal (its tangent part shorter than
+    ``1e-3`` times its length), ``e_x`` comes from the other edge of that corner, ``v -> u``
+    (``u`` the previous corner), and where that one does too, from the coordinate axis least
+    aligned with the normal; a vertex switching between these is not differentiable there.
+    Isolated vertices (and vertices whose faces' vector areas cancel) get the normal
+    ``(0, 0, 1)`` and ``e_x = (1, 0, 0)``.
     """
     check_verts(verts)
     return tangent_frames(verts, get_topology(faces, verts.shape[0]))
@@ -84,12 +101,51 @@ def tangent_frames(verts: torch.Tensor, topo: Topology) -> TangentFrames:
     fallback = torch.zeros_like(summed)
     fallback[:, 2] = 1.0
     normal = torch.where(degenerate, fallback, summed / torch.where(degenerate, 1.0, norm))
-    axis = normal.detach().abs().argmin(1)
-    ref = torch.nn.functional.one_hot(axis, 3).to(verts.dtype)
-    e_x = ref - (ref * normal).sum(1, keepdim=True) * normal
-    e_x = e_x / stable_norm(e_x, 1, keepdim=True)  # |n . ref| <= 1/sqrt(3): no cancellation
+    # the last resort: the coordinate axis least aligned with the normal (|n . ref| <=
+    # 1/sqrt(3), so its tangent part is never short)
+    axis = torch.nn.functional.one_hot(normal.detach().abs().argmin(1), 3).to(verts.dtype)
+    tangent = _tangent_part(axis, normal)
+    # the references in reverse order of preference: each where() keeps the later one wherever
+    # it is usable, and the gradient flows only into the one taken
+    for head in reversed(reference_neighbours(topo, verts.device)):
+        edge = verts[head] - verts
+        part = _tangent_part(edge, normal)
+        usable = stable_norm(part, 1) > _EDGE_SINE_MIN * stable_norm(edge, 1)
+        tangent = torch.where(usable.detach()[:, None], part, tangent)
+    e_x = tangent / stable_norm(tangent, 1, keepdim=True)
     e_y = torch.linalg.cross(normal, e_x, dim=1)
     return TangentFrames(normal, e_x, e_y)
+
+
+def _tangent_part(x: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+    """``(V, 3)`` the part of each ``x`` orthogonal to the unit ``normal``."""
+    return x - (x * normal).sum(1, keepdim=True) * normal
+
+
+def reference_neighbours(topo: Topology, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(V,)`` twice: the ends ``w`` and ``u`` of the two edges ``v -> w``, ``v -> u`` of each
+    vertex's first corner in the packed face order (``w`` the next corner of that face, ``u``
+    the previous one), the reference edges of :func:`vertex_tangent_frames`; ``v`` itself for
+    an isolated vertex.  From the faces alone; cached on the topology per device."""
+    key = ("tangent_reference_neighbours", torch.device(device))
+    cached = topo.derived.get(key)
+    if cached is None:
+        faces = topo.faces
+        idx = faces.indices
+        count, num_verts = idx.numel(), topo.num_verts
+        own = torch.arange(num_verts)
+        first = torch.full((num_verts,), count, dtype=torch.int64)
+        first = first.scatter_reduce(0, idx, torch.arange(count), "amin")
+        used = first < count
+        corner = torch.where(used, first, 0)
+        if count:
+            ahead = torch.where(used, idx[faces.next_corner[corner]], own)
+            behind = torch.where(used, idx[faces.prev_corner[corner]], own)
+        else:
+            ahead = behind = own
+        cached = (ahead.to(device), behind.to(device))
+        topo.derived[key] = cached
+    return cached
 
 
 def vertex_gradient_operators(
