@@ -157,3 +157,31 @@ def test_any_real_lam_is_accepted_as_the_float_it_equals():
     verts, faces = quad_grid(2, bump=0.3)
     L, _ = tp.laplacian(verts, faces, Fraction(3, 2))
     torch.testing.assert_close(L.to_dense(), tp.laplacian(verts, faces, 1.5)[0].to_dense())
+
+
+# One finiteness test (a reduction and a host sync) per call: entries built on other entries
+# check the positions once, at the door, and hand them on unchecked.
+ONE_CHECK = {
+    "vertex_gradient_operators": lambda v, f: tp.tangent.vertex_gradient_operators(v, f),
+    "vertex_tangent_frames": lambda v, f: tp.tangent.vertex_tangent_frames(v, f),
+    "connection_laplacian": lambda v, f: tp.vector.connection_laplacian(v, f),
+    "VectorHeatSolver": lambda v, f: tp.vector.VectorHeatSolver(v, f),
+    "HeatGeodesicSolver": lambda v, f: tp.HeatGeodesicSolver(v, f),
+    "principal_curvatures": lambda v, f: tp.vector.principal_curvatures(v, f),
+    "HodgeDecomposition": lambda v, f: tp.vector.HodgeDecomposition(v, f),
+}
+
+
+@pytest.mark.parametrize("entry", sorted(ONE_CHECK))
+def test_positions_are_checked_once_per_call(entry, monkeypatch):
+    verts, faces = tp.shapes.quad_sphere(2)
+    calls = []
+    real = checks.check_finite
+
+    def counted(x, name, what="row"):
+        calls.append(name)
+        real(x, name, what)
+
+    monkeypatch.setattr(checks, "check_finite", counted)
+    ONE_CHECK[entry](verts, faces)
+    assert calls == ["verts"]

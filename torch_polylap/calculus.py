@@ -94,7 +94,12 @@ def face_gradient(verts: torch.Tensor, faces: MeshFaces, u: torch.Tensor) -> tor
         >>> torch.allclose(g, torch.tensor([2.0, -1.0, 0.0], dtype=torch.float64))
         True
     """
-    topo = _topology(verts, faces)
+    return face_gradient_of(verts, _topology(verts, faces), u)
+
+
+def face_gradient_of(verts: torch.Tensor, topo: Topology, u: torch.Tensor) -> torch.Tensor:
+    """:func:`face_gradient` on a topology, without checking ``verts`` again (for callers that
+    have checked it)."""
     if u.dim() not in (1, 2) or u.shape[0] != topo.num_verts:
         raise ValueError(
             f"face_gradient: u must have shape ({topo.num_verts},) or ({topo.num_verts}, C), "
@@ -128,7 +133,12 @@ def corner_gradients(verts: torch.Tensor, faces: MeshFaces) -> torch.Tensor:
         >>> bool(w.sum(1).abs().max() < 1e-12)
         True
     """
-    topo = _topology(verts, faces)
+    return corner_gradients_of(verts, _topology(verts, faces))
+
+
+def corner_gradients_of(verts: torch.Tensor, topo: Topology) -> torch.Tensor:
+    """:func:`corner_gradients` on a topology, without checking ``verts`` again (for callers
+    that have checked it)."""
     offsets = topo.faces.offsets.to(verts.device)
     out = verts.new_zeros(topo.faces.num_corners, 3)
     for grp, w, _ in grouped_corner_gradients(verts, topo):

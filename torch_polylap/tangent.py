@@ -95,7 +95,7 @@ def vertex_tangent_frames(verts: torch.Tensor, faces: MeshFaces) -> TangentFrame
 def tangent_frames(verts: torch.Tensor, topo: Topology) -> TangentFrames:
     """:func:`vertex_tangent_frames` on a topology, without checking ``verts`` again (for
     callers that have checked it)."""
-    summed = _corner_sums(vector_area(verts, topo), topo.faces, topo.num_verts)
+    summed = _corner_sums(vector_area(verts, topo, validate=False), topo.faces, topo.num_verts)
     norm = stable_norm(summed, 1, keepdim=True)
     degenerate = (norm <= torch.finfo(verts.dtype).tiny).expand_as(summed)
     fallback = torch.zeros_like(summed)
@@ -192,7 +192,7 @@ def vertex_gradient_operators(
     sizes, offsets, indices = on_device.sizes, on_device.offsets, on_device.indices
     face, col, w = _face_gradient_entries(G, on_device)  # w (N, 3): grad_f of hat u
 
-    area = stable_norm(vector_area(verts, topo), 1)  # (F,)
+    area = stable_norm(vector_area(verts, topo, validate=False), 1)  # (F,)
     vert_area = _corner_sums(area, faces_, n)
     vert_area = torch.where(vert_area > 0, vert_area, torch.ones_like(vert_area))
 

@@ -58,8 +58,9 @@ def face_normals_and_frames(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(n_f, t1, t2)``, each ``(F, 3)``: unit normals ``a_f / |a_f|`` and a face-plane frame,
     ``t1`` along the first edge projected on the plane (smooth in the vertices, unlike a frame
-    built from the normal alone, which needs a seam somewhere on the sphere of normals)."""
-    a = vector_area(verts, topo)
+    built from the normal alone, which needs a seam somewhere on the sphere of normals).
+    ``verts`` as checked by the caller (the entry points of :mod:`torch_polylap.vector`)."""
+    a = vector_area(verts, topo, validate=False)
     normal = a / stable_norm(a, 1, keepdim=True)
     start = faces.offsets[:-1].to(verts.device)
     idx = faces.indices.to(verts.device)
