@@ -32,10 +32,10 @@ import torch
 
 import torch_polylap as tp
 from torch_polylap.apps import angle_distortion, conformal_energy, conformal_parameterization
+from torch_polylap.data import DISK_MESH
 from torch_polylap.plot import new_figure, plot_uv, save_figure
 from torch_polylap.shapes import quad_grid
 
-DATA = Path(tp.__file__).resolve().parent / "data"
 FAMILIES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "grid"
 
 
@@ -138,7 +138,7 @@ def main() -> int:
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
-    V_hex, F_hex = tp.read_mesh(DATA / "hex_hemisphere.obj")
+    V_hex, F_hex = tp.read_mesh(DISK_MESH)
     meshes = {
         "hex hemisphere": (V_hex.double(), tp.as_faces(F_hex)),
         "saddle quads": saddle_quads(),

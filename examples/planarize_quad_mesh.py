@@ -20,14 +20,13 @@ import torch
 
 import torch_polylap as tp
 from torch_polylap.apps import planarize
+from torch_polylap.data import DEFAULT_MESH
 from torch_polylap.plot import PlotOptions, new_figure, plot_mesh, save_figure
-
-DEFAULT = Path(tp.__file__).resolve().parent / "data" / "spot_control_mesh.obj"
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("mesh", nargs="?", type=Path, default=DEFAULT)
+    ap.add_argument("mesh", nargs="?", type=Path, default=DEFAULT_MESH)
     ap.add_argument("--tol", type=float, default=1e-4)
     ap.add_argument("--max-iter", type=int, default=2000)
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output")

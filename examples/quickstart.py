@@ -14,8 +14,7 @@ from pathlib import Path
 import torch
 
 import torch_polylap as tp
-
-DEFAULT = Path(tp.__file__).resolve().parent / "data" / "spot_control_mesh.obj"
+from torch_polylap.data import DEFAULT_MESH
 
 
 def main(path: Path, out: Path) -> None:
@@ -69,7 +68,7 @@ def main(path: Path, out: Path) -> None:
 if __name__ == "__main__":
     torch.set_printoptions(precision=4)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("mesh", nargs="?", type=Path, default=DEFAULT)
+    parser.add_argument("mesh", nargs="?", type=Path, default=DEFAULT_MESH)
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "output")
     args = parser.parse_args()
     main(args.mesh, args.out)

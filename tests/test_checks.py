@@ -100,6 +100,31 @@ def test_check_positive_int(value):
             checks.check_positive_int(value, "k")
 
 
+@SETTINGS
+@given(st.one_of(st.integers(-5, 5), st.floats(-5, 5), st.booleans(), st.text(max_size=2)))
+def test_check_int_with_a_lower_bound(value):
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        assert checks.check_int(value, "n", least=0) == value
+    elif isinstance(value, int) and not isinstance(value, bool):
+        with pytest.raises(ValueError, match=f"n must be an integer >= 0, got {value}"):
+            checks.check_int(value, "n", least=0)
+    else:
+        # a wrong kind of object is a TypeError, and a ValueError for the entries that once
+        # raised that
+        with pytest.raises(checks.NotAnIntegerError, match="n must be an integer >= 0") as err:
+            checks.check_int(value, "n", least=0)
+        assert isinstance(err.value, TypeError) and isinstance(err.value, ValueError)
+
+
+def test_inverse_or_zero_is_zero_on_empty_rows_and_has_finite_gradients():
+    d = torch.tensor([2.0, 0.0, 0.5, -0.0], dtype=torch.float64, requires_grad=True)
+    inv = checks.inverse_or_zero(d)
+    torch.testing.assert_close(inv, torch.tensor([0.5, 0.0, 2.0, 0.0], dtype=torch.float64))
+    inv.sum().backward()
+    # d(1/d) = -1/d^2 where d > 0, and no NaN from the masked branch
+    torch.testing.assert_close(d.grad, torch.tensor([-0.25, 0.0, -4.0, 0.0], dtype=torch.float64))
+
+
 # Every public entry that takes vertex positions refuses a (V, 2) array with the same words.
 ENTRIES = {
     "laplacian": lambda v, f: tp.laplacian(v, f),
@@ -132,3 +157,31 @@ def test_any_real_lam_is_accepted_as_the_float_it_equals():
     verts, faces = quad_grid(2, bump=0.3)
     L, _ = tp.laplacian(verts, faces, Fraction(3, 2))
     torch.testing.assert_close(L.to_dense(), tp.laplacian(verts, faces, 1.5)[0].to_dense())
+
+
+# One finiteness test (a reduction and a host sync) per call: entries built on other entries
+# check the positions once, at the door, and hand them on unchecked.
+ONE_CHECK = {
+    "vertex_gradient_operators": lambda v, f: tp.tangent.vertex_gradient_operators(v, f),
+    "vertex_tangent_frames": lambda v, f: tp.tangent.vertex_tangent_frames(v, f),
+    "connection_laplacian": lambda v, f: tp.vector.connection_laplacian(v, f),
+    "VectorHeatSolver": lambda v, f: tp.vector.VectorHeatSolver(v, f),
+    "HeatGeodesicSolver": lambda v, f: tp.HeatGeodesicSolver(v, f),
+    "principal_curvatures": lambda v, f: tp.vector.principal_curvatures(v, f),
+    "HodgeDecomposition": lambda v, f: tp.vector.HodgeDecomposition(v, f),
+}
+
+
+@pytest.mark.parametrize("entry", sorted(ONE_CHECK))
+def test_positions_are_checked_once_per_call(entry, monkeypatch):
+    verts, faces = tp.shapes.quad_sphere(2)
+    calls = []
+    real = checks.check_finite
+
+    def counted(x, name, what="row"):
+        calls.append(name)
+        real(x, name, what)
+
+    monkeypatch.setattr(checks, "check_finite", counted)
+    ONE_CHECK[entry](verts, faces)
+    assert calls == ["verts"]

@@ -16,7 +16,8 @@ The API has two tiers, in the manner of pytorch3d and kornia:
   and the building blocks :mod:`~torch_polylap.sparse` (the operator type and its algebra),
   :mod:`~torch_polylap.io`, :mod:`~torch_polylap.topology`, :mod:`~torch_polylap.kernels`,
   :mod:`~torch_polylap.dec` (AW11's ``d`` and ``M1``), :mod:`~torch_polylap.checks` and
-  :mod:`~torch_polylap.repair`, and :mod:`~torch_polylap.shapes` (generated grids, cube spheres,
+  :mod:`~torch_polylap.repair`, :mod:`~torch_polylap.tangent` (vertex frames and tangent
+  gradients), and :mod:`~torch_polylap.shapes` (generated grids, cube spheres,
   tori and the Schwarz lantern).
 
 ``__all__`` is derived from the core modules' own ``__all__`` lists plus the subpackage names.
@@ -39,6 +40,7 @@ from . import (
     repair,
     shapes,
     sparse,
+    tangent,
     topology,
     vector,
 )
@@ -46,6 +48,7 @@ from .batch import *
 from .calculus import *
 from .compiled import *
 from .faces import *
+from .geodesics import *
 from .interop import from_pyg, from_pytorch3d, from_trimesh, to_pyg, to_pytorch3d, to_trimesh
 from .io import read_mesh, write_mesh
 from .linalg import *
@@ -71,6 +74,7 @@ _SUBPACKAGES = (
     "repair",
     "shapes",
     "sparse",
+    "tangent",
     "topology",
     "vector",
 )

@@ -33,7 +33,10 @@ __all__ = [
     "check_lam",
     "check_lam_tensor_shape",
     "check_index_or_mask",
+    "check_int",
     "check_positive_int",
+    "NotAnIntegerError",
+    "inverse_or_zero",
     "check_finite",
     "Lam",
     "warn_outside_package",
@@ -164,16 +167,36 @@ def check_lam_tensor_shape(lam: torch.Tensor, name: str = "lam") -> None:
         )
 
 
-def check_positive_int(k: object, name: str) -> int:
-    """``k`` must be a Python or numpy integer ``>= 1`` (not a bool, not a float like ``2.0``)."""
-    if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)):
-        raise TypeError(
-            f"{name} must be a positive integer, got {type(k).__name__} {k!r}; "
+class NotAnIntegerError(TypeError, ValueError):
+    """A count or index that is not an integer (a bool, a float such as ``2.0``, a string).
+
+    A :class:`TypeError` (wrong kind of object), and a :class:`ValueError` too: some entries
+    refused such values with a ValueError before their checks were shared, and code that
+    catches that keeps working."""
+
+
+def check_int(value: object, name: str, *, least: int = 1) -> int:
+    """``value`` must be a Python or numpy integer ``>= least`` (not a bool, not a float like
+    ``2.0``); returned as an ``int``.
+
+    Raises:
+        NotAnIntegerError: not an integer (a :class:`TypeError` and a :class:`ValueError`).
+        ValueError: an integer below ``least``.
+    """
+    wanted = "a positive integer" if least == 1 else f"an integer >= {least}"
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise NotAnIntegerError(
+            f"{name} must be {wanted}, got {type(value).__name__} {value!r}; "
             f"pass int({name}) if the value is integral."
         )
-    if k < 1:
-        raise ValueError(f"{name} must be a positive integer, got {int(k)}.")
-    return int(k)
+    if value < least:
+        raise ValueError(f"{name} must be {wanted}, got {int(value)}.")
+    return int(value)
+
+
+def check_positive_int(k: object, name: str) -> int:
+    """``k`` must be a Python or numpy integer ``>= 1``: :func:`check_int` with ``least=1``."""
+    return check_int(k, name, least=1)
 
 
 def check_index_or_mask(x: object, n: int, name: str) -> torch.Tensor:
@@ -245,6 +268,15 @@ def _as_tensor(x: object, name: str) -> torch.Tensor:
         # numpy gives an empty list the dtype float64; no index is an index list all the same
         arr = arr.astype(np.int64)
     return torch.from_numpy(np.ascontiguousarray(arr))
+
+
+def inverse_or_zero(d: torch.Tensor) -> torch.Tensor:
+    """``1 / d`` where ``d > 0``, else 0, elementwise (any shape): the inverse of a lumped mass
+    (or of a Laplacian's diagonal) with the rows of isolated vertices, whose mass is zero, set
+    to zero rather than divided by zero. Differentiable where ``d > 0`` (no NaN gradient from
+    the other branch)."""
+    pos = d > 0
+    return torch.where(pos, 1.0 / torch.where(pos, d, torch.ones_like(d)), torch.zeros_like(d))
 
 
 def warn_outside_package(message: str) -> None:

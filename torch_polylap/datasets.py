@@ -30,11 +30,11 @@ from .faces import FacesLike, PolygonFaces, as_faces
 from .io import read_mesh
 from .kernels import check_method
 from .measures import mass
-from .nn.gradient_features import vertex_gradient_operators
 from .nn.spectrum import Spectrum
 from .operators import laplacian
 from .sparse import SparseOperator, block_diag, diag
 from .spectral import cached_eigs, check_cache_dir
+from .tangent import vertex_gradient_operators
 
 __all__ = ["PolygonMeshDataset", "MeshBatch", "collate_meshes"]
 
@@ -70,7 +70,7 @@ class PolygonMeshDataset(Dataset):
         normalize: center and scale each mesh to unit area (:func:`normalize_mesh`).
         dtype: dtype of the returned tensors (eigenpairs are computed in float64).
         gradient_operators: also give every item the per-vertex tangent gradient operators
-            ``grad_x, grad_y`` (:func:`torch_polylap.nn.vertex_gradient_operators`, computed in
+            ``grad_x, grad_y`` (:func:`torch_polylap.tangent.vertex_gradient_operators`, computed in
             float64 on the normalized mesh) that
             ``DiffusionNetLike(gradient_features=True)`` needs.
 

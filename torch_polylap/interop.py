@@ -60,7 +60,6 @@ scipy
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -68,17 +67,16 @@ import numpy as np
 import torch
 
 from ._typing import MeshFaces
-from .atomic import atomic_write
 from .batch import PolygonMeshes
-from .checks import check_verts, check_verts_array
+from .checks import check_int, check_verts, check_verts_array
 from .faces import FacesLike, PolygonFaces, as_faces
 from .io import triangulate_faces
 from .kernels import check_method
 from .linalg import eigs
-from .nn.gradient_features import vertex_gradient_operators, vertex_tangent_frames
 from .operators import laplacian as mesh_laplacian
 from .sparse import as_operator, sparse_values, to_torch_sparse
-from .spectral import check_cache_dir, eigs_cache_key, load_cached_eigs
+from .spectral import check_cache_dir, eigs_through_cache
+from .tangent import tangent_frames, vertex_gradient_operators
 from .topology import Topology, get_topology
 
 if TYPE_CHECKING:
@@ -485,11 +483,11 @@ def to_diffusionnet(
       (:func:`torch_polylap.eigs`), ascending, ``M0``-orthonormal, eigenvalues clipped at zero
       as DiffusionNet clips them.
     - ``frames``: ``(e_x, e_y, n)`` per vertex, DiffusionNet's order (``frames[:, 2]`` is the
-      normal), from :func:`~torch_polylap.nn.vertex_tangent_frames` (area-weighted normals; the
+      normal), from :func:`~torch_polylap.tangent.vertex_tangent_frames` (area-weighted normals; the
       tangent axis is chosen otherwise than DiffusionNet's, which its gradient features do not
       see: they are invariant to the choice).
     - ``gradX``, ``gradY``: the tangent gradient in the frames,
-      :func:`~torch_polylap.nn.vertex_gradient_operators` (the area-weighted mean of the face
+      :func:`~torch_polylap.tangent.vertex_gradient_operators` (the area-weighted mean of the face
       gradients around a vertex, exact for linear functions; DiffusionNet fits a gradient to
       the edges by least squares).
 
@@ -504,8 +502,9 @@ def to_diffusionnet(
             ``k_eig``, ``method`` and ``lam`` and shared with :func:`torch_polylap.cached_eigs`
             (and so with :class:`torch_polylap.datasets.PolygonMeshDataset`). The other
             operators are recomputed on every call (one assembly each, no eigensolve). A cache
-            that cannot be written (read-only, a path through a file) gives a warning and the
-            uncached result; an unreadable entry gives a warning and is recomputed.
+            that cannot be written (read-only, a path through a file) gives a
+            :class:`~torch_polylap.spectral.CacheWriteWarning` (once per folder and process)
+            and the uncached result; an unreadable entry gives a warning and is recomputed.
         lam: the AW11 parameter ``lambda`` (see :func:`torch_polylap.laplacian`).
         method: ``"aw11"``, ``"plms"`` or ``"degoes"``.
 
@@ -516,20 +515,26 @@ def to_diffusionnet(
         ``(V, k_eig)`` dense; ``L``, ``gradX``, ``gradY`` ``(V, V)`` coalesced torch sparse COO
         tensors with int64 indices. None carries a gradient (precomputed operators, as in
         DiffusionNet); for differentiable ones use :func:`torch_polylap.laplacian`,
-        :func:`torch_polylap.eigs` and :func:`~torch_polylap.nn.vertex_gradient_operators`.
+        :func:`torch_polylap.eigs` and :func:`~torch_polylap.tangent.vertex_gradient_operators`.
 
     Raises:
         ValueError: no faces (DiffusionNet's point-cloud operators are not built here), an
             invalid mesh, ``k_eig`` out of range, or a ``cache_dir`` that names a file.
     """
-    cache = _check_diffusionnet_args(verts, faces, k_eig, cache_dir, method)
-    topo = get_topology(faces, verts.shape[0])  # cached on a faces tensor across calls
+    k_eig, cache = _check_diffusionnet_args(verts, faces, k_eig, cache_dir, method)
+    n = verts.shape[0]
+    topo = get_topology(faces, n)  # cached on a faces tensor across calls
     v64 = verts.detach().to(device="cpu", dtype=torch.float64)
     with torch.no_grad():
         L, M0 = mesh_laplacian(v64, topo, lam, method=method)
-        normal, e_x, e_y = vertex_tangent_frames(v64, topo)
+        normal, e_x, e_y = tangent_frames(v64, topo)
         grad_x, grad_y = vertex_gradient_operators(v64, topo, frames=(e_x, e_y))
-        evals, evecs = _diffusionnet_eigs(v64, topo, L, M0, int(k_eig), cache, lam, method)
+        if k_eig == 0:
+            evals, evecs = v64.new_zeros(0), v64.new_zeros(n, 0)
+        elif cache is None:
+            evals, evecs = eigs(L, M0, k_eig)
+        else:
+            evals, evecs = eigs_through_cache(v64, topo, k_eig, cache, lam, method, (L, M0))
 
     def cast(t: torch.Tensor) -> torch.Tensor:
         return t.to(device=verts.device, dtype=verts.dtype)
@@ -555,12 +560,12 @@ def _check_diffusionnet_args(
     k_eig: int,
     cache_dir: str | Path | None,
     method: str,
-) -> Path | None:
-    """Check :func:`to_diffusionnet`'s arguments before any work; the cache folder or None."""
+) -> tuple[int, Path | None]:
+    """Check :func:`to_diffusionnet`'s arguments before any work: ``k_eig`` as an int, and the
+    cache folder or None."""
     check_verts(verts)
     check_method(method)
-    if isinstance(k_eig, bool) or not isinstance(k_eig, int | np.integer):
-        raise TypeError(f"to_diffusionnet: k_eig must be an integer, got {k_eig!r}.")
+    k_eig = check_int(k_eig, "k_eig", least=0)
     n = verts.shape[0]
     if not 0 <= k_eig < n:
         raise ValueError(
@@ -569,46 +574,11 @@ def _check_diffusionnet_args(
         )
     cache = None if cache_dir is None else Path(cache_dir)
     if cache is not None:
-        check_cache_dir(cache)
+        check_cache_dir(cache)  # before any work
     given = faces.faces if isinstance(faces, Topology) else as_faces(faces)
     if given.num_faces == 0:
         raise ValueError(
             "to_diffusionnet needs a mesh with faces; for a point cloud use DiffusionNet's own "
             "diffusion_net.geometry.get_operators."
         )
-    return cache
-
-
-def _diffusionnet_eigs(
-    verts: torch.Tensor,
-    topo: Topology,
-    L: torch.Tensor,
-    M0: torch.Tensor,
-    k: int,
-    cache: Path | None,
-    lam: float,
-    method: str,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``eigs(L, M0, k)`` through the eigenpair cache of :func:`~torch_polylap.cached_eigs`
-    (same file name and content), warning instead of failing when it cannot be written."""
-    if k == 0:
-        return verts.new_zeros(0), verts.new_zeros(verts.shape[0], 0)
-    if cache is None:
-        return eigs(L, M0, k)
-    path = cache / f"eigs-{eigs_cache_key(verts, topo, k, lam, method)}.npz"
-    hit = load_cached_eigs(path, k, verts.shape[0]) if path.exists() else None
-    if hit is not None:
-        return torch.from_numpy(hit[0]), torch.from_numpy(hit[1])
-    evals, evecs = eigs(L, M0, k)
-    evals_np, evecs_np = evals.numpy(), evecs.numpy()
-    try:
-        cache.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, lambda f: np.savez(f, evals=evals_np, evecs=evecs_np))
-    except OSError as err:
-        warnings.warn(
-            f"to_diffusionnet: the eigenpair cache {path} cannot be written ({err}); returning "
-            "the operators without caching them. Pass a writable cache_dir, or None.",
-            UserWarning,
-            stacklevel=3,
-        )
-    return evals, evecs
+    return k_eig, cache

@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from .batch import PolygonMeshes, per_mesh_mean, per_mesh_sum
-from .checks import Lam, check_verts
+from .checks import Lam, check_verts, inverse_or_zero
 from .faces import FacesLike
 from .kernels import METHODS, check_method
 from .measures import face_planarity_energy, vector_area
@@ -80,12 +80,6 @@ def _reduce(per_mesh: torch.Tensor, reduction: str) -> torch.Tensor:
 def _check_reduction(reduction: str) -> None:
     if reduction not in _REDUCTIONS:
         raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}.")
-
-
-def _safe_inverse(d: torch.Tensor) -> torch.Tensor:
-    """``1 / d`` where ``d > 0``, else 0 (isolated vertices have zero mass and diagonal)."""
-    pos = d > 0
-    return torch.where(pos, 1.0 / torch.where(pos, d, torch.ones_like(d)), torch.zeros_like(d))
 
 
 def _vertex_norm(v: torch.Tensor) -> torch.Tensor:
@@ -148,13 +142,13 @@ def laplacian_smoothing(
         p, q = edges[:, 0], edges[:, 1]
         deg = torch.bincount(edges.reshape(-1), minlength=X.shape[0]).to(X.dtype)
         nbr = X.new_zeros(X.shape).index_add(0, p, X[q]).index_add(0, q, X[p])
-        inv = _safe_inverse(deg)[:, None]
+        inv = inverse_or_zero(deg)[:, None]
         per_vertex = _vertex_norm(nbr * inv - X * (inv > 0))
     elif method in ("polygon", "cot") or method in METHODS:
         operator = "aw11" if method in ("polygon", "cot") else method
         with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen_weights):
             L, _ = m.laplacian(lam, method=operator)
-        per_vertex = _vertex_norm(L @ X) * _safe_inverse(L.diagonal())
+        per_vertex = _vertex_norm(L @ X) * inverse_or_zero(L.diagonal())
     else:
         raise ValueError(
             "method must be 'uniform', 'polygon' ('cot') or a Laplacian of "
@@ -244,7 +238,7 @@ def bending_energy(
     f = m.verts_packed() if u is None else _packed_signal(m, u, "u")
     L, M0 = m.laplacian(lam, method=check_method(method))
     Lu = L @ f.to(L.dtype)
-    per_vertex = 0.5 * (Lu * Lu).sum(1) * _safe_inverse(M0.diagonal())
+    per_vertex = 0.5 * (Lu * Lu).sum(1) * inverse_or_zero(M0.diagonal())
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))
     return _reduce(per_mesh, reduction)
 

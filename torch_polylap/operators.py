@@ -32,7 +32,7 @@ from .assembly import (
     assemble,
     assemble_flagged,
 )
-from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts
+from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts, inverse_or_zero
 from .kernels import block_kernel, check_method
 from .sparse import SparseOperator
 from .sparse.operator import operator_on
@@ -211,7 +211,7 @@ def strong_laplacian(L: torch.Tensor, M0: torch.Tensor, u: torch.Tensor) -> torc
     """
     m = M0.diagonal()
     Lu = L @ u
-    inv = torch.where(m > 0, 1.0 / torch.where(m > 0, m, torch.ones_like(m)), torch.zeros_like(m))
+    inv = inverse_or_zero(m)
     return Lu * (inv if u.dim() == 1 else inv[:, None])
 
 

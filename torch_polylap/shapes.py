@@ -22,6 +22,8 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from .checks import check_int
+
 __all__ = ["quad_grid", "quad_cube", "quad_sphere", "torus", "schwarz_lantern"]
 
 Height = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -32,11 +34,6 @@ def _grid_quads(rows: int, cols: int) -> np.ndarray:
     4)`` with corners ``(i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1)``."""
     idx = np.arange((rows + 1) * (cols + 1)).reshape(rows + 1, cols + 1)
     return np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1)
-
-
-def _check_count(name: str, value: int, least: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        raise ValueError(f"{name} must be an integer >= {least}, got {value!r}.")
 
 
 def _verts(
@@ -88,8 +85,8 @@ def quad_grid(
         (torch.Size([12, 3]), torch.Size([6, 4]), [0, 4, 5, 1])
     """
     m = n if m is None else m
-    _check_count("n", n, 1)
-    _check_count("m", m, 1)
+    check_int(n, "n", least=1)
+    check_int(m, "m", least=1)
     x0, x1, y0, y1 = (float(v) for v in extent)
     if not (x1 > x0 and y1 > y0):
         raise ValueError(f"extent must be (x0, x1, y0, y1) with x0 < x1 and y0 < y1, got {extent}.")
@@ -154,7 +151,7 @@ def quad_cube(
         >>> verts.shape, faces.shape, float(verts.abs().max())
         (torch.Size([8, 3]), torch.Size([6, 4]), 1.0)
     """
-    _check_count("n", n, 1)
+    check_int(n, "n", least=1)
     lattice, faces = _cube_lattice(n)
     return _verts(lattice / n, dtype, device), torch.from_numpy(faces)
 
@@ -192,7 +189,7 @@ def quad_sphere(
         >>> torch.allclose(verts.norm(dim=1), torch.full((56,), 2.0, dtype=torch.float64))
         True
     """
-    _check_count("n", n, 1)
+    check_int(n, "n", least=1)
     lattice, faces = _cube_lattice(n)
     # tan(pi / 4) is 1 - 1e-16 in floating point: keep the cube's faces exactly at +-1
     cube = np.where(np.abs(lattice) == n, np.sign(lattice), np.tan(np.pi / 4 * lattice / n))
@@ -236,8 +233,8 @@ def torus(
         >>> verts.shape, faces.shape
         (torch.Size([32, 3]), torch.Size([32, 4]))
     """
-    _check_count("n_u", n_u, 3)
-    _check_count("n_v", n_v, 3)
+    check_int(n_u, "n_u", least=3)
+    check_int(n_v, "n_v", least=3)
     if not 0 < minor < major:
         raise ValueError(f"a torus needs 0 < minor < major, got minor={minor}, major={major}.")
     u, v = np.meshgrid(

@@ -202,13 +202,29 @@ def cached_eigs(
     check_method(method)
     cache = Path(cache_dir)
     check_cache_dir(cache)
+    return eigs_through_cache(verts, faces, k, cache, lam, method)
+
+
+def eigs_through_cache(
+    verts: torch.Tensor,
+    faces: MeshFaces,
+    k: int,
+    cache: Path,
+    lam: float,
+    method: str,
+    operators: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`cached_eigs` for callers that have checked ``method`` and ``cache`` (the one
+    place that reads and writes the eigenpair cache); ``operators``: the mesh's ``(L, M0)``
+    when the caller has built them already, used on a miss instead of building them again."""
     path = cache / f"eigs-{eigs_cache_key(verts, faces, k, lam, method)}.npz"
     # is_file: False also where the path cannot be reached (a symbolic link loop, say)
     cached = load_cached_eigs(path, k, verts.shape[0]) if path.is_file() else None
     if cached is None:
         with torch.no_grad():
-            L, M0 = laplacian(verts.detach(), faces, lam, method=method)
-            evals, evecs = eigs(L, M0, k)
+            if operators is None:
+                operators = laplacian(verts.detach(), faces, lam, method=method)
+            evals, evecs = eigs(*operators, k)
         _store_eigs(path, evals.cpu().numpy(), evecs.cpu().numpy())
     else:
         evals, evecs = (torch.from_numpy(a) for a in cached)

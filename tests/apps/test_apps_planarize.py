@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +11,7 @@ from conftest import DATA
 
 import torch_polylap as tp
 from torch_polylap.apps.planarize import PlanarizeOptions, planarize
+from torch_polylap.data import DEFAULT_MESH
 from torch_polylap.shapes import quad_grid
 
 QUIET = PlanarizeOptions(warn=False)
@@ -138,7 +138,7 @@ def test_defaults_converge_on_bumped_grid_and_embedded_mesh():
     V, F = quad_grid(12, bump=0.4, seed=4)
     res = planarize(V, F)
     assert res.converged and res.iterations <= 12
-    V, F = tp.read_mesh(Path(tp.__file__).parent / "data" / "spot_control_mesh.obj")
+    V, F = tp.read_mesh(DEFAULT_MESH)
     res = planarize(V, F)
     assert res.converged and res.iterations <= 12
 

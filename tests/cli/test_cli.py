@@ -26,7 +26,8 @@ from meshes import dumbbell
 
 import torch_polylap as tp
 from torch_polylap.cli import COMMANDS, build_parser, main
-from torch_polylap.cli.common import DATA_DIR, DEFAULT_MESH, DISK_MESH, Result
+from torch_polylap.cli.common import Result
+from torch_polylap.data import DATA_DIR, DEFAULT_MESH, DISK_MESH
 from torch_polylap.timing import pinned_threads
 
 COMMAND = [sys.executable, "-m", "torch_polylap.cli"]

@@ -13,7 +13,7 @@ from meshes import shared_path
 
 import torch_polylap as tp
 from torch_polylap.cli import main
-from torch_polylap.cli.common import DATA_DIR
+from torch_polylap.data import DATA_DIR
 
 EMBEDDED = sorted(DATA_DIR.glob("*.obj"))
 

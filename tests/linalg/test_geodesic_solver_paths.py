@@ -216,7 +216,7 @@ def test_unit_field_of_huge_tiny_and_zero_gradients():
     """The array path's unit field: a face whose squared gradient over- or underflows takes
     the scaled norm, a zero gradient stays 0; reference: each row divided by its norm computed
     after scaling by its largest entry."""
-    from torch_polylap.calculus import _unit_rows
+    from torch_polylap.geodesics import _unit_rows
 
     rng = np.random.default_rng(4)
     rows = rng.standard_normal((6, 3, 2))

@@ -255,9 +255,9 @@ def test_cache_hit_returns_identical_tensors_without_an_eigensolve(tmp_path, mon
         raise AssertionError("eigs called on a cache hit")
 
     monkeypatch.setattr(interop, "eigs", no_eigensolve)
+    monkeypatch.setattr(tp.spectral, "eigs", no_eigensolve)
     _same(to_diffusionnet(v, f, k_eig=5, cache_dir=tmp_path / "ops"), cold)
     # the entry is the one tp.cached_eigs reads: no new file, no eigensolve there either
-    monkeypatch.setattr(tp.spectral, "eigs", no_eigensolve)
     evals, evecs = tp.cached_eigs(v, f, 5, tmp_path / "ops")
     assert torch.equal(evecs, cold[4]) and sorted((tmp_path / "ops").iterdir()) == files
     # another mesh, k or method is another entry
@@ -285,8 +285,9 @@ def test_unwritable_cache_warns_and_returns_the_result(tmp_path, monkeypatch):
     def read_only(path, write):
         raise PermissionError(13, "Permission denied", str(path))
 
-    monkeypatch.setattr(interop, "atomic_write", read_only)  # root ignores chmod: emulate it
-    with pytest.warns(UserWarning, match="Permission denied"):
+    # root ignores chmod: emulate it where the one eigenpair cache writes
+    monkeypatch.setattr(tp.spectral, "atomic_write", read_only)
+    with pytest.warns(tp.CacheWriteWarning, match="Permission denied"):
         got = to_diffusionnet(v, f, k_eig=5, cache_dir=tmp_path / "ro")
     _same(got, expected)
 

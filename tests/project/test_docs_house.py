@@ -18,9 +18,11 @@ from pathlib import Path
 import pytest
 from conftest import ROOT
 
+from torch_polylap.data import DEFAULT_MESH
+
 README = ROOT / "README.md"
 FIGURES = ROOT / "examples" / "output"
-SPOT = ROOT / "torch_polylap" / "data" / "spot_control_mesh.obj"
+SPOT = DEFAULT_MESH
 
 # The one place allowed to name the reference-mesh folder beside the clone: the helper that
 # locates it (with $POLYLAP_SHARED_MESHES as the override).

@@ -85,16 +85,25 @@ def test_symmetric_positive_semidefinite_on_polygon_spheres(name):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_planar_mesh_gives_scalar_laplacian_on_each_component(method):
-    """On a plane every transport is the identity in the common frame: A = L (x) I_2."""
+    """On a plane every transport is the identity in a common frame: A = L (x) I_2. In the
+    default frames (each vertex's own reference edge) the same operator is seen through the
+    block rotation R of each vertex's angle to the common frame: A = R^T (L (x) I_2) R."""
     verts, faces = tp.read_mesh(DATA / "grid" / "irr_poly_2.obj", dtype=torch.float64)
     A, M, frames = tv.connection_laplacian(verts, faces, method=method)
     L, M0 = tp.laplacian(verts, faces, method=method)
-    eye = np.eye(2)
-    np.testing.assert_allclose(
-        to_scipy(A).toarray(), np.kron(to_scipy(L).toarray(), eye), atol=1e-12
-    )
-    np.testing.assert_allclose(to_scipy(M).diagonal(), np.repeat(M0.diagonal().numpy(), 2))
     assert torch.allclose(frames.normal.abs()[:, 2], torch.ones(verts.shape[0], dtype=verts.dtype))
+    common_x = torch.zeros_like(verts)
+    common_x[:, 0] = 1.0
+    common_y = torch.linalg.cross(frames.normal, common_x, dim=1)
+    common, _, _ = tv.connection_laplacian(
+        verts, faces, method=method, frames=(frames.normal, common_x, common_y)
+    )
+    scalar = np.kron(to_scipy(L).toarray(), np.eye(2))
+    np.testing.assert_allclose(to_scipy(common).toarray(), scalar, atol=1e-12)
+    c, s = (frames.e_x * common_x).sum(1).numpy(), (frames.e_x * common_y).sum(1).numpy()
+    R = sl.block_diag(*[[[ci, -si], [si, ci]] for ci, si in zip(c, s, strict=True)])
+    np.testing.assert_allclose(to_scipy(A).toarray(), R.T @ scalar @ R, atol=1e-12)
+    np.testing.assert_allclose(to_scipy(M).diagonal(), np.repeat(M0.diagonal().numpy(), 2))
 
 
 def test_change_of_frames_conjugates_the_operator():
@@ -136,29 +145,18 @@ def test_equals_adobe_lagrange_on_triangles(n):
     np.testing.assert_allclose(ours, theirs, atol=1e-9 * theirs.max())
 
 
-def smooth_frames(verts: torch.Tensor, faces) -> tv.TangentFrames:
-    """Frames whose e_x projects one fixed generic axis: smooth in verts (the default frames
-    switch axis where two normal components tie, a jump that gradcheck would see)."""
-    normal = tp.nn.vertex_tangent_frames(verts, faces)[0]
-    axis = torch.tensor([0.3, 0.5, 0.8], dtype=verts.dtype, device=verts.device)
-    e_x = axis - (normal @ axis)[:, None] * normal
-    e_x = e_x / e_x.norm(dim=1, keepdim=True)
-    return tv.TangentFrames(normal, e_x, torch.linalg.cross(normal, e_x, dim=1))
-
-
 @pytest.mark.parametrize("method", METHODS)
 def test_gradcheck_connection_laplacian(method, device):
-    """Values and mass differentiable in verts (float64 gradcheck, non-planar mixed polygons
-    with boundary), for vector and cross fields."""
+    """Values and mass differentiable in verts in the default frames (float64 gradcheck,
+    non-planar mixed polygons with boundary), for vector and cross fields."""
     from conftest import hex_pent_mesh
 
     verts, faces = hex_pent_mesh()
     verts = verts.to(device)
 
     def values(v: torch.Tensor) -> torch.Tensor:
-        frames = smooth_frames(v, faces)
-        A1, M, _ = tv.connection_laplacian(v, faces, method=method, frames=frames)
-        A4, _, _ = tv.connection_laplacian(v, faces, method=method, frames=frames, symmetry=4)
+        A1, M, _ = tv.connection_laplacian(v, faces, method=method)
+        A4, _, _ = tv.connection_laplacian(v, faces, method=method, symmetry=4)
         return torch.cat((A1.values(), A4.values(), M.diagonal()))
 
     assert torch.autograd.gradcheck(values, verts.clone().requires_grad_(True), fast_mode=True)

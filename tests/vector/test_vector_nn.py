@@ -89,11 +89,16 @@ def test_a_change_of_frames_gives_the_same_vectors():
 
 
 def test_on_a_plane_it_is_the_scalar_layer_per_coordinate():
-    """On a planar mesh A = L (x) I_2: the vector diffusion of (x, y) equals
-    tp.nn.LearnedDiffusion ("implicit") of the two coordinates with the same times."""
+    """On a planar mesh, in frames common to all vertices, A = L (x) I_2: the vector diffusion
+    of (x, y) equals tp.nn.LearnedDiffusion ("implicit") of the two coordinates with the same
+    times."""
     verts, faces = tp.shapes.quad_grid(6, 5)
     verts = verts.double()
-    A, M, _ = tv.connection_laplacian(verts, faces)
+    normal = tv.tangent_frames(verts, tp.get_topology(faces, verts.shape[0])).normal
+    e_x = torch.zeros_like(verts)
+    e_x[:, 0] = 1.0
+    common = (normal, e_x, torch.linalg.cross(normal, e_x, dim=1))
+    A, M, _ = tv.connection_laplacian(verts, faces, frames=common)
     L, M0 = tp.laplacian(verts, faces)
     vector = tp.nn.LearnedVectorDiffusion(C).double()
     scalar = tp.nn.LearnedDiffusion(C, mode="implicit").double()

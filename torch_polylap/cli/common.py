@@ -16,16 +16,13 @@ import numpy as np
 import torch
 
 from ..atomic import atomic_write
+from ..data import DEFAULT_MESH
 from ..faces import PolygonFaces
 from ..io import read_mesh, write_mesh
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-DATA_DIR = Path(__file__).resolve().parents[1] / "data"
-DEFAULT_MESH = DATA_DIR / "spot_control_mesh.obj"
-# a disk (one boundary loop): the default of `polylap param`, which needs a boundary
-DISK_MESH = DATA_DIR / "hex_hemisphere.obj"
 DEFAULT_OUTPUT = "polylap_out"
 
 

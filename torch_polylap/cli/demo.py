@@ -17,13 +17,13 @@ from typing import TYPE_CHECKING
 import torch
 
 from .. import __version__
+from ..data import PLATE_MESH
 from ..faces import PolygonFaces
 from ..io import read_mesh
 from ..timing import markdown_table
 from ..topology import get_topology
 from . import param, planarize, smooth
 from .common import (
-    DATA_DIR,
     DEFAULT_OUTPUT,
     Result,
     add_method_argument,
@@ -38,8 +38,6 @@ if TYPE_CHECKING:
 
 # (title, AW11 section, command, result, seconds) of one part of the report
 _Section = tuple[str, str, str, Result, float]
-
-PLATE_MESH = DATA_DIR / "grid_voronoi_1.obj"
 
 # (section, AW11 section, the equivalent command line, its arguments)
 STEPS = (

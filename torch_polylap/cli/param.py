@@ -10,11 +10,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from ..data import DISK_MESH
 from ..faces import PolygonFaces
 from ..measures import vector_area
 from ..topology import Topology, get_topology
 from .common import (
-    DISK_MESH,
     Result,
     add_mesh_argument,
     add_method_argument,

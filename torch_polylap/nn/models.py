@@ -77,7 +77,7 @@ class DiffusionBlock(nn.Module):
         if grad_x is None or grad_y is None:
             raise ValueError(
                 "gradient_features=True needs the vertex gradient operators grad_x and grad_y "
-                "(torch_polylap.nn.vertex_gradient_operators, or MeshBatch.grad_x / .grad_y)."
+                "(torch_polylap.tangent.vertex_gradient_operators, or MeshBatch.grad_x / .grad_y)."
             )
         features = self.gradient(diffused, grad_x, grad_y)
         return x + self.mlp(torch.cat([x, diffused, features], 1))

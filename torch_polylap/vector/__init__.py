@@ -21,12 +21,13 @@ between those and 3D vectors.  Everything is differentiable with respect to the 
 positions.  ``docs/vector.md`` has the mathematics and the measurements.
 """
 
+from ..tangent import TangentFrames, tangent_frames
 from .connection import connection_laplacian, vector_mass
 from .curvature import face_shape_operator, fitted_frames, principal_curvatures, shape_operator
 from .fields import smoothest_field
 from .heat import VectorHeatSolver
 from .hodge import HodgeDecomposition, HodgeParts, virtual_refinement
-from .transport import TangentFrames, minimal_rotation, tangent_frames, to_ambient, to_tangent
+from .transport import minimal_rotation, to_ambient, to_tangent
 
 __all__ = [
     "HodgeDecomposition",

@@ -42,7 +42,7 @@ from __future__ import annotations
 import torch
 
 from .._typing import MeshFaces
-from ..checks import Lam, check_verts
+from ..checks import Lam, check_int, check_verts
 from ..faces import PolygonFaces
 from ..kernels import check_method
 from ..operators import laplacian
@@ -150,7 +150,7 @@ def connection_laplacian(
         symmetry: ``n`` of the ``n``-fold connection (angles times ``n``): 1 for vector fields,
             2 for line fields, 4 for cross fields.
         frames: ``(normal, e_x, e_y)``, each ``(V, 3)`` orthonormal per vertex; default
-            :func:`~torch_polylap.nn.vertex_tangent_frames` (area-weighted normals).
+            :func:`~torch_polylap.tangent.vertex_tangent_frames` (area-weighted normals).
 
     Returns:
         ``A``: ``(2V, 2V)`` symmetric positive semi-definite
@@ -177,14 +177,24 @@ def connection_laplacian(
     """
     check_verts(verts)
     check_method(method)
-    if isinstance(symmetry, bool) or not isinstance(symmetry, int) or symmetry < 1:
-        raise ValueError(
-            f"symmetry must be a positive integer (n of n-direction fields), got {symmetry!r}."
-        )
+    symmetry = check_int(symmetry, "symmetry")  # n of n-direction fields
     topo = get_topology(faces, verts.shape[0])
-    frames = (
-        tangent_frames(verts, topo) if frames is None else _checked_frames(frames, topo.num_verts)
-    )
+    frames = None if frames is None else _checked_frames(frames, topo.num_verts)
+    return connection_laplacian_of(verts, topo, lam, method, symmetry, frames)
+
+
+def connection_laplacian_of(
+    verts: torch.Tensor,
+    topo: Topology,
+    lam: Lam,
+    method: str,
+    symmetry: int = 1,
+    frames: TangentFrames | None = None,
+) -> tuple[SparseOperator, SparseOperator, TangentFrames]:
+    """:func:`connection_laplacian` on a topology, without checking its arguments again (for
+    callers that have checked them)."""
+    if frames is None:
+        frames = tangent_frames(verts, topo)
     blocks, mass = _face_blocks(verts, topo, lam, method)
     row_x, col_x, pattern, inverse = _block_layout(topo, blocks, verts.device)
     z = corner_transport(verts, topo.faces, topo, frames)

@@ -23,7 +23,7 @@ gives ``+1 / R`` on a sphere of radius ``R``.
 
 Which normals are differentiated.  ``S_f`` is a derivative of the vertex normals, so an error
 ``O(h^p)`` in the normals becomes ``O(h^(p-1))`` in ``S``.  The area-weighted normals of
-:func:`~torch_polylap.nn.vertex_tangent_frames` are only first-order accurate on irregular
+:func:`~torch_polylap.tangent.vertex_tangent_frames` are only first-order accurate on irregular
 meshes (``O(h)``: the imbalance of the faces around a vertex does not shrink under refinement),
 and ``S`` built from them does not converge there (measured mean errors on the unit-sphere
 families: 5% on jittered hexagons and 12% on Voronoi cells at every level; ``docs/vector.md``).
@@ -47,7 +47,7 @@ from __future__ import annotations
 import torch
 
 from .._typing import MeshFaces
-from ..calculus import face_gradient
+from ..calculus import face_gradient_of
 from ..checks import check_verts
 from ..kernels.frames import component_norm, stable_norm
 from ..measures import vector_area
@@ -107,7 +107,7 @@ def fitted_frames(
         verts: ``(V, 3)`` vertex positions.
         faces: faces in any accepted form, or a :class:`~torch_polylap.topology.Topology`.
         frames: the frames whose normals ``n_0`` set the fit's height direction; default
-            :func:`~torch_polylap.nn.vertex_tangent_frames` (area-weighted normals).
+            :func:`~torch_polylap.tangent.vertex_tangent_frames` (area-weighted normals).
 
     Returns:
         :class:`~torch_polylap.vector.TangentFrames`: ``frames`` carried by the minimal rotation
@@ -116,7 +116,13 @@ def fitted_frames(
         Differentiable in ``verts``.
     """
     check_verts(verts)
-    topo = get_topology(faces, verts.shape[0])
+    return _fitted_frames(verts, get_topology(faces, verts.shape[0]), frames)
+
+
+def _fitted_frames(
+    verts: torch.Tensor, topo: Topology, frames: TangentFrames | None
+) -> TangentFrames:
+    """:func:`fitted_frames` on a topology, ``verts`` checked."""
     frames = tangent_frames(verts, topo) if frames is None else TangentFrames(*frames)
     v, u = (t.to(verts.device) for t in _ring_pairs(topo))
     n = topo.num_verts
@@ -158,10 +164,16 @@ def face_shape_operator(
     coordinates, tangent to each face's plane (``S_f n_f = 0``): the face gradient of
     ``frames.normal`` (default :func:`fitted_frames`)."""
     check_verts(verts)
-    topo = get_topology(faces, verts.shape[0])
-    frames = fitted_frames(verts, topo) if frames is None else TangentFrames(*frames)
-    J = face_gradient(verts, topo, frames.normal)  # (F, 3, 3): J[f, d, c] = d n^c / d x_d
-    a = vector_area(verts, topo)
+    return _face_shape_operator(verts, get_topology(faces, verts.shape[0]), frames)
+
+
+def _face_shape_operator(
+    verts: torch.Tensor, topo: Topology, frames: TangentFrames | None
+) -> torch.Tensor:
+    """:func:`face_shape_operator` on a topology, ``verts`` checked."""
+    frames = _fitted_frames(verts, topo, None) if frames is None else TangentFrames(*frames)
+    J = face_gradient_of(verts, topo, frames.normal)  # (F, 3, 3): J[f, d, c] = d n^c / d x_d
+    a = vector_area(verts, topo, validate=False)
     n = a / stable_norm(a, 1, keepdim=True)
     P = torch.eye(3, dtype=verts.dtype, device=verts.device) - n[:, :, None] * n[:, None, :]
     return P @ (0.5 * (J + J.transpose(1, 2))) @ P
@@ -184,9 +196,9 @@ def shape_operator(
     """
     check_verts(verts)
     topo = get_topology(faces, verts.shape[0])
-    frames = fitted_frames(verts, topo) if frames is None else TangentFrames(*frames)
-    S_f = face_shape_operator(verts, topo, frames)
-    a = vector_area(verts, topo)
+    frames = _fitted_frames(verts, topo, None) if frames is None else TangentFrames(*frames)
+    S_f = _face_shape_operator(verts, topo, frames)
+    a = vector_area(verts, topo, validate=False)
     area = stable_norm(a, 1)
     n_f = a / area[:, None]
     device = verts.device

@@ -19,7 +19,7 @@ Logarithmic map (their sec. 7.2 and Algorithm 2).  For a source vertex ``s``:
 2. the radius ``r``: the heat-method geodesic distance from ``s``
    (:class:`~torch_polylap.HeatGeodesicSolver`);
 3. the *radial* field ``R = grad r`` at the vertices (the area-weighted mean of the face
-   gradients, :func:`~torch_polylap.nn.vertex_gradient_operators`), the direction in which
+   gradients, :func:`~torch_polylap.tangent.vertex_gradient_operators`), the direction in which
    the geodesic from ``s`` arrives;
 4. the polar angle ``theta_v = arg(R_v conj(H_v))``: the angle from the transported axis to the
    arriving geodesic, which parallel transport preserves, so it is the angle at ``s``, in
@@ -40,14 +40,12 @@ from collections.abc import Sequence
 import torch
 
 from .._typing import MeshFaces
-from ..calculus import POISSON_LAM, HeatGeodesicSolver
-from ..checks import Lam, check_index_or_mask, check_verts
+from ..checks import Lam, check_index_or_mask
+from ..geodesics import POISSON_LAM, HeatGeodesicSolver, with_unit_diagonal_at_isolated
 from ..kernels import check_method
 from ..linalg import solve
-from ..nn.gradient_features import vertex_gradient_operators
-from ..sparse import diag
-from ..topology import get_topology
-from .connection import connection_laplacian
+from ..tangent import vertex_gradient_operators
+from .connection import connection_laplacian_of
 from .transport import TangentFrames, to_ambient, to_tangent
 
 __all__ = ["VectorHeatSolver"]
@@ -102,25 +100,18 @@ class VectorHeatSolver:
         poisson_lam: Lam = POISSON_LAM,
         method: str = "aw11",
     ) -> None:
-        check_verts(verts)
         check_method(method)
-        self.topology = get_topology(faces, verts.shape[0])
+        # the scalar solver checks verts (and lam, t) first
+        self.geodesic = HeatGeodesicSolver(
+            verts, faces, t, lam, poisson_lam=poisson_lam, method=method
+        )
+        self.topology = self.geodesic.topology
         self.verts = verts
         self.method = method
-        self.geodesic = HeatGeodesicSolver(
-            verts, self.topology, t, lam, poisson_lam=poisson_lam, method=method
-        )
         self.t = self.geodesic.t
-        A, M, self.frames = connection_laplacian(verts, self.topology, lam, method=method)
-        mass = M.diagonal()
-        system = M + self.t * A
-        # isolated vertices have an empty row and column: a unit diagonal keeps the system
-        # definite and their field zero
-        isolated = (mass == 0).detach()
-        if bool(isolated.any()):
-            system = system + diag(isolated.to(system.dtype))
-        self.vector_operator = system.double()
-        self.vector_mass = mass.double()
+        A, M, self.frames = connection_laplacian_of(verts, self.topology, lam, method)
+        self.vector_operator = with_unit_diagonal_at_isolated(M + self.t * A).double()
+        self.vector_mass = M.diagonal().double()
         self._grad: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def _sources(self, sources: SourceLike, name: str = "sources") -> torch.Tensor:

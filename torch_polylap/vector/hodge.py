@@ -56,7 +56,7 @@ from typing import NamedTuple
 import torch
 
 from .._typing import MeshFaces
-from ..calculus import corner_gradients, divergence, gradient_operator
+from ..calculus import corner_gradients_of, divergence, gradient_operator_of
 from ..checks import check_verts
 from ..kernels.frames import stable_norm
 from ..linalg import dirichlet_solve
@@ -197,11 +197,12 @@ class HodgeDecomposition:
         self.refined_verts = _refined_verts(verts, self.topology)
         self.triangles = ref.triangles.to(device)
         self.edges = ref.topology.edges.to(device)
-        a = vector_area(self.refined_verts, ref.topology)
+        a = vector_area(self.refined_verts, ref.topology, validate=False)
         self.areas = stable_norm(a, 1)
         self.normals = a / self.areas[:, None]
         self.laplacian, _ = laplacian(self.refined_verts, ref.topology)
-        self._gradient = gradient_operator(self.refined_verts, ref.topology)
+        # refined_verts are checked: they are verts and face centroids
+        self._gradient = gradient_operator_of(self.refined_verts, ref.topology)
         self._hat = self._hat_gradients()
         self.cr_laplacian = self._cr_laplacian()
 
@@ -209,7 +210,7 @@ class HodgeDecomposition:
         """``(T, 3, 3)``: ``[t, p]`` the gradient on triangle ``t`` of the hat function of its
         corner ``p``."""
         # the refinement's corners are packed triangle by triangle
-        return corner_gradients(self.refined_verts, self._ref.topology).reshape(-1, 3, 3)
+        return corner_gradients_of(self.refined_verts, self._ref.topology).reshape(-1, 3, 3)
 
     def _cr_laplacian(self) -> SparseOperator:
         hat = self._hat

@@ -2,7 +2,7 @@
 
 Every vertex ``v`` carries an orthonormal frame ``(n_v, e_x(v), e_y(v))`` (``n_v`` the normalized
 sum of the vector areas of the faces around ``v``, see
-:func:`torch_polylap.nn.vertex_tangent_frames`); a tangent vector at ``v`` is stored as its two
+:func:`torch_polylap.tangent.vertex_tangent_frames`); a tangent vector at ``v`` is stored as its two
 coordinates in ``(e_x(v), e_y(v))``, or as the complex number ``X = x + i y``.
 
 A vector at ``v`` is carried into the plane of a face ``f`` around it by the *minimal rotation*
@@ -23,14 +23,12 @@ vertices: smooth wherever the normals are defined and ``n_v != -n_f``.
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 
 from ..faces import PolygonFaces
 from ..kernels.frames import stable_norm
 from ..measures import vector_area
-from ..nn.gradient_features import vertex_tangent_frames
+from ..tangent import TangentFrames, tangent_frames
 from ..topology import Topology
 
 __all__ = [
@@ -41,19 +39,6 @@ __all__ = [
     "to_ambient",
     "to_tangent",
 ]
-
-
-class TangentFrames(NamedTuple):
-    """Per-vertex orthonormal frames, each field ``(V, 3)``: ``e_y = normal x e_x``."""
-
-    normal: torch.Tensor
-    e_x: torch.Tensor
-    e_y: torch.Tensor
-
-
-def tangent_frames(verts: torch.Tensor, topo: Topology) -> TangentFrames:
-    """The frames of :func:`torch_polylap.nn.vertex_tangent_frames` (area-weighted normals)."""
-    return TangentFrames(*vertex_tangent_frames(verts, topo))
 
 
 def minimal_rotation(n: torch.Tensor, m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -73,8 +58,9 @@ def face_normals_and_frames(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(n_f, t1, t2)``, each ``(F, 3)``: unit normals ``a_f / |a_f|`` and a face-plane frame,
     ``t1`` along the first edge projected on the plane (smooth in the vertices, unlike a frame
-    built from the normal alone, which needs a seam somewhere on the sphere of normals)."""
-    a = vector_area(verts, topo)
+    built from the normal alone, which needs a seam somewhere on the sphere of normals).
+    ``verts`` as checked by the caller (the entry points of :mod:`torch_polylap.vector`)."""
+    a = vector_area(verts, topo, validate=False)
     normal = a / stable_norm(a, 1, keepdim=True)
     start = faces.offsets[:-1].to(verts.device)
     idx = faces.indices.to(verts.device)
