@@ -355,7 +355,8 @@ def test_bad_arguments_are_named(device):
     with pytest.raises(ValueError, match="normalization"):
         tnn.chebyshev_operator(L, M0, "lap")
     with pytest.raises(ValueError, match="diagonal"):
-        tnn.Spectrum.from_meshes([(torch.zeros(2, device=device), torch.zeros(9, 2), L)])
+        evals, evecs = torch.zeros(2, device=device), torch.zeros(9, 2, device=device)
+        tnn.Spectrum.from_meshes([(evals, evecs, L)])
     with pytest.raises(ValueError, match="same number of eigenpairs"):
         e, v = tp.eigs(L, M0, 3)
         tnn.Spectrum.from_meshes([(e, v, M0), (e[:2], v[:, :2], M0)])

@@ -23,7 +23,7 @@ class _Holder(nn.Module):
         super().__init__()
         self.register_buffer("L", L)
         self.register_buffer("M0", M0)
-        self.weight = nn.Parameter(torch.ones(3, dtype=L.dtype))
+        self.weight = nn.Parameter(torch.ones(3, dtype=L.dtype, device=L.device))
 
     def forward(self, X: torch.Tensor) -> torch.Tensor:
         return (self.L @ X + self.M0 @ X) * self.weight

@@ -281,7 +281,7 @@ def test_bad_input_is_refused_by_name(device):
     verts, faces = tp.shapes.torus(6, 4, device=device)
     hodge = tv.HodgeDecomposition(verts, faces)
     with pytest.raises(ValueError, match=r"shape \(96, 3\) or \(96, 3, C\)"):
-        hodge(torch.zeros(verts.shape, dtype=verts.dtype))
+        hodge(torch.zeros_like(verts))
     with pytest.raises(ValueError, match="24 vertices or the 48 refined"):
         hodge.gradient(torch.zeros(5, dtype=verts.dtype, device=device))
     flipped = faces.clone()
