@@ -160,3 +160,12 @@ def fresh_dynamo():
     with torch._dynamo.config.patch(trace_autograd_ops=True):
         yield
     torch._dynamo.reset()
+
+
+def on_device(
+    mesh: tuple[torch.Tensor, object], device: torch.device
+) -> tuple[torch.Tensor, object]:
+    """A ``(verts, faces)`` pair with the vertices moved to ``device`` and the faces left as
+    they are: the package takes faces on the CPU with vertices on any device."""
+    verts, faces = mesh
+    return verts.to(device), faces

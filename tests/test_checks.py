@@ -144,18 +144,19 @@ ENTRIES = {
 
 
 @pytest.mark.parametrize("entry", sorted(ENTRIES))
-def test_every_entry_refuses_flat_vertices_in_the_same_words(entry):
-    verts, faces = quad_grid(2)
+def test_every_entry_refuses_flat_vertices_in_the_same_words(entry, device):
+    verts, faces = quad_grid(2, device=device)
     with pytest.raises(ValueError, match=r"must have shape \(V, 3\), got \(9, 2\)"):
         ENTRIES[entry](verts[:, :2], faces)
 
 
-def test_any_real_lam_is_accepted_as_the_float_it_equals():
+def test_any_real_lam_is_accepted_as_the_float_it_equals(device):
     """A ``Fraction`` (or any numbers.Real) passes the check and gives the operator of its value."""
     from fractions import Fraction
 
-    verts, faces = quad_grid(2, bump=0.3)
+    verts, faces = quad_grid(2, bump=0.3, device=device)
     L, _ = tp.laplacian(verts, faces, Fraction(3, 2))
+    assert L.device.type == device.type
     torch.testing.assert_close(L.to_dense(), tp.laplacian(verts, faces, 1.5)[0].to_dense())
 
 

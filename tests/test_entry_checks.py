@@ -11,7 +11,7 @@ import warnings
 
 import pytest
 import torch
-from conftest import DATA
+from conftest import DATA, on_device
 
 import torch_polylap as tp
 from torch_polylap.apps import (
@@ -88,8 +88,8 @@ FIN = r"needs a manifold mesh, but it has 1 non-manifold edge\(s\) used by 3\+ f
 # -- conformal parameterization: manifold, oriented ------------------------------------------
 
 
-def test_conformal_refuses_misoriented_non_orientable_and_non_manifold_meshes():
-    V, F = flipped_grid()
+def test_conformal_refuses_misoriented_non_orientable_and_non_manifold_meshes(device):
+    V, F = on_device(flipped_grid(), device)
     for fn, name in (
         (lambda v, f: conformal_parameterization(v, f), "conformal_parameterization"),
         (
@@ -102,16 +102,17 @@ def test_conformal_refuses_misoriented_non_orientable_and_non_manifold_meshes():
         with pytest.raises(ValueError, match=name + " " + MISORIENTED + ORIENT_FACES):
             fn(V, F)
         with pytest.raises(ValueError, match=name + " " + NON_ORIENTABLE):
-            fn(*moebius())
+            fn(*on_device(moebius(), device))
         with pytest.raises(ValueError, match=name + " " + FIN):
-            fn(*fin())
+            fn(*on_device(fin(), device))
     # the suggested repair makes it work
     _, fixed, _ = orient_faces(V, F)
-    assert torch.isfinite(conformal_parameterization(V, fixed)).all()
+    uv = conformal_parameterization(V, fixed)
+    assert uv.device.type == device.type and torch.isfinite(uv).all()
 
 
-def test_conformal_parameterization_refuses_a_non_manifold_vertex_the_energy_does_not():
-    V, F = bowtie()
+def test_conformal_parameterization_refuses_a_non_manifold_vertex_the_energy_does_not(device):
+    V, F = on_device(bowtie(), device)
     with pytest.raises(
         ValueError, match=r"conformal_parameterization needs a manifold mesh.*non-manifold vertex"
     ):
@@ -124,16 +125,16 @@ def test_conformal_parameterization_refuses_a_non_manifold_vertex_the_energy_doe
 # -- normal consistency: oriented; edges of 3+ faces left out ---------------------------------
 
 
-def test_normal_consistency_refuses_misoriented_meshes_and_skips_fin_edges():
-    V, F = flipped_grid()
+def test_normal_consistency_refuses_misoriented_meshes_and_skips_fin_edges(device):
+    V, F = on_device(flipped_grid(), device)
     with pytest.raises(
         ValueError, match=r"mesh 0: normal_consistency " + MISORIENTED + ORIENT_FACES
     ):
         tp.losses.normal_consistency((V, F))
     with pytest.raises(ValueError, match="mesh 0: normal_consistency " + NON_ORIENTABLE):
-        tp.losses.NormalConsistencyLoss()(moebius())
+        tp.losses.NormalConsistencyLoss()(on_device(moebius(), device))
     # a fin: its edge has no two sides and is left out of the mean, like a boundary edge
-    Vf, Ff = fin()
+    Vf, Ff = on_device(fin(), device)
     n = tp.face_normals(Vf, Ff)
     owners: dict[frozenset, list[int]] = {}
     for fi, face in enumerate(Ff):
@@ -148,40 +149,40 @@ def test_normal_consistency_refuses_misoriented_meshes_and_skips_fin_edges():
 # -- mesh quality: folded_edges needs an orientation -------------------------------------------
 
 
-def test_mesh_quality_refuses_misoriented_meshes():
-    V, F = flipped_grid()
+def test_mesh_quality_refuses_misoriented_meshes(device):
+    V, F = on_device(flipped_grid(), device)
     with pytest.raises(
         ValueError, match=r"mesh_quality \(its folded_edges measure\) " + MISORIENTED
     ):
         mesh_quality(V, F)
     with pytest.raises(ValueError, match="mesh_quality .*" + NON_ORIENTABLE):
-        mesh_quality(*moebius())
+        mesh_quality(*on_device(moebius(), device))
     _, fixed, _ = orient_faces(V, F)
     assert mesh_quality(V, fixed)["folded_edges"] == 0.0
     # a fin is oriented: its 3-face edge is left out of folded_edges (the fin stands upright,
     # 90 degrees from the grid, which would not count as folded anyway)
-    q = mesh_quality(*fin())
+    q = mesh_quality(*on_device(fin(), device))
     assert q["folded_edges"] == 0.0 and q["nonconvex_faces"] == 0.0
 
 
 # -- volume: closed oriented 2-cycle -----------------------------------------------------------
 
 
-def test_enclosed_volume_needs_a_closed_oriented_surface():
-    V, F = cubes([(0, 0, 0)])
+def test_enclosed_volume_needs_a_closed_oriented_surface(device):
+    V, F = on_device(cubes([(0, 0, 0)]), device)
     assert float(enclosed_volume(V, F)) == pytest.approx(1.0, rel=1e-12)
     flipped = [f[::-1] if i == 2 else f for i, f in enumerate(F)]
     with pytest.raises(ValueError, match="enclosed_volume " + MISORIENTED + ORIENT_FACES):
         enclosed_volume(V, flipped)
     with pytest.raises(ValueError, match="enclosed_volume " + NON_ORIENTABLE):
-        enclosed_volume(*moebius())
-    grid_v, grid_f = quad_grid(3)
+        enclosed_volume(*on_device(moebius(), device))
+    grid_v, grid_f = quad_grid(3, device=device)
     with pytest.raises(
         ValueError, match=r"enclosed_volume needs a closed mesh, but this one has 12 boundary edges"
     ):
         enclosed_volume(grid_v, grid_f)
     with pytest.raises(ValueError, match=r"enclosed_volume needs a closed mesh"):
-        enclosed_volume(*fin())  # the fin's free edges are boundary
+        enclosed_volume(*on_device(fin(), device))  # the fin's free edges are boundary
     # a duplicated face: 4 edges used by 3 faces, unbalanced
     with pytest.raises(
         ValueError,
@@ -191,35 +192,37 @@ def test_enclosed_volume_needs_a_closed_oriented_surface():
         enclosed_volume(V, [*F, F[0]])
     # two cubes sharing an edge: non-manifold, but a closed oriented 2-cycle (every edge is
     # traversed as often each way), so the volume is well defined
-    V2, F2 = cubes([(0, 0, 0), (1, 1, 0)])
+    V2, F2 = on_device(cubes([(0, 0, 0), (1, 1, 0)]), device)
     topo = tp.build_topology(F2, V2.shape[0], warn=False)
     assert not topo.is_manifold
     assert float(enclosed_volume(V2, topo)) == pytest.approx(2.0, rel=1e-12)
 
 
-def test_flow_volume_normalization_checks_at_entry_and_the_flow_runs_on_any_mesh():
-    V, F = cubes([(0, 0, 0)])
+def test_flow_volume_normalization_checks_at_entry_and_the_flow_runs_on_any_mesh(device):
+    V, F = on_device(cubes([(0, 0, 0)]), device)
     flipped = [f[::-1] if i == 2 else f for i, f in enumerate(F)]
     hint = r".*Use normalize='area' or None\."
     with pytest.raises(ValueError, match="normalize='volume' " + MISORIENTED + ORIENT_FACES + hint):
         mean_curvature_flow(V, flipped, 0.01, 1, options=VOLUME)
     with pytest.raises(ValueError, match="normalize='volume' " + NON_ORIENTABLE + hint):
-        mean_curvature_flow(*moebius(), 0.01, 1, options=VOLUME)
+        mean_curvature_flow(*on_device(moebius(), device), 0.01, 1, options=VOLUME)
     with pytest.raises(ValueError, match=r"normalize='volume' needs a closed mesh.*" + hint):
-        mean_curvature_flow(*fin(), 0.01, 1, options=VOLUME)
+        mean_curvature_flow(*on_device(fin(), device), 0.01, 1, options=VOLUME)
     # the flow itself needs L and M0 only
     for verts, faces in (flipped_grid(), moebius(), fin(), (V, flipped)):
-        X = mean_curvature_flow(verts, faces, 0.01, 2).verts
-        assert X.shape == verts.shape and torch.isfinite(X).all()
-    X = mean_curvature_flow(*moebius(), 0.01, 1, options=FlowOptions(normalize="area")).verts
+        X = mean_curvature_flow(verts.to(device), faces, 0.01, 2).verts
+        assert X.shape == verts.shape and X.device.type == device.type
+        assert torch.isfinite(X).all()
+    area = FlowOptions(normalize="area")
+    X = mean_curvature_flow(*on_device(moebius(), device), 0.01, 1, options=area).verts
     assert torch.isfinite(X).all()
 
 
 # -- "vertex indices or a boolean mask": torch_polylap.checks.check_index_or_mask ---------------
 
 
-def test_fixed_and_boundary_arguments_are_checked_alike():
-    V, F = quad_grid(3)  # 16 vertices
+def test_fixed_and_boundary_arguments_are_checked_alike(device):
+    V, F = quad_grid(3, device=device)  # 16 vertices
     entries = {
         "fixed (flow)": lambda x: mean_curvature_flow(V, F, 0.01, 1, fixed=x),
         "fixed (planarize)": lambda x: planarize(V, F, max_iter=1, fixed=x),
@@ -246,7 +249,8 @@ def test_fixed_and_boundary_arguments_are_checked_alike():
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
 
-def test_plate_runs_on_any_mesh():
+def test_plate_runs_on_any_mesh(device):
     for verts, faces in (flipped_grid(), moebius(), fin()):
-        u = plate_bending(verts, faces)
+        u = plate_bending(verts.to(device), faces)
+        assert u.device.type == device.type
         assert torch.isfinite(u).all() and float(u.abs().max()) > 0

@@ -53,12 +53,13 @@ def _triangle_areas(verts: torch.Tensor, tris: torch.Tensor) -> torch.Tensor:
 # --------------------------------------------------------------------------- padded accessors
 
 
-def test_padded_accessors_match_the_lists():
+def test_padded_accessors_match_the_lists(device):
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     nv = [v.shape[0] for v in verts]
     padded = m.verts_padded()
-    assert padded.shape == (3, max(nv), 3)
+    assert padded.shape == (3, max(nv), 3) and padded.device.type == device.type
     for i, v in enumerate(verts):
         assert torch.equal(padded[i, : nv[i]], v)
         assert bool((padded[i, nv[i] :] == 0).all())
@@ -66,9 +67,8 @@ def test_padded_accessors_match_the_lists():
     assert torch.equal(flat[m.verts_padded_to_packed_idx()], m.verts_packed())
     assert m.num_verts_per_mesh().tolist() == nv
     assert m.mesh_to_verts_packed_first_idx().tolist() == [0, nv[0], nv[0] + nv[1]]
-    assert torch.equal(
-        m.verts_packed_to_mesh_idx(), torch.repeat_interleave(torch.arange(3), torch.tensor(nv))
-    )
+    owner = torch.repeat_interleave(torch.arange(3), torch.tensor(nv))
+    assert torch.equal(m.verts_packed_to_mesh_idx().cpu(), owner)
     fp = m.faces_padded()
     k_max = max(max(len(f) for f in fs) for fs in faces)
     assert fp.shape == (3, max(len(f) for f in faces), k_max) and fp.dtype == torch.int64
@@ -78,11 +78,11 @@ def test_padded_accessors_match_the_lists():
         assert all(not row for row in got[len(fs) :])  # padding faces are all -1
 
 
-def test_verts_padded_is_differentiable():
+def test_verts_padded_is_differentiable(device):
     verts, faces = three_meshes()
-    leaves = [v.clone().requires_grad_(True) for v in verts]
+    leaves = [v.to(device, copy=True).requires_grad_(True) for v in verts]
     m = PolygonMeshes(leaves, faces)
-    weights = torch.randn(m.verts_padded().shape, dtype=torch.float64)
+    weights = torch.randn(m.verts_padded().shape, dtype=torch.float64, device=device)
     (m.verts_padded() * weights).sum().backward()
     for i, v in enumerate(leaves):
         assert torch.equal(v.grad, weights[i, : v.shape[0]])
@@ -362,10 +362,11 @@ def fake_pytorch3d(monkeypatch):
 
 
 @pytest.mark.parametrize("name", ["grid/concave_3.obj", "tetris.obj", "grid/irr_poly_2.obj"])
-def test_triangulation_preserves_face_areas(name):
+def test_triangulation_preserves_face_areas(name, device):
     verts, faces = _read(name)  # planar meshes with non-convex faces of up to 10 corners
-    tris = triangle_faces(verts, faces)
+    tris = triangle_faces(verts.to(device), faces)
     assert tris.shape == (int((faces.sizes - 2).sum()), 3)
+    tris = tris.cpu()
     owner = torch.repeat_interleave(torch.arange(len(faces)), faces.sizes - 2)
     per_face = torch.zeros(len(faces), dtype=verts.dtype).index_add_(
         0, owner, _triangle_areas(verts, tris)
@@ -379,8 +380,9 @@ def test_triangulation_preserves_face_areas(name):
     assert bool(((tri_normal * tp.face_normals(verts, faces)[owner]).sum(1) > 0).all())
 
 
-def test_to_pytorch3d_hands_over_triangles_and_the_vertices(fake_pytorch3d):
+def test_to_pytorch3d_hands_over_triangles_and_the_vertices(fake_pytorch3d, device):
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     leaves = [v.clone().requires_grad_(True) for v in verts]
     m = PolygonMeshes(leaves, faces)
     meshes = to_pytorch3d(m)
@@ -431,8 +433,8 @@ def test_to_pytorch3d_real_meshes():
     assert torch.equal(meshes.faces_packed(), expected)
 
 
-def test_adapter_argument_errors():
-    v, f = quad_grid(1)
+def test_adapter_argument_errors(device):
+    v, f = quad_grid(1, device=device)
     with pytest.raises(TypeError, match="without faces"):
         triangle_faces(v)
     with pytest.raises(TypeError, match="alone"):
@@ -485,7 +487,7 @@ def _brute_force_chamfer(
         else:
             per = t.sum(1)
             if point_reduction == "mean":
-                per = per / torch.tensor(lengths, dtype=t.dtype).clamp(min=1)
+                per = per / torch.tensor(lengths, dtype=t.dtype, device=t.device).clamp(min=1)
         if batch_reduction is None:
             return per
         if batch_reduction == "sum":
@@ -529,11 +531,13 @@ def _assert_same(got, expected):
 @pytest.mark.parametrize("point_reduction", ["mean", "sum", "max", None])
 @pytest.mark.parametrize("norm", [1, 2])
 @pytest.mark.parametrize("backend", ["kdtree", "cdist"])
-def test_chamfer_matches_brute_force_reference(batch_reduction, point_reduction, norm, backend):
-    x, y, xn, yn, lx, ly = _clouds()
+def test_chamfer_matches_brute_force_reference(
+    batch_reduction, point_reduction, norm, backend, device
+):
+    x, y, xn, yn, lx, ly = (t.to(device) for t in _clouds())
     normals = point_reduction != "max"
     for single in (False, True):
-        for weights in (None, torch.tensor([0.5, 2.0, 0.0], dtype=torch.float64)):
+        for weights in (None, torch.tensor([0.5, 2.0, 0.0], dtype=torch.float64, device=device)):
             data = dict(
                 x_normals=xn if normals else None,
                 y_normals=yn if normals else None,
@@ -551,8 +555,8 @@ def test_chamfer_matches_brute_force_reference(batch_reduction, point_reduction,
             _assert_same(got, expected)
 
 
-def test_chamfer_defaults_and_the_single_cloud_extension():
-    x, y, xn, yn, _, _ = _clouds(seed=1)
+def test_chamfer_defaults_and_the_single_cloud_extension(device):
+    x, y, xn, yn, _, _ = (t.to(device) for t in _clouds(seed=1))
     loss, normals = chamfer_distance(x[:1], y[:1])
     assert normals is None and loss.shape == ()
     d = torch.cdist(x[0], y[0]).square()
@@ -565,11 +569,11 @@ def test_chamfer_defaults_and_the_single_cloud_extension():
     assert float(same) == 0.0 and float(n_same) < 1e-12
     signed = ChamferOptions(abs_cosine=False)
     _, n_flip = chamfer_distance(x[:1], x[:1], x_normals=xn[:1], y_normals=-xn[:1], options=signed)
-    torch.testing.assert_close(n_flip, torch.tensor(4.0, dtype=torch.float64))
+    torch.testing.assert_close(n_flip, torch.tensor(4.0, dtype=torch.float64, device=device))
 
 
-def test_chamfer_reads_pointclouds_duck_typed():
-    x, y, xn, yn, lx, ly = _clouds(seed=2)
+def test_chamfer_reads_pointclouds_duck_typed(device):
+    x, y, xn, yn, lx, ly = (t.to(device) for t in _clouds(seed=2))
     cloud = SimpleNamespace(
         points_padded=lambda: x, num_points_per_cloud=lambda: lx, normals_padded=lambda: xn
     )
@@ -579,11 +583,11 @@ def test_chamfer_reads_pointclouds_duck_typed():
     _assert_same(chamfer_distance(cloud, target), chamfer_distance(x, y, lx, ly, xn, yn))
 
 
-def test_chamfer_gradients_with_padding():
-    x, y, xn, yn, lx, ly = _clouds(seed=3, n=3, p1=40, p2=30)
+def test_chamfer_gradients_with_padding(device):
+    x, y, xn, yn, lx, ly = (t.to(device) for t in _clouds(seed=3, n=3, p1=40, p2=30))
     x = x[:, :12].clone().requires_grad_(True)
     y = y[:, :10].clone().requires_grad_(True)
-    lx, ly = torch.tensor([12, 5, 9]), torch.tensor([10, 10, 4])
+    lx, ly = torch.tensor([12, 5, 9], device=device), torch.tensor([10, 10, 4], device=device)
 
     def f(a, b):
         options = ChamferOptions(batch_reduction="sum", point_reduction="mean")
@@ -595,17 +599,25 @@ def test_chamfer_gradients_with_padding():
     assert bool((x.grad[1, 5:] == 0).all()) and bool((y.grad[2, 4:] == 0).all())
 
 
-def test_chamfer_edge_cases():
-    x, y, _, _, _, _ = _clouds(seed=4)
-    zero, normals = chamfer_distance(x, y, weights=torch.zeros(3, dtype=torch.float64))
+def test_chamfer_edge_cases(device):
+    x, y, _, _, _, _ = (t.to(device) for t in _clouds(seed=4))
+    zero, normals = chamfer_distance(
+        x, y, weights=torch.zeros(3, dtype=torch.float64, device=device)
+    )
     assert float(zero) == 0.0 and normals is None
     per_cloud = ChamferOptions(batch_reduction=None)
     empty, _ = chamfer_distance(
-        x, y, torch.tensor([0, 40, 40]), torch.tensor([0, 30, 30]), options=per_cloud
+        x,
+        y,
+        torch.tensor([0, 40, 40], device=device),
+        torch.tensor([0, 30, 30], device=device),
+        options=per_cloud,
     )
     assert float(empty[0]) == 0.0 and bool((empty[1:] > 0).all())
     with pytest.raises(ValueError, match="none on the other"):
-        chamfer_distance(x, y, torch.tensor([3, 40, 40]), torch.tensor([0, 30, 30]))
+        chamfer_distance(
+            x, y, torch.tensor([3, 40, 40], device=device), torch.tensor([0, 30, 30], device=device)
+        )
     with pytest.raises(ValueError, match="takes no normals"):
         chamfer_distance(
             x, y, x_normals=x, y_normals=y, options=ChamferOptions(point_reduction="max")
@@ -613,8 +625,9 @@ def test_chamfer_edge_cases():
     with pytest.raises(ValueError, match="norm"):
         chamfer_distance(x, y, options=ChamferOptions(norm=3))
     with pytest.raises(ValueError, match="non-negative"):
-        chamfer_distance(x, y, weights=torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64))
+        weights = torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64, device=device)
+        chamfer_distance(x, y, weights=weights)
     with pytest.raises(ValueError, match="x_lengths"):
-        chamfer_distance(x, y, x_lengths=torch.tensor([1, 2]))
+        chamfer_distance(x, y, x_lengths=torch.tensor([1, 2], device=device))
     with pytest.raises(ValueError, match="same number of clouds"):
         chamfer_distance(x, y[:2])

@@ -43,15 +43,15 @@ def neighbours(faces, num_verts):
     return nbr
 
 
-def test_uniform_smoothing_is_mean_distance_to_neighbour_mean():
+def test_uniform_smoothing_is_mean_distance_to_neighbour_mean(device):
     verts, faces = batch()
     per_mesh = []
     for v, f in zip(verts, faces, strict=True):
         nbr = neighbours(f, v.shape[0])
         dist = [torch.linalg.norm(v[sorted(n)].mean(0) - v[p]) for p, n in enumerate(nbr)]
         per_mesh.append(torch.stack(dist).mean())
-    expected = torch.stack(per_mesh)
-    m = PolygonMeshes(verts, faces)
+    expected = torch.stack(per_mesh).to(device)
+    m = PolygonMeshes([v.to(device) for v in verts], faces)
     out = losses.laplacian_smoothing(m, "uniform", reduction="none")
     torch.testing.assert_close(out, expected)
     torch.testing.assert_close(losses.laplacian_smoothing(m), expected.mean())
@@ -92,8 +92,8 @@ def test_polygon_smoothing_on_triangles_is_the_cotan_weighted_mean(device):
     assert abs(float(out) - expected) < 1e-12
 
 
-def test_frozen_weights_differentiate_only_the_coordinates():
-    v, f = quad_grid(3, bump=0.3, seed=2)
+def test_frozen_weights_differentiate_only_the_coordinates(device):
+    v, f = quad_grid(3, bump=0.3, seed=2, device=device)
     L0, _ = tp.laplacian(v, f)
     L0 = L0.to_dense()
     d0 = torch.diagonal(L0)
@@ -115,8 +115,9 @@ def test_frozen_weights_differentiate_only_the_coordinates():
     assert (g_live - g_frozen).abs().max() > 1e-3
 
 
-def test_mean_curvature_smoothing_and_bending_against_mean_curvature_normal():
+def test_mean_curvature_smoothing_and_bending_against_mean_curvature_normal(device):
     verts, faces = batch()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     mc, be = [], []
     for v, f in zip(verts, faces, strict=True):
@@ -130,8 +131,9 @@ def test_mean_curvature_smoothing_and_bending_against_mean_curvature_normal():
     torch.testing.assert_close(losses.bending_energy(m, lam=1.3, reduction="none"), torch.stack(be))
 
 
-def test_bending_energy_of_a_signal_is_the_dense_quadratic_form():
+def test_bending_energy_of_a_signal_is_the_dense_quadratic_form(device):
     verts, faces = batch()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     u = torch.sin(3 * m.verts_packed()[:, :2])
     L, M0 = m.laplacian(0.7)
@@ -143,17 +145,19 @@ def test_bending_energy_of_a_signal_is_the_dense_quadratic_form():
         Lu = Ld[s, s] @ u[s]
         expected.append(0.5 * torch.trace(Lu.t() @ torch.diag(1 / m0[s]) @ Lu))
     out = losses.bending_energy(m, u, lam=0.7, reduction="none")
+    assert out.device.type == device.type
     torch.testing.assert_close(out, torch.stack(expected))
 
 
-def test_dirichlet_energy_via_coboundary_and_one_form_inner_product():
+def test_dirichlet_energy_via_coboundary_and_one_form_inner_product(device):
     verts, faces = batch()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     signal = torch.cos(2 * m.verts_packed()) + m.verts_packed()[:, :1]
     first = m.mesh_to_verts_packed_first_idx().tolist() + [m.verts_packed().shape[0]]
     expected = []
     for i, (v, f) in enumerate(zip(verts, faces, strict=True)):
-        d = tp.dec.coboundary(f, v.shape[0]).to_dense()
+        d = tp.dec.coboundary(f, v.shape[0]).to_dense().to(device)
         M1 = tp.dec.one_form_inner_product(v, f, 2.0).to_dense()
         df = d @ signal[first[i] : first[i + 1]]
         expected.append(0.5 * torch.trace(df.t() @ M1 @ df))
@@ -166,8 +170,9 @@ def test_dirichlet_energy_via_coboundary_and_one_form_inner_product():
         losses.dirichlet_energy(m, signal[:-1])
 
 
-def test_planarity_loss():
+def test_planarity_loss(device):
     verts, faces = batch()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     per_mesh = losses.planarity_loss(m, lam=2.0, reduction="none")
     for i, (v, f) in enumerate(zip(verts, faces, strict=True)):
@@ -177,19 +182,21 @@ def test_planarity_loss():
         torch.testing.assert_close(per_mesh[i], tp.planarity_energy(v, f, 2.0))
     assert (per_mesh > 1e-4).all()
     # planar meshes: a flat irregular grid rotated out of the xy-plane, and the cube
-    v, f = quad_grid(4, seed=3)
+    v, f = quad_grid(4, seed=3, device=device)
     rot = torch.linalg.matrix_exp(torch.tensor([[0, 0.3, -0.5], [-0.3, 0, 0.2], [0.5, -0.2, 0]]))
-    flat = PolygonMeshes([v @ rot.double().t(), cube()[0]], [f, cube()[1]])
+    flat = PolygonMeshes([v @ rot.double().t().to(device), cube()[0].to(device)], [f, cube()[1]])
     assert losses.planarity_loss(flat, reduction="sum") < 1e-25
 
 
-def test_normal_consistency():
+def test_normal_consistency(device):
     v, f = cube()
     # every cube edge joins perpendicular faces: 1 - cos 90deg = 1
-    torch.testing.assert_close(losses.normal_consistency((v, f)), torch.tensor(1.0).double())
-    flat, ff = quad_grid(3, seed=1)
+    one = torch.tensor(1.0, dtype=torch.float64, device=device)
+    torch.testing.assert_close(losses.normal_consistency((v.to(device), f)), one)
+    flat, ff = quad_grid(3, seed=1, device=device)
     assert losses.normal_consistency((flat, ff)) < 1e-15
     verts, faces = batch()
+    verts = [v.to(device) for v in verts]
     expected = []
     for vv, f in zip(verts, faces, strict=True):
         n = tp.face_normals(vv, f)
@@ -276,9 +283,9 @@ def test_thin_faces_give_finite_values_and_gradients(name, dtype, aspect, device
     assert torch.isfinite(out) and torch.isfinite(g).all()
 
 
-def test_vertices_with_zero_residual_have_finite_gradients():
+def test_vertices_with_zero_residual_have_finite_gradients(device):
     """On a flat regular grid the Laplacian vanishes at interior vertices, where |.| has a kink."""
-    v, f = quad_grid(4)
+    v, f = quad_grid(4, device=device)
     x = v.clone().requires_grad_(True)
     for method in ("uniform", "polygon"):
         per_mesh = losses.laplacian_smoothing((x, f), method, reduction="none")
@@ -289,18 +296,19 @@ def test_vertices_with_zero_residual_have_finite_gradients():
         assert torch.linalg.norm((L @ v)[[6, 7, 8, 11, 12, 13, 16, 17, 18]]) < 1e-14
 
 
-def test_float32_agrees_with_float64():
+def test_float32_agrees_with_float64(device):
     verts, faces = batch()
     m64 = PolygonMeshes(verts, faces)
-    m32 = m64.to(dtype=torch.float32)
+    m32 = m64.to(device, torch.float32)
     for name, fn in ALL_LOSSES.items():
         a, b = fn(m64), fn(m32)
-        assert b.dtype == torch.float32
+        assert b.dtype == torch.float32 and b.device.type == device.type
         assert math.isclose(float(a), float(b), rel_tol=1e-4, abs_tol=1e-6), name
 
 
-def test_modules_match_functionals_and_reject_bad_options():
+def test_modules_match_functionals_and_reject_bad_options(device):
     verts, faces = batch()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     u = torch.sin(m.verts_packed())
     pairs = [

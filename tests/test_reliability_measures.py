@@ -64,7 +64,7 @@ def test_planarity_loss_refuses_non_finite_coordinates(mesh, vertex, bad):
         tp.losses.bending_energy(meshes)  # the behaviour it now shares
 
 
-def test_finite_inputs_are_unchanged_by_the_check():
-    V, F = quad_grid(3, bump=0.2)
+def test_finite_inputs_are_unchanged_by_the_check(device):
+    V, F = quad_grid(3, bump=0.2, device=device)
     for fn in MEASURES.values():
         torch.testing.assert_close(fn(V, F), fn(V, F, validate=False), rtol=0, atol=0)

@@ -58,13 +58,14 @@ def check_topology(verts: torch.Tensor, faces, chi: int, boundary_edges: int) ->
 
 
 @pytest.mark.parametrize("n, m", [(1, 1), (3, 3), (4, 2), (2, 5)])
-def test_quad_grid_is_a_disk_with_the_expected_counts(n, m):
-    verts, faces = quad_grid(n, m)
+def test_quad_grid_is_a_disk_with_the_expected_counts(n, m, device):
+    verts, faces = quad_grid(n, m, device=device)
     assert verts.shape == ((n + 1) * (m + 1), 3) and faces.shape == (n * m, 4)
     assert faces.dtype == torch.int64 and verts.dtype == torch.float64
+    assert verts.device.type == device.type
     check_topology(verts, faces, chi=1, boundary_edges=2 * (n + m))
     # flat, covering the unit square once, counter-clockwise seen from +z
-    assert torch.equal(verts[:, 2], torch.zeros(verts.shape[0], dtype=torch.float64))
+    assert torch.equal(verts[:, 2], torch.zeros_like(verts[:, 2]))
     assert float(tp.face_areas(verts, faces).sum()) == pytest.approx(1.0, rel=1e-14)
     assert bool((tp.face_normals(verts, faces)[:, 2] > 0.999).all())
     # vertex (i, j) at index i (m + 1) + j, on the lattice
@@ -72,31 +73,36 @@ def test_quad_grid_is_a_disk_with_the_expected_counts(n, m):
     assert verts[i * (m + 1) + j, :2].tolist() == pytest.approx([i / n, j / m], abs=1e-15)
 
 
-def test_quad_grid_extent_bump_height_and_dtype():
-    verts, faces = quad_grid(4, 3, extent=(-1.0, 3.0, 2.0, 2.5))
+def test_quad_grid_extent_bump_height_and_dtype(device):
+    verts, faces = quad_grid(4, 3, extent=(-1.0, 3.0, 2.0, 2.5), device=device)
     assert verts[:, 0].min() == -1.0 and verts[:, 0].max() == 3.0
     assert verts[:, 1].min() == 2.0 and verts[:, 1].max() == 2.5
     assert float(tp.face_areas(verts, faces).sum()) == pytest.approx(4.0 * 0.5, rel=1e-14)
 
-    bumped, _ = quad_grid(4, 3, bump=0.2)
+    bumped, _ = quad_grid(4, 3, bump=0.2, device=device)
     x, y = bumped[:, 0], bumped[:, 1]
     torch.testing.assert_close(bumped[:, 2], 0.2 * torch.sin(3 * x + 0.5) * torch.cos(2 * y - 0.3))
     assert float(tp.face_nonplanarity(bumped, faces).max()) > 1e-3  # non-planar quads
 
-    lifted, _ = quad_grid(4, 3, bump=0.2, height=lambda x, y: x * y)
+    lifted, _ = quad_grid(4, 3, bump=0.2, height=lambda x, y: x * y, device=device)
     torch.testing.assert_close(lifted[:, 2] - bumped[:, 2], x * y, rtol=0, atol=1e-15)
 
-    v32, f32 = quad_grid(4, 3, bump=0.2, seed=1, dtype=torch.float32)
-    v64, f64 = quad_grid(4, 3, bump=0.2, seed=1)
-    assert v32.dtype == torch.float32 and torch.equal(v32, v64.float()) and torch.equal(f32, f64)
+    v32, f32 = quad_grid(4, 3, bump=0.2, seed=1, dtype=torch.float32, device=device)
+    v64, f64 = quad_grid(4, 3, bump=0.2, seed=1, device=device)
+    assert (
+        v32.dtype == torch.float32
+        and v32.device.type == device.type
+        and torch.equal(v32, v64.float())
+        and torch.equal(f32, f64)
+    )
 
 
-def test_quad_grid_jitter_is_seeded_interior_and_keeps_quads_convex():
+def test_quad_grid_jitter_is_seeded_interior_and_keeps_quads_convex(device):
     n, m = 6, 5
-    plain, faces = quad_grid(n, m)
-    a, _ = quad_grid(n, m, seed=3)
-    b, _ = quad_grid(n, m, seed=3)
-    c, _ = quad_grid(n, m, seed=4)
+    plain, faces = quad_grid(n, m, device=device)
+    a, _ = quad_grid(n, m, seed=3, device=device)
+    b, _ = quad_grid(n, m, seed=3, device=device)
+    c, _ = quad_grid(n, m, seed=4, device=device)
     assert torch.equal(a, b) and not torch.equal(a, c)  # deterministic, seed-dependent
     moved = (a - plain).norm(dim=1) > 0
     boundary = tp.build_topology(faces, a.shape[0]).boundary_vertices
@@ -117,8 +123,9 @@ def test_quad_grid_jitter_is_seeded_interior_and_keeps_quads_convex():
 
 
 @pytest.mark.parametrize("n", [1, 2, 5])
-def test_quad_cube_is_a_closed_outward_cube(n):
-    verts, faces = quad_cube(n)
+def test_quad_cube_is_a_closed_outward_cube(n, device):
+    verts, faces = quad_cube(n, device=device)
+    assert verts.device.type == device.type
     assert verts.shape == (6 * n * n + 2, 3) and faces.shape == (6 * n * n, 4)
     check_topology(verts, faces, chi=2, boundary_edges=0)
     assert float(verts.abs().max(dim=1).values.min()) == 1.0  # every vertex on the surface
@@ -134,27 +141,26 @@ def test_quad_cube_is_a_closed_outward_cube(n):
             assert torch.equal(grid[s, :, 1:, 0], grid[s, :, :-1, 3])
     sides = normals[:, 0, 0]
     expected = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
-    assert torch.allclose(sides, expected.double(), atol=1e-15)
+    assert torch.allclose(sides, expected.double().to(device), atol=1e-15)
 
 
 @pytest.mark.parametrize("n", [1, 3, 8])
-def test_quad_sphere_lies_on_the_sphere_and_is_closed(n):
-    verts, faces = quad_sphere(n, radius=2.5)
+def test_quad_sphere_lies_on_the_sphere_and_is_closed(n, device):
+    verts, faces = quad_sphere(n, radius=2.5, device=device)
     assert verts.shape == (6 * n * n + 2, 3) and faces.shape == (6 * n * n, 4)
+    assert verts.device.type == device.type
     check_topology(verts, faces, chi=2, boundary_edges=0)
-    torch.testing.assert_close(
-        verts.norm(dim=1), torch.full((verts.shape[0],), 2.5, dtype=torch.float64)
-    )
+    torch.testing.assert_close(verts.norm(dim=1), torch.full_like(verts[:, 0], 2.5))
     # outward: the enclosed volume is positive and below the ball's (an inscribed polyhedron)
     volume = float(tp.apps.enclosed_volume(verts, faces))
     assert 0 < volume < 4 / 3 * math.pi * 2.5**3
     assert torch.equal(faces, quad_cube(n)[1])  # the cube's connectivity
 
 
-def test_quad_sphere_refines_towards_the_sphere_with_balanced_quads():
+def test_quad_sphere_refines_towards_the_sphere_with_balanced_quads(device):
     volumes, ratios = [], []
     for n in (4, 8, 16):
-        verts, faces = quad_sphere(n)
+        verts, faces = quad_sphere(n, device=device)
         volumes.append(float(tp.apps.enclosed_volume(verts, faces)))
         areas = tp.face_areas(verts, faces)
         ratios.append(float(areas.max() / areas.min()))
@@ -167,17 +173,17 @@ def test_quad_sphere_refines_towards_the_sphere_with_balanced_quads():
     assert max(ratios) < 1.5
 
 
-def test_quad_sphere_noise_is_radial_seeded_and_scaled():
-    plain, faces = quad_sphere(6)
-    a, fa = quad_sphere(6, noise=0.05, seed=1)
-    b, _ = quad_sphere(6, noise=0.05, seed=1)
-    c, _ = quad_sphere(6, noise=0.05, seed=2)
+def test_quad_sphere_noise_is_radial_seeded_and_scaled(device):
+    plain, faces = quad_sphere(6, device=device)
+    a, fa = quad_sphere(6, noise=0.05, seed=1, device=device)
+    b, _ = quad_sphere(6, noise=0.05, seed=1, device=device)
+    c, _ = quad_sphere(6, noise=0.05, seed=2, device=device)
     assert torch.equal(a, b) and not torch.equal(a, c) and torch.equal(fa, faces)
     r = a.norm(dim=1)
     torch.testing.assert_close(a / r[:, None], plain)  # moved along the radius only
     assert 0.03 < float((r - 1).std()) < 0.07
     assert float(tp.face_nonplanarity(a, faces).max()) > 1e-3
-    v32, _ = quad_sphere(6, noise=0.05, seed=1, dtype=torch.float32)
+    v32, _ = quad_sphere(6, noise=0.05, seed=1, dtype=torch.float32, device=device)
     assert v32.dtype == torch.float32 and torch.equal(v32, a.float())
 
 
@@ -185,8 +191,9 @@ def test_quad_sphere_noise_is_radial_seeded_and_scaled():
 
 
 @pytest.mark.parametrize("n_u, n_v", [(3, 3), (8, 4), (12, 6)])
-def test_torus_is_closed_with_genus_one(n_u, n_v):
-    verts, faces = torus(n_u, n_v, major=2.0, minor=0.5)
+def test_torus_is_closed_with_genus_one(n_u, n_v, device):
+    verts, faces = torus(n_u, n_v, major=2.0, minor=0.5, device=device)
+    assert verts.device.type == device.type
     assert verts.shape == (n_u * n_v, 3) and faces.shape == (n_u * n_v, 4)
     check_topology(verts, faces, chi=0, boundary_edges=0)
     # every vertex at distance 0.5 from the centre circle of radius 2 in the xy plane
@@ -197,11 +204,11 @@ def test_torus_is_closed_with_genus_one(n_u, n_v):
     assert float(tp.apps.enclosed_volume(verts, faces)) > 0  # outward
 
 
-def test_torus_volume_converges_to_the_solid_torus():
+def test_torus_volume_converges_to_the_solid_torus(device):
     exact = 2 * math.pi**2 * 2.0 * 0.5**2
     errors = []
     for n in (8, 16, 32):
-        verts, faces = torus(2 * n, n, major=2.0, minor=0.5)
+        verts, faces = torus(2 * n, n, major=2.0, minor=0.5, device=device)
         errors.append(exact - float(tp.apps.enclosed_volume(verts, faces)))
     assert errors[0] > errors[1] > errors[2] > 0
     assert errors[1] / errors[2] == pytest.approx(4.0, rel=0.1)
@@ -216,9 +223,12 @@ def test_torus_rejects_a_self_intersecting_tube():
 
 
 @pytest.mark.parametrize("triangulation", ["quad", "horizontal", "vertical", "alternating"])
-def test_lantern_is_an_open_cylinder(triangulation):
+def test_lantern_is_an_open_cylinder(triangulation, device):
     sides, rings = 6, 5
-    verts, faces = schwarz_lantern(sides, rings, radius=1.5, triangulation=triangulation)
+    verts, faces = schwarz_lantern(
+        sides, rings, radius=1.5, triangulation=triangulation, device=device
+    )
+    assert verts.device.type == device.type
     degrees = sorted(len(f) for f in faces)
     diamonds = (rings - 2) * sides
     if triangulation == "quad":
@@ -229,12 +239,12 @@ def test_lantern_is_an_open_cylinder(triangulation):
     check_topology(verts, faces, chi=0, boundary_edges=2 * sides)
     loops = tp.build_topology(faces, verts.shape[0]).boundary_loops()
     assert sorted(len(loop) for loop in loops) == [sides, sides]
-    torch.testing.assert_close(
-        verts[:, :2].norm(dim=1), torch.full((sides * rings,), 1.5, dtype=torch.float64)
-    )
+    torch.testing.assert_close(verts[:, :2].norm(dim=1), torch.full_like(verts[:, 0], 1.5))
     # the rotation by 2 pi / sides maps vertex (i, j) to (i, j + 1)
     c, s = math.cos(2 * math.pi / sides), math.sin(2 * math.pi / sides)
-    rot = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    rot = torch.tensor(
+        [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64, device=device
+    )
     grid = torch.arange(sides * rings).reshape(rings, sides)
     torch.testing.assert_close(verts @ rot.T, verts[torch.roll(grid, -1, 1).reshape(-1)])
     # outward: the normals point away from the axis

@@ -99,38 +99,43 @@ def test_planar_mesh_maps_to_itself_up_to_similarity(name, free, device):
     assert _similarity_residual(uv.cpu(), xy) < 1e-9
 
 
-def test_pinned_at_true_positions_reproduces_planar_mesh_exactly():
+def test_pinned_at_true_positions_reproduces_planar_mesh_exactly(device):
     xy, V3, F = _flat_mesh("mixed")
     pins = [0, 11]
-    uv = conformal_parameterization(V3, F, pins=pins, pin_uv=xy[pins])
-    torch.testing.assert_close(uv, xy, rtol=0, atol=1e-10)
+    uv = conformal_parameterization(V3.to(device), F, pins=pins, pin_uv=xy[pins].to(device))
+    assert uv.device.type == device.type
+    torch.testing.assert_close(uv.cpu(), xy, rtol=0, atol=1e-10)
 
 
-def test_planar_annulus_with_two_boundary_loops():
+def test_planar_annulus_with_two_boundary_loops(device):
     """The pinned map takes holes; the free-boundary map refuses them (not a disk: its area
     form over several loops folds curved meshes over, see tests/cli/test_reliability_cli.py)."""
     xy, F = _annulus()
-    V3 = torch.cat((xy, torch.zeros_like(xy[:, :1])), 1) @ _rotation(11).T
+    V3 = (torch.cat((xy, torch.zeros_like(xy[:, :1])), 1) @ _rotation(11).T).to(device)
     uv = conformal_parameterization(V3, F)
-    assert _similarity_residual(uv, xy) < 1e-9
+    assert uv.device.type == device.type
+    assert _similarity_residual(uv.cpu(), xy) < 1e-9
     with pytest.raises(ValueError, match="2 boundary loops and Euler characteristic 0"):
         conformal_parameterization(V3, F, free_boundary=True)
 
 
 @pytest.mark.parametrize("pins", [None, [0, 1], [2, 5], [4, 1]])
-def test_single_nonplanar_polygon_maps_to_its_maximal_projection(pins):
+def test_single_nonplanar_polygon_maps_to_its_maximal_projection(pins, device):
     V, F = _single_polygon()
     target = _maximal_projection(V)
     # the polygon really is non-planar: its corners are not a similarity of any projection
     assert _similarity_residual(V[:, :2], target) > 1e-2
+    V = V.to(device)
     uv = conformal_parameterization(V, F, pins=pins)
-    assert _similarity_residual(uv, target) < 1e-10
+    assert _similarity_residual(uv.cpu(), target) < 1e-10
     assert angle_distortion(uv, V, F).max < 1e-9
 
 
-def test_single_nonplanar_polygon_free_boundary():
+def test_single_nonplanar_polygon_free_boundary(device):
     V, F = _single_polygon()
-    uv = conformal_parameterization(V, F, free_boundary=True)
+    uv = conformal_parameterization(V.to(device), F, free_boundary=True)
+    assert uv.device.type == device.type
+    uv = uv.cpu()
     assert _similarity_residual(uv, _maximal_projection(V)) < 1e-10
     # scaled to the area of the maximal projection
     area = 0.5 * (uv[:, 0] * torch.roll(uv[:, 1], -1) - torch.roll(uv[:, 0], -1) * uv[:, 1]).sum()
@@ -147,9 +152,10 @@ def _shoelace_total(uv: torch.Tensor, faces) -> torch.Tensor:
     return total
 
 
-def test_energy_is_dirichlet_minus_sum_of_face_areas_and_matches_matrix():
+def test_energy_is_dirichlet_minus_sum_of_face_areas_and_matches_matrix(device):
     V, F = hex_pent_mesh()
     uv = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(0), dtype=V.dtype)
+    V, uv = V.to(device), uv.to(device)
     L, _ = tp.laplacian(V, F, 1.5)
     expected = 0.5 * (uv * (L.to_dense() @ uv)).sum() - _shoelace_total(uv, F)
     torch.testing.assert_close(conformal_energy(uv, V, F, lam=1.5), expected)
@@ -160,30 +166,32 @@ def test_energy_is_dirichlet_minus_sum_of_face_areas_and_matches_matrix():
 
 
 @pytest.mark.parametrize("lam", [0.25, 1.0, 3.0])
-def test_conformal_matrix_is_psd_with_similarity_kernel_on_planar_mesh(lam):
+def test_conformal_matrix_is_psd_with_similarity_kernel_on_planar_mesh(lam, device):
     xy, V3, F = _flat_mesh("hexpent")
-    ev = np.linalg.eigvalsh(to_scipy(conformal_matrix(V3, F, lam)).toarray())
+    LC = conformal_matrix(V3.to(device), F, lam)
+    assert LC.device.type == device.type
+    ev = np.linalg.eigvalsh(to_scipy(LC).toarray())
     assert ev[0] > -1e-12
     # translations (2) and the rotation-scale pair (2) have zero energy on a planar mesh
     assert np.all(np.abs(ev[:4]) < 1e-12) and ev[4] > 1e-4
 
 
-def test_pinned_solution_is_a_constrained_minimizer():
-    V, F = quad_grid(5, 4, bump=0.4, seed=1)
+def test_pinned_solution_is_a_constrained_minimizer(device):
+    V, F = quad_grid(5, 4, bump=0.4, seed=1, device=device)
     pins = [0, 29]
     uv = conformal_parameterization(V, F, pins=pins)
     e0 = float(conformal_energy(uv, V, F))
     assert e0 > 0  # a curved patch is not flattened conformally
     g = torch.Generator().manual_seed(5)
     for _ in range(5):
-        d = torch.randn(uv.shape, generator=g, dtype=uv.dtype)
+        d = torch.randn(uv.shape, generator=g, dtype=uv.dtype).to(device)
         d[pins] = 0
         for h in (1e-4, 1e-2):
             assert float(conformal_energy(uv + h * d, V, F)) > e0
 
 
-def test_free_boundary_minimizes_energy_per_area():
-    V, F = quad_grid(5, 4, bump=0.4, seed=1)
+def test_free_boundary_minimizes_energy_per_area(device):
+    V, F = quad_grid(5, 4, bump=0.4, seed=1, device=device)
     uv = conformal_parameterization(V, F, free_boundary=True)
 
     def ratio(y):  # E_C / A is the constrained objective of AW11 eq. 13 (E_C is 2-homogeneous)
@@ -195,7 +203,7 @@ def test_free_boundary_minimizes_energy_per_area():
     assert 0 < r0 < ratio(V[:, :2])
     g = torch.Generator().manual_seed(6)
     for _ in range(5):
-        d = torch.randn(uv.shape, generator=g, dtype=uv.dtype)
+        d = torch.randn(uv.shape, generator=g, dtype=uv.dtype).to(device)
         assert ratio(uv + 1e-3 * d) > r0
     # the pinned solution with the same two boundary points is no better
     pins = [0, 29]
@@ -203,7 +211,7 @@ def test_free_boundary_minimizes_energy_per_area():
     assert ratio(uv_p) >= r0 - 1e-12
 
 
-def test_triangle_mesh_matches_libigl_lscm():
+def test_triangle_mesh_matches_libigl_lscm(device):
     igl = pytest.importorskip(
         "igl", reason="libigl (the independent LSCM) not installed: pip install libigl"
     )
@@ -211,29 +219,32 @@ def test_triangle_mesh_matches_libigl_lscm():
     F = torch.cat((Fq[:, [0, 1, 2]], Fq[:, [0, 2, 3]]))
     pins = torch.tensor([0, 29])
     pin_uv = torch.tensor([[0.0, 0.0], [1.0, 0.2]], dtype=torch.float64)
-    uv = conformal_parameterization(V, F, pins=pins, pin_uv=pin_uv)
+    uv = conformal_parameterization(V.to(device), F, pins=pins, pin_uv=pin_uv.to(device)).cpu()
     out = igl.lscm(V.numpy(), F.numpy(), pins.numpy(), pin_uv.numpy())
     uv_igl = out[0] if isinstance(out, tuple) else out
     np.testing.assert_allclose(uv.numpy(), uv_igl, atol=1e-9)
 
 
-def test_pinned_is_differentiable_in_verts():
-    V, F = quad_grid(3, bump=0.3, seed=0)
+def test_pinned_is_differentiable_in_verts(device):
+    V, F = quad_grid(3, bump=0.3, seed=0, device=device)
     pins = [0, 15]
 
     def f(X):
         uv = conformal_parameterization(X, F, pins=pins)
-        return (uv * torch.tensor([0.3, -0.7], dtype=X.dtype)).sum() + uv.square().sum()
+        return (
+            uv * torch.tensor([0.3, -0.7], dtype=X.dtype, device=X.device)
+        ).sum() + uv.square().sum()
 
     assert_directional_derivative(f, V, rtol=1e-5)
 
 
-def test_free_boundary_is_differentiable_in_verts():
-    V, F = quad_grid(3, bump=0.3, seed=0)
+def test_free_boundary_is_differentiable_in_verts(device):
+    V, F = quad_grid(3, bump=0.3, seed=0, device=device)
 
     def f(X):
         uv = conformal_parameterization(X, F, free_boundary=True)
-        return (uv * torch.tensor([0.3, -0.7], dtype=X.dtype)).sum() + uv[:, 0].pow(3).sum()
+        weights = torch.tensor([0.3, -0.7], dtype=X.dtype, device=X.device)
+        return (uv * weights).sum() + uv[:, 0].pow(3).sum()
 
     assert_directional_derivative(f, V, rtol=1e-5)
     assert torch.autograd.gradcheck(
@@ -241,29 +252,30 @@ def test_free_boundary_is_differentiable_in_verts():
     )
 
 
-def test_top_eigenpair_gradient_with_a_repeated_lower_eigenvalue():
+def test_top_eigenpair_gradient_with_a_repeated_lower_eigenvalue(device):
     """Symmetric meshes have exactly repeated eigenvalues below the top one, where
     torch.linalg.eigh's backward divides zero by zero; the top gap is all that is needed."""
     from torch_polylap.linalg.derivatives import top_eigenpair
 
-    M = torch.diag(torch.tensor([1.0, 1.0, 3.0], dtype=torch.float64)).requires_grad_(True)
+    M = torch.diag(torch.tensor([1.0, 1.0, 3.0], dtype=torch.float64, device=device))
+    M.requires_grad_(True)
     evals, V = torch.linalg.eigh(M)
     (nan_grad,) = torch.autograd.grad(evals[-1] + V[2, -1] ** 2, M)
     assert torch.isnan(nan_grad).all()  # what this function avoids
     nu, x = top_eigenpair(M)
     (grad,) = torch.autograd.grad(nu + x[2] ** 2, M)
-    expected = torch.zeros(3, 3, dtype=torch.float64)
+    expected = torch.zeros(3, 3, dtype=torch.float64, device=device)
     expected[2, 2] = 1.0  # d nu / d M = x x^T; |x_2| = 1 stays 1 to first order
     torch.testing.assert_close(grad, expected)
 
 
-def test_top_eigenpair_matches_eigh_gradient():
+def test_top_eigenpair_matches_eigh_gradient(device):
     from torch_polylap.linalg.derivatives import top_eigenpair
 
     g = torch.Generator().manual_seed(0)
     A = torch.randn(6, 6, dtype=torch.complex128, generator=g)
-    A = (A + A.mH) / 2
-    w = torch.randn(6, dtype=torch.float64, generator=g)
+    A = ((A + A.mH) / 2).to(device)
+    w = torch.randn(6, dtype=torch.float64, generator=g).to(device)
 
     def loss(nu, x):  # invariant under the eigenvector's phase
         return nu + (x.abs().square() * w).sum()
@@ -274,7 +286,8 @@ def test_top_eigenpair_matches_eigh_gradient():
         (grad,) = torch.autograd.grad(loss(*top((M + M.mH) / 2)), M)
         grads.append(grad)
     torch.testing.assert_close(grads[0], grads[1], atol=1e-12, rtol=1e-10)
-    R = torch.diag(torch.tensor([1.0, 2.0, 2.0], dtype=torch.float64)).requires_grad_(True)
+    R = torch.diag(torch.tensor([1.0, 2.0, 2.0], dtype=torch.float64, device=device))
+    R.requires_grad_(True)
     nu, x = top_eigenpair(R)
     with pytest.raises(ValueError, match="repeated"):
         torch.autograd.grad((x[0] ** 2) + nu, R)
@@ -285,37 +298,42 @@ def _eigh_top(M):
     return evals[-1], V[:, -1]
 
 
-def test_float32_matches_float64():
+def test_float32_matches_float64(device, dtype):
     V, F = quad_grid(4, bump=0.3, seed=3)
     uv64 = conformal_parameterization(V, F)
-    uv32 = conformal_parameterization(V.float(), F)
-    assert uv32.dtype == torch.float32
-    torch.testing.assert_close(uv32.double(), uv64, atol=1e-5, rtol=1e-5)
-    uvf = conformal_parameterization(V.float(), F, free_boundary=True)
-    assert uvf.dtype == torch.float32
+    uv = conformal_parameterization(V.to(device, dtype), F)
+    assert uv.dtype == dtype and uv.device.type == device.type
+    tol = 1e-5 if dtype == torch.float32 else 1e-10
+    torch.testing.assert_close(uv.cpu().double(), uv64, atol=tol, rtol=tol)
+    uvf = conformal_parameterization(V.to(device, dtype), F, free_boundary=True)
+    assert uvf.dtype == dtype and uvf.device.type == device.type
 
 
-def test_angle_distortion_of_known_maps():
+def test_angle_distortion_of_known_maps(device):
     # an L-shaped hexagon (one reflex corner): the identity has zero error
-    xy = torch.tensor([[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=torch.float64)
-    V = torch.cat((xy, torch.zeros(6, 1, dtype=torch.float64)), 1)
+    xy = torch.tensor(
+        [[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=torch.float64, device=device
+    )
+    V = torch.cat((xy, torch.zeros(6, 1, dtype=torch.float64, device=device)), 1)
     F = [[0, 1, 2, 3, 4, 5]]
     assert angle_distortion(xy, V, F).max < 1e-14
     # a stretch keeps the right angles of an axis-aligned L
-    stretch = xy * torch.tensor([3.0, 0.5], dtype=torch.float64)
+    stretch = xy * torch.tensor([3.0, 0.5], dtype=torch.float64, device=device)
     assert angle_distortion(stretch, V, F).max < 1e-14
     # a shear of the unit square: corner 0 becomes atan2(1, s), corner 1 its supplement
-    sq = torch.tensor([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=torch.float64)
-    Vs = torch.cat((sq, torch.zeros(4, 1, dtype=torch.float64)), 1)
+    sq = torch.tensor([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=torch.float64, device=device)
+    Vs = torch.cat((sq, torch.zeros(4, 1, dtype=torch.float64, device=device)), 1)
     s = 0.4
-    sheared = sq + s * sq[:, 1:] * torch.tensor([1.0, 0.0], dtype=torch.float64)
+    sheared = sq + s * sq[:, 1:] * torch.tensor([1.0, 0.0], dtype=torch.float64, device=device)
     err = angle_distortion(sheared, Vs, [[0, 1, 2, 3]]).per_corner
+    assert err.device.type == device.type
+    err = err.cpu()
     beta = math.atan2(1.0, s) - math.pi / 2
     torch.testing.assert_close(err, torch.tensor([beta, -beta, beta, -beta], dtype=torch.float64))
 
 
-def test_errors():
-    V, F = quad_grid(2)
+def test_errors(device):
+    V, F = quad_grid(2, device=device)
     with pytest.raises(ValueError, match="not a boundary vertex"):
         conformal_parameterization(V, F, pins=[4, 0])
     with pytest.raises(ValueError, match="out of range"):
@@ -327,10 +345,12 @@ def test_errors():
     with pytest.raises(ValueError, match="do not pass pins"):
         conformal_parameterization(V, F, pins=[0, 8], free_boundary=True)
     with pytest.raises(ValueError, match="without pins"):
-        conformal_parameterization(V, F, pin_uv=torch.zeros(2, 2, dtype=V.dtype))
+        conformal_parameterization(V, F, pin_uv=torch.zeros(2, 2, dtype=V.dtype, device=device))
     # a closed mesh: the surface of a cube
     cube = torch.tensor(
-        [[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=torch.float64
+        [[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)],
+        dtype=torch.float64,
+        device=device,
     )
     cube_faces = [
         [0, 1, 3, 2],

@@ -66,13 +66,14 @@ def test_round_sphere_shrinks_at_the_mean_curvature_rate(device):
     assert errors[1] < errors[0] / 2 and errors[0] < 1e-4, errors
 
 
-def test_frozen_and_rebuilt_flows_agree_to_second_order_in_dt():
+def test_frozen_and_rebuilt_flows_agree_to_second_order_in_dt(device):
     verts, faces = unit_sphere("quad_2.obj")
-    verts = verts * torch.tensor([1.0, 0.8, 0.6], dtype=torch.float64)  # an ellipsoid
+    verts = verts.to(device) * torch.tensor([1.0, 0.8, 0.6], dtype=torch.float64, device=device)
     gaps = []
     for dt in (2e-3, 1e-3):
         frozen = mean_curvature_flow(verts, faces, dt, 3, options=FROZEN).verts
         rebuilt = mean_curvature_flow(verts, faces, dt, 3).verts
+        assert frozen.device.type == rebuilt.device.type == device.type
         moved = float((rebuilt - verts).norm(dim=1).max())
         assert moved > 1e-3  # the flow moved by O(dt)
         gaps.append(float((frozen - rebuilt).norm(dim=1).max()))
@@ -82,9 +83,9 @@ def test_frozen_and_rebuilt_flows_agree_to_second_order_in_dt():
     torch.testing.assert_close(one_frozen, mean_curvature_flow(verts, faces, 1e-3, 1).verts)
 
 
-def test_area_and_volume_normalization_keep_their_measure():
+def test_area_and_volume_normalization_keep_their_measure(device):
     verts, faces = unit_sphere("hex_2.obj")
-    verts = verts * torch.tensor([1.0, 0.7, 0.5], dtype=torch.float64)
+    verts = verts.to(device) * torch.tensor([1.0, 0.7, 0.5], dtype=torch.float64, device=device)
     area0 = tp.face_areas(verts, faces).sum()
     X = mean_curvature_flow(verts, faces, 0.01, 4, options=FlowOptions(normalize="area")).verts
     torch.testing.assert_close(tp.face_areas(X, faces).sum(), area0, rtol=1e-12, atol=0)
@@ -95,26 +96,26 @@ def test_area_and_volume_normalization_keep_their_measure():
     torch.testing.assert_close(enclosed_volume(Y, faces), vol0, rtol=1e-12, atol=0)
 
 
-def test_enclosed_volume_matches_independent_volumes():
+def test_enclosed_volume_matches_independent_volumes(device):
     # a unit cube of quads under a linear map and a shift: volume |det A|
     corners = torch.tensor(
         [[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)], dtype=torch.float64
     )
     quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
     A = torch.tensor([[1.2, 0.3, -0.1], [0.2, 0.9, 0.4], [-0.3, 0.1, 1.5]], dtype=torch.float64)
-    box = corners @ A.T + torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64)
+    box = (corners @ A.T + torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64)).to(device)
     assert float(enclosed_volume(box, quads)) == pytest.approx(float(torch.det(A)), rel=1e-13)
     # the dodecahedron's pentagons are planar to the file's printed digits only
-    verts, faces = tp.read_mesh(DATA / "dodecahedron_poly.obj", dtype=torch.float64)
-    hull = scipy.spatial.ConvexHull(verts.numpy())
+    verts, faces = tp.read_mesh(DATA / "dodecahedron_poly.obj", dtype=torch.float64, device=device)
+    hull = scipy.spatial.ConvexHull(verts.cpu().numpy())
     assert float(enclosed_volume(verts, faces)) == pytest.approx(hull.volume, rel=1e-6)
 
 
-def test_flat_mesh_with_fixed_boundary_is_a_fixed_point_and_stays_in_its_plane():
-    verts, faces = quad_grid(6, 5, seed=2)  # irregular convex quads in z = 0
+def test_flat_mesh_with_fixed_boundary_is_a_fixed_point_and_stays_in_its_plane(device):
+    verts, faces = quad_grid(6, 5, seed=2, device=device)  # irregular convex quads in z = 0
     rotvec = scipy.spatial.transform.Rotation.from_rotvec([0.3, -0.5, 0.2])
-    rot = torch.from_numpy(rotvec.as_matrix())
-    verts = verts @ rot.T + torch.tensor([0.2, 0.1, -0.4], dtype=torch.float64)
+    rot = torch.from_numpy(rotvec.as_matrix()).to(device)
+    verts = verts @ rot.T + torch.tensor([0.2, 0.1, -0.4], dtype=torch.float64, device=device)
     normal = rot[:, 2]
     boundary = tp.build_topology(faces, verts.shape[0]).boundary_vertices
     # linear precision: (L X)_p = 0 at interior vertices of a planar mesh
@@ -144,12 +145,14 @@ def test_flow_is_differentiable_in_the_initial_positions(device):
     assert_directional_derivative(loss_fixed_frozen, verts, rtol=1e-6)
 
 
-def test_trajectory_progress_and_argument_checks():
+def test_trajectory_progress_and_argument_checks(device):
     verts, faces = unit_sphere("quad_2.obj")
+    verts = verts.to(device)
     options = FlowOptions(trajectory=True, progress=True)
     result = mean_curvature_flow(verts, faces, 0.01, 2, options=options)
     traj = result.trajectory
     assert traj is not None and traj.shape == (3, *verts.shape)
+    assert traj.device.type == device.type
     assert torch.equal(traj[0], verts) and torch.equal(traj[-1], result.verts)
     torch.testing.assert_close(traj[-1], mean_curvature_flow(verts, faces, 0.01, 2).verts)
     assert mean_curvature_flow(verts, faces, 0.01, 2).trajectory is None
@@ -162,7 +165,7 @@ def test_trajectory_progress_and_argument_checks():
         mean_curvature_flow(verts, faces, 0.01, -1)
     with pytest.raises(ValueError, match="normalize"):
         mean_curvature_flow(verts, faces, 0.01, 1, options=FlowOptions(normalize="length"))
-    flat, quads = quad_grid(3)
+    flat, quads = quad_grid(3, device=device)
     with pytest.raises(ValueError, match="closed mesh"):
         mean_curvature_flow(flat, quads, 0.01, 1, options=FlowOptions(normalize="volume"))
     with pytest.raises(ValueError, match="fixed"):
@@ -198,19 +201,21 @@ def lantern_symmetry_defects(X: torch.Tensor, sides: int, rings: int) -> tuple[f
     return rotation_defect, mirror_defect
 
 
-def test_lantern_quad_flow_keeps_the_symmetry_that_triangulations_break():
+def test_lantern_quad_flow_keeps_the_symmetry_that_triangulations_break(device):
     """AW11 Fig. 2: the result depends on the triangulation, the quad mesh has no such choice."""
     sides, rings = 6, 5
     results = {}
     for kind in ("quad", "horizontal", "vertical", "alternating"):
-        verts, faces = schwarz_lantern(sides, rings, triangulation=kind)
+        verts, faces = schwarz_lantern(sides, rings, triangulation=kind, device=device)
         fixed = tp.build_topology(faces, verts.shape[0]).boundary_vertices
-        results[kind] = mean_curvature_flow(verts, faces, 0.02, 10, lam=2.0, fixed=fixed).verts
+        flowed = mean_curvature_flow(verts, faces, 0.02, 10, lam=2.0, fixed=fixed).verts
+        assert flowed.device.type == device.type
+        results[kind] = flowed.cpu()
         if kind == "quad":
             # relabeling each quad cyclically (another "choice" a quad mesh does not have)
             shifted = [f[1:] + f[:1] for f in faces]
             again = mean_curvature_flow(verts, shifted, 0.02, 10, lam=2.0, fixed=fixed).verts
-            torch.testing.assert_close(again, results[kind], rtol=0, atol=1e-12)
+            torch.testing.assert_close(again.cpu(), results[kind], rtol=0, atol=1e-12)
     rotation, mirror = lantern_symmetry_defects(results["quad"], sides, rings)
     assert rotation < 1e-10 and mirror < 1e-10
     rotation, mirror = lantern_symmetry_defects(results["alternating"], sides, rings)
@@ -248,14 +253,15 @@ def unguarded_flow_degenerates(verts, faces, dt: float, steps: int, bound: float
     ("shape", "dt", "steps"),
     [("thin torus", 0.01, 20), ("dumbbell", 0.05, 20)],
 )
-def test_guard_stops_before_a_thin_part_pinches(shape, dt, steps):
+def test_guard_stops_before_a_thin_part_pinches(shape, dt, steps, device):
     verts, faces = torus(24, 8, major=1.0, minor=0.15) if shape == "thin torus" else dumbbell()
+    verts = verts.to(device)
     before = largest_scale_free_curvature(verts, faces)
     bound = SINGULARITY_FACTOR * max(before, 1.0)
     # the plain flow with this step does degenerate: without the guard this test would fail
     assert unguarded_flow_degenerates(verts, faces, dt, steps, bound)
     result = mean_curvature_flow(verts, faces, dt, steps, options=GUARDED)
-    assert isinstance(result, FlowResult)
+    assert isinstance(result, FlowResult) and result.verts.device.type == device.type
     assert 0 < result.steps < steps and result.dt == dt  # a chosen step is kept
     assert result.stopped.startswith(f"at step {result.steps + 1} ")
     assert "pinching off" in result.stopped or "shrank to a point" in result.stopped
@@ -266,8 +272,8 @@ def test_guard_stops_before_a_thin_part_pinches(shape, dt, steps):
     assert torch.equal(result.verts, plain.verts) and not plain.stopped
 
 
-def test_guard_halves_the_step_before_giving_up():
-    verts, faces = torus(24, 8, major=1.0, minor=0.15)
+def test_guard_halves_the_step_before_giving_up(device):
+    verts, faces = torus(24, 8, major=1.0, minor=0.15, device=device)
     dt, steps, halvings = 0.002, 10, 6
     kept = mean_curvature_flow(verts, faces, dt, steps, options=GUARDED)
     options = FlowOptions(stop_at_singularity=True, max_halvings=halvings)
@@ -280,11 +286,11 @@ def test_guard_halves_the_step_before_giving_up():
     assert largest_scale_free_curvature(halved.verts, faces) <= bound
 
 
-def test_guard_that_never_fires_changes_nothing():
+def test_guard_that_never_fires_changes_nothing(device):
     """On a sphere the curvature stays put: every step is taken, bit for bit the plain flow's,
     trajectory and gradients included."""
     verts, faces = unit_sphere("quad_2.obj")
-    verts = verts.clone().requires_grad_(True)
+    verts = verts.to(device, copy=True).requires_grad_(True)
     plain = mean_curvature_flow(verts, faces, 0.01, 3, options=FlowOptions(trajectory=True))
     options = FlowOptions(trajectory=True, stop_at_singularity=True, max_halvings=2)
     guarded = mean_curvature_flow(verts, faces, 0.01, 3, options=options)
@@ -292,22 +298,26 @@ def test_guard_that_never_fires_changes_nothing():
     assert (plain.steps, plain.dt, plain.stopped) == (3, 0.01, "")
     assert guarded.trajectory is not None and plain.trajectory is not None
     assert torch.equal(guarded.trajectory, plain.trajectory)
-    weights = torch.linspace(-1, 1, verts.numel(), dtype=torch.float64).reshape(verts.shape)
+    weights = torch.linspace(-1, 1, verts.numel(), dtype=torch.float64, device=device)
+    weights = weights.reshape(verts.shape)
     (g_plain,) = torch.autograd.grad((plain.verts * weights).sum(), verts)
     (g_guarded,) = torch.autograd.grad((guarded.verts * weights).sum(), verts)
     assert torch.equal(g_plain, g_guarded)
 
 
-def test_scale_free_mean_curvature_is_one_on_round_spheres_of_any_size():
+def test_scale_free_mean_curvature_is_one_on_round_spheres_of_any_size(device):
     verts, faces = unit_sphere("hex_3.obj")
+    verts = verts.to(device)
     h = scale_free_mean_curvature(verts, faces)
+    assert h.device.type == device.type
     torch.testing.assert_close(h, torch.ones_like(h), atol=0.05, rtol=0)  # H = 1/r, A = 4 pi r^2
     for radius in (0.1, 30.0):  # scale-free: the same at every size
         torch.testing.assert_close(scale_free_mean_curvature(radius * verts, faces), h)
 
 
-def test_guard_argument_checks():
+def test_guard_argument_checks(device):
     verts, faces = unit_sphere("quad_2.obj")
+    verts = verts.to(device)
     with pytest.raises(ValueError, match="stop_at_singularity"):
         mean_curvature_flow(verts, faces, 0.01, 1, options=FlowOptions(max_halvings=2))
     refused = {

@@ -32,14 +32,16 @@ def navier_double_series(x: np.ndarray, y: np.ndarray, terms: int = 400) -> np.n
     return 16 / np.pi**6 * np.einsum("pi,ij,pj->p", sx, c, sy)
 
 
-def test_navier_center_value_and_double_series():
+def test_navier_center_value_and_double_series(device):
     # Timoshenko & Woinowsky-Krieger, Table 8 (b/a = 1): w_max = 0.00406 q a^4 / D
     assert float(navier_deflection(0.5, 0.5)) == pytest.approx(0.00406235, abs=5e-9)
     rng = np.random.default_rng(1)
     x, y = rng.uniform(0, 1, 50), rng.uniform(0, 1, 50)
     # the double series' tail after 400 x 400 odd terms is below 1e-14
     direct = navier_double_series(x, y)
-    levy = navier_deflection(torch.from_numpy(x), torch.from_numpy(y)).numpy()
+    levy = navier_deflection(torch.from_numpy(x).to(device), torch.from_numpy(y).to(device))
+    assert levy.device.type == device.type
+    levy = levy.cpu().numpy()
     np.testing.assert_allclose(levy, direct, rtol=0, atol=1e-14)
     assert float(navier_deflection(0.5, 0.5, load=3.0)) == pytest.approx(3 * 0.0040623527, rel=1e-8)
 
@@ -78,12 +80,14 @@ def test_navier_solves_the_biharmonic_problem_with_navier_boundary():
 
 
 @pytest.mark.parametrize("family", ["quad", "str_hex", "triangle", "irr_poly"])
-def test_plate_converges_to_the_navier_solution(family):
+def test_plate_converges_to_the_navier_solution(family, device):
     """AW11 Fig. 7: the L2 error falls under refinement (at least linearly) at lambda = 1."""
     errors, sizes = [], []
     for level in (1, 2, 3):
         verts, faces = unit_square_grid(f"{family}_{level}.obj")
+        verts = verts.to(device)
         u = plate_bending(verts, faces, lam=1.0)
+        assert u.device.type == device.type
         errors.append(float(plate_error(verts, faces, u)))
         sizes.append(verts.shape[0])
     assert errors[0] > errors[1] > errors[2], errors
@@ -91,11 +95,11 @@ def test_plate_converges_to_the_navier_solution(family):
     assert order > 1.0 and errors[2] < 0.04, (errors, order)
 
 
-def test_lambda_zero_has_spurious_zero_energy_modes():
+def test_lambda_zero_has_spurious_zero_energy_modes(device):
     """AW11 sec. 5.4: with lambda = 0, L is rank deficient on polygons of degree > 3."""
-    verts, faces = quad_grid(6)
+    verts, faces = quad_grid(6, device=device)
     checker = torch.tensor([(-1.0) ** (i + j) for i in range(7) for j in range(7)])
-    checker = checker.to(torch.float64)
+    checker = checker.to(device, torch.float64)
 
     def bending_energy(lam):
         L, M0 = tp.laplacian(verts, faces, lam)
@@ -104,6 +108,7 @@ def test_lambda_zero_has_spurious_zero_energy_modes():
 
     assert bending_energy(0.0) < 1e-24 and bending_energy(1.0) > 1.0
     verts, faces = unit_square_grid("str_hex_1.obj")
+    verts = verts.to(device)
     for lam, nullity in ((0.0, 15), (1e-3, 1)):
         L = tp.sparse.to_scipy(tp.laplacian(verts, faces, lam)[0]).toarray()
         evals = np.linalg.eigvalsh(L)
@@ -145,7 +150,7 @@ def test_best_lambda_depends_on_the_mesh():
     assert best["quad"] != best["irr_poly"], best
 
 
-def test_all_rows_of_the_energy_give_the_clamped_plate():
+def test_all_rows_of_the_energy_give_the_clamped_plate(device):
     """Why plate_bending drops the boundary rows of L: keeping them clamps the edge.
 
     Minimizing 1/2 u^T L^T M0^-1 L u - u^T M0 q with only u_B = 0 converges to the clamped
@@ -153,6 +158,7 @@ def test_all_rows_of_the_energy_give_the_clamped_plate():
     Table 35), not to the simply supported 0.00406.
     """
     verts, faces = unit_square_grid("quad_3.obj")
+    verts = verts.to(device)
     L, M0 = tp.laplacian(verts, faces, 1.0)
     Ls, m = tp.sparse.to_scipy(L).tocsc(), tp.sparse.to_scipy(M0).diagonal()
     boundary = tp.build_topology(faces, verts.shape[0]).boundary_vertices.numpy()
@@ -164,36 +170,39 @@ def test_all_rows_of_the_energy_give_the_clamped_plate():
     assert float(plate_bending(verts, faces).max()) == pytest.approx(0.00406, rel=0.01)
 
 
-def test_plate_minimizes_the_interior_bending_energy():
+def test_plate_minimizes_the_interior_bending_energy(device):
     """u = 0 on the support and the gradient of 1/2 sum_I (L u)_p^2 / m_p - u^T M0 q vanishes."""
-    verts, faces = quad_grid(5, 4, seed=3)
+    verts, faces = quad_grid(5, 4, seed=3, device=device)
     load = 1.0 + verts[:, 0]  # a non-uniform load
     u = plate_bending(verts, faces, load=load, lam=2.0)
+    assert u.device.type == device.type
     L, M0 = tp.laplacian(verts, faces, 2.0)
     Ld = tp.sparse.to_scipy(L).toarray()
-    m = tp.mass(verts, faces).numpy()
+    m = tp.mass(verts, faces).cpu().numpy()
     boundary = tp.build_topology(faces, verts.shape[0]).boundary_vertices.numpy()
     inner = np.setdiff1d(np.arange(verts.shape[0]), boundary)
-    assert np.abs(u.numpy()[boundary]).max() == 0.0
-    un, force = u.numpy(), m * load.numpy()
+    assert np.abs(u.cpu().numpy()[boundary]).max() == 0.0
+    un, force = u.cpu().numpy(), m * load.cpu().numpy()
     grad = Ld[np.ix_(inner, inner)].T @ ((Ld[inner] @ un) / m[inner]) - force[inner]
     assert np.abs(grad).max() < 1e-9 * np.abs(force).max()
     assert (un[inner] > 0).all()
     torch.testing.assert_close(plate_bending(verts, faces, load=2 * load, lam=2.0), 2 * u)
 
 
-def test_plate_symmetry_gradient_and_errors():
-    verts, faces = quad_grid(6)
+def test_plate_symmetry_gradient_and_errors(device):
+    verts, faces = quad_grid(6, device=device)
     u = plate_bending(verts, faces).reshape(7, 7)  # vertex (i, j) at x = i/6, y = j/6
     torch.testing.assert_close(u, u.t(), rtol=0, atol=1e-15)
     torch.testing.assert_close(u, u.flip(0), rtol=0, atol=1e-15)
 
-    bumpy, quads = quad_grid(4, bump=0.1, seed=1)
+    bumpy, quads = quad_grid(4, bump=0.1, seed=1, device=device)
     assert_directional_derivative(
         lambda X: (plate_bending(X, quads, lam=1.5) ** 2).sum(), bumpy, rtol=1e-6
     )
-    sphere, sphere_faces = tp.read_mesh(DATA / "sphere" / "quad_2.obj", dtype=torch.float64)
+    sphere, sphere_faces = tp.read_mesh(
+        DATA / "sphere" / "quad_2.obj", dtype=torch.float64, device=device
+    )
     with pytest.raises(ValueError, match="no boundary"):
         plate_bending(sphere, sphere_faces)
     with pytest.raises(ValueError, match="boundary"):
-        plate_bending(verts, faces, boundary=torch.tensor([0, 99]))
+        plate_bending(verts, faces, boundary=torch.tensor([0, 99], device=device))

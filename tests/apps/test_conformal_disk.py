@@ -98,20 +98,22 @@ def test_free_boundary_maps_disks_and_refuses_the_rest(case: Case) -> None:
         assert uv.shape == (verts.shape[0], 2) and bool(torch.isfinite(uv).all())
 
 
-def test_non_disks_are_refused_and_disks_still_map() -> None:
+def test_non_disks_are_refused_and_disks_still_map(device: torch.device) -> None:
     """A torus with one hole (one loop, but genus 1) used to be mapped silently with angle
     errors of 260 degrees. A grid with three holes is refused too: nearly flat, it happened to
     map well, but the same area form folds curved meshes with holes (a cube sphere with five
     holes: 250 degrees). The grid itself, a disk, maps cleanly."""
     verts, faces = grid(9, 9)
+    verts = verts.to(device)
     holes = punch(faces, [10, 14, 46], grid_boundary(9, 9))
     assert len(faces) - len(holes) == 3
     with pytest.raises(ValueError, match="4 boundary loops and Euler characteristic -2"):
         conformal_parameterization(verts, torch.from_numpy(holes), free_boundary=True)
-    tv, tf = torus(8, 6)
+    tv, tf = torus(8, 6, device=device)
     with pytest.raises(ValueError, match="1 boundary loop and Euler characteristic -1 .genus 1"):
         conformal_parameterization(tv, tf[1:], free_boundary=True)
     uv = conformal_parameterization(verts, torch.from_numpy(faces), free_boundary=True)
+    assert uv.device.type == device.type
     assert math.degrees(angle_distortion(uv, verts, faces).max) < 10  # a fold-over: 250-285
 
 

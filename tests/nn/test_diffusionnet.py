@@ -92,10 +92,12 @@ def test_outputs_have_diffusionnets_shapes_dtypes_and_layouts(mesh, dtype, devic
     np.testing.assert_allclose(mass.cpu().double(), M0.diagonal(), rtol=tol, atol=tol)
 
 
-def test_triangle_mesh_matches_libigl_cotan_laplacian_mass_and_normals():
+def test_triangle_mesh_matches_libigl_cotan_laplacian_mass_and_normals(device):
     igl = pytest.importorskip("igl", reason="libigl not installed: pip install libigl")
     v, f = _triangle_sphere()
-    frames, mass, L, *_ = to_diffusionnet(v, f, k_eig=4)
+    frames, mass, L, *_ = to_diffusionnet(v.to(device), f, k_eig=4)
+    assert frames.device.type == mass.device.type == L.device.type == device.type
+    frames, mass = frames.cpu(), mass.cpu()
     vn, fn = v.numpy(), f.numpy()
     # libigl's cotmatrix is negative semi-definite; DiffusionNet's L, like this one, is -C
     np.testing.assert_allclose(_dense(L), -igl.cotmatrix(vn, fn).toarray(), rtol=0, atol=1e-12)
@@ -106,13 +108,15 @@ def test_triangle_mesh_matches_libigl_cotan_laplacian_mass_and_normals():
 
 
 @pytest.mark.parametrize("mesh", ["mixed", "planar", "triangles"])
-def test_eigenpairs_solve_the_generalized_problem(mesh):
+def test_eigenpairs_solve_the_generalized_problem(mesh, device):
     if mesh == "triangles":
         v, f = _triangle_sphere()
     else:
         v, f = mixed_mesh() if mesh == "mixed" else _planar_polygons()[:2]
     k = 8
-    _, mass, L, evals, evecs, _, _ = to_diffusionnet(v, f, k_eig=k)
+    _, mass, L, evals, evecs, _, _ = to_diffusionnet(v.to(device), f, k_eig=k)
+    assert evals.device.type == evecs.device.type == device.type
+    mass, evals, evecs = mass.cpu(), evals.cpu(), evecs.cpu()
     Ld, m = _dense(L), mass.numpy()
     reference = scipy.linalg.eigh(Ld, np.diag(m), eigvals_only=True, subset_by_index=[0, k - 1])
     np.testing.assert_allclose(evals.numpy(), np.clip(reference, 0, None), rtol=1e-8, atol=1e-10)
@@ -124,10 +128,12 @@ def test_eigenpairs_solve_the_generalized_problem(mesh):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_gradients_of_linear_functions_in_the_frames(seed):
+def test_gradients_of_linear_functions_in_the_frames(seed, device):
     v, f, normal = _planar_polygons()
+    v, normal = v.to(device), normal.to(device)
     frames, _, _, _, _, gradX, gradY = to_diffusionnet(v, f, k_eig=0)
     w = torch.randn(3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    w = w.to(device)
     u = v @ w + 0.7
     # on a planar mesh the tangent gradient of u is w projected on the plane; e_x, e_y lie in
     # the plane, so its components are e_x . w and e_y . w at every vertex
@@ -138,7 +144,7 @@ def test_gradients_of_linear_functions_in_the_frames(seed):
         torch.sparse.mm(gradY, u[:, None])[:, 0], frames[:, 1] @ w, rtol=1e-10, atol=1e-10
     )
     # the frames' normals are the plane's (up to orientation), so e_x, e_y are tangent
-    ones = torch.ones(v.shape[0], dtype=torch.float64)
+    ones = torch.ones(v.shape[0], dtype=torch.float64, device=device)
     torch.testing.assert_close((frames[:, 2] @ normal).abs(), ones, rtol=0, atol=1e-12)
 
 
@@ -171,17 +177,18 @@ def _diffusionnet_style_forward(ops, x, times, a_re, a_im):
     return diffused[0], gx[0], gy[0], features[0]
 
 
-def test_outputs_plug_into_diffusionnets_forward_pattern():
+def test_outputs_plug_into_diffusionnets_forward_pattern(device):
     v, f = hex_pent_mesh()
-    v = v.float()  # DiffusionNet's layers are float32
+    v = v.float().to(device)  # DiffusionNet's layers are float32
     ops = to_diffusionnet(v, f, k_eig=8)
     C = 4
     gen = torch.Generator().manual_seed(0)
-    x = torch.randn(v.shape[0], C, generator=gen).requires_grad_(True)
-    times = torch.rand(C, generator=gen).requires_grad_(True)
-    a_re = torch.randn(C, C, generator=gen).requires_grad_(True)
-    a_im = torch.randn(C, C, generator=gen).requires_grad_(True)
+    x = torch.randn(v.shape[0], C, generator=gen).to(device).requires_grad_(True)
+    times = torch.rand(C, generator=gen).to(device).requires_grad_(True)
+    a_re = torch.randn(C, C, generator=gen).to(device).requires_grad_(True)
+    a_im = torch.randn(C, C, generator=gen).to(device).requires_grad_(True)
     diffused, gx, gy, features = _diffusionnet_style_forward(ops, x, times, a_re, a_im)
+    assert features.device.type == device.type
     features.sum().backward()
     assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in (x, times, a_re))
     # the same computation with this package's own functions and operators
@@ -198,21 +205,24 @@ def test_outputs_plug_into_diffusionnets_forward_pattern():
     torch.testing.assert_close(features.detach(), reference, rtol=1e-5, atol=1e-6)
 
 
-def test_dense_implicit_diffusion_pattern_matches_a_sparse_solve():
+def test_dense_implicit_diffusion_pattern_matches_a_sparse_solve(device):
     """DiffusionNet's ``implicit_dense`` method (``k_eig=0``): ``L.to_dense()`` batched, one
     Cholesky of ``M + t L`` per channel; checked against scipy's sparse solve."""
     v, f = mixed_mesh()
-    _, mass, L, evals, evecs, _, _ = to_diffusionnet(v, f, k_eig=0)
+    _, mass, L, evals, evecs, _, _ = to_diffusionnet(v.to(device), f, k_eig=0)
     assert evals.shape == (0,) and evecs.shape == (v.shape[0], 0)
     n, C = v.shape[0], 3
-    times = torch.tensor([0.01, 0.1, 1.0], dtype=torch.float64)
+    times = torch.tensor([0.01, 0.1, 1.0], dtype=torch.float64, device=device)
     x = torch.randn(1, n, C, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    x = x.to(device)
     system = L.unsqueeze(0).to_dense().unsqueeze(1).expand(-1, C, n, n).clone()
     system *= times.unsqueeze(0).unsqueeze(-1).unsqueeze(-1)
     system += torch.diag_embed(mass.unsqueeze(0)).unsqueeze(1)
     factors = torch.linalg.cholesky(system)  # M + t L is positive definite
     rhs = (x * mass.unsqueeze(0).unsqueeze(-1)).transpose(1, 2).unsqueeze(-1)
     got = torch.cholesky_solve(rhs, factors).squeeze(-1).transpose(1, 2)[0]
+    assert got.device.type == device.type
+    got, L, mass, x = got.cpu(), L.cpu(), mass.cpu(), x.cpu()
     S = scipy.sparse.coo_matrix((L.values().numpy(), L.indices().numpy()), shape=(n, n)).tocsc()
     Mm = scipy.sparse.diags(mass.numpy())
     for c, t in enumerate(times.tolist()):
@@ -245,8 +255,9 @@ def _same(a: tuple, b: tuple) -> None:
             assert torch.equal(x, y)
 
 
-def test_cache_hit_returns_identical_tensors_without_an_eigensolve(tmp_path, monkeypatch):
+def test_cache_hit_returns_identical_tensors_without_an_eigensolve(tmp_path, monkeypatch, device):
     v, f = mixed_mesh()
+    v = v.to(device)
     cold = to_diffusionnet(v, f, k_eig=5, cache_dir=tmp_path / "ops")
     files = sorted((tmp_path / "ops").iterdir())
     assert len(files) == 1 and files[0].suffix == ".npz"
@@ -268,13 +279,18 @@ def test_cache_hit_returns_identical_tensors_without_an_eigensolve(tmp_path, mon
     assert len(list((tmp_path / "ops").iterdir())) == 4
 
 
-def test_uncached_and_cached_results_are_the_same(tmp_path):
+def test_uncached_and_cached_results_are_the_same(tmp_path, device):
     v, f = hex_pent_mesh()
-    _same(to_diffusionnet(v, f, k_eig=6), to_diffusionnet(v, f, k_eig=6, cache_dir=tmp_path))
+    v = v.to(device)
+    uncached = to_diffusionnet(v, f, k_eig=6)
+    _same(uncached, to_diffusionnet(v, f, k_eig=6, cache_dir=tmp_path))
+    # a hit: read back from the entry onto the vertices' device
+    _same(uncached, to_diffusionnet(v, f, k_eig=6, cache_dir=tmp_path))
 
 
-def test_unwritable_cache_warns_and_returns_the_result(tmp_path, monkeypatch):
+def test_unwritable_cache_warns_and_returns_the_result(tmp_path, monkeypatch, device):
     v, f = mixed_mesh()
+    v = v.to(device)
     expected = to_diffusionnet(v, f, k_eig=5)
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
@@ -292,8 +308,9 @@ def test_unwritable_cache_warns_and_returns_the_result(tmp_path, monkeypatch):
     _same(got, expected)
 
 
-def test_unreadable_cache_entry_is_recomputed_with_a_warning(tmp_path):
+def test_unreadable_cache_entry_is_recomputed_with_a_warning(tmp_path, device):
     v, f = mixed_mesh()
+    v = v.to(device)
     expected = to_diffusionnet(v, f, k_eig=5, cache_dir=tmp_path)
     (entry,) = tmp_path.iterdir()
     entry.write_bytes(b"PK\x03\x04 truncated")
@@ -303,14 +320,14 @@ def test_unreadable_cache_entry_is_recomputed_with_a_warning(tmp_path):
     _same(to_diffusionnet(v, f, k_eig=5, cache_dir=tmp_path), expected)  # replaced
 
 
-def test_bad_arguments_say_what_to_do(tmp_path):
-    v, f = quad_grid(2)
+def test_bad_arguments_say_what_to_do(tmp_path, device):
+    v, f = quad_grid(2, device=device)
     with pytest.raises(ValueError, match=r"0 <= k_eig < 9"):
         to_diffusionnet(v, f, k_eig=9)
     with pytest.raises(TypeError, match="integer"):
         to_diffusionnet(v, f, k_eig=2.0)
     with pytest.raises(ValueError, match="point cloud"):
-        to_diffusionnet(v, torch.zeros(0, 3, dtype=torch.int64), k_eig=2)
+        to_diffusionnet(v, torch.zeros(0, 3, dtype=torch.int64, device=device), k_eig=2)
     with pytest.raises(ValueError, match="method"):
         to_diffusionnet(v, f, k_eig=2, method="cotan")
     (tmp_path / "file").write_text("")
@@ -318,8 +335,8 @@ def test_bad_arguments_say_what_to_do(tmp_path):
         to_diffusionnet(v, f, k_eig=2, cache_dir=tmp_path / "file")
 
 
-def test_unsupported_operations_name_the_conversion_that_works():
-    v, f = quad_grid(2)
+def test_unsupported_operations_name_the_conversion_that_works(device):
+    v, f = quad_grid(2, device=device)
     L, _ = tp.laplacian(v, f)
     with pytest.raises(tp.sparse.UnsupportedOperation, match="to_torch_sparse") as info:
         L.unsqueeze(0)

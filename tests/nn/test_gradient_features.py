@@ -61,15 +61,15 @@ def test_gradient_of_a_linear_function_is_exact_on_a_planar_mesh(which, device):
     assert torch.allclose(grad_x @ u, e_x @ w, atol=1e-12)
 
 
-def test_gradient_of_a_smooth_function_converges_on_a_curved_mesh():
+def test_gradient_of_a_smooth_function_converges_on_a_curved_mesh(device):
     errors = []
     for level in (2, 3):
         V, F = tp.read_mesh(DATA / "sphere" / f"quad_{level}.obj", dtype=torch.float64)
-        V = V / V.norm(dim=1, keepdim=True)
+        V = (V / V.norm(dim=1, keepdim=True)).to(device)
         normal, e_x, e_y = tnn.vertex_tangent_frames(V, F)
         grad_x, grad_y = tnn.vertex_gradient_operators(V, F)
         u = V[:, 2]  # tangential gradient e_z - z n on the unit sphere
-        ez = torch.tensor([0.0, 0.0, 1.0], **D64)
+        ez = torch.tensor([0.0, 0.0, 1.0], **D64, device=device)
         exact = ez - V[:, 2:] * V
         err_x = (grad_x @ u - (e_x * exact).sum(1)).abs().max()
         err_y = (grad_y @ u - (e_y * exact).sum(1)).abs().max()
@@ -99,18 +99,19 @@ def test_rotating_the_frames_rotates_the_gradients_and_keeps_the_features(with_r
     assert torch.allclose(layer(x, rx, ry), out, atol=1e-13)
 
 
-def test_block_diagonal_batch_equals_the_meshes_one_by_one():
-    meshes = [mixed_mesh(), hex_pent_mesh(), quad_grid(3, bump=0.2)]
+def test_block_diagonal_batch_equals_the_meshes_one_by_one(device):
+    meshes = [(V.to(device), F) for V, F in [mixed_mesh(), hex_pent_mesh(), quad_grid(3, bump=0.2)]]
     ops = [tnn.vertex_gradient_operators(torch.as_tensor(V, **D64), F) for V, F in meshes]
     grad_x = tp.sparse.block_diag([gx for gx, _ in ops])
     grad_y = tp.sparse.block_diag([gy for _, gy in ops])
     xs = [
-        torch.randn(V.shape[0], 4, **D64, generator=torch.Generator().manual_seed(i))
+        torch.randn(V.shape[0], 4, **D64, generator=torch.Generator().manual_seed(i)).to(device)
         for i, (V, _) in enumerate(meshes)
     ]
     torch.manual_seed(1)
-    layer = tnn.SpatialGradientFeatures(4).double()
+    layer = tnn.SpatialGradientFeatures(4).double().to(device)
     packed = layer(torch.cat(xs), grad_x, grad_y)
+    assert packed.device.type == device.type
     one_by_one = torch.cat([layer(x, gx, gy) for x, (gx, gy) in zip(xs, ops, strict=True)])
     assert torch.allclose(packed, one_by_one, atol=1e-14)
     # and the packed mesh gives the same operators as the block diagonal
@@ -168,18 +169,19 @@ def test_dataset_items_carry_the_operators_and_the_batch_their_block_diagonal(tm
     assert "grad_x" not in plain[0] and collate_meshes(plain).grad_x is None
 
 
-def test_block_with_gradient_features_trains(tmp_path):
+def test_block_with_gradient_features_trains(tmp_path, device):
     _, items = small_batch(tmp_path)
-    batch = collate_meshes(items).to(dtype=torch.float32)
+    batch = collate_meshes(items).to(device=device, dtype=torch.float32)
     torch.manual_seed(0)
     model = tnn.DiffusionNetLike(
         3, 2, width=8, num_blocks=2, hks_features=0, gradient_features=True
-    )
+    ).to(device)
     x = batch.meshes.verts_packed()
     opt = torch.optim.Adam(model.parameters(), lr=3e-2)
     losses = []
     for _ in range(30):
         logits = model(x, batch.spectrum, grad_x=batch.grad_x, grad_y=batch.grad_y)
+        assert logits.device.type == device.type
         loss = torch.nn.functional.cross_entropy(logits, batch.labels)
         opt.zero_grad()
         loss.backward()

@@ -45,19 +45,22 @@ def m_norm(M0, u):
     return torch.sqrt((M0.diagonal()[:, None] * u * u).sum())
 
 
-def test_spectral_diffusion_is_the_library_functional(sphere):
+def test_spectral_diffusion_is_the_library_functional(sphere, device):
     V, _, _, M0, evals, evecs = sphere
+    V, M0, evals, evecs = (t.to(device) for t in (V, M0, evals, evecs))
     spectrum = tnn.Spectrum.from_meshes([(evals, evecs, M0)])
     x = torch.stack([V[:, 2], V[:, 0] * V[:, 1], torch.cos(4 * V[:, 0])], 1)
-    times = torch.tensor([1e-3, 1e-2, 0.1], **D64)
+    times = torch.tensor([1e-3, 1e-2, 0.1], **D64, device=device)
     out = spectrum.heat_diffusion(x, times)
+    assert out.device.type == device.type
     ref = tp.spectral_heat_diffusion(x, evals, evecs, M0, times)
     assert torch.allclose(out, ref, atol=1e-13)
 
 
-def test_implicit_diffusion_is_the_library_functional_and_the_resolvent(sphere):
+def test_implicit_diffusion_is_the_library_functional_and_the_resolvent(sphere, device):
     V, _, L, M0, evals, evecs = sphere
-    times = torch.tensor([1e-3, 0.05], **D64)
+    V, L, M0, evals, evecs = (t.to(device) for t in (V, L, M0, evals, evecs))
+    times = torch.tensor([1e-3, 0.05], **D64, device=device)
     x = torch.stack([V[:, 2], torch.sin(3 * V[:, 1])], 1)
     out = tp.implicit_heat_diffusion(L, M0, x, times)
     for c in range(2):
@@ -70,13 +73,14 @@ def test_implicit_diffusion_is_the_library_functional_and_the_resolvent(sphere):
     assert torch.allclose(out, expected, atol=1e-9)
 
 
-def test_spectral_and_implicit_diffusion_agree_for_small_times(sphere):
+def test_spectral_and_implicit_diffusion_agree_for_small_times(sphere, device):
     """Bound: implicit keeps every mode i with factor 1/(1 + t mu_i) <= 1, spectral keeps the
     first k with exp(-t mu_i), so in the M0-norm
     ``|spectral - implicit| <= max_{i<k} |exp(-t mu_i) - 1/(1 + t mu_i)| |P_k u| + |u - P_k u|``
     with ``P_k`` the M0-orthogonal projection on the k eigenvectors. For a smooth signal on
     this 386-vertex sphere ``|u - P_k u|`` is small, and the first term is O((t mu_k)^2)."""
     V, _, L, M0, evals, evecs = sphere
+    V, L, M0, evals, evecs = (t.to(device) for t in (V, L, M0, evals, evecs))
     spectrum = tnn.Spectrum.from_meshes([(evals, evecs, M0)])
     u = torch.stack([V[:, 2], V[:, 0] * V[:, 1] + 0.3 * V[:, 2] ** 3], 1)
     projected = spectrum.synthesize(spectrum.project(u))
@@ -84,7 +88,7 @@ def test_spectral_and_implicit_diffusion_agree_for_small_times(sphere):
     assert residual < 0.02 * m_norm(M0, u)  # the mesh resolves these signals
     errors = []
     for t in (1e-2, 1e-3, 1e-4):
-        times = torch.full((2,), t, **D64)
+        times = torch.full((2,), t, **D64, device=device)
         gap = (torch.exp(-t * evals) - 1 / (1 + t * evals)).abs().max()
         diff = m_norm(
             M0, spectrum.heat_diffusion(u, times) - tp.implicit_heat_diffusion(L, M0, u, times)
@@ -98,7 +102,7 @@ def test_spectral_and_implicit_diffusion_agree_for_small_times(sphere):
     coeffs = spectrum.project(u)[0]  # (k, 2)
     gaps = []
     for t in (1e-3, 1e-4):
-        times = torch.full((2,), t, **D64)
+        times = torch.full((2,), t, **D64, device=device)
         factor = (torch.exp(-t * evals) - 1 / (1 + t * evals))[:, None]
         implicit = tp.implicit_heat_diffusion(L, M0, projected, times)
         diff = spectrum.heat_diffusion(projected, times) - implicit
@@ -107,53 +111,59 @@ def test_spectral_and_implicit_diffusion_agree_for_small_times(sphere):
     assert 80 < gaps[0] / gaps[1] < 101
 
 
-def test_zero_time_is_the_identity(sphere):
+def test_zero_time_is_the_identity(sphere, device):
     V, _, L, M0, evals, evecs = sphere
+    V, L, M0, evals, evecs = (t.to(device) for t in (V, L, M0, evals, evecs))
     spectrum = tnn.Spectrum.from_meshes([(evals, evecs, M0)])
     band_limited = evecs[:, :12] @ torch.randn(
         12, 3, generator=torch.Generator().manual_seed(0), **D64
-    )
-    zero = torch.zeros(3, **D64)
+    ).to(device)
+    zero = torch.zeros(3, **D64, device=device)
     assert torch.allclose(spectrum.heat_diffusion(band_limited, zero), band_limited, atol=1e-10)
-    x = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(1), **D64)
-    tiny = torch.full((2,), 1e-12, **D64)
+    x = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(1), **D64).to(device)
+    tiny = torch.full((2,), 1e-12, **D64, device=device)
     assert torch.allclose(tp.implicit_heat_diffusion(L, M0, x, tiny), x, atol=1e-8)
-    layer = tnn.LearnedDiffusion(2, mode="implicit").double()
+    layer = tnn.LearnedDiffusion(2, mode="implicit").double().to(device)
     with torch.no_grad():
         layer.raw_times.fill_(-40.0)  # softplus(-40) ~ 4e-18
     assert torch.allclose(layer(x, L=L, M0=M0), x, atol=1e-12)
 
 
 @pytest.mark.parametrize("mode", ["spectral", "implicit"])
-def test_diffusion_conserves_heat_on_closed_meshes(batch, mode):
+def test_diffusion_conserves_heat_on_closed_meshes(batch, mode, device):
     """``1^T M0 u(t) = 1^T M0 u0``: L 1 = 0 (implicit: exactly; spectral: phi_0 is constant and
     the other eigenvectors are M0-orthogonal to it)."""
     meshes, spectrum = batch
-    L = tp.sparse.block_diag([m[2] for m in meshes])
-    M0 = tp.sparse.block_diag([m[3] for m in meshes])
+    spectrum = spectrum.to(device)
+    L = tp.sparse.block_diag([m[2] for m in meshes]).to(device)
+    M0 = tp.sparse.block_diag([m[3] for m in meshes]).to(device)
     x = torch.rand(spectrum.evecs.shape[0], 3, generator=torch.Generator().manual_seed(2), **D64)
-    layer = tnn.LearnedDiffusion(3, mode=mode, init_times=(0.01, 1.0)).double()
+    x = x.to(device)
+    layer = tnn.LearnedDiffusion(3, mode=mode, init_times=(0.01, 1.0)).double().to(device)
     out = layer(x, spectrum, L, M0)
+    assert out.device.type == device.type
     before = tp.per_mesh_mean(x, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
     after = tp.per_mesh_mean(out, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
     assert torch.allclose(before, after, atol=1e-10)
     assert not torch.allclose(out, x, atol=1e-3)  # it did diffuse
 
 
-def test_batch_equals_meshes_one_by_one(batch):
+def test_batch_equals_meshes_one_by_one(batch, device):
     meshes, spectrum = batch
+    spectrum = spectrum.to(device)
     gen = torch.Generator().manual_seed(3)
-    x = torch.randn(spectrum.evecs.shape[0], 4, generator=gen, **D64)
-    pm = PolygonMeshes([m[0] for m in meshes], [m[1] for m in meshes])
+    x = torch.randn(spectrum.evecs.shape[0], 4, generator=gen, **D64).to(device)
+    pm = PolygonMeshes([m[0].to(device) for m in meshes], [m[1] for m in meshes])
     L, M0 = pm.laplacian()
-    spectral = tnn.LearnedDiffusion(4).double()
-    implicit = tnn.LearnedDiffusion(4, mode="implicit").double()
-    cheb = tnn.ChebyshevFilter(4, 5, K=4).double()
-    hks = tnn.SpectralFeatures("hks", 6, normalize=True)
-    wks = tnn.SpectralFeatures("wks", 6)
+    spectral = tnn.LearnedDiffusion(4).double().to(device)
+    implicit = tnn.LearnedDiffusion(4, mode="implicit").double().to(device)
+    cheb = tnn.ChebyshevFilter(4, 5, K=4).double().to(device)
+    hks = tnn.SpectralFeatures("hks", 6, normalize=True).to(device)
+    wks = tnn.SpectralFeatures("wks", 6).to(device)
     torch.manual_seed(0)
-    model = tnn.DiffusionNetLike(4, 3, width=8, num_blocks=2, hks_features=4).double()
-    segmenter = tnn.DiffusionNetLike(4, 2, width=8, num_blocks=1, task="segmentation").double()
+    model = tnn.DiffusionNetLike(4, 3, width=8, num_blocks=2, hks_features=4).double().to(device)
+    segmenter = tnn.DiffusionNetLike(4, 2, width=8, num_blocks=1, task="segmentation")
+    segmenter = segmenter.double().to(device)
     batched = {
         "spectral": spectral(x, spectrum),
         "implicit": implicit(x, L=L, M0=M0),
@@ -165,6 +175,7 @@ def test_batch_equals_meshes_one_by_one(batch):
     }
     singles = {name: [] for name in batched}
     for b, (V, _, Lb, M0b, evals, evecs) in enumerate(meshes):
+        Lb, M0b, evals, evecs = (t.to(device) for t in (Lb, M0b, evals, evecs))
         first, n = int(spectrum.first_idx[b]), V.shape[0]
         xb = x[first : first + n]
         sb = tnn.Spectrum.from_meshes([(evals, evecs, M0b)])
@@ -179,15 +190,18 @@ def test_batch_equals_meshes_one_by_one(batch):
     for name, out in batched.items():
         assert torch.allclose(out, torch.cat(singles[name]), atol=1e-12), name
     # the batch's own block-diagonal assembly equals the concatenated blocks
-    assert torch.allclose(L.to_dense(), tp.sparse.block_diag([m[2] for m in meshes]).to_dense())
+    expected = tp.sparse.block_diag([m[2] for m in meshes]).to_dense()
+    assert L.device.type == device.type and torch.allclose(L.to_dense().cpu(), expected)
 
 
-def test_spectrum_from_polygon_meshes_uses_the_disk_cache(batch, tmp_path):
+def test_spectrum_from_polygon_meshes_uses_the_disk_cache(batch, tmp_path, device):
     meshes, spectrum = batch
-    pm = PolygonMeshes([m[0] for m in meshes], [m[1] for m in meshes])
+    spectrum = spectrum.to(device)
+    pm = PolygonMeshes([m[0].to(device) for m in meshes], [m[1] for m in meshes])
     first = tnn.Spectrum.from_polygon_meshes(pm, 8, cache_dir=tmp_path)
     assert len(list(tmp_path.glob("eigs-*.npz"))) == 3
     again = tnn.Spectrum.from_polygon_meshes(pm, 8, cache_dir=tmp_path)
+    assert again.evecs.device.type == device.type
     assert torch.equal(first.evecs, again.evecs)
     assert torch.allclose(first.evals, spectrum.evals, atol=1e-10)
     assert torch.allclose(first.mass, spectrum.mass)
@@ -272,15 +286,17 @@ def test_chebyshev_gradcheck(device):
     assert torch.autograd.gradcheck(f, (x, w, Vg), fast_mode=True)
 
 
-def test_spectral_features_equal_the_functionals(batch):
+def test_spectral_features_equal_the_functionals(batch, device):
     meshes, spectrum = batch
-    times = torch.tensor([0.01, 0.1, 1.0], **D64)
-    fixed = tnn.SpectralFeatures("hks", times=times).double()
-    learnable = tnn.SpectralFeatures("hks", 5, learnable=True).double()
-    wks = tnn.SpectralFeatures("wks", 7).double()
+    spectrum = spectrum.to(device)
+    times = torch.tensor([0.01, 0.1, 1.0], **D64, device=device)
+    fixed = tnn.SpectralFeatures("hks", times=times).double().to(device)
+    learnable = tnn.SpectralFeatures("hks", 5, learnable=True).double().to(device)
+    wks = tnn.SpectralFeatures("wks", 7).double().to(device)
     out_fixed, out_learn, out_wks = fixed(spectrum), learnable(spectrum), wks(spectrum)
     refs = {"fixed": [], "learn": [], "wks": []}
     for _, _, _, _, evals, evecs in meshes:
+        evals, evecs = evals.to(device), evecs.to(device)
         refs["fixed"].append(tp.heat_kernel_signature(evals, evecs, times))
         # Sun et al.: log-spaced over [4 ln 10 / mu_max, 4 ln 10 / mu_min], mu_min > 0
         mu = evals[1:]
@@ -289,9 +305,12 @@ def test_spectral_features_equal_the_functionals(batch):
             math.log10(4 * math.log(10) / mu.min()),
             5,
             **D64,
+            device=device,
         )
         refs["learn"].append(tp.heat_kernel_signature(evals, evecs, t_paper))
-        energies = torch.linspace(float(mu.min().log()), float(mu.max().log()), 7, **D64)
+        energies = torch.linspace(
+            float(mu.min().log()), float(mu.max().log()), 7, **D64, device=device
+        )
         refs["wks"].append(tp.wave_kernel_signature(evals, evecs, energies))
     assert torch.allclose(out_fixed, torch.cat(refs["fixed"]), atol=1e-12)
     assert torch.allclose(out_learn, torch.cat(refs["learn"]), atol=1e-12)
@@ -302,12 +321,14 @@ def test_spectral_features_equal_the_functionals(batch):
         tnn.SpectralFeatures("hks", times=torch.tensor([0.1, -1.0]))
 
 
-def test_classifier_pools_with_mass_weights(batch):
+def test_classifier_pools_with_mass_weights(batch, device):
     """Mean pooling is M0-weighted: a per-vertex constant field pools to itself, and a model
     with a zero-width path (all blocks zeroed) gives head(lift(mean input))."""
     meshes, spectrum = batch
+    spectrum = spectrum.to(device)
     x = torch.randn(spectrum.evecs.shape[0], 2, generator=torch.Generator().manual_seed(9), **D64)
-    model = tnn.DiffusionNetLike(2, 4, width=6, num_blocks=1, hks_features=0).double()
+    x = x.to(device)
+    model = tnn.DiffusionNetLike(2, 4, width=6, num_blocks=1, hks_features=0).double().to(device)
     with torch.no_grad():
         for p in model.blocks.parameters():
             p.zero_()
@@ -321,20 +342,21 @@ def test_classifier_pools_with_mass_weights(batch):
         assert torch.allclose(mean[b], manual)
 
 
-def test_bad_arguments_are_named():
+def test_bad_arguments_are_named(device):
     with pytest.raises(ValueError, match="mode must be"):
         tnn.LearnedDiffusion(3, mode="explicit")
-    layer = tnn.LearnedDiffusion(3, mode="implicit")
+    layer = tnn.LearnedDiffusion(3, mode="implicit").to(device)
     with pytest.raises(ValueError, match="needs the .*L and M0"):
-        layer(torch.zeros(5, 3))
+        layer(torch.zeros(5, 3, device=device))
     with pytest.raises(ValueError, match=r"shape \(sumV, 3\)"):
-        layer(torch.zeros(5, 2))
-    V, F = quad_grid(2)
+        layer(torch.zeros(5, 2, device=device))
+    V, F = quad_grid(2, device=device)
     L, M0 = tp.laplacian(V, F)
     with pytest.raises(ValueError, match="normalization"):
         tnn.chebyshev_operator(L, M0, "lap")
     with pytest.raises(ValueError, match="diagonal"):
-        tnn.Spectrum.from_meshes([(torch.zeros(2), torch.zeros(9, 2), L)])
+        evals, evecs = torch.zeros(2, device=device), torch.zeros(9, 2, device=device)
+        tnn.Spectrum.from_meshes([(evals, evecs, L)])
     with pytest.raises(ValueError, match="same number of eigenpairs"):
         e, v = tp.eigs(L, M0, 3)
         tnn.Spectrum.from_meshes([(e, v, M0), (e[:2], v[:, :2], M0)])

@@ -59,19 +59,19 @@ def test_low_precision_positions_are_taken_in_float32_with_gradients(device):
     assert X.grad is not None and torch.isfinite(X.grad).all() and X.grad.abs().sum() > 0
 
 
-def test_low_precision_positions_are_refused_outside_autocast():
+def test_low_precision_positions_are_refused_outside_autocast(device):
     verts, faces = mixed_mesh()
     with pytest.raises(TypeError, match="float32 or float64"):
-        tp.laplacian(verts.to(torch.bfloat16), faces)
+        tp.laplacian(verts.to(device, _low(device)), faces)
 
 
-def test_compiled_step_under_autocast_equals_eager():
+def test_compiled_step_under_autocast_equals_eager(device):
     verts, faces = mixed_mesh()
-    X = verts.float()
-    layer = torch.nn.Linear(3, 4)
+    X = verts.float().to(device)
+    layer = torch.nn.Linear(3, 4).to(device)
 
     def step(X: torch.Tensor) -> torch.Tensor:
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        with torch.autocast(device.type, dtype=_low(device)):
             L, M0 = tp.laplacian(X, faces)
             return (M0 @ (L @ layer(X))).sum()
 

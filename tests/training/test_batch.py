@@ -28,8 +28,9 @@ def dense(A: torch.Tensor) -> torch.Tensor:
     return A.to_dense()
 
 
-def test_packed_accessors_match_concatenation():
+def test_packed_accessors_match_concatenation(device):
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     nv = [v.shape[0] for v in verts]
     nf = [len(f) for f in faces]
@@ -53,11 +54,13 @@ def test_packed_accessors_match_concatenation():
     assert m[-1][0] is m.verts_list()[2]
     with pytest.raises(IndexError, match="out of range"):
         m[3]
-    assert m.dtype == torch.float64 and m.device == torch.device("cpu")
+    assert m.dtype == torch.float64 and m.device.type == device.type
+    assert m.faces_packed_to_mesh_idx().device.type == device.type
 
 
-def test_packed_laplacian_is_block_diagonal_of_per_mesh_ones():
+def test_packed_laplacian_is_block_diagonal_of_per_mesh_ones(device):
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     L, M0 = m.laplacian(lam=1.7)
     expected_L = torch.block_diag(
@@ -72,8 +75,9 @@ def test_packed_laplacian_is_block_diagonal_of_per_mesh_ones():
     torch.testing.assert_close(L.diagonal(), torch.diagonal(expected_L))
 
 
-def test_gradient_through_packed_batch_matches_single_meshes():
+def test_gradient_through_packed_batch_matches_single_meshes(device):
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     leaves = [v.clone().requires_grad_(True) for v in verts]
     m = PolygonMeshes(leaves, faces)
     L, _ = m.laplacian()
@@ -87,8 +91,9 @@ def test_gradient_through_packed_batch_matches_single_meshes():
         torch.testing.assert_close(leaf.grad, g, rtol=1e-12, atol=1e-12)
 
 
-def test_update_packed_shares_topology_and_uses_new_vertices():
+def test_update_packed_shares_topology_and_uses_new_vertices(device):
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     topo = m.topology()
     assert m.topology() is topo
@@ -107,36 +112,41 @@ def test_update_packed_shares_topology_and_uses_new_vertices():
         m.update_packed(new[:-1])
     m32 = m.to(dtype=torch.float32)
     assert m32.dtype == torch.float32 and m32.topology() is topo
-    assert m32.laplacian()[0].dtype == torch.float32
+    L32 = m32.laplacian()[0]
+    assert L32.dtype == torch.float32 and L32.device.type == device.type
 
 
-def test_single_mesh_reuses_topology_cached_on_the_faces_tensor():
-    v, f = quad_grid(4)
+def test_single_mesh_reuses_topology_cached_on_the_faces_tensor(device):
+    v, f = quad_grid(4, device=device)
     a = PolygonMeshes([v], [f]).topology()
     b = PolygonMeshes([v * 3], [f]).topology()
     assert a is b is tp.get_topology(f, v.shape[0])
 
 
-def test_per_mesh_reductions_against_a_loop():
+def test_per_mesh_reductions_against_a_loop(device):
     gen = torch.Generator().manual_seed(0)
-    index = torch.tensor([0, 0, 2, 2, 2, 0, 3])
-    values = torch.randn(7, 2, generator=gen, dtype=torch.float64)
+    index = torch.tensor([0, 0, 2, 2, 2, 0, 3], device=device)
+    values = torch.randn(7, 2, generator=gen, dtype=torch.float64).to(device)
     s = per_mesh_sum(values, index, 5)
     mean = per_mesh_mean(values, index, 5)
+    assert s.device.type == mean.device.type == device.type
     for b in range(5):
         rows = values[index == b]
         torch.testing.assert_close(s[b], rows.sum(0))
         torch.testing.assert_close(
-            mean[b], rows.mean(0) if len(rows) else torch.zeros(2, dtype=torch.float64)
+            mean[b],
+            rows.mean(0) if len(rows) else torch.zeros(2, dtype=torch.float64, device=device),
         )
     with pytest.raises(ValueError, match="one mesh per row"):
         per_mesh_sum(values, index[:-1], 5)
 
 
-def test_interior_edge_faces_share_an_edge():
+def test_interior_edge_faces_share_an_edge(device):
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     m = PolygonMeshes(verts, faces)
     f0, f1 = m.interior_edge_faces()
+    assert f0.device.type == f1.device.type == device.type
     topo = m.topology()
     assert f0.numel() == int((topo.edge_faces == 2).sum())
     packed = m.faces_packed().tolist()
@@ -148,8 +158,9 @@ def test_interior_edge_faces_share_an_edge():
         assert a != b and len(edges(packed[a]) & edges(packed[b])) == 1
 
 
-def test_errors_name_the_mesh_and_vertex():
+def test_errors_name_the_mesh_and_vertex(device):
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     bad = list(faces)
     bad[1] = faces[1].clone()
     bad[1][5, 2] = 16  # mesh 1 has 16 vertices
@@ -169,15 +180,17 @@ def test_errors_name_the_mesh_and_vertex():
         PolygonMeshes(verts[0], faces[0])
 
 
-def test_irregular_meshes_warn_with_the_mesh_and_local_indices():
+def test_irregular_meshes_warn_with_the_mesh_and_local_indices(device):
     """A flipped face (mesh 2) and a fin (mesh 1) are not errors: one warning names each mesh
     with its own indices, the operators are the per-mesh ones, and what needs an orientation
     or a manifold refuses naming the mesh."""
     verts, faces = three_meshes()
+    verts = [v.to(device) for v in verts]
     flipped = [list(reversed(f)) if i == 4 else f for i, f in enumerate(faces[2])]
     p, q = int(faces[1][0, 2]), int(faces[1][0, 3])  # an interior edge of the grid
     nv = verts[1].shape[0]
-    fin_verts = torch.cat([verts[1], verts[1][[p, q]] + torch.tensor([0.0, 0.1, 1.0]).double()])
+    lift = torch.tensor([0.0, 0.1, 1.0], dtype=torch.float64, device=device)
+    fin_verts = torch.cat([verts[1], verts[1][[p, q]] + lift])
     fin = faces[1].tolist() + [[p, q, nv + 1, nv]]
     local = [
         tp.build_topology(f, v.shape[0], warn=False).report
@@ -205,6 +218,7 @@ def test_irregular_meshes_warn_with_the_mesh_and_local_indices():
     assert reports[1].non_manifold_edges.tolist() == local[0].non_manifold_edges.tolist()
 
     L, M0 = m.laplacian()
+    assert L.device.type == device.type
     first = m.mesh_to_verts_packed_first_idx().tolist()
     for i, (v, f) in enumerate([(verts[0], faces[0]), (fin_verts, fin), (verts[2], flipped)]):
         with warnings.catch_warnings():

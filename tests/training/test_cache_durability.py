@@ -145,9 +145,11 @@ def _npy(a: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def test_bad_cache_files_are_misses_replaced_with_one_warning(tmp_path, mesh):
+def test_bad_cache_files_are_misses_replaced_with_one_warning(tmp_path, mesh, device):
     V, F = mesh
+    V = V.to(device)
     evals, evecs = tp.cached_eigs(V, F, K, tmp_path)
+    assert evals.device.type == evecs.device.type == device.type
     (path,) = tmp_path.glob("eigs-*.npz")
     good = path.read_bytes()
     for what, data in _corruptions(good, V).items():
@@ -182,8 +184,9 @@ def test_cache_dir_that_is_a_file_fails_before_any_work(tmp_path, mesh, monkeypa
         PolygonMeshDataset([(V, F)], k=K, cache_dir=not_a_dir)
 
 
-def test_concurrent_threads_writing_one_key(tmp_path, mesh):
+def test_concurrent_threads_writing_one_key(tmp_path, mesh, device):
     V, F = mesh
+    V = V.to(device)
     results, errors = [], []
 
     def work():

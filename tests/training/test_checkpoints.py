@@ -23,7 +23,7 @@ class _Holder(nn.Module):
         super().__init__()
         self.register_buffer("L", L)
         self.register_buffer("M0", M0)
-        self.weight = nn.Parameter(torch.ones(3, dtype=L.dtype))
+        self.weight = nn.Parameter(torch.ones(3, dtype=L.dtype, device=L.device))
 
     def forward(self, X: torch.Tensor) -> torch.Tensor:
         return (self.L @ X + self.M0 @ X) * self.weight
@@ -42,19 +42,20 @@ def _roundtrip(obj: object, **load_kwargs: object) -> object:
     return torch.load(buf, **load_kwargs)
 
 
-def test_state_dict_loads_with_weights_only_default():
-    verts, L, M0 = _operators()
+def test_state_dict_loads_with_weights_only_default(device):
+    verts, L, M0 = (t.to(device) for t in _operators())
     model = _Holder(L, M0)
     sd = _roundtrip(model.state_dict())  # torch's default: weights_only=True
     assert set(sd) == {"L", "M0", "weight"}
     torch.testing.assert_close(sd["L"].to_dense(), L.to_dense(), rtol=0, atol=0)
     assert sd["L"].symmetric and sd["L"].layout == torch.sparse_csr
+    assert sd["L"].device.type == device.type
     torch.testing.assert_close(sd["L"] @ verts, L @ verts, rtol=0, atol=0)
 
 
-def test_load_state_dict_copies_values_into_operator_buffers():
-    verts, L, M0 = _operators()
-    _, L2, M2 = _operators(scale=2.0)
+def test_load_state_dict_copies_values_into_operator_buffers(device):
+    verts, L, M0 = (t.to(device) for t in _operators())
+    _, L2, M2 = (t.to(device) for t in _operators(scale=2.0))
     target, source = _Holder(L, M0), _Holder(L2, M2)
     target.load_state_dict(_roundtrip(source.state_dict()))
     torch.testing.assert_close(target(verts), source(verts), rtol=0, atol=0)
@@ -63,8 +64,8 @@ def test_load_state_dict_copies_values_into_operator_buffers():
     torch.testing.assert_close(target.L.values(), L2.values(), rtol=0, atol=0)
 
 
-def test_load_state_dict_of_another_mesh_says_to_assign():
-    verts, L, M0 = _operators()
+def test_load_state_dict_of_another_mesh_says_to_assign(device):
+    verts, L, M0 = (t.to(device) for t in _operators())
     # same number of vertices, other connectivity: same shapes, other patterns
     faces = [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]
     L3, M3 = tp.laplacian(verts, faces)
@@ -76,15 +77,16 @@ def test_load_state_dict_of_another_mesh_says_to_assign():
     torch.testing.assert_close(model(verts), _Holder(L3, M3)(verts), rtol=0, atol=0)
 
 
-def test_copy_refuses_a_dense_tensor():
-    _, L, _ = _operators()
+def test_copy_refuses_a_dense_tensor(device):
+    L = _operators()[1].to(device)
     with pytest.raises(UnsupportedOperation, match="same sparsity pattern"):
-        L.copy_(torch.zeros(L.shape, dtype=L.dtype))
+        L.copy_(torch.zeros(L.shape, dtype=L.dtype, device=device))
 
 
 @pytest.mark.parametrize("dump", ["pickle", "torch.save", "deepcopy"])
-def test_modules_batches_and_topologies_pickle_after_a_forward(dump):
+def test_modules_batches_and_topologies_pickle_after_a_forward(dump, device):
     verts, faces = mixed_mesh()
+    verts = verts.to(device)
     lap = tp.PolygonLaplacian(learn_lam=True)
     L, M0 = lap(verts, faces)
     _ = M0 + 0.5 * L  # fills the pattern's union cache
@@ -101,6 +103,7 @@ def test_modules_batches_and_topologies_pickle_after_a_forward(dump):
         restored = copy.deepcopy(things)
     lap2, topo2, meshes2, holder2 = restored
     L2, M2 = lap2(verts)  # the module kept its topology
+    assert L2.device.type == device.type
     torch.testing.assert_close(L2.to_dense(), L.to_dense(), rtol=0, atol=0)
     L3, _ = tp.laplacian(verts, topo2)
     torch.testing.assert_close(L3.to_dense(), L.to_dense(), rtol=0, atol=0)

@@ -38,9 +38,10 @@ def _grid(n: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
     )
 
 
-def test_forward_is_one_graph_without_breaks():
+def test_forward_is_one_graph_without_breaks(device):
     verts, faces = _grid()
-    lap = tp.PolygonLaplacian()
+    verts = verts.to(device)
+    lap = tp.PolygonLaplacian().to(device)
 
     def step(X: torch.Tensor) -> torch.Tensor:
         L, M0 = lap(X, faces)
@@ -52,7 +53,7 @@ def test_forward_is_one_graph_without_breaks():
 
 
 @pytest.mark.parametrize("faces_kind", ["tensor", "list", "polygonfaces", "topology"])
-def test_fullgraph_forward_backward_equals_eager(faces_kind):
+def test_fullgraph_forward_backward_equals_eager(faces_kind, device):
     if faces_kind == "tensor":
         verts, faces = _grid()
     else:
@@ -69,14 +70,16 @@ def test_fullgraph_forward_backward_equals_eager(faces_kind):
         (g,) = torch.autograd.grad(loss, X)
         return loss.detach(), g
 
-    X = verts.clone().requires_grad_(True)
+    X = verts.to(device, copy=True).requires_grad_(True)
     want = step(X)
     got = torch.compile(step, backend="aot_eager", fullgraph=True)(X)
+    assert got[1].device.type == device.type
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
-def test_compiled_step_checks_that_the_faces_are_unchanged():
+def test_compiled_step_checks_that_the_faces_are_unchanged(device):
     verts, faces = _grid()
+    verts = verts.to(device)
 
     def energy(X: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
         L, M0 = tp.laplacian(X, faces)
@@ -91,7 +94,7 @@ def test_compiled_step_checks_that_the_faces_are_unchanged():
         compiled(verts, other)
 
 
-def test_topologies_as_arguments_recompile_per_structure():
+def test_topologies_as_arguments_recompile_per_structure(device):
     def energy(X: torch.Tensor, topo: tp.Topology) -> torch.Tensor:
         L, M0 = tp.laplacian(X, topo)
         return _loss(L, M0, X)
@@ -99,15 +102,18 @@ def test_topologies_as_arguments_recompile_per_structure():
     compiled = torch.compile(energy, backend="aot_eager", fullgraph=True)
     for n in (3, 4):
         verts, faces = _grid(n)
+        verts = verts.to(device)
         topo = tp.build_topology(faces, verts.shape[0])
         torch.testing.assert_close(compiled(verts, topo), energy(verts, topo))
     verts, faces = mixed_mesh()
+    verts = verts.to(device)
     topo = tp.build_topology(faces, verts.shape[0])
     torch.testing.assert_close(compiled(verts, topo), energy(verts, topo))
 
 
-def test_compiled_validation_refuses_non_finite_vertices():
+def test_compiled_validation_refuses_non_finite_vertices(device):
     verts, faces = _grid()
+    verts = verts.to(device)
     compiled = torch.compile(
         lambda X: tp.laplacian(X, faces)[0] @ X, backend="aot_eager", fullgraph=True
     )
@@ -119,9 +125,9 @@ def test_compiled_validation_refuses_non_finite_vertices():
 
 
 @pytest.mark.parametrize("method", ["aw11", "plms", "degoes"])
-def test_methods_compile(method):
+def test_methods_compile(method, device):
     verts, faces = mixed_mesh()
-    faces = tp.as_faces(faces)
+    verts, faces = verts.to(device), tp.as_faces(faces)
 
     def energy(X: torch.Tensor) -> torch.Tensor:
         L, M0 = tp.laplacian(X, faces, method=method)
@@ -131,15 +137,15 @@ def test_methods_compile(method):
     torch.testing.assert_close(compiled(verts), energy(verts), rtol=1e-12, atol=1e-12)
 
 
-def test_custom_operators_pass_opcheck():
+def test_custom_operators_pass_opcheck(device):
     """torch.library.opcheck: schema, fake kernel, registered derivative, AOT dispatch."""
     verts, faces = mixed_mesh()
-    L, M0 = tp.laplacian(verts, faces)
+    L, M0 = tp.laplacian(verts.to(device), faces)
     n = verts.shape[0]
     parts = (L._crow, L._col, L._row)
     vals = L.values().detach().clone().requires_grad_(True)
-    X = torch.randn(n, 2, dtype=torch.float64, requires_grad=True)
-    G = torch.randn(n, 2, dtype=torch.float64, requires_grad=True)
+    X = torch.randn(n, 2, dtype=torch.float64, device=device, requires_grad=True)
+    G = torch.randn(n, 2, dtype=torch.float64, device=device, requires_grad=True)
     torch.library.opcheck(spmm_op, (vals, *parts, X, True))
     torch.library.opcheck(spmm_op, (vals, *parts, X, False))
     torch.library.opcheck(spmm_t_op, (vals, *parts, G, n))
@@ -164,12 +170,14 @@ def test_custom_operators_on_the_meta_device():
     assert sampled_op(X, X, *meta[1:]).shape == (L._nnz(),)
 
 
-def test_compiled_union_of_operators_equals_eager():
+def test_compiled_union_of_operators_equals_eager(device):
     verts, faces = mixed_mesh()
+    verts = verts.to(device)
 
     def combo(X: torch.Tensor) -> torch.Tensor:
         L, M0 = tp.laplacian(X, faces)
-        A = (M0 - 0.25 * L) * torch.arange(1.0, X.shape[0] + 1, dtype=X.dtype)[:, None]
+        weights = torch.arange(1.0, X.shape[0] + 1, dtype=X.dtype, device=X.device)
+        A = (M0 - 0.25 * L) * weights[:, None]
         return A.T @ X + A.diagonal()[:, None]
 
     got = torch.compile(combo, backend="aot_eager", fullgraph=True)(verts)
@@ -177,15 +185,15 @@ def test_compiled_union_of_operators_equals_eager():
 
 
 @pytest.mark.parametrize("mode", ["implicit", "spectral"])
-def test_learned_diffusion_is_one_graph(mode):
+def test_learned_diffusion_is_one_graph(mode, device):
     verts, faces = _grid()
-    L, M0 = tp.laplacian(verts, faces)
+    L, M0 = tp.laplacian(verts.to(device), faces)
     evals, evecs = tp.eigs(L, M0, k=8)
     spectrum = tp.nn.Spectrum.from_meshes([(evals, evecs, M0)])
-    layer = tp.nn.LearnedDiffusion(3, mode=mode).double()
+    layer = tp.nn.LearnedDiffusion(3, mode=mode).double().to(device)
     x = torch.randn(
         verts.shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1)
-    )
+    ).to(device)
 
     def f(x: torch.Tensor) -> torch.Tensor:
         y = layer(x, spectrum=spectrum) if mode == "spectral" else layer(x, L=L, M0=M0)
@@ -252,7 +260,7 @@ def test_inductor_training_step_in_a_fresh_process():
     assert out.stdout.strip().endswith("OK")
 
 
-def test_one_compiled_function_over_meshes_of_several_sizes():
+def test_one_compiled_function_over_meshes_of_several_sizes(device):
     """The second size makes torch.compile retrace with dynamic shapes; each mesh still gets
     its own topology, and returning to the first mesh is still right."""
 
@@ -261,15 +269,16 @@ def test_one_compiled_function_over_meshes_of_several_sizes():
         return _loss(L, M0, X)
 
     compiled = torch.compile(energy, backend="aot_eager", fullgraph=True)
-    meshes = [_grid(n) for n in (3, 4, 5)]
+    meshes = [(verts.to(device), faces) for verts, faces in map(_grid, (3, 4, 5))]
     for verts, faces in [*meshes, meshes[0]]:
         torch.testing.assert_close(compiled(verts, faces), energy(verts, faces))
 
 
-def test_whole_training_step_with_optimizer_compiles_and_equals_eager():
+def test_whole_training_step_with_optimizer_compiles_and_equals_eager(device):
     """Without fullgraph: torch's optimizer breaks the graph itself (in torch 2.13 for any
     model), the rest, the operators' assembly and backward included, compiles."""
     verts, faces = _grid()
+    verts = verts.to(device)
 
     def make():
         X = torch.nn.Parameter(verts.clone())
@@ -301,10 +310,11 @@ def test_importing_the_package_does_not_import_dynamo():
     assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr[-2000:]
 
 
-def test_operators_cross_a_compiled_boundary_without_gradients_only():
+def test_operators_cross_a_compiled_boundary_without_gradients_only(device):
     """Returned without grad: equal to eager. With grad, as input or output: an error (never
     a silently lost gradient)."""
     verts, faces = _grid()
+    verts = verts.to(device)
     got = torch.compile(lambda X: tp.laplacian(X, faces), backend="aot_eager")(verts)
     want = tp.laplacian(verts, faces)
     for a, b in zip(got, want, strict=True):
@@ -321,11 +331,11 @@ def test_operators_cross_a_compiled_boundary_without_gradients_only():
 
 
 @pytest.mark.parametrize("what", ["principal_curvatures", "mean_edge_length", "corner_gradients"])
-def test_geometry_measures_compile_in_one_graph(what):
+def test_geometry_measures_compile_in_one_graph(what, device):
     """Curvature, edge length and the gradient's corner weights in one graph, on a topology
     nothing has used yet (its face-only data computed outside the graph): gradients equal
     eager ones; a NaN vertex is refused inside the graph."""
-    verts, faces = tp.shapes.quad_sphere(3)
+    verts, faces = tp.shapes.quad_sphere(3, device=device)
 
     def measure(X: torch.Tensor, topo: tp.Topology) -> torch.Tensor:
         if what == "principal_curvatures":

@@ -74,27 +74,27 @@ def test_parallel_precompute_fills_the_cache(dataset, tmp_path):
     assert torch.allclose(item["evals"], evals, atol=1e-10)
 
 
-def test_collate_builds_the_index_maps(dataset):
-    batch = collate_meshes([dataset[i] for i in (2, 0, 3)])
+def test_collate_builds_the_index_maps(dataset, device):
+    batch = collate_meshes([dataset[i] for i in (2, 0, 3)]).to(device)
     sizes = [13, 16, 20]
     assert batch.spectrum.num_verts.tolist() == sizes
     assert batch.spectrum.first_idx.tolist() == [0, 13, 29]
-    expected = torch.repeat_interleave(torch.arange(3), torch.tensor(sizes))
+    expected = torch.repeat_interleave(torch.arange(3), torch.tensor(sizes)).to(device)
     assert torch.equal(batch.spectrum.vert_to_mesh, expected)
     assert torch.equal(batch.meshes.verts_packed_to_mesh_idx(), expected)
-    assert torch.equal(batch.labels, torch.tensor([2, 0, 1]))
+    assert torch.equal(batch.labels, torch.tensor([2, 0, 1], device=device))
     # packed faces use global indices: each mesh's faces shifted by its first vertex
     faces = batch.meshes.faces_packed()
     face_mesh = batch.meshes.faces_packed_to_mesh_idx()
-    corner_mesh = torch.repeat_interleave(face_mesh, faces.sizes)
-    assert torch.equal(expected[faces.indices], corner_mesh)
+    corner_mesh = torch.repeat_interleave(face_mesh.cpu(), faces.sizes.cpu())
+    assert torch.equal(expected.cpu()[faces.indices.cpu()], corner_mesh)
     # block-diagonal operators equal the block-diagonal assembly of the packed batch
     L, M0 = batch.meshes.laplacian()
     assert torch.allclose(batch.L.to_dense(), L.to_dense())
     assert torch.allclose(batch.M0.to_dense(), M0.to_dense())
     for b, i in enumerate((2, 0, 3)):
         rows = batch.spectrum.vert_to_mesh == b
-        assert torch.equal(batch.spectrum.evecs[rows], dataset[i]["evecs"])
+        assert torch.equal(batch.spectrum.evecs[rows].cpu(), dataset[i]["evecs"])
 
 
 def test_dataloader_with_two_workers(tmp_path):
@@ -114,8 +114,9 @@ def test_dataloader_with_two_workers(tmp_path):
     assert torch.equal(batches[0].L.to_dense(), reference.L.to_dense())
 
 
-def test_normalize_mesh_is_scale_and_translation_invariant():
+def test_normalize_mesh_is_scale_and_translation_invariant(device):
     V, F = mixed_mesh()
-    F = tp.as_faces(F)
-    moved = 3.0 * V + torch.tensor([1.0, -2.0, 0.5], dtype=V.dtype)
+    V, F = V.to(device), tp.as_faces(F)
+    moved = 3.0 * V + torch.tensor([1.0, -2.0, 0.5], dtype=V.dtype, device=device)
+    assert normalize_mesh(moved, F).device.type == device.type
     assert torch.allclose(normalize_mesh(moved, F), normalize_mesh(V, F), atol=1e-12)

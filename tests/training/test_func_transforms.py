@@ -38,17 +38,18 @@ def _perturbed(verts: torch.Tensor, seed: int = 0) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("name,verts,faces", MESHES, ids=[m[0] for m in MESHES])
-def test_grad_equals_autograd(name, verts, faces):
-    X = _perturbed(verts)
+def test_grad_equals_autograd(name, verts, faces, device):
+    X = _perturbed(verts).to(device)
     got = grad(_energy)(X, faces)
+    assert got.device.type == device.type
     Xr = X.clone().requires_grad_(True)
     (want,) = torch.autograd.grad(_energy(Xr, faces), Xr)
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("name,verts,faces", MESHES, ids=[m[0] for m in MESHES])
-def test_jacrev_equals_autograd_jacobian(name, verts, faces):
-    X = _perturbed(verts, 1)
+def test_jacrev_equals_autograd_jacobian(name, verts, faces, device):
+    X = _perturbed(verts, 1).to(device)
 
     def f(X):
         L, M0 = tp.laplacian(X, faces)
@@ -60,9 +61,10 @@ def test_jacrev_equals_autograd_jacobian(name, verts, faces):
 
 
 @pytest.mark.parametrize("name,verts,faces", MESHES, ids=[m[0] for m in MESHES])
-def test_jvp_equals_finite_differences(name, verts, faces):
-    X = _perturbed(verts, 2)
+def test_jvp_equals_finite_differences(name, verts, faces, device):
+    X = _perturbed(verts, 2).to(device)
     T = torch.randn(X.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    T = T.to(device)
 
     def f(X):
         L, M0 = tp.laplacian(X, faces)
@@ -75,19 +77,20 @@ def test_jvp_equals_finite_differences(name, verts, faces):
     torch.testing.assert_close(tangent, fd, rtol=1e-6, atol=1e-7)
 
 
-def test_jvp_of_a_product_with_fixed_operator():
-    verts, faces = tp.shapes.quad_grid(3, 3)
+def test_jvp_of_a_product_with_fixed_operator(device):
+    verts, faces = tp.shapes.quad_grid(3, 3, device=device)
     L, _ = tp.laplacian(verts.double(), faces)
-    X = torch.randn(verts.shape[0], 2, dtype=torch.float64)
+    X = torch.randn(verts.shape[0], 2, dtype=torch.float64, device=device)
     T = torch.randn_like(X)
     _, tangent = jvp(lambda X: L @ X, (X,), (T,))
     torch.testing.assert_close(tangent, L @ T)
 
 
-def test_hessian_vector_product_by_forward_over_reverse():
+def test_hessian_vector_product_by_forward_over_reverse(device):
     verts, faces = tp.shapes.quad_grid(3, 3)
-    X = _perturbed(verts, 4)
+    X = _perturbed(verts, 4).to(device)
     v = torch.randn(X.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    v = v.to(device)
     _, hvp = jvp(grad(lambda X: _energy(X, faces)), (X,), (v,))
     Xr = X.clone().requires_grad_(True)
     (g,) = torch.autograd.grad(_energy(Xr, faces), Xr, create_graph=True)
@@ -96,44 +99,45 @@ def test_hessian_vector_product_by_forward_over_reverse():
 
 
 @pytest.mark.parametrize("name,verts,faces", MESHES, ids=[m[0] for m in MESHES])
-def test_vmap_over_vertex_sets(name, verts, faces):
-    Xs = torch.stack([_perturbed(verts, s) for s in range(4)])
+def test_vmap_over_vertex_sets(name, verts, faces, device):
+    Xs = torch.stack([_perturbed(verts, s) for s in range(4)]).to(device)
     got = vmap(_energy, in_dims=(0, None))(Xs, faces)
     want = torch.stack([_energy(X, faces) for X in Xs])
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
-def test_vmap_of_grad_over_vertex_sets():
+def test_vmap_of_grad_over_vertex_sets(device):
     verts, faces = tp.shapes.quad_grid(3, 3)
-    Xs = torch.stack([_perturbed(verts, s) for s in range(3)])
+    Xs = torch.stack([_perturbed(verts, s) for s in range(3)]).to(device)
     got = vmap(grad(_energy), in_dims=(0, None))(Xs, faces)
     want = torch.stack([grad(_energy)(X, faces) for X in Xs])
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
-def test_vmap_of_products_with_one_operator():
-    verts, faces = tp.shapes.quad_grid(3, 3)
+def test_vmap_of_products_with_one_operator(device):
+    verts, faces = tp.shapes.quad_grid(3, 3, device=device)
     L, M0 = tp.laplacian(verts.double(), faces)
-    Ys = torch.randn(5, verts.shape[0], 3, dtype=torch.float64)
+    Ys = torch.randn(5, verts.shape[0], 3, dtype=torch.float64, device=device)
     torch.testing.assert_close(vmap(lambda Y: L @ Y)(Ys), torch.stack([L @ Y for Y in Ys]))
     torch.testing.assert_close(vmap(lambda Y: Y.T @ L)(Ys), torch.stack([Y.T @ L for Y in Ys]))
-    A = (M0 + 0.2 * L) * torch.linspace(1, 2, verts.shape[0], dtype=torch.float64)[:, None]
+    w = torch.linspace(1, 2, verts.shape[0], dtype=torch.float64, device=device)
+    A = (M0 + 0.2 * L) * w[:, None]
     torch.testing.assert_close(vmap(lambda Y: A.T @ Y)(Ys), torch.stack([A.T @ Y for Y in Ys]))
 
 
-def test_vmap_refuses_bad_vertices_in_any_batch_entry():
+def test_vmap_refuses_bad_vertices_in_any_batch_entry(device):
     verts, faces = tp.shapes.quad_grid(3, 3)
-    Xs = torch.stack([_perturbed(verts, s) for s in range(3)])
+    Xs = torch.stack([_perturbed(verts, s) for s in range(3)]).to(device)
     Xs[1, 4, 2] = float("nan")
     with pytest.raises(ValueError, match="non-finite"):
         vmap(_energy, in_dims=(0, None))(Xs, faces)
 
 
-def test_grad_through_module_losses_and_solve():
+def test_grad_through_module_losses_and_solve(device):
     verts, faces = tp.shapes.quad_grid(4, 3)
     faces = torch.as_tensor(faces)
-    lap = tp.PolygonLaplacian()
-    X = _perturbed(verts, 6)
+    lap = tp.PolygonLaplacian().to(device)
+    X = _perturbed(verts, 6).to(device)
 
     def f(X):
         L, M0 = lap(X, faces)
@@ -150,9 +154,9 @@ def test_grad_through_module_losses_and_solve():
     torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
 
 
-def test_jacfwd_and_vjp_equal_jacrev():
+def test_jacfwd_and_vjp_equal_jacrev(device):
     verts, faces = tp.shapes.quad_grid(2, 3)
-    X = _perturbed(verts, 7)
+    X = _perturbed(verts, 7).to(device)
 
     def f(X):
         L, M0 = tp.laplacian(X, faces)
@@ -162,5 +166,5 @@ def test_jacfwd_and_vjp_equal_jacrev():
     torch.testing.assert_close(torch.func.jacfwd(f)(X), want, rtol=1e-10, atol=1e-12)
     out, pullback = torch.func.vjp(f, X)
     v = torch.randn(out.shape, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
-    (got,) = pullback(v)
+    (got,) = pullback(v.to(device))
     torch.testing.assert_close(got, torch.einsum("i,ijk->jk", v, want), rtol=1e-10, atol=1e-12)

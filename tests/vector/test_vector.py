@@ -57,12 +57,13 @@ def test_sphere_spectrum_is_l_l_plus_1_minus_1(method, device):
 
 
 @pytest.mark.parametrize("n, first, second", [(2, 2.0, 8.0), (4, 4.0, 14.0)])
-def test_sphere_spectrum_of_n_fold_connection(n, first, second):
+def test_sphere_spectrum_of_n_fold_connection(n, first, second, device):
     """With the n-fold connection the operator is the Bochner Laplacian of spin-n fields on the
     sphere: eigenvalues l (l + 1) - n^2 for l >= n, multiplicity 2 (2 l + 1) (for n = 2: 2 ten
     times, then 8; for n = 4: 4 eighteen times, then 14). Measured within 6% on 6 x 6."""
     verts, faces = tp.shapes.quad_sphere(6)
-    A, M, _ = tv.connection_laplacian(verts, faces, symmetry=n)
+    A, M, _ = tv.connection_laplacian(verts.to(device), faces, symmetry=n)
+    assert A.device.type == device.type
     mu = generalized_spectrum(A, M)
     m1, m2 = 2 * (2 * n + 1), 2 * (2 * n + 3)
     np.testing.assert_allclose(mu[:m1], first, rtol=0.07)
@@ -70,11 +71,12 @@ def test_sphere_spectrum_of_n_fold_connection(n, first, second):
 
 
 @pytest.mark.parametrize("name", SPHERES)
-def test_symmetric_positive_semidefinite_on_polygon_spheres(name):
+def test_symmetric_positive_semidefinite_on_polygon_spheres(name, device):
     """Symmetric, and positive definite on the sphere (no parallel field): every face term is
     the scalar block seen through a unitary change of frame, whatever the weights' signs
     (concave and anisotropic polygons included)."""
     verts, faces = sphere(name)
+    verts = verts.to(device)
     for method in METHODS:
         A, M, _ = tv.connection_laplacian(verts, faces, method=method)
         S = to_scipy(A)
@@ -84,14 +86,15 @@ def test_symmetric_positive_semidefinite_on_polygon_spheres(name):
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_planar_mesh_gives_scalar_laplacian_on_each_component(method):
+def test_planar_mesh_gives_scalar_laplacian_on_each_component(method, device):
     """On a plane every transport is the identity in a common frame: A = L (x) I_2. In the
     default frames (each vertex's own reference edge) the same operator is seen through the
     block rotation R of each vertex's angle to the common frame: A = R^T (L (x) I_2) R."""
     verts, faces = tp.read_mesh(DATA / "grid" / "irr_poly_2.obj", dtype=torch.float64)
+    verts = verts.to(device)
     A, M, frames = tv.connection_laplacian(verts, faces, method=method)
     L, M0 = tp.laplacian(verts, faces, method=method)
-    assert torch.allclose(frames.normal.abs()[:, 2], torch.ones(verts.shape[0], dtype=verts.dtype))
+    assert torch.allclose(frames.normal.abs()[:, 2], torch.ones_like(verts[:, 0]))
     common_x = torch.zeros_like(verts)
     common_x[:, 0] = 1.0
     common_y = torch.linalg.cross(frames.normal, common_x, dim=1)
@@ -100,28 +103,29 @@ def test_planar_mesh_gives_scalar_laplacian_on_each_component(method):
     )
     scalar = np.kron(to_scipy(L).toarray(), np.eye(2))
     np.testing.assert_allclose(to_scipy(common).toarray(), scalar, atol=1e-12)
-    c, s = (frames.e_x * common_x).sum(1).numpy(), (frames.e_x * common_y).sum(1).numpy()
+    c = (frames.e_x * common_x).sum(1).cpu().numpy()
+    s = (frames.e_x * common_y).sum(1).cpu().numpy()
     R = sl.block_diag(*[[[ci, -si], [si, ci]] for ci, si in zip(c, s, strict=True)])
     np.testing.assert_allclose(to_scipy(A).toarray(), R.T @ scalar @ R, atol=1e-12)
-    np.testing.assert_allclose(to_scipy(M).diagonal(), np.repeat(M0.diagonal().numpy(), 2))
+    np.testing.assert_allclose(to_scipy(M).diagonal(), np.repeat(M0.diagonal().cpu().numpy(), 2))
 
 
-def test_change_of_frames_conjugates_the_operator():
+def test_change_of_frames_conjugates_the_operator(device):
     """Rotating vertex v's frame by alpha_v turns A into R^T A R with R the block rotation."""
     verts, faces = sphere("hex_2")
+    verts = verts.to(device)
     A, _, frames = tv.connection_laplacian(verts, faces)
-    alpha = torch.linspace(0, 5, verts.shape[0], dtype=torch.float64)
+    alpha = torch.linspace(0, 5, verts.shape[0], dtype=torch.float64, device=device)
     c, s = torch.cos(alpha)[:, None], torch.sin(alpha)[:, None]
     rotated = (frames.normal, c * frames.e_x + s * frames.e_y, -s * frames.e_x + c * frames.e_y)
     B, _, _ = tv.connection_laplacian(verts, faces, frames=rotated)
-    R = sl.block_diag(
-        *[[[ci, -si], [si, ci]] for ci, si in zip(c[:, 0].numpy(), s[:, 0].numpy(), strict=True)]
-    )
+    cos, sin = c[:, 0].cpu().numpy(), s[:, 0].cpu().numpy()
+    R = sl.block_diag(*[[[ci, -si], [si, ci]] for ci, si in zip(cos, sin, strict=True)])
     np.testing.assert_allclose(to_scipy(B).toarray(), R.T @ to_scipy(A).toarray() @ R, atol=1e-12)
 
 
 @pytest.mark.parametrize("n", [1, 2, 4])
-def test_equals_adobe_lagrange_on_triangles(n):
+def test_equals_adobe_lagrange_on_triangles(n, device):
     """On triangles every polygon method is the cotangent Laplacian and our connection
     Laplacian is de Goes et al. 2020's vertex-based one: the spectra of adobe-lagrange's
     ``connection_laplacian_nrosy`` and ours agree to rounding (measured 6e-13 relative)."""
@@ -138,7 +142,7 @@ def test_equals_adobe_lagrange_on_triangles(n):
     ops = polyddg.DifferentialOperators(mesh)
     peer = ops.connection_laplacian_nrosy(n=n).toarray()
     mass = np.repeat(ops.star0().diagonal(), 2)
-    A, M, _ = tv.connection_laplacian(verts, faces, symmetry=n, method="degoes")
+    A, M, _ = tv.connection_laplacian(verts.to(device), faces, symmetry=n, method="degoes")
     np.testing.assert_allclose(to_scipy(M).diagonal(), mass, rtol=1e-12)
     ours = generalized_spectrum(A, M)
     theirs = sl.eigh(peer, np.diag(mass), eigvals_only=True)
@@ -162,9 +166,11 @@ def test_gradcheck_connection_laplacian(method, device):
     assert torch.autograd.gradcheck(values, verts.clone().requires_grad_(True), fast_mode=True)
 
 
-def test_folded_vertex_is_refused_by_name():
+def test_folded_vertex_is_refused_by_name(device):
     verts = torch.tensor(
-        [[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], dtype=torch.float64
+        [[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]],
+        dtype=torch.float64,
+        device=device,
     )
     faces = [[0, 1, 2, 3], [1, 4, 5, 2]]
     frames = list(tv.connection_laplacian(verts, faces)[2])
@@ -233,23 +239,25 @@ def test_transport_on_sphere_beats_potpourri3d(name):
     assert ours_.mean() < 0.03
 
 
-def test_transport_on_cube_sphere_is_close_to_exact():
+def test_transport_on_cube_sphere_is_close_to_exact(device):
     """In-repo mesh: mean angle error below 0.02 rad (measured 0.012 on the 10 x 10 cube
     sphere), and the transported vector at the source is the given one."""
     verts, faces = tp.shapes.quad_sphere(10)
-    solver = tv.VectorHeatSolver(verts, faces)
+    solver = tv.VectorHeatSolver(verts.to(device), faces)
     s = 7
     vec = 2.5 * tangent_at(verts, s)
-    X = solver.transport(s, vec)
+    X = solver.transport(s, vec.to(device))
+    assert X.device.type == device.type
+    X = X.cpu()
     err = angle_errors(X, exact_transport(verts, s, vec), verts)[away_from_antipode(verts, s)]
     assert err.mean() < 0.02
-    n = solver.frames.normal[s]
+    n = solver.frames.normal[s].cpu()
     tangent = vec - (vec @ n) * n  # the part of vec tangent at the source
     torch.testing.assert_close(X.norm(dim=1), tangent.norm().expand(len(X)))
     torch.testing.assert_close(X[s], tangent, atol=1e-3, rtol=0)
 
 
-def test_transport_from_two_sources_follows_the_nearest():
+def test_transport_from_two_sources_follows_the_nearest(device):
     """Each vertex receives the transport of the nearer source's vector (SSC19 sec. 5), away
     from the border where the two diffused fields blend (measured mean angle error 0.010 for
     |z| > 0.5 with the poles as sources; 0.0006 from one source alone). Lengths blend too:
@@ -259,7 +267,8 @@ def test_transport_from_two_sources_follows_the_nearest():
     south = int(torch.argmin(verts[:, 2]))
     vecs = torch.stack((tangent_at(verts, north), -tangent_at(verts, south)))
     vecs[1] = 3 * vecs[1]
-    X = tv.VectorHeatSolver(verts, faces).transport([north, south], vecs)
+    X = tv.VectorHeatSolver(verts.to(device), faces).transport([north, south], vecs.to(device))
+    X = X.cpu()
     for s, vec, side in ((north, vecs[0], verts[:, 2] > 0.5), (south, vecs[1], verts[:, 2] < -0.5)):
         exact = exact_transport(verts, s, vec)
         assert angle_errors(X, exact, verts)[side].mean() < 0.02
@@ -268,17 +277,18 @@ def test_transport_from_two_sources_follows_the_nearest():
 
 
 @pytest.mark.parametrize("name, bound", [("quad_3", 0.06), ("hex_3", 0.03), ("voronoi_3", 0.12)])
-def test_log_map_on_sphere(name, bound):
+def test_log_map_on_sphere(name, bound, device):
     """The log map at s on the unit sphere is arccos(x_s . x) times the unit tangent at x_s
     of the great circle towards x: mean error over the vertices (away from the antipode)
     within the bound (measured 0.045, 0.012, 0.095 over six sources)."""
     verts, faces = sphere(name)
-    solver = tv.VectorHeatSolver(verts, faces)
+    solver = tv.VectorHeatSolver(verts.to(device), faces)
     sources = [0, verts.shape[0] // 3, verts.shape[0] // 2]
     logs = solver.log_map(sources)
-    assert logs.shape == (verts.shape[0], 3, 2)
+    assert logs.shape == (verts.shape[0], 3, 2) and logs.device.type == device.type
+    logs = logs.cpu()
     for q, s in enumerate(sources):
-        e_x, e_y = solver.frames.e_x[s], solver.frames.e_y[s]
+        e_x, e_y = solver.frames.e_x[s].cpu(), solver.frames.e_y[s].cpu()
         ours = logs[:, q, :1] * e_x + logs[:, q, 1:] * e_y
         d = torch.arccos((verts @ verts[s]).clamp(-1, 1))
         towards = verts - (verts @ verts[s])[:, None] * verts[s]
@@ -286,17 +296,18 @@ def test_log_map_on_sphere(name, bound):
         keep = away_from_antipode(verts, s)
         assert (ours - exact).norm(dim=1)[keep].mean() < bound
         assert logs[s, q].abs().max() == 0
-    torch.testing.assert_close(solver.log_map(sources[1]), logs[:, 1])
+    torch.testing.assert_close(solver.log_map(sources[1]).cpu(), logs[:, 1])
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_vector_heat_method_builds_every_system_with_that_laplacian(method):
+def test_vector_heat_method_builds_every_system_with_that_laplacian(method, device):
     """``method=`` reaches both systems: ``M + t A`` is built from
     ``connection_laplacian(method=...)`` and the scalar ``M0 + t L`` from
     ``laplacian(method=...)`` (dense comparison); and with every method transport, log map and
     the radius are accurate on three unit spheres against the great-circle closed forms (mean
     transport angle measured 0.002-0.023 rad, log map 0.016-0.11, distance 1.3%-4.9%)."""
     verts, faces = sphere("hex_3")
+    verts = verts.to(device)
     solver = tv.VectorHeatSolver(verts, faces, method=method)
     assert solver.method == method and solver.geodesic.method == method
     A, M, _ = tv.connection_laplacian(verts, faces, method=method)
@@ -312,21 +323,22 @@ def test_vector_heat_method_builds_every_system_with_that_laplacian(method):
     )
     for name in ("quad_3", "voronoi_3", "concave_3"):
         verts, faces = sphere(name)
-        solver = tv.VectorHeatSolver(verts, faces, method=method)
+        solver = tv.VectorHeatSolver(verts.to(device), faces, method=method)
         s = verts.shape[0] // 3
         vec, keep = tangent_at(verts, s), away_from_antipode(verts, s)
-        X = solver.transport(s, vec)
+        X = solver.transport(s, vec.to(device)).cpu()
         assert angle_errors(X, exact_transport(verts, s, vec), verts)[keep].mean() < 0.04
-        log = solver.log_map(s)
-        ours = log[:, :1] * solver.frames.e_x[s] + log[:, 1:] * solver.frames.e_y[s]
+        log = solver.log_map(s).cpu()
+        e_x, e_y = solver.frames.e_x[s].cpu(), solver.frames.e_y[s].cpu()
+        ours = log[:, :1] * e_x + log[:, 1:] * e_y
         d = torch.arccos((verts @ verts[s]).clamp(-1, 1))
         towards = verts - (verts @ verts[s])[:, None] * verts[s]
         exact = towards / towards.norm(dim=1, keepdim=True).clamp_min(1e-300) * d[:, None]
         assert (ours - exact).norm(dim=1)[keep].mean() < 0.15
-        radius = solver.geodesic.distance([s])
+        radius = solver.geodesic.distance([s]).cpu()
         assert ((radius - d).abs() / d.clamp_min(1e-12))[d > 0].mean() < 0.07
         torch.testing.assert_close(
-            tp.heat_geodesic_distance(verts, faces, [s], method=method), radius
+            tp.heat_geodesic_distance(verts.to(device), faces, [s], method=method).cpu(), radius
         )
 
 
@@ -336,33 +348,34 @@ def test_vector_heat_unknown_method_is_refused():
         tv.VectorHeatSolver(verts, faces, method="cotan")
 
 
-def test_vector_heat_gradcheck():
+def test_vector_heat_gradcheck(device):
     """Transport and log map are differentiable in verts (float64 gradcheck, 26 vertices)."""
     verts, faces = tp.shapes.quad_sphere(2, noise=0.05, seed=2)
-    vec = tangent_at(verts, 3)
+    vec = tangent_at(verts, 3).to(device)
+    verts = verts.to(device)
 
     def transport(v: torch.Tensor) -> torch.Tensor:
         return tv.VectorHeatSolver(v, faces).transport(3, vec)
 
     def log_map(v: torch.Tensor) -> torch.Tensor:
-        return tv.VectorHeatSolver(v, faces).log_map(3)[torch.arange(26) != 3]
+        return tv.VectorHeatSolver(v, faces).log_map(3)[torch.arange(26, device=device) != 3]
 
     x = verts.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(transport, x, atol=1e-7, fast_mode=True)
     assert torch.autograd.gradcheck(log_map, x, atol=1e-7, fast_mode=True)
 
 
-def test_vector_heat_errors_name_the_problem():
-    verts, faces = tp.shapes.quad_sphere(2)
+def test_vector_heat_errors_name_the_problem(device):
+    verts, faces = tp.shapes.quad_sphere(2, device=device)
     solver = tv.VectorHeatSolver(verts, faces)
     with pytest.raises(ValueError, match="no part tangent"):
         solver.transport(0, verts[0])
     with pytest.raises(ValueError, match=r"vectors must have shape \(3,\) or \(2, 3\)"):
-        solver.transport([0, 1], torch.ones(3, 3, dtype=verts.dtype))
+        solver.transport([0, 1], torch.ones(3, 3, dtype=verts.dtype, device=device))
     with pytest.raises(ValueError, match="out of range|outside"):
         solver.log_map(26)
     with pytest.raises(ValueError, match="empty"):
-        solver.transport([], torch.zeros(0, 3))
+        solver.transport([], torch.zeros(0, 3, device=device))
 
 
 # ---------------------------------------------------------------- curvature
@@ -376,13 +389,15 @@ def torus_curvatures(verts: torch.Tensor, major: float, minor: float) -> tuple:
     return torch.minimum(k1, k2), torch.maximum(k1, k2)
 
 
-def test_principal_curvatures_of_the_torus_converge():
+def test_principal_curvatures_of_the_torus_converge(device):
     """Against the closed form on tori of quads: the max error falls about 4x per halving of
     h (measured 0.191, 0.048, 0.012), and the directions follow the parameter lines."""
     errors = []
     for n in (24, 48):
         verts, faces = tp.shapes.torus(n, n // 2, major=1.0, minor=0.4)
-        kmin, kmax, dmin, dmax = tv.principal_curvatures(verts, faces)
+        curvatures = tv.principal_curvatures(verts.to(device), faces)
+        assert curvatures[0].device.type == device.type
+        kmin, kmax, dmin, dmax = (c.cpu() for c in curvatures)
         emin, emax = torus_curvatures(verts, 1.0, 0.4)
         errors.append(max(float((kmin - emin).abs().max()), float((kmax - emax).abs().max())))
         # kmax = 1 / minor: its direction goes around the tube, orthogonal to the azimuth
@@ -393,7 +408,7 @@ def test_principal_curvatures_of_the_torus_converge():
     assert errors[0] < 0.2 and errors[1] < errors[0] / 3.5
 
 
-def test_principal_curvatures_close_to_lagrange_on_torus():
+def test_principal_curvatures_close_to_lagrange_on_torus(device):
     """adobe-lagrange's ``compute_principal_curvatures`` (de Goes et al. 2020's adjoint shape
     operator) on the same torus: both within 2x of each other's error (measured 0.048 ours,
     0.027 lagrange at 48 x 24), and the curvatures agree to 0.05 on average (measured 0.012
@@ -409,7 +424,7 @@ def test_principal_curvatures_close_to_lagrange_on_torus():
     mesh.add_quads(faces.numpy().astype(np.uint32))
     ids = polyddg.compute_principal_curvatures(mesh)
     lmin, lmax = (torch.from_numpy(mesh.attribute(i).data.copy()) for i in ids[:2])
-    kmin, kmax, _, _ = tv.principal_curvatures(verts, faces)
+    kmin, kmax, _, _ = (c.cpu() for c in tv.principal_curvatures(verts.to(device), faces))
     emin, emax = torus_curvatures(verts, 1.0, 0.4)
     ours = max(float((kmin - emin).abs().max()), float((kmax - emax).abs().max()))
     theirs = max(float((lmin - emin).abs().max()), float((lmax - emax).abs().max()))
@@ -436,7 +451,7 @@ def torus_error(kmin: torch.Tensor, kmax: torch.Tensor, verts: torch.Tensor) -> 
     return torch.cat(((kmin - emin).abs(), (kmax - emax).abs()))
 
 
-def test_principal_curvatures_converge_on_an_irregular_torus():
+def test_principal_curvatures_converge_on_an_irregular_torus(device):
     """Irregular quads on a non-umbilic surface: the curvatures converge (mean error measured
     0.053 at 32 x 16 and 0.017 at 64 x 32, max 0.23 and 0.14), while those from the
     area-weighted normals do not (mean 0.086 and 0.078): the first-order normals' error does not
@@ -444,19 +459,20 @@ def test_principal_curvatures_converge_on_an_irregular_torus():
     mean, worst, area_normals = [], [], []
     for n in (32, 64):
         verts, faces = jittered_torus(n)
-        kmin, kmax, _, _ = tv.principal_curvatures(verts, faces)
+        on = verts.to(device)
+        kmin, kmax, _, _ = (c.cpu() for c in tv.principal_curvatures(on, faces))
         error = torus_error(kmin, kmax, verts)
         mean.append(float(error.mean()))
         worst.append(float(error.max()))
-        frames = tv.tangent_frames(verts, tp.build_topology(faces, verts.shape[0]))
-        kmin0, kmax0, _, _ = tv.principal_curvatures(verts, faces, frames)
+        frames = tv.tangent_frames(on, tp.build_topology(faces, verts.shape[0]))
+        kmin0, kmax0, _, _ = (c.cpu() for c in tv.principal_curvatures(on, faces, frames))
         area_normals.append(float(torus_error(kmin0, kmax0, verts).mean()))
     assert mean[1] < mean[0] / 2.5 and mean[1] < 0.025
     assert worst[1] < worst[0] and worst[1] < 0.2
     assert area_normals[1] > 0.8 * area_normals[0] and area_normals[1] > 3 * mean[1]
 
 
-def test_principal_curvatures_beside_lagrange_on_an_irregular_torus():
+def test_principal_curvatures_beside_lagrange_on_an_irregular_torus(device):
     """adobe-lagrange's polygon shape operator uses first-order vertex normals too and does not
     converge on irregular quads (mean error measured 0.096 at 32 x 16 and 0.095 at 64 x 32);
     ours is below a third of it at 64 x 32 (measured 0.017)."""
@@ -471,12 +487,12 @@ def test_principal_curvatures_beside_lagrange_on_an_irregular_torus():
     mesh.add_quads(faces.numpy().astype(np.uint32))
     ids = polyddg.compute_principal_curvatures(mesh)
     lmin, lmax = (torch.from_numpy(mesh.attribute(i).data.copy()) for i in ids[:2])
-    kmin, kmax, _, _ = tv.principal_curvatures(verts, faces)
+    kmin, kmax, _, _ = (c.cpu() for c in tv.principal_curvatures(verts.to(device), faces))
     ours = float(torus_error(kmin, kmax, verts).mean())
     assert ours < float(torus_error(lmin, lmax, verts).mean()) / 3
 
 
-def test_fitted_normals_are_second_order():
+def test_fitted_normals_are_second_order(device):
     """On the irregular tori the fitted normals' mean angle error falls about 4x per halving
     of h (second order; measured 0.0195 and 0.0051 rad), the area-weighted normals' about 2x
     (first order; 0.046 and 0.024)."""
@@ -485,10 +501,13 @@ def test_fitted_normals_are_second_order():
         verts, faces = jittered_torus(n)
         rho = verts[:, :2].norm(dim=1, keepdim=True)
         exact = torch.cat((verts[:, :2] * (1 - 1.0 / rho), verts[:, 2:]), 1) / 0.4
-        for out, frames in (
-            (fitted, tv.fitted_frames(verts, faces)),
-            (area, tv.tangent_frames(verts, tp.build_topology(faces, verts.shape[0]))),
+        on = verts.to(device)
+        for out, on_device in (
+            (fitted, tv.fitted_frames(on, faces)),
+            (area, tv.tangent_frames(on, tp.build_topology(faces, verts.shape[0]))),
         ):
+            assert on_device.normal.device.type == device.type
+            frames = tv.TangentFrames(*(f.cpu() for f in on_device))
             out.append(float(torch.arccos((frames.normal * exact).sum(1).clamp(-1, 1)).mean()))
             torch.testing.assert_close(frames.e_y, torch.linalg.cross(frames.normal, frames.e_x))
             torch.testing.assert_close(
@@ -498,16 +517,16 @@ def test_fitted_normals_are_second_order():
     assert area[1] > area[0] / 2.8
 
 
-def test_fitted_normals_on_a_plane_and_on_boundaries():
+def test_fitted_normals_on_a_plane_and_on_boundaries(device):
     """A tilted planar grid of irregular polygons: the fitted normals are the plane's at every
     vertex, boundary corners included (rings too small or too one-sided for a quadric), and the
     curvatures vanish."""
     verts, faces = tp.read_mesh(DATA / "grid" / "irr_poly_3.obj", dtype=torch.float64)
     tilt = torch.tensor([[1.0, 0.3, -0.2], [0.1, 0.9, 0.4], [-0.3, 0.2, 1.1]], dtype=verts.dtype)
     q, _ = torch.linalg.qr(tilt)
-    verts = verts @ q.T
+    verts = (verts @ q.T).to(device)
     frames = tv.fitted_frames(verts, faces)
-    plane = q[:, 2]
+    plane = q[:, 2].to(device)
     assert float((frames.normal @ plane).abs().min()) > 1 - 1e-12
     kmin, kmax, _, _ = tv.principal_curvatures(verts, faces)
     assert float(torch.cat((kmin, kmax)).abs().max()) < 1e-9
@@ -517,7 +536,7 @@ SPHERE_FAMILIES = ("concave", "hex", "hex_cos", "hex_noise", "quad", "triangle",
 
 
 @pytest.mark.parametrize("family", SPHERE_FAMILIES)
-def test_principal_curvatures_on_every_sphere_family_at_level_4(family):
+def test_principal_curvatures_on_every_sphere_family_at_level_4(family, device):
     """Within 2% of 1 on average at level 4 of every unit-sphere family (measured below 0.2%
     everywhere; with the area-weighted normals 5.2% on hex_noise and 12.8% on voronoi). The
     sign follows the orientation (hex_cos is oriented inwards), found from the signed volume."""
@@ -533,16 +552,16 @@ def test_principal_curvatures_on_every_sphere_family_at_level_4(family):
         / topo.faces.sizes[:, None]
     )
     sign = float(torch.sign((tp.vector_area(verts, topo) * centroid).sum()))
-    kmin, kmax, _, _ = tv.principal_curvatures(verts, topo)
+    kmin, kmax, _, _ = (c.cpu() for c in tv.principal_curvatures(verts.to(device), topo))
     error = (sign * torch.cat((kmin, kmax)) - 1).abs()
     assert float(error.mean()) < 0.02
     assert float(error.max()) < 0.1
 
 
-def test_principal_curvatures_of_the_sphere():
+def test_principal_curvatures_of_the_sphere(device):
     """About 1 on the unit sphere (outward normals), the sign flipping with the orientation; scale
     1 / R on a sphere of radius R."""
-    verts, faces = tp.shapes.quad_sphere(12)
+    verts, faces = tp.shapes.quad_sphere(12, device=device)
     kmin, kmax, _, _ = tv.principal_curvatures(verts, faces)
     # measured mean |k - 1|: 0.020 (the cube corners, valence 3, are worst: 0.11)
     assert (kmin - 1).abs().mean() < 0.03 and (kmax - 1).abs().mean() < 0.03
@@ -555,11 +574,12 @@ def test_principal_curvatures_of_the_sphere():
     assert S.shape == (verts.shape[0], 2, 2)
 
 
-def test_curvature_gradcheck():
+def test_curvature_gradcheck(device):
     verts, faces = tp.shapes.torus(6, 4, major=1.0, minor=0.4)
     verts = verts + 0.02 * torch.randn(
         verts.shape, generator=torch.Generator().manual_seed(0), dtype=verts.dtype
     )
+    verts = verts.to(device)
 
     def curvatures(v: torch.Tensor) -> torch.Tensor:
         kmin, kmax, dmin, dmax = tv.principal_curvatures(v, faces)
@@ -573,18 +593,19 @@ def test_curvature_gradcheck():
 
 
 @pytest.mark.parametrize("n", [1, 2, 4])
-def test_smoothest_field_on_a_plane_is_constant(n):
+def test_smoothest_field_on_a_plane_is_constant(n, device):
     """A planar grid of irregular polygons carries parallel fields: the smoothest n-direction
     field has zero energy and one direction everywhere (mod 2 pi / n)."""
-    verts, faces = tp.read_mesh(DATA / "grid" / "voronoi_3.obj", dtype=torch.float64)
+    verts, faces = tp.read_mesh(DATA / "grid" / "voronoi_3.obj", dtype=torch.float64, device=device)
     directions, magnitude, energy = tv.smoothest_field(verts, faces, n)
+    assert directions.device.type == device.type
     assert abs(float(energy)) < 1e-8
     angle = torch.atan2(directions[:, 1], directions[:, 0]) * n
     assert float(torch.cos(angle - angle[0]).min()) > 1 - 1e-8
     torch.testing.assert_close(magnitude, magnitude.mean().expand_as(magnitude))
 
 
-def test_polar_matches_atan2_and_hypot_with_finite_gradients_at_the_origin():
+def test_polar_matches_atan2_and_hypot_with_finite_gradients_at_the_origin(device):
     """The field's angle and length are atan2 and hypot (values, and gradients by gradcheck
     away from the origin); at an exact zero, where both have 0/0 derivatives that autograd
     makes NaN, the angle and length are 0 with a zero gradient, in plain autograd and in
@@ -592,7 +613,7 @@ def test_polar_matches_atan2_and_hypot_with_finite_gradients_at_the_origin():
     from torch_polylap.vector.fields import polar
 
     g = torch.Generator().manual_seed(3)
-    x, y = torch.randn(2, 50, generator=g, dtype=torch.float64)
+    x, y = torch.randn(2, 50, generator=g, dtype=torch.float64).to(device)
     x[:3], y[:3] = torch.tensor([0.0, 0.0, 1e-300]), torch.tensor([0.0, -0.0, 0.0])
     angle, length = polar(x, y)
     away = slice(3, None)
@@ -611,9 +632,10 @@ def test_polar_matches_atan2_and_hypot_with_finite_gradients_at_the_origin():
     torch.testing.assert_close((gx, gy), (xg.grad, yg.grad))
 
 
-def test_smoothest_field_energy_on_sphere():
+def test_smoothest_field_energy_on_sphere(device):
     """On the sphere no field is parallel: the energy is the spectrum's bottom, l (l + 1) - n^2
     at l = n (cross fields: 4, measured 4.19 on 6 x 6)."""
-    verts, faces = tp.shapes.quad_sphere(6)
+    verts, faces = tp.shapes.quad_sphere(6, device=device)
     _, magnitude, energy = tv.smoothest_field(verts, faces, 4)
+    assert magnitude.device.type == device.type
     assert abs(float(energy) - 4.0) < 0.3

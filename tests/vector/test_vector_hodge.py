@@ -55,13 +55,15 @@ def smooth_function(verts: torch.Tensor) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("name", list(MESHES))
-def test_gradient_is_exact_and_rotated_gradient_is_coexact(name):
+def test_gradient_is_exact_and_rotated_gradient_is_coexact(name, device):
     """grad u has no co-exact or harmonic part; J grad u (u continuous, so also a
     Crouzeix-Raviart function) has no exact or harmonic part: both to round-off, on
     non-planar, concave and many-sided polygons, with and without boundary."""
     verts, faces = MESHES[name]()
+    verts = verts.to(device)
     hodge = tv.HodgeDecomposition(verts, faces)
     grad = hodge.gradient(smooth_function(verts))
+    assert grad.device.type == device.type
     scale = grad.abs().max()
     parts = hodge(grad)
     torch.testing.assert_close(parts.exact, grad, atol=1e-11 * scale, rtol=0)
@@ -76,12 +78,12 @@ def test_gradient_is_exact_and_rotated_gradient_is_coexact(name):
 
 
 @pytest.mark.parametrize("name", list(MESHES))
-def test_parts_are_orthogonal_and_sum_to_the_field(name):
+def test_parts_are_orthogonal_and_sum_to_the_field(name, device):
     """The three parts of random fields are pairwise orthogonal in sum_t |t| X_t . Y_t to
     round-off and add up to the field's tangential part."""
     verts, faces = MESHES[name]()
-    hodge = tv.HodgeDecomposition(verts, faces)
-    X = hodge.tangential(random_field(hodge, 4))
+    hodge = tv.HodgeDecomposition(verts.to(device), faces)
+    X = hodge.tangential(random_field(hodge, 4).to(device))
     parts = hodge(X)
     norm = hodge.inner(X, X)
     for a, b in ((0, 1), (0, 2), (1, 2)):
@@ -98,7 +100,7 @@ def test_parts_are_orthogonal_and_sum_to_the_field(name):
     "name, genus",
     [("torus", 1), ("quad sphere", 0), ("quad grid (disk)", 0)],
 )
-def test_harmonic_space_has_dimension_2g(name, genus):
+def test_harmonic_space_has_dimension_2g(name, genus, device):
     """The harmonic part of every field lies in a space of dimension 2 g on a closed surface
     (the torus: 2) and 0 on the sphere and the disk (with v = 0 on the boundary, the harmonic
     fields of the disk would have to be tangent to a boundary of a simply connected domain):
@@ -109,9 +111,9 @@ def test_harmonic_space_has_dimension_2g(name, genus):
         verts, faces = tp.shapes.quad_sphere(3, noise=0.05, seed=2)
     else:
         verts, faces = read(DATA / "grid" / "quad_1.obj")
-    hodge = tv.HodgeDecomposition(verts, faces)
+    hodge = tv.HodgeDecomposition(verts.to(device), faces)
     T = hodge.triangles.shape[0]
-    basis = torch.eye(3 * T, dtype=torch.float64).reshape(T, 3, 3 * T)
+    basis = torch.eye(3 * T, dtype=torch.float64, device=device).reshape(T, 3, 3 * T)
     H = hodge(basis).harmonic.reshape(3 * T, 3 * T)
     s = torch.linalg.svdvals(H)
     if genus:
@@ -120,13 +122,13 @@ def test_harmonic_space_has_dimension_2g(name, genus):
         assert float(s[0]) < 1e-9
 
 
-def test_harmonic_fields_of_the_torus_are_closed_and_coclosed():
+def test_harmonic_fields_of_the_torus_are_closed_and_coclosed(device):
     """The two harmonic directions of the torus of revolution are e_phi / rho and
     e_theta / rho (dphi and its Hodge star): their decomposition is mostly harmonic, the
     fraction that is not falling with the mesh size."""
     leftover = []
     for n in (16, 32):
-        verts, faces = tp.shapes.torus(n, n // 2)
+        verts, faces = tp.shapes.torus(n, n // 2, device=device)
         hodge = tv.HodgeDecomposition(verts, faces)
         x, y = verts[:, 0], verts[:, 1]
         rho2 = x**2 + y**2
@@ -162,20 +164,20 @@ def cr_reference(verts: np.ndarray, tris: np.ndarray, edges: np.ndarray) -> np.n
     return K
 
 
-def test_operators_match_independent_references():
+def test_operators_match_independent_references(device):
     """The cotangent Laplacian of the refinement is G^T A G (the package's gradient) and the
     Crouzeix-Raviart Laplacian equals the dense stiffness built from its definition."""
     verts, faces = sphere("voronoi_3")
-    verts = verts[: int(faces.indices.max()) + 1]
+    verts = verts[: int(faces.indices.max()) + 1].to(device)
     hodge = tv.HodgeDecomposition(verts, faces)
     rv, tris = tv.virtual_refinement(verts, faces)
     torch.testing.assert_close(rv, hodge.refined_verts)
     G = to_scipy(tp.gradient_operator(rv, tris.tolist())).toarray()
-    A = np.repeat(hodge.areas.numpy(), 3)
+    A = np.repeat(hodge.areas.cpu().numpy(), 3)
     np.testing.assert_allclose(
         to_scipy(hodge.laplacian).toarray(), G.T @ (A[:, None] * G), atol=1e-12
     )
-    K = cr_reference(rv.numpy(), tris.numpy(), hodge.edges.numpy())
+    K = cr_reference(rv.cpu().numpy(), tris.cpu().numpy(), hodge.edges.cpu().numpy())
     np.testing.assert_allclose(to_scipy(hodge.cr_laplacian).toarray(), K, atol=1e-11)
 
 
@@ -204,7 +206,7 @@ def relative(got: torch.Tensor, want: torch.Tensor) -> float:
     return float((got - want).norm() / want.norm())
 
 
-def test_analytic_decomposition_on_the_torus_converges():
+def test_analytic_decomposition_on_the_torus_converges(device):
     """Against the exact parts (3D vectors at the vertices, after area-weighted averaging of
     the triangles): the relative errors fall about 4x per halving of h (measured 0.132, 0.070,
     0.038 at 24 x 12 and 0.035, 0.018, 0.0098 at 48 x 24)."""
@@ -213,16 +215,16 @@ def test_analytic_decomposition_on_the_torus_converges():
         verts, faces = tp.shapes.torus(n, n // 2)
         normal = tp.nn.vertex_tangent_frames(verts, faces)[0]
         want = torus_fields(verts, normal)
-        hodge = tv.HodgeDecomposition(verts, faces)
-        parts = hodge(hodge.from_vertices(sum(want)))
+        hodge = tv.HodgeDecomposition(verts.to(device), faces)
+        parts = hodge(hodge.from_vertices(sum(want).to(device)))
         errors.append(
-            [relative(hodge.to_vertices(p), w) for p, w in zip(parts, want, strict=False)]
+            [relative(hodge.to_vertices(p).cpu(), w) for p, w in zip(parts, want, strict=False)]
         )
     coarse, fine = np.array(errors)
     assert (fine < 0.05).all() and (fine < coarse / 3).all(), errors
 
 
-def test_close_to_adobe_lagrange_on_the_torus():
+def test_close_to_adobe_lagrange_on_the_torus(device):
     """adobe-lagrange's ``hodge_decomposition_vector_field`` (1-forms with de Goes et al.'s
     inner product) on the same quad torus and field, compared basis-independently with the
     exact parts as 3D vectors: ours is at least as accurate on every part (measured at
@@ -237,8 +239,8 @@ def test_close_to_adobe_lagrange_on_the_torus():
     normal = tp.nn.vertex_tangent_frames(verts, faces)[0]
     want = torus_fields(verts, normal)
     X = sum(want)
-    hodge = tv.HodgeDecomposition(verts, faces)
-    ours = [hodge.to_vertices(p) for p in hodge(hodge.from_vertices(X))[:3]]
+    hodge = tv.HodgeDecomposition(verts.to(device), faces)
+    ours = [hodge.to_vertices(p).cpu() for p in hodge(hodge.from_vertices(X.to(device)))[:3]]
     mesh = lagrange.SurfaceMesh()
     mesh.add_vertices(verts.numpy())
     mesh.add_quads(faces.numpy().astype(np.uint32))
@@ -257,13 +259,14 @@ def test_close_to_adobe_lagrange_on_the_torus():
         assert abs(float(energy_o / energy_t) - 1) < 0.05
 
 
-def test_gradcheck():
+def test_gradcheck(device):
     """Parts differentiable in the vertex positions and the field (float64 gradcheck on a
     small torus of non-planar quads)."""
     verts, faces = noisy_torus(5, 4)
     hodge0 = tv.HodgeDecomposition(verts, faces)
-    field = random_field(hodge0, 1)[:, :, 0]
+    field = random_field(hodge0, 1)[:, :, 0].to(device)
     vfield = torch.randn(verts.shape, generator=torch.Generator().manual_seed(1), dtype=verts.dtype)
+    verts, vfield = verts.to(device), vfield.to(device)
 
     def parts(v: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
         hodge = tv.HodgeDecomposition(v, faces)
@@ -274,13 +277,13 @@ def test_gradcheck():
     assert torch.autograd.gradcheck(parts, args, fast_mode=True)
 
 
-def test_bad_input_is_refused_by_name():
-    verts, faces = tp.shapes.torus(6, 4)
+def test_bad_input_is_refused_by_name(device):
+    verts, faces = tp.shapes.torus(6, 4, device=device)
     hodge = tv.HodgeDecomposition(verts, faces)
     with pytest.raises(ValueError, match=r"shape \(96, 3\) or \(96, 3, C\)"):
-        hodge(torch.zeros(verts.shape, dtype=verts.dtype))
+        hodge(torch.zeros_like(verts))
     with pytest.raises(ValueError, match="24 vertices or the 48 refined"):
-        hodge.gradient(torch.zeros(5, dtype=verts.dtype))
+        hodge.gradient(torch.zeros(5, dtype=verts.dtype, device=device))
     flipped = faces.clone()
     flipped[0] = flipped[0].flip(0)
     with warnings.catch_warnings():
@@ -292,26 +295,30 @@ def test_bad_input_is_refused_by_name():
 # ---------------------------------------------------------------- the per-corner gradient weights
 
 
-def test_corner_gradients_are_the_hat_gradients_on_triangles():
+def test_corner_gradients_are_the_hat_gradients_on_triangles(device):
     """On triangles the rows are the gradients of the linear hat functions: libigl's ``grad``
     (an independent finite-element route), entry by entry."""
     igl = pytest.importorskip("igl", reason="libigl not installed: pip install libigl")
     verts, faces = noisy_torus()
     tri = torch.cat((faces[:, [0, 1, 2]], faces[:, [0, 2, 3]]))
-    w = tp.corner_gradients(verts, tri).reshape(-1, 3, 3)  # (F, corner, component)
+    w = tp.corner_gradients(verts.to(device), tri).reshape(-1, 3, 3)  # (F, corner, component)
+    assert w.device.type == device.type
+    w = w.cpu()
     G = igl.grad(verts.numpy(), tri.numpy()).toarray()  # rows: x of every face, then y, then z
     F = tri.shape[0]
     ref = np.stack([G[d * F + np.arange(F)[:, None], tri.numpy()] for d in range(3)], -1)
     np.testing.assert_allclose(w.numpy(), ref, atol=1e-12)
 
 
-def test_corner_gradients_reproduce_linear_functions_on_polygons():
+def test_corner_gradients_reproduce_linear_functions_on_polygons(device):
     """On every polygon, planar or not (AW11 Lemma 1): the rows of a face sum to zero and
     ``sum_i w_i x_i^T`` is the projector on the plane orthogonal to the face's vector area
     (computed here by the shoelace sum); and they are the entries of ``face_gradient``."""
     verts, faces = noisy_torus()
     mixed = [f.tolist() for f in faces[:20]] + [[0, 1, 2], [3, 4, 5, 6, 7]]
-    w = tp.corner_gradients(verts, mixed)
+    w = tp.corner_gradients(verts.to(device), mixed)
+    assert w.device.type == device.type
+    w = w.cpu()
     start = 0
     for face in mixed:
         x = verts[face].numpy()
@@ -322,7 +329,7 @@ def test_corner_gradients_reproduce_linear_functions_on_polygons():
         np.testing.assert_allclose(rows.sum(0), 0.0, atol=1e-12)
         np.testing.assert_allclose(rows.T @ x, np.eye(3) - np.outer(n, n), atol=1e-12)
     u = torch.randn(verts.shape[0], generator=torch.Generator().manual_seed(1), dtype=verts.dtype)
-    grad = tp.face_gradient(verts, mixed, u)
+    grad = tp.face_gradient(verts.to(device), mixed, u.to(device)).cpu()
     sizes = torch.tensor([len(f) for f in mixed])
     face = torch.repeat_interleave(torch.arange(len(mixed)), sizes)
     corners = torch.tensor([i for f in mixed for i in f])

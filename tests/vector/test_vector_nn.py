@@ -42,13 +42,15 @@ def forward(layers, x: torch.Tensor, A: torch.Tensor, M: torch.Tensor) -> torch.
     return gate(linear(torch.cat((x, diffusion(x, A, M)), 1)))
 
 
-def test_diffusion_equals_a_dense_solve():
+def test_diffusion_equals_a_dense_solve(device):
     """(M + t_c A) y_c = M x_c per channel, against numpy's dense solve."""
     verts, faces = mesh()
-    A, M, _ = tv.connection_laplacian(verts, faces)
-    layer = network()[0]
+    A, M, _ = tv.connection_laplacian(verts.to(device), faces)
+    layer = network()[0].to(device)
     x = features(verts.shape[0])
-    y = layer(x, A, M)
+    y = layer(x.to(device), A, M)
+    assert y.device.type == device.type
+    y = y.cpu()
     Ad, Md = to_scipy(A).toarray(), to_scipy(M).toarray()
     for c, t in enumerate(layer.times.tolist()):
         xc = x[:, c].reshape(-1).numpy()  # interleaved (x0, y0, x1, y1, ...)
@@ -57,27 +59,28 @@ def test_diffusion_equals_a_dense_solve():
 
 
 @pytest.mark.parametrize("angle", [0.3, np.pi / 2, 2.5])
-def test_rotating_every_input_vector_rotates_the_output(angle):
+def test_rotating_every_input_vector_rotates_the_output(angle, device):
     """f(R x) = R f(x) for R the rotation by one angle in every frame: the diffusion, the
     complex mixing and the length gate each commute with it (to round-off)."""
     verts, faces = mesh()
-    A, M, _ = tv.connection_laplacian(verts, faces)
-    layers = network()
-    x = features(verts.shape[0])
+    A, M, _ = tv.connection_laplacian(verts.to(device), faces)
+    layers = tuple(layer.to(device) for layer in network())
+    x = features(verts.shape[0]).to(device)
     y = forward(layers, x, A, M)
     rotated = forward(layers, tp.nn.rotate_vectors(x, angle), A, M)
     torch.testing.assert_close(rotated, tp.nn.rotate_vectors(y, angle), atol=1e-12, rtol=0)
 
 
-def test_a_change_of_frames_gives_the_same_vectors():
+def test_a_change_of_frames_gives_the_same_vectors(device):
     """Gauge equivariance: with every vertex frame turned by its own angle, A rebuilt in the new
     frames and the input written in them, the output is the same 3D field."""
     verts, faces = mesh()
+    verts = verts.to(device)
     A, M, frames = tv.connection_laplacian(verts, faces)
-    layers = network()
-    x = features(verts.shape[0])
+    layers = tuple(layer.to(device) for layer in network())
+    x = features(verts.shape[0]).to(device)
     y = tv.to_ambient(forward(layers, x, A, M), frames)
-    alpha = torch.linspace(0, 11, verts.shape[0], dtype=torch.float64)[:, None]
+    alpha = torch.linspace(0, 11, verts.shape[0], dtype=torch.float64, device=device)[:, None]
     c, s = torch.cos(alpha), torch.sin(alpha)
     turned = tv.TangentFrames(
         frames.normal, c * frames.e_x + s * frames.e_y, -s * frames.e_x + c * frames.e_y
@@ -88,31 +91,31 @@ def test_a_change_of_frames_gives_the_same_vectors():
     torch.testing.assert_close(y_turned, y, atol=1e-12, rtol=0)
 
 
-def test_on_a_plane_it_is_the_scalar_layer_per_coordinate():
+def test_on_a_plane_it_is_the_scalar_layer_per_coordinate(device):
     """On a planar mesh, in frames common to all vertices, A = L (x) I_2: the vector diffusion
     of (x, y) equals tp.nn.LearnedDiffusion ("implicit") of the two coordinates with the same
     times."""
     verts, faces = tp.shapes.quad_grid(6, 5)
-    verts = verts.double()
+    verts = verts.double().to(device)
     normal = tv.tangent_frames(verts, tp.get_topology(faces, verts.shape[0])).normal
     e_x = torch.zeros_like(verts)
     e_x[:, 0] = 1.0
     common = (normal, e_x, torch.linalg.cross(normal, e_x, dim=1))
     A, M, _ = tv.connection_laplacian(verts, faces, frames=common)
     L, M0 = tp.laplacian(verts, faces)
-    vector = tp.nn.LearnedVectorDiffusion(C).double()
-    scalar = tp.nn.LearnedDiffusion(C, mode="implicit").double()
-    x = features(verts.shape[0])
+    vector = tp.nn.LearnedVectorDiffusion(C).double().to(device)
+    scalar = tp.nn.LearnedDiffusion(C, mode="implicit").double().to(device)
+    x = features(verts.shape[0]).to(device)
     y = vector(x, A, M)
     for k in range(2):
         torch.testing.assert_close(y[..., k], scalar(x[..., k], L=L, M0=M0), atol=1e-12, rtol=0)
 
 
-def test_forward_is_one_graph_and_compiles_to_eager_values():
+def test_forward_is_one_graph_and_compiles_to_eager_values(device):
     verts, faces = mesh()
-    A, M, _ = tv.connection_laplacian(verts, faces)
-    layers = network()
-    x = features(verts.shape[0])
+    A, M, _ = tv.connection_laplacian(verts.to(device), faces)
+    layers = tuple(layer.to(device) for layer in network())
+    x = features(verts.shape[0]).to(device)
 
     def loss(x: torch.Tensor) -> torch.Tensor:
         return forward(layers, x, A, M).square().sum()
@@ -131,17 +134,18 @@ def test_forward_is_one_graph_and_compiles_to_eager_values():
     torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
 
 
-def test_gradcheck():
+def test_gradcheck(device):
     """Differentiable in the features, the times and the vertex positions (through A, M)."""
-    verts, faces = tp.shapes.torus(5, 4)
-    _, linear, gate = network()
-    x = features(verts.shape[0])
+    verts, faces = tp.shapes.torus(5, 4, device=device)
+    _, linear, gate = (layer.to(device) for layer in network())
+    x = features(verts.shape[0]).to(device)
 
     def f(v: torch.Tensor, x: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
         A, M, _ = tv.connection_laplacian(v, faces)
         return forward((with_raw_times(raw), linear, gate), x, A, M)
 
     raw = tp.nn.LearnedVectorDiffusion(C, init_times=(1e-2, 1.0)).raw_times.detach().double()
+    raw = raw.to(device)
     args = (verts.clone(), x, raw)
     args = tuple(a.clone().requires_grad_(True) for a in args)
     assert torch.autograd.gradcheck(f, args, fast_mode=True)
@@ -155,15 +159,15 @@ def with_raw_times(raw: torch.Tensor) -> tp.nn.LearnedVectorDiffusion:
     return layer
 
 
-def test_bad_shapes_are_refused():
+def test_bad_shapes_are_refused(device):
     verts, faces = mesh()
-    A, M, _ = tv.connection_laplacian(verts, faces)
-    layer, linear, gate = network()
+    A, M, _ = tv.connection_laplacian(verts.to(device), faces)
+    layer, linear, gate = (layer.to(device) for layer in network())
     with pytest.raises(ValueError, match=r"\(V, 3, 2\)"):
-        layer(torch.zeros(verts.shape[0], C, dtype=torch.float64), A, M)
+        layer(torch.zeros(verts.shape[0], C, dtype=torch.float64, device=device), A, M)
     with pytest.raises(ValueError, match="must be"):
-        layer(features(verts.shape[0] - 1), A, M)
+        layer(features(verts.shape[0] - 1).to(device), A, M)
     with pytest.raises(ValueError, match=r"\(V, 6, 2\)"):
-        linear(features(verts.shape[0]))
+        linear(features(verts.shape[0]).to(device))
     with pytest.raises(ValueError, match=r"\(V, 3, 2\)"):
-        gate(torch.zeros(4, 3, 3, dtype=torch.float64))
+        gate(torch.zeros(4, 3, 3, dtype=torch.float64, device=device))
