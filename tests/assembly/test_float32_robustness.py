@@ -13,8 +13,8 @@ Two ways float32 used to fail silently:
 
 The reference everywhere is the float64 assembly on the same (float32-rounded) coordinates,
 with the same float32-rounded cotangents, whose gradients agree with finite differences
-(tests/assembly/test_gradients.py). ``COUNTS`` records the cases per category (docs/math/properties.md,
-"Finite precision").
+(tests/assembly/test_gradients.py). ``COUNTS`` records the cases per category
+(docs/math/properties.md, "Finite precision").
 """
 
 from __future__ import annotations

@@ -2,12 +2,12 @@
 
 Its printed table (SH error, mean-curvature error and Franke error on the level-3 meshes, for
 lambda in {2, 1, 0.5}) was produced by the polyLaplace research code. The experiments are
-written here from their definitions, independently of ``examples/convergence_study.py`` (whose
-report ``tests/project/test_examples.py`` checks against the same numbers): ``Y_3^2`` with associated
-Legendre functions, Franke's function and its exact Laplacian (checked by finite differences),
-and polyLaplace's PLMS mass (:func:`meshes.plms_galerkin_mass`); only ``L``, ``M0`` and
-``dirichlet_solve`` come from the package. The definitions the published table was computed
-with:
+written here from their definitions, independently of ``examples/convergence_study.py``
+(whose report ``tests/project/test_examples.py`` checks against the same numbers): ``Y_3^2``
+with associated Legendre functions, Franke's function and its exact Laplacian (checked by
+finite differences), and polyLaplace's PLMS mass (:func:`meshes.plms_galerkin_mass`); only
+``L``, ``M0`` and ``dirichlet_solve`` come from the package. The definitions the published
+table was computed with:
 
 * spheres: vertices normalized to the unit sphere first;
 * SH error: ``y = Y_3^2`` with ``phi = atan2(x, z) + pi``, ``cos(theta) = y / |p|``,
@@ -26,7 +26,8 @@ the same way (libigl's polygon ``cotmatrix`` uses mixed Voronoi corner areas ins
 :func:`meshes.plms_galerkin_mass` computes polyLaplace's mass independently (numpy, its own
 virtual vertex), and the PLMS numbers reproduce with it and with the package's ``M0``.
 
-Run ``PYTHONPATH=. python tests/assembly/test_reference_values.py`` to print the full comparison table.
+Run ``PYTHONPATH=. python tests/assembly/test_reference_values.py`` to print the full
+comparison table.
 """
 
 from __future__ import annotations

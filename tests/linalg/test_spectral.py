@@ -99,7 +99,8 @@ def test_learnable_times_and_diffusion_gradients(device):
 
 
 def test_eigenvector_gradients_reach_the_vertices(device):
-    """Through evecs as well as evals (formerly refused; tests/linalg/test_eigenvector_gradients.py)."""
+    """Through evecs as well as evals (formerly refused; see
+    tests/linalg/test_eigenvector_gradients.py)."""
     V, F = mixed_mesh()
     V = V.to(device)
     times = torch.tensor([0.1], **D64, device=device)
