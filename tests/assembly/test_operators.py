@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
-from conftest import DATA, hex_pent_mesh, mixed_mesh
+from conftest import DATA, hex_pent_mesh, mixed_mesh, tolerances
 
 import torch_polylap as tp
 from torch_polylap.shapes import quad_grid
@@ -69,19 +69,22 @@ def polygon_blocks_svd(X: torch.Tensor, lam: float) -> tuple[torch.Tensor, torch
 
 
 @pytest.mark.parametrize("lam", [0.5, 1.0, 2.0])
-def test_triangles_give_cotan(lam, device):
+def test_triangles_give_cotan(lam, device, dtype):
     """Theorem 2: on triangles L is the cotan Laplacian for every lambda."""
-    V, F = quad_grid(5, 4, bump=0.4, seed=3)
+    V, F = quad_grid(5, 4, bump=0.4, seed=3, dtype=dtype, device=device)
     T = torch.cat([F[:, [0, 1, 2]], F[:, [0, 2, 3]]])
-    L, M0 = tp.laplacian(V.to(device), T, lam)
-    assert L.device == M0.device == device
+    L, M0 = tp.laplacian(V, T, lam)
+    assert L.device == M0.device == device and L.dtype == M0.dtype == dtype
+    V = V.cpu().double()  # the references from the same (rounded) coordinates, in float64
     ref = cotan_laplacian(V.numpy(), T.numpy())
-    np.testing.assert_allclose(dense(L).cpu().numpy(), ref, atol=1e-12 * np.abs(ref).max())
+    tol = 1e-12 if dtype == torch.float64 else tolerances(dtype)["atol"]
+    np.testing.assert_allclose(dense(L).cpu().numpy(), ref, atol=tol * np.abs(ref).max())
     # M0 = barycentric lumped mass: a third of each incident triangle's area
     areas = 0.5 * np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1)
     m = np.zeros(len(V))
     np.add.at(m, T.numpy().ravel(), np.repeat(areas / 3, 3))
-    np.testing.assert_allclose(torch.diagonal(dense(M0)).cpu().numpy(), m, rtol=1e-13)
+    rtol = 1e-13 if dtype == torch.float64 else tolerances(dtype)["rtol"]
+    np.testing.assert_allclose(torch.diagonal(dense(M0)).cpu().numpy(), m, rtol=rtol)
 
 
 def test_triangles_match_libigl(device):
