@@ -73,7 +73,7 @@ def test_gather_plan_covers_the_awkward_cases(device):
     topo = tp.build_topology(faces, verts.shape[0])
     plan = gather_plan_of(topo, topo.on(device))
     assert plan.rest.numel() > 0 and plan.vertex.rest.numel() > 0
-    assert plan.rest.device == device
+    assert plan.rest.device.type == device.type
     assert gather_plan_of(topo, topo.on(device)) is plan  # computed once
 
 

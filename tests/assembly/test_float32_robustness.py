@@ -77,7 +77,7 @@ def test_laplacian_of_spot_is_right_at_any_scale(scale, method, device):
     V32 = (V * scale).float().to(device)
     ref = tp.laplacian(V32.double(), F, method=method)[0]
     out = tp.laplacian(V32, F, method=method, validate=False)[0]
-    assert out.device == device
+    assert out.device.type == device.type
     assert torch.isfinite(sparse_values(out)).all()
     assert _relative(sparse_values(out), sparse_values(ref)) <= 1e-4
 

@@ -83,7 +83,7 @@ def test_the_three_methods_differ_on_these_meshes(pair, device):
 @pytest.mark.parametrize("method", METHODS)
 def test_batch_laplacian(batch, pair, method, device):
     L, M0 = batch.to(device).laplacian(LAM, method=method)
-    assert L.device == M0.device == device
+    assert L.device.type == M0.device.type == device.type
     L_ref, M_ref = packed_direct(pair, method)  # mesh by mesh, on the CPU
     torch.testing.assert_close(dense(L).cpu(), L_ref, **TIGHT)
     torch.testing.assert_close(dense(M0).cpu(), M_ref, **TIGHT)
@@ -149,7 +149,7 @@ def test_losses(batch, pair, method, device):
         "bending": losses.BendingEnergy(LAM, "none", method=method)(batch),
     }
     for name, ref in expected.items():
-        assert got[name].device == modules[name].device == device
+        assert got[name].device.type == modules[name].device.type == device.type
         torch.testing.assert_close(got[name].cpu(), ref, **TIGHT, msg=name)
         torch.testing.assert_close(modules[name].cpu(), ref, **TIGHT, msg=f"{name} module")
     assert f"method={method!r}" in repr(losses.BendingEnergy(method=method))
@@ -210,7 +210,7 @@ def test_cached_eigs(pair, method, tmp_path, device):
     verts, faces = pair[0]
     verts = verts.to(device)
     evals, evecs = tp.cached_eigs(verts, faces, K, tmp_path, lam=LAM, method=method)
-    assert evals.device == evecs.device == device
+    assert evals.device.type == evecs.device.type == device.type
     L, M0 = direct(verts, faces, method)
     ref, _ = tp.eigs(L, M0, K)
     torch.testing.assert_close(evals, ref, rtol=1e-9, atol=1e-9)
@@ -334,7 +334,7 @@ def test_plate_bending(method, device):
     V = V + torch.tensor([0.5, 0.5, 0.0], dtype=V.dtype)
     V[:, 2] = 0.05 * torch.sin(3 * V[:, 0]) * torch.cos(2 * V[:, 1])  # non-planar faces too
     u = tp.apps.plate_bending(V.to(device), F, load=1.0, lam=LAM, method=method)
-    assert u.device == device
+    assert u.device.type == device.type
     L, M0 = direct(V, F, method)
     Ls, m = tp.sparse.to_scipy(L).tocsr(), dense(M0).diagonal().numpy()
     boundary = tp.build_topology(F, V.shape[0]).boundary_vertices.numpy()

@@ -74,7 +74,7 @@ def test_eigs_finds_every_copy_of_forty_disjoint_spots(device):
     reference = np.sort(np.repeat(_spectrum(V, F), 40))
     assert linalg.eigs_route(L.shape[0], 128, diagonal_mass=True, cholmod=True) == "lanczos"
     evals, evecs = tp.eigs(L, M0, 128)
-    assert evals.device == device
+    assert evals.device.type == device.type
     _assert_eigenpairs(evals, evecs, L, M0, reference)
 
 
@@ -104,7 +104,7 @@ def test_eigs_on_symmetric_shapes_match_lapack(route, shape, monkeypatch, device
     Ld, Md = L.to_dense().cpu().numpy(), M0.to_dense().cpu().numpy()
     reference = scipy.linalg.eigh(Ld, Md, eigvals_only=True)
     evals, evecs = tp.eigs(L, M0, 40)
-    assert evals.device == device
+    assert evals.device.type == device.type
     _assert_eigenpairs(evals, evecs, L, M0, reference)
 
 
@@ -142,7 +142,7 @@ def test_eigs_completes_a_route_that_missed_eigenpairs(mass, monkeypatch, device
     Ld, Md = L.to_dense().cpu().numpy(), M.to_dense().cpu().numpy()
     reference = scipy.linalg.eigh(Ld, Md, eigvals_only=True)
     evals, evecs = tp.eigs(L, M, 24)
-    assert evals.device == device
+    assert evals.device.type == device.type
     _assert_eigenpairs(evals, evecs, L, M, reference)
 
 

@@ -36,7 +36,7 @@ def test_face_forms_agree(device):
 
 def test_polygon_faces_accessors(device):
     faces = tp.as_faces([[0, 1, 2], [2, 1, 3, 4]]).to(device)
-    assert faces.device == device and faces.corner_face.device == device
+    assert faces.device.type == device.type and faces.corner_face.device.type == device.type
     assert faces.num_faces == 2 and faces.num_corners == 7 and len(faces) == 2
     assert faces[1].tolist() == [2, 1, 3, 4] and faces[-1].tolist() == [2, 1, 3, 4]
     assert faces.flipped().tolist() == [[2, 1, 0], [4, 3, 1, 2]]
@@ -355,7 +355,7 @@ def test_laplacian_on_irregular_meshes(name, V, F, expect, device):
     assert report.isolated_vertices.size == expect.get("isolated", 0)
 
     L, M0 = tp.laplacian(V.to(device), topo)
-    assert L.device == device
+    assert L.device.type == device.type
     Ld = L.to_dense().cpu().numpy()  # the references below on the CPU
     assert np.allclose(Ld, Ld.T, rtol=0, atol=1e-13 * np.abs(Ld).max())
     assert np.abs(Ld.sum(1)).max() <= 1e-12 * np.abs(Ld).max()
