@@ -110,7 +110,9 @@ def test_auto_backend_and_cholesky_requirements(device):
     torch.testing.assert_close(tp.solve(A, B), reference, rtol=1e-10, atol=1e-12)
     assert "cholesky" in A._solver_cache
     unsymmetric = A.with_values(A.values(), symmetric=False)
-    torch.testing.assert_close(tp.solve(unsymmetric, B), reference, rtol=1e-10, atol=1e-12)
+    # not marked symmetric: SuperLU on the CPU, CG (to a 1e-10 residual) elsewhere
+    tol = {"rtol": 1e-10, "atol": 1e-12} if device.type == "cpu" else {"rtol": 1e-7, "atol": 1e-9}
+    torch.testing.assert_close(tp.solve(unsymmetric, B), reference, **tol)
     with pytest.raises(ValueError, match="symmetric operator"):
         tp.solve(unsymmetric, B, backend="cholesky")
     with pytest.raises(ValueError, match="singular.*M0 \\+ h L"):

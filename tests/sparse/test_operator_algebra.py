@@ -252,12 +252,13 @@ def test_gradgradcheck_products_and_solves(device):
     X = torch.randn(V.shape[0], 2, generator=torch.Generator().manual_seed(1), **D64)
     X = X.to(device).requires_grad_(True)
 
-    # gradgradcheck perturbs the values freely: the operators must not claim symmetry
+    # gradgradcheck perturbs the values freely: the operators must not claim symmetry, and the
+    # solve must take SuperLU (auto picks it on the CPU only; CG assumes symmetry)
     def product(v, X):
         return pattern_op.with_values(v, symmetric=False) @ X
 
     def solved(v, X):
-        return tp.solve(A.with_values(v, symmetric=False), X)
+        return tp.solve(A.with_values(v, symmetric=False), X, backend="splu")
 
     assert torch.autograd.gradgradcheck(product, (values, X))
     assert torch.autograd.gradgradcheck(solved, (a_values, X))
