@@ -65,7 +65,8 @@ def test_weld_vertices_closes_a_seam(device):
     assert _topology(split, Vs.shape[0]).num_edges > tp.build_topology(F, 16).num_edges
     V2, welded, rep = repair.weld_vertices(Vs, split)
     assert rep.vertex_source.tolist() == list(range(16)) and rep.vertex_map[16:].tolist() == seam
-    assert welded.tolist() == F.tolist() and V2.device.type == device.type and torch.equal(V2, Vs[:16])
+    assert welded.tolist() == F.tolist() and V2.device.type == device.type
+    assert torch.equal(V2, Vs[:16])
     assert rep.changed_faces.tolist() == [3, 4, 5]  # the faces that used a copy
     _, _, none = repair.weld_vertices(Vs, split, tol=1e-14)  # below the gap: nothing welds
     assert none.vertex_source.size == Vs.shape[0]
@@ -113,7 +114,8 @@ def test_remove_unreferenced_vertices_maps_vertex_data(device):
     V = torch.cat([torch.tensor([[7.0, 7, 7]], dtype=V.dtype, device=device), V])
     faces = (F + 1).tolist()
     V2, out, rep = repair.remove_unreferenced_vertices(V, faces)
-    assert rep.removed_vertices.tolist() == [0] and V2.device.type == device.type and torch.equal(V2, V[1:])
+    assert rep.removed_vertices.tolist() == [0] and V2.device.type == device.type
+    assert torch.equal(V2, V[1:])
     assert out.tolist() == F.tolist() and rep.vertex_map.tolist() == [-1, *range(9)]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
