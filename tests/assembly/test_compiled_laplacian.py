@@ -54,8 +54,9 @@ MESHES = {"mixed": mixed_mesh, "hexpent": hex_pent_mesh, "awkward": _awkward_mes
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("name", sorted(MESHES))
-def test_gathered_assembly_equals_the_scatter_assembly(name, method):
+def test_gathered_assembly_equals_the_scatter_assembly(name, method, device):
     verts, faces = MESHES[name]()
+    verts = verts.to(device)
     topo = tp.build_topology(faces, verts.shape[0])
     view = topo.on(verts.device)
     kernel = block_kernel(method, 1.7)
@@ -66,23 +67,26 @@ def test_gathered_assembly_equals_the_scatter_assembly(name, method):
     torch.testing.assert_close(got.masses, want_masses, rtol=1e-15, atol=0)
 
 
-def test_gather_plan_covers_the_awkward_cases():
+def test_gather_plan_covers_the_awkward_cases(device):
     """The test mesh does reach the index_add parts of the plan."""
     verts, faces = _awkward_mesh()
     topo = tp.build_topology(faces, verts.shape[0])
-    plan = gather_plan_of(topo, topo.on("cpu"))
+    plan = gather_plan_of(topo, topo.on(device))
     assert plan.rest.numel() > 0 and plan.vertex.rest.numel() > 0
-    assert gather_plan_of(topo, topo.on("cpu")) is plan  # computed once
+    assert plan.rest.device.type == device.type
+    assert gather_plan_of(topo, topo.on(device)) is plan  # computed once
 
 
-def test_gathered_assembly_gradients():
+def test_gathered_assembly_gradients(device):
     """First and second derivatives of the gathers (their backward is written by hand)."""
     verts, faces = _awkward_mesh()
+    verts = verts.to(device)
     topo = tp.build_topology(faces, verts.shape[0])
     view = topo.on(verts.device)
     kernel = block_kernel("aw11", 1.3)
     plan = gather_plan_of(topo, view)
     U = torch.randn(verts.shape[0], 2, dtype=torch.float64, generator=torch.Generator())
+    U = U.to(device)
 
     def parts(X):
         out = assemble_gathered(X, view, kernel, plan, want_mass=True)
@@ -100,11 +104,13 @@ def test_gathered_assembly_gradients():
 
 @pytest.mark.slow  # inductor generates and compiles C++: about 40 s
 @pytest.mark.usefixtures("fresh_dynamo")
-def test_compiled_laplacian_equals_eager_with_inductor():
+def test_compiled_laplacian_equals_eager_with_inductor(device):
     """The default (inductor) compilation: values, masses and gradients as eager's."""
     verts, faces = _awkward_mesh()
+    verts = verts.to(device)
     lap = tp.CompiledLaplacian(faces, 1.4)
     X = torch.randn(verts.shape[0], 3, dtype=torch.float64, generator=torch.Generator())
+    X = X.to(device)
 
     def run(fn):
         V = verts.clone().requires_grad_(True)
@@ -120,10 +126,10 @@ def test_compiled_laplacian_equals_eager_with_inductor():
 
 
 @pytest.mark.usefixtures("fresh_dynamo")
-def test_compiled_laplacian_hands_bad_input_to_the_eager_checks():
+def test_compiled_laplacian_hands_bad_input_to_the_eager_checks(device):
     """Non-finite input: the eager error naming the vertex; a face too thin for float32: the
     eager float64 re-evaluation; validate=False: no check, no fallback."""
-    verts, faces = quad_grid(3, bump=0.1)
+    verts, faces = quad_grid(3, bump=0.1, device=device)
     options = {"backend": "aot_eager", "dynamic": False}
     lap = tp.CompiledLaplacian(faces, options=options)
     bad = verts.double().clone()
@@ -131,10 +137,10 @@ def test_compiled_laplacian_hands_bad_input_to_the_eager_checks():
     with pytest.raises(ValueError, match="vertex 4 has non-finite"):
         lap(bad)
     t = 5e-6  # a dart of thinness 1e-5: its float32 block is off by several percent
-    dart = torch.tensor([[0, 0, 0], [2, t, 0], [0, 2 * t, 0], [1, 0.4 * t, 0.1 * t]])
+    dart = torch.tensor([[0, 0, 0], [2, t, 0], [0, 2 * t, 0], [1, 0.4 * t, 0.1 * t]], device=device)
     kernel = block_kernel("aw11", 1.0)
     topo = tp.build_topology([[0, 1, 2, 3]], 4)
-    view = topo.on("cpu")
+    view = topo.on(device)
     plan = gather_plan_of(topo, view)
     assert not bool(assemble_gathered(dart, view, kernel, plan, want_mass=True).accurate)
     L, M0 = tp.CompiledLaplacian(topo, options=options)(dart)

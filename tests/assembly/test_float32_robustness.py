@@ -70,41 +70,43 @@ def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("scale", [1e-30, 1e-18, 1e20, 1e30])
-def test_laplacian_of_spot_is_right_at_any_scale(scale, method):
+def test_laplacian_of_spot_is_right_at_any_scale(scale, method, device):
     """Spot x 1e-18 gave 122 NaN entries, x 1e20 refused a valid face, x 1e30 was all NaN;
     ``validate=False`` skips the masses' range check (they are out of float32's range)."""
     V, F = _spot()
-    V32 = (V * scale).float()
+    V32 = (V * scale).float().to(device)
     ref = tp.laplacian(V32.double(), F, method=method)[0]
     out = tp.laplacian(V32, F, method=method, validate=False)[0]
+    assert out.device.type == device.type
     assert torch.isfinite(sparse_values(out)).all()
     assert _relative(sparse_values(out), sparse_values(ref)) <= 1e-4
 
 
 @pytest.mark.parametrize("scale", [1e-30, 1e-19, 1e20, 1e30])
-def test_masses_out_of_float32_range_are_refused(scale):
+def test_masses_out_of_float32_range_are_refused(scale, device):
     """M0 of Spot x 1e20 (about 1e38) overflows float32 and x 1e-19 underflows: an error naming
     a vertex, its mass and the scale, where NaN, zeros or subnormals were returned."""
     V, F = _spot()
     with pytest.raises(ValueError, match=MASS_ERROR):
-        tp.laplacian((V * scale).float(), F)
+        tp.laplacian((V * scale).float().to(device), F)
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_masses_in_range_at_extreme_coordinates_are_right(method):
+def test_masses_in_range_at_extreme_coordinates_are_right(method, device):
     V, F = _spot()
-    V32 = (V * 1e-17).float()
+    V32 = (V * 1e-17).float().to(device)
     L, M0 = tp.laplacian(V32, F, method=method)
     L64, M64 = tp.laplacian(V32.double(), F, method=method)
     assert _relative(sparse_values(L), sparse_values(L64)) <= 1e-4
     assert _relative(M0.diagonal(), M64.diagonal()) <= 1e-5
 
 
-def test_a_face_too_small_against_the_coordinates_is_named():
+def test_a_face_too_small_against_the_coordinates_is_named(device):
     """A unit mesh plus a tiny face at the origin and a vertex at 1e20: the tiny face cannot
     be evaluated next to that scale in float32."""
     V = torch.tensor(
-        [[0, 0, 0], [1e-18, 0, 0], [0, 1e-18, 0], [1e20, 0, 0], [1, 1, 0], [2, 1, 0], [1, 2, 0]]
+        [[0, 0, 0], [1e-18, 0, 0], [0, 1e-18, 0], [1e20, 0, 0], [1, 1, 0], [2, 1, 0], [1, 2, 0]],
+        device=device,
     )
     with (
         pytest.warns(UserWarning, match="belong to no face"),
@@ -113,17 +115,17 @@ def test_a_face_too_small_against_the_coordinates_is_named():
         tp.laplacian(V, [[0, 1, 2], [4, 5, 6]])
 
 
-def test_a_non_finite_block_is_named():
+def test_a_non_finite_block_is_named(device):
     """A stabilizer weight of 1e38 overflows the blocks' sums: the first such face is named."""
-    V, F = quad_grid(3, bump=0.3, seed=1, dtype=torch.float32)
+    V, F = quad_grid(3, bump=0.3, seed=1, dtype=torch.float32, device=device)
     with pytest.raises(ValueError, match=r"face \d+ \(vertices .*\) has a non-finite block"):
         tp.laplacian(V, F, 1e38)
 
 
-def test_non_finite_output_under_vmap_raises_the_generic_message():
+def test_non_finite_output_under_vmap_raises_the_generic_message(device):
     V, F = _spot()
     topo = tp.build_topology(F, V.shape[0])
-    batch = torch.stack([V, V * 1e30]).float()
+    batch = torch.stack([V, V * 1e30]).float().to(device)
     with pytest.raises(ValueError, match="cannot be named"):
         torch.func.vmap(lambda X: sparse_values(tp.laplacian(X, topo)[1]))(batch)
 
@@ -201,7 +203,7 @@ def _gradient_error(verts: torch.Tensor, faces: list[list[int]], method: str) ->
         lv, mv = sparse_values(L), sparse_values(M0)
         if w_l is None:
             w_l, w_m = torch.randn(lv.shape, generator=gen), torch.randn(mv.shape, generator=gen)
-        ((lv * w_l.to(dtype)).sum() + (mv * w_m.to(dtype)).sum()).backward()
+        ((lv * w_l.to(lv)).sum() + (mv * w_m.to(mv)).sum()).backward()
         grads[dtype] = X.grad.double()
     ref = grads[torch.float64]
     return float((grads[torch.float32] - ref).norm() / ref.norm())
@@ -221,23 +223,24 @@ def _rotated(P: torch.Tensor, seed: int) -> torch.Tensor:
     return P @ rotation.T + torch.from_numpy(rng.uniform(-2, 2, 3))
 
 
-def test_plms_gradient_on_a_nearly_planar_quad():
+def test_plms_gradient_on_a_nearly_planar_quad(device):
     """A unit square with heights 1e-5 (any real fine mesh has such faces): PLMS's float32
     gradient was off by 100 % (its weights carry 1 / height^2 terms)."""
     h = 1e-5
     P = torch.tensor([[0, 0, h], [1, 0, -h], [1, 1, h], [0, 1, -h]], dtype=torch.float64)
-    assert _gradient_error(_rotated(P, 0), [[0, 1, 2, 3]], "plms") <= FLOAT32_TOLERANCE
+    P = _rotated(P, 0).to(device)
+    assert _gradient_error(P, [[0, 1, 2, 3]], "plms") <= FLOAT32_TOLERANCE
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_gradient_on_a_thin_concave_quad(method):
+def test_gradient_on_a_thin_concave_quad(method, device):
     """A dart of thinness 1e-6: float32 gradients were off by several percent (AW11, dGBD20)
     and NaN (PLMS)."""
     t = 5e-7
     P = torch.tensor([[0, 0, 0], [2, t, 0], [0, 2 * t, 0], [1, 0.4 * t, 0]], dtype=torch.float64)
     P = _rotated(P, 1)
     assert 9e-7 <= _thinness(P) < 2e-6
-    assert _gradient_error(P, [[0, 1, 2, 3]], method) <= FLOAT32_TOLERANCE
+    assert _gradient_error(P.to(device), [[0, 1, 2, 3]], method) <= FLOAT32_TOLERANCE
 
 
 def _random_face(seed: int, k: int, squash: float, concave: bool, height: float) -> torch.Tensor:
@@ -301,10 +304,11 @@ def _dart() -> tuple[torch.Tensor, list[list[int]]]:
     return _rotated(P, 1).float(), [[0, 1, 2, 3]]
 
 
-def test_ill_conditioned_float32_faces_are_refused_where_float64_cannot_run():
+def test_ill_conditioned_float32_faces_are_refused_where_float64_cannot_run(device):
     """Traced or transformed, the float64 re-evaluation needs a host read it cannot make:
     such faces are refused rather than returned inaccurate."""
     P, faces = _dart()
+    P = P.to(device)
     torch._dynamo.reset()
     with pytest.raises(RuntimeError, match="too thin or nearly degenerate for float32"):
         torch.compile(lambda X: tp.laplacian(X, faces)[0] @ X, backend="aot_eager")(P)
@@ -317,20 +321,23 @@ def test_ill_conditioned_float32_faces_are_refused_where_float64_cannot_run():
     torch.func.grad(lambda X: (tp.laplacian(X, faces, validate=False)[0] @ X).square().sum())(P)
 
 
-def test_an_eager_float32_batch_with_ill_conditioned_faces_is_evaluated_mesh_by_mesh():
+def test_an_eager_float32_batch_with_ill_conditioned_faces_is_evaluated_mesh_by_mesh(device):
     P, faces = _dart()
-    batch = torch.stack([P, P * 1.5])
+    batch = torch.stack([P, P * 1.5]).to(device)
     L, M0 = tp.laplacian(batch, faces)
+    # bitwise on the CPU; CUDA's parallel sums may order the shared entries differently
+    exact = {"rtol": 0, "atol": 0} if device.type == "cpu" else {"rtol": 1e-6, "atol": 0}
     for b in range(2):
         Lb, Mb = tp.laplacian(batch[b], faces)
-        torch.testing.assert_close(L[b].to_dense(), Lb.to_dense(), rtol=0, atol=0)
-        torch.testing.assert_close(M0.diagonal()[b], Mb.diagonal(), rtol=0, atol=0)
+        torch.testing.assert_close(L[b].to_dense(), Lb.to_dense(), **exact)
+        torch.testing.assert_close(M0.diagonal()[b], Mb.diagonal(), **exact)
 
 
-def test_faces_too_thin_for_a_float32_gradient_warn():
+def test_faces_too_thin_for_a_float32_gradient_warn(device):
     """Below thinness ~1e-6 float32's own backward loses the accuracy that float64 blocks
     keep: a warning says so (float64 input, or a fatter face, gives none)."""
     P, faces = _dart()  # thinness ~1e-6
+    P = P.to(device)
     with pytest.warns(UserWarning, match="float32 gradients lose accuracy"):
         tp.laplacian(P, faces)
     with warnings.catch_warnings():
@@ -338,4 +345,4 @@ def test_faces_too_thin_for_a_float32_gradient_warn():
         tp.laplacian(P.double(), faces)
         t = 1e-3
         fat = [[0, 0, 0], [2, t, 0], [0, 2 * t, 0], [1, 0.4 * t, 0]]
-        tp.laplacian(torch.tensor(fat, dtype=torch.float32), faces)
+        tp.laplacian(torch.tensor(fat, dtype=torch.float32, device=device), faces)

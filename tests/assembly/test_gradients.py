@@ -18,8 +18,9 @@ D64 = {"dtype": torch.float64}
 
 @pytest.mark.parametrize("make", [mixed_mesh, hex_pent_mesh], ids=["mixed", "hexpent"])
 @pytest.mark.parametrize("lam", [0.7, 2.0])
-def test_gradcheck_laplacian_values(make, lam):
+def test_gradcheck_laplacian_values(make, lam, device):
     V, F = make()
+    V = V.to(device)
     topo = tp.build_topology(F, V.shape[0])
 
     def values(X):
@@ -30,19 +31,20 @@ def test_gradcheck_laplacian_values(make, lam):
 
 
 @pytest.mark.parametrize("split", [False, True], ids=["quads", "triangles"])
-def test_gradients_of_chunked_assembly(split, monkeypatch):
+def test_gradients_of_chunked_assembly(split, monkeypatch, device):
     """With a degree group split into several chunks (gathered by one autograd node), first
     and second derivatives pass gradcheck/gradgradcheck, and forward mode equals reverse."""
     import torch_polylap.topology as topology
 
     monkeypatch.setattr(topology.groups, "CHUNK_ELEMENTS", 1)  # 256 faces per chunk
-    V, F = quad_grid(17, bump=0.3, seed=5)
+    V, F = quad_grid(17, bump=0.3, seed=5, device=device)
     V = V.double()
     if split:
         F = torch.cat((F[:, [0, 1, 2]], F[:, [0, 2, 3]]))
     topo = tp.build_topology(F, V.shape[0])
     assert len(topo.groups[0].chunks) > 1
     U = torch.randn(V.shape[0], 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    U = U.to(device)
 
     def values(X):
         L, M0 = tp.laplacian(X, topo, 1.3)
@@ -63,16 +65,17 @@ def test_gradients_of_chunked_assembly(split, monkeypatch):
     torch.testing.assert_close(tangent, (g * T).sum())
 
 
-def test_gradcheck_planarity_energy():
+def test_gradcheck_planarity_energy(device):
     V, F = hex_pent_mesh()
-    X = V.clone().requires_grad_(True)
+    X = V.to(device).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda X: tp.planarity_energy(X, F, 2.0), (X,))
 
 
-def test_gradcheck_learnable_lambda():
+def test_gradcheck_learnable_lambda(device):
     V, F = mixed_mesh()
+    V = V.to(device)
     topo = tp.build_topology(F, V.shape[0])
-    lam = torch.tensor(1.3, **D64, requires_grad=True)
+    lam = torch.tensor(1.3, **D64, device=device, requires_grad=True)
     assert torch.autograd.gradcheck(
         lambda lam: sparse_values(tp.laplacian(V, topo, lam)[0]), (lam,)
     )
@@ -86,40 +89,44 @@ def random_sparse(n, m, density, seed):
 
 @pytest.mark.parametrize("symmetric", [False, True])
 @pytest.mark.parametrize("layout", [torch.sparse_csr, torch.sparse_coo])
-def test_gradcheck_spmm(symmetric, layout):
+def test_gradcheck_spmm(symmetric, layout, device):
     dense, _ = random_sparse(7, 7 if symmetric else 5, 0.5, 0)
     if symmetric:
         dense = dense + dense.T
+    dense = dense.to(device)
     pattern = (
         dense.to_sparse_coo().coalesce() if layout == torch.sparse_coo else dense.to_sparse_csr()
     )
     # a torch sparse tensor without grad is converted; its values then vary through the operator
     operator = tp.sparse.as_operator(pattern)
     values = pattern.values().clone().requires_grad_(True)
-    X = torch.randn(dense.shape[1], 3, **D64, requires_grad=True)
+    X = torch.randn(dense.shape[1], 3, **D64, device=device, requires_grad=True)
 
     def product(v, X):
         A = operator.with_values(v, symmetric=symmetric)
         return tp.sparse.spmm(A, X)
 
     assert torch.autograd.gradcheck(product, (values, X))
-    x1 = torch.randn(dense.shape[1], **D64, requires_grad=True)
+    x1 = torch.randn(dense.shape[1], **D64, device=device, requires_grad=True)
     assert torch.autograd.gradcheck(product, (values, x1))
     assert torch.allclose(product(values, X), dense @ X)
 
 
-def test_spmm_rejects_mismatches():
+def test_spmm_rejects_mismatches(device):
     _, A = random_sparse(4, 3, 0.6, 1)
+    A = A.to(device)
     with pytest.raises(ValueError, match="dtype"):
-        tp.sparse.spmm(A, torch.randn(3, 2))
+        tp.sparse.spmm(A, torch.randn(3, 2, device=device))
     with pytest.raises(ValueError, match="cannot multiply"):
-        tp.sparse.spmm(A, torch.randn(4, 2, **D64))
+        tp.sparse.spmm(A, torch.randn(4, 2, **D64, device=device))
     with pytest.raises(TypeError, match="expected a sparse matrix"):
-        tp.sparse.spmm(torch.randn(4, 3, **D64), torch.randn(3, 2, **D64))
+        tp.sparse.spmm(
+            torch.randn(4, 3, **D64, device=device), torch.randn(3, 2, **D64, device=device)
+        )
 
 
-def test_gradient_of_dirichlet_energy_matches_finite_differences():
-    V, F = quad_grid(4, bump=0.3, seed=9)
+def test_gradient_of_dirichlet_energy_matches_finite_differences(device):
+    V, F = quad_grid(4, bump=0.3, seed=9, device=device)
     u = torch.sin(3 * V[:, 0]) * V[:, 1]
     topo = tp.build_topology(F, V.shape[0])
 
@@ -132,7 +139,7 @@ def test_gradient_of_dirichlet_energy_matches_finite_differences():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("thinness", [1e-3, 1e-6])
-def test_thin_faces_have_finite_values_and_gradients(dtype, thinness):
+def test_thin_faces_have_finite_values_and_gradients(dtype, thinness, device):
     """Valid but thin faces (aspect ratio up to 1e6) give finite L, M0 and gradients."""
     if dtype == torch.float32 and thinness < 1e-5:
         thinness = 1e-3  # float32 resolves aspect ratios to about 1e-4
@@ -147,6 +154,7 @@ def test_thin_faces_have_finite_values_and_gradients(dtype, thinness):
             [0.5, 1.0, 0.0],
         ],
         dtype=dtype,
+        device=device,
     )
     faces = [[0, 1, 2, 3], [1, 4, 5, 2], [3, 2, 5, 6]]
     X = verts.clone().requires_grad_(True)

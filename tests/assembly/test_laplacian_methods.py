@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import DATA, ROOT, hex_pent_mesh, mixed_mesh
+from conftest import DATA, ROOT, hex_pent_mesh, mixed_mesh, tolerances
 from meshes import plms_galerkin_mass
 
 import torch_polylap as tp
@@ -67,7 +67,7 @@ def _assert_galerkin_mass(M0, verts, faces, rtol: float) -> None:
     """PLMS's mass is the lumped Galerkin fan mass (polyLaplace's), computed independently in
     numpy; libigl's polygon cotmatrix lumps with mixed Voronoi areas instead, so its M differs."""
     reference = plms_galerkin_mass(verts, faces)
-    assert _rel(M0.diagonal().numpy(), reference) < rtol
+    assert _rel(M0.diagonal().cpu().numpy(), reference) < rtol
 
 
 def _require(path: Path) -> None:
@@ -76,31 +76,31 @@ def _require(path: Path) -> None:
 
 
 @pytest.mark.parametrize("name", TEST_DATA)
-def test_plms_matches_igl_on_test_data(name):
+def test_plms_matches_igl_on_test_data(name, device):
     verts, faces = _read(DATA / name)
-    L, M0 = tp.laplacian(verts, faces, method="plms")
+    L, M0 = tp.laplacian(verts.to(device), faces, method="plms")
     Li, _, _ = _igl_plms(verts, faces)
     assert _rel(to_scipy(L), Li) < 1e-10
     _assert_galerkin_mass(M0, verts, faces, 1e-8)
 
 
 @pytest.mark.parametrize("name", WELL_CONDITIONED)
-def test_plms_matches_igl_on_real_meshes(name):
+def test_plms_matches_igl_on_real_meshes(name, device):
     _require(REAL / name)
     verts, faces = _read(REAL / name)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        L, M0 = tp.laplacian(verts, faces, method="plms")
+        L, M0 = tp.laplacian(verts.to(device), faces, method="plms")
     Li, _, _ = _igl_plms(verts, faces)
     assert _rel(to_scipy(L), Li) < 1e-10
     _assert_galerkin_mass(M0, verts, faces, 1e-8)
 
 
 @pytest.mark.parametrize("name", ["quad_3.obj", "triangle_3.obj", "str_hex_3.obj", "voronoi_3.obj"])
-def test_plms_matches_igl_on_grids(name):
+def test_plms_matches_igl_on_grids(name, device):
     _require(GRID / name)
     verts, faces = _read(GRID / name)
-    L, M0 = tp.laplacian(verts, faces, method="plms")
+    L, M0 = tp.laplacian(verts.to(device), faces, method="plms")
     Li, _, _ = _igl_plms(verts, faces)
     assert _rel(to_scipy(L), Li) < 1e-9
     _assert_galerkin_mass(M0, verts, faces, 1e-9)
@@ -150,15 +150,15 @@ def _real_and_grid_paths() -> list[Path]:
 
 
 @pytest.mark.parametrize("beta", [1.0, 2.0])
-def test_degoes_matches_lagrange(beta):
+def test_degoes_matches_lagrange(beta, device):
     for path in _real_and_grid_paths():
         verts, faces = _read(path)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            L, M0 = tp.laplacian(verts, faces, beta, method="degoes")
+            L, M0 = tp.laplacian(verts.to(device), faces, beta, method="degoes")
         Lg, Mg = _lagrange_laplacian(verts, faces, beta)
         assert _rel(to_scipy(L), Lg) < 1e-11, path.name
-        assert _rel(M0.diagonal().numpy(), Mg.diagonal()) < 1e-12, path.name
+        assert _rel(M0.diagonal().cpu().numpy(), Mg.diagonal()) < 1e-12, path.name
 
 
 def _triangle_mesh():
@@ -168,11 +168,13 @@ def _triangle_mesh():
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_every_method_is_cotan_on_triangles(method):
+def test_every_method_is_cotan_on_triangles(method, device, dtype):
     verts, tri = _triangle_mesh()
+    verts = verts.to(device, dtype)
     L, _ = tp.laplacian(verts, tri, 1.7, method=method)
-    ref = -igl.cotmatrix(verts.numpy(), tri.numpy())
-    assert _rel(to_scipy(L), ref) < 1e-13
+    # igl from the same (rounded) coordinates, in float64
+    ref = -igl.cotmatrix(verts.cpu().double().numpy(), tri.numpy())
+    assert _rel(to_scipy(L), ref) < (1e-13 if dtype == torch.float64 else tolerances(dtype)["rtol"])
 
 
 def _single_face(corners: np.ndarray):
@@ -180,19 +182,22 @@ def _single_face(corners: np.ndarray):
 
 
 @pytest.mark.parametrize("k", [4, 5, 6, 8])
-def test_degoes_equals_aw11_on_regular_polygons(k):
+def test_degoes_equals_aw11_on_regular_polygons(k, device, dtype):
     t = np.linspace(0, 2 * np.pi, k + 1)[:-1] + 0.3
     verts, faces = _single_face(np.stack([2 * np.cos(t) + 5, 2 * np.sin(t) - 1, 0 * t + 3], 1))
+    verts = verts.to(device, dtype)
     La, _ = tp.laplacian(verts, faces, 1.3)
     Ld, _ = tp.laplacian(verts, faces, 1.3, method="degoes")
-    torch.testing.assert_close(sparse_values(Ld), sparse_values(La), rtol=0, atol=1e-13)
+    atol = 1e-13 if dtype == torch.float64 else tolerances(dtype)["atol"]
+    torch.testing.assert_close(sparse_values(Ld), sparse_values(La), rtol=0, atol=atol)
 
 
-def test_degoes_equals_aw11_on_rectangles_not_on_general_quads():
+def test_degoes_equals_aw11_on_rectangles_not_on_general_quads(device):
     rect = np.array([[0, 0, 0], [3, 0, 0], [3, 1, 0], [0, 1, 0.0]]) @ _rotation()
     kite = np.array([[0, 0, 0], [3, 0.5, 0], [2, 2, 0], [-0.3, 1, 0.0]]) @ _rotation()
     for corners, equal in ((rect, True), (kite, False)):
         verts, faces = _single_face(corners)
+        verts = verts.to(device)
         La = sparse_values(tp.laplacian(verts, faces, 2.0)[0])
         Ld = sparse_values(tp.laplacian(verts, faces, 2.0, method="degoes")[0])
         assert (float((La - Ld).abs().max()) < 1e-13) == equal
@@ -205,25 +210,27 @@ def _rotation() -> np.ndarray:
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("mesh", [mixed_mesh, hex_pent_mesh])
-def test_symmetric_psd_constant_kernel(method, mesh):
+def test_symmetric_psd_constant_kernel(method, mesh, device):
     verts, faces = mesh()
-    L, M0 = tp.laplacian(verts, faces, 1.5, method=method)
+    L, M0 = tp.laplacian(verts.to(device), faces, 1.5, method=method)
     dense = L.to_dense()
     torch.testing.assert_close(dense, dense.T, rtol=0, atol=1e-14)
-    assert float((dense @ torch.ones(len(verts), dtype=dense.dtype)).abs().max()) < 1e-13
+    ones = torch.ones(len(verts), dtype=dense.dtype, device=device)
+    assert float((dense @ ones).abs().max()) < 1e-13
     assert float(torch.linalg.eigvalsh(dense).min()) > -1e-12
     assert bool((M0.diagonal() > 0).all())
 
 
-def test_plms_mass_sums_to_area_on_planar_meshes():
-    verts, faces = quad_grid(6, 5, seed=3)
+def test_plms_mass_sums_to_area_on_planar_meshes(device):
+    verts, faces = quad_grid(6, 5, seed=3, device=device)
     _, M0 = tp.laplacian(verts, faces, method="plms")
     assert abs(float(M0.diagonal().sum()) - 1.0) < 1e-13
 
 
 @pytest.mark.parametrize("method", ["plms", "degoes"])
-def test_gradcheck(method):
+def test_gradcheck(method, device):
     verts, faces = hex_pent_mesh()
+    verts = verts.to(device)
     topo = tp.get_topology(faces, verts.shape[0])
 
     def values(v):
@@ -235,8 +242,9 @@ def test_gradcheck(method):
 
 
 @pytest.mark.parametrize("method", ["plms", "degoes"])
-def test_float32_follows_float64(method):
+def test_float32_follows_float64(method, device):
     verts, faces = mixed_mesh()
+    verts = verts.to(device)
     L64, M64 = tp.laplacian(verts, faces, method=method)
     L32, M32 = tp.laplacian(verts.float(), faces, method=method)
     assert L32.dtype == torch.float32
@@ -244,8 +252,9 @@ def test_float32_follows_float64(method):
     torch.testing.assert_close(M32.diagonal().double(), M64.diagonal(), rtol=0, atol=1e-6)
 
 
-def test_module_and_bad_method():
+def test_module_and_bad_method(device):
     verts, faces = mixed_mesh()
+    verts = verts.to(device)
     module = tp.PolygonLaplacian(1.2, method="degoes")
     L, _ = module(verts, faces)
     ref, _ = tp.laplacian(verts, faces, 1.2, method="degoes")
@@ -256,17 +265,18 @@ def test_module_and_bad_method():
 
 
 @pytest.mark.parametrize("method", ["aw11", "plms", "degoes"])
-def test_local_blocks_and_mean_curvature_follow_the_method(method):
+def test_local_blocks_and_mean_curvature_follow_the_method(method, device):
     """The per-face blocks of each method, scattered with numpy face by face, sum to its ``L``;
     its mean-curvature normal is ``M0^{-1} L X`` of that ``L``."""
     verts, faces = hex_pent_mesh()
+    verts = verts.to(device)
     L, M0 = tp.laplacian(verts, faces, 1.5, method=method)
     dense = np.zeros((verts.shape[0],) * 2)
     for face_ids, blocks in tp.dec.local_laplacians(verts, faces, 1.5, method=method):
-        for f, block in zip(face_ids.tolist(), blocks.numpy(), strict=True):
+        for f, block in zip(face_ids.tolist(), blocks.cpu().numpy(), strict=True):
             corners = np.asarray(faces[f])  # hex_pent_mesh gives a list of index lists
             dense[np.ix_(corners, corners)] += block
-    np.testing.assert_allclose(dense, L.to_dense().numpy(), atol=1e-13)
+    np.testing.assert_allclose(dense, L.to_dense().cpu().numpy(), atol=1e-13)
     H = tp.mean_curvature_normal(verts, faces, 1.5, method=method)
     expected = (L.to_dense() @ verts) / M0.diagonal()[:, None]
     torch.testing.assert_close(H, expected, rtol=1e-12, atol=1e-12)

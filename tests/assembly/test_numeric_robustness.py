@@ -31,8 +31,8 @@ def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 @pytest.mark.parametrize("dtype,scale,tol", SCALES)
-def test_quad_laplacian_is_scale_invariant(dtype, scale, tol):
-    V, F = quad_grid(5, bump=0.3, seed=7)
+def test_quad_laplacian_is_scale_invariant(dtype, scale, tol, device):
+    V, F = quad_grid(5, bump=0.3, seed=7, device=device)
     V = V.to(dtype)
     L1, M1 = tp.laplacian(V, F)
     Ls, Ms = tp.laplacian(V * scale, F)
@@ -70,16 +70,17 @@ def test_polygon_kernel_matches_the_assembly_at_unit_scale():
 
 
 @pytest.mark.parametrize("scale", [1e-150, 1e150])
-def test_mixed_laplacian_is_scale_invariant(scale):
+def test_mixed_laplacian_is_scale_invariant(scale, device):
     V, F = mixed_mesh()
+    V = V.to(device)
     L1 = tp.laplacian(V, F)[0].to_dense()
     Ls = tp.laplacian(V * scale, F)[0].to_dense()
     assert _relative(Ls, L1) <= 1e-10
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
-def test_half_precision_is_refused_clearly(dtype):
-    V, _ = quad_grid(2)
+def test_half_precision_is_refused_clearly(dtype, device):
+    V, _ = quad_grid(2, device=device)
     with pytest.raises(TypeError, match=r"float32 or float64\), got torch\.b?float16; use verts"):
         check_verts(V.to(dtype))
 
@@ -96,10 +97,11 @@ def test_lam_zero_and_tensors_are_accepted():
 
 
 @pytest.mark.parametrize("scale", [1e-150, 1e150])
-def test_face_measures_are_exact_at_extreme_scales(scale):
+def test_face_measures_are_exact_at_extreme_scales(scale, device):
     """Areas scale by s^2, normals not at all, at scales where a plain norm of the vector area
     under- or overflows."""
     V, F = mixed_mesh()
+    V = V.to(device)
     torch.testing.assert_close(tp.mass(V * scale, F) / scale**2, tp.mass(V, F), rtol=1e-13, atol=0)
     torch.testing.assert_close(
         tp.face_areas(V * scale, F) / scale**2, tp.face_areas(V, F), rtol=1e-13, atol=0

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
-from conftest import DATA, hex_pent_mesh, mixed_mesh
+from conftest import DATA, hex_pent_mesh, mixed_mesh, tolerances
 
 import torch_polylap as tp
 from torch_polylap.shapes import quad_grid
@@ -68,39 +68,44 @@ def polygon_blocks_svd(X: torch.Tensor, lam: float) -> tuple[torch.Tensor, torch
 
 
 @pytest.mark.parametrize("lam", [0.5, 1.0, 2.0])
-def test_triangles_give_cotan(lam):
+def test_triangles_give_cotan(lam, device, dtype):
     """Theorem 2: on triangles L is the cotan Laplacian for every lambda."""
-    V, F = quad_grid(5, 4, bump=0.4, seed=3)
+    V, F = quad_grid(5, 4, bump=0.4, seed=3, dtype=dtype, device=device)
     T = torch.cat([F[:, [0, 1, 2]], F[:, [0, 2, 3]]])
     L, M0 = tp.laplacian(V, T, lam)
+    assert L.device.type == M0.device.type == device.type and L.dtype == M0.dtype == dtype
+    V = V.cpu().double()  # the references from the same (rounded) coordinates, in float64
     ref = cotan_laplacian(V.numpy(), T.numpy())
-    np.testing.assert_allclose(dense(L).numpy(), ref, atol=1e-12 * np.abs(ref).max())
+    tol = 1e-12 if dtype == torch.float64 else tolerances(dtype)["atol"]
+    np.testing.assert_allclose(dense(L).cpu().numpy(), ref, atol=tol * np.abs(ref).max())
     # M0 = barycentric lumped mass: a third of each incident triangle's area
     areas = 0.5 * np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1)
     m = np.zeros(len(V))
     np.add.at(m, T.numpy().ravel(), np.repeat(areas / 3, 3))
-    np.testing.assert_allclose(torch.diagonal(dense(M0)).numpy(), m, rtol=1e-13)
+    rtol = 1e-13 if dtype == torch.float64 else tolerances(dtype)["rtol"]
+    np.testing.assert_allclose(torch.diagonal(dense(M0)).cpu().numpy(), m, rtol=rtol)
 
 
-def test_triangles_match_libigl():
+def test_triangles_match_libigl(device):
     igl = pytest.importorskip("igl", reason="libigl not installed (pip install libigl)")
     V, F = quad_grid(6, 6, bump=0.3, seed=2)
     T = torch.cat([F[:, [0, 1, 2]], F[:, [0, 2, 3]]])
-    L, _ = tp.laplacian(V, T)
+    L, _ = tp.laplacian(V.to(device), T)
     C = igl.cotmatrix(V.numpy(), T.numpy()).toarray()
-    np.testing.assert_allclose(dense(L).numpy(), -C, atol=1e-12 * np.abs(C).max())
+    np.testing.assert_allclose(dense(L).cpu().numpy(), -C, atol=1e-12 * np.abs(C).max())
 
 
 @pytest.mark.parametrize("name,V,F", MESHES, ids=IDS)
 @pytest.mark.parametrize("lam", [0.5, 2.0])
-def test_blocks_match_svd_construction(name, V, F, lam):
+def test_blocks_match_svd_construction(name, V, F, lam, device):
     """Our closed-form blocks equal the paper's construction with an SVD kernel basis."""
     faces = tp.as_faces(F)
-    for ids, blocks in tp.dec.local_laplacians(V, faces, lam):
+    for ids, blocks in tp.dec.local_laplacians(V.to(device), faces, lam):
+        assert blocks.device.type == device.type
         for local, f in enumerate(ids.tolist()[:25]):
-            _, ref = polygon_blocks_svd(V[faces[f]], lam)
+            _, ref = polygon_blocks_svd(V[faces[f]], lam)  # the reference on the CPU
             scale = ref.abs().max()
-            assert torch.allclose(blocks[local], ref, atol=1e-12 * scale), (name, f)
+            assert torch.allclose(blocks[local].cpu(), ref, atol=1e-12 * scale), (name, f)
 
 
 @pytest.mark.parametrize("name,V,F", MESHES, ids=IDS)
@@ -122,21 +127,21 @@ def test_symmetric_psd_constant_kernel(name, V, F, device):
     assert torch.isclose(m.sum(), tp.face_areas(V, F).sum(), rtol=1e-13)
 
 
-def test_kernel_counts_components():
+def test_kernel_counts_components(device):
     V1, F1 = quad_grid(3, bump=0.2)
     V2, F2 = mixed_mesh()
-    V = torch.cat([V1, V2 + 5.0])
+    V = torch.cat([V1, V2 + 5.0]).to(device)
     F = [f.tolist() for f in F1] + [[i + V1.shape[0] for i in f] for f in F2]
     ev = torch.linalg.eigvalsh(dense(tp.laplacian(V, F)[0]))
     assert int((ev < 1e-10 * ev[-1]).sum()) == 2
 
 
-def test_linear_precision_on_planar_mesh():
+def test_linear_precision_on_planar_mesh(device):
     """(L X)_p = 0 at interior vertices of a planar mesh (AW11 sec. 3.1), for any lambda."""
     V, F = quad_grid(6, 5, seed=4)  # irregular convex quads in the plane z = 0
-    V = V @ random_rotation(0).T
+    V = (V @ random_rotation(0).T).to(device)
     topo = tp.build_topology(F, V.shape[0])
-    interior = torch.ones(V.shape[0], dtype=torch.bool)
+    interior = torch.ones(V.shape[0], dtype=torch.bool, device=device)
     interior[topo.boundary_vertices] = False
     for lam in (0.5, 1.0, 3.0):
         L, _ = tp.laplacian(V, topo, lam)
@@ -145,10 +150,10 @@ def test_linear_precision_on_planar_mesh():
         assert LX[~interior].abs().max() > 1e-3  # boundary rows are not zero: the test can fail
 
 
-def test_linear_precision_nonconvex_polygons():
-    V, F = tp.read_mesh(DATA / "tetris.obj")  # planar, strongly non-convex 4- to 10-gons
+def test_linear_precision_nonconvex_polygons(device):
+    V, F = tp.read_mesh(DATA / "tetris.obj", device=device)  # planar, non-convex 4- to 10-gons
     topo = tp.build_topology(F, V.shape[0])
-    interior = torch.ones(V.shape[0], dtype=torch.bool)
+    interior = torch.ones(V.shape[0], dtype=torch.bool, device=device)
     interior[topo.boundary_vertices] = False
     L, _ = tp.laplacian(V, topo)
     assert interior.any()
@@ -162,7 +167,8 @@ def random_rotation(seed: int) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("name,V,F", MESHES, ids=IDS)
-def test_invariances(name, V, F):
+def test_invariances(name, V, F, device):
+    V = V.to(device)
     L, M0 = tp.laplacian(V, F)
     D, m = dense(L), torch.diagonal(dense(M0))
     scale = D.abs().max()
@@ -171,8 +177,8 @@ def test_invariances(name, V, F):
     assert torch.allclose(dense(L2), D, atol=1e-12 * scale)
     assert torch.allclose(torch.diagonal(dense(M2)), 3.7**2 * m, rtol=1e-12)
     # rigid motion, far from the origin (origin independence)
-    R = random_rotation(7)
-    L3, M3 = tp.laplacian(V @ R.T + torch.tensor([1e3, -2e3, 5e2], **D64), F)
+    R = random_rotation(7).to(device)
+    L3, M3 = tp.laplacian(V @ R.T + torch.tensor([1e3, -2e3, 5e2], **D64, device=device), F)
     assert torch.allclose(dense(L3), D, atol=1e-9 * scale)
     assert torch.allclose(torch.diagonal(dense(M3)), m, rtol=1e-8)
     # cyclic relabelling of every face's corners, and reversing all orientations
@@ -184,20 +190,22 @@ def test_invariances(name, V, F):
     perm = torch.randperm(V.shape[0], generator=torch.Generator().manual_seed(1))
     inv = torch.argsort(perm)
     relabelled = [[int(inv[v]) for v in f] for f in faces.tolist()]
+    perm = perm.to(device)
     Lp = dense(tp.laplacian(V[perm], relabelled)[0])
     assert torch.allclose(Lp, D[perm][:, perm], atol=1e-13 * scale)
 
 
 @pytest.mark.parametrize("name,V,F", MESHES, ids=IDS)
-def test_lemma3_area_gradient(name, V, F):
+def test_lemma3_area_gradient(name, V, F, device):
     """Lemma 3: grad of sum_f |f| equals (sum_f P_f^T (G G^T / |f|) P_f) X = L(lam = 0) X."""
+    V = V.to(device)
     X = V.clone().requires_grad_(True)
     (grad,) = torch.autograd.grad(tp.face_areas(X, F).sum(), X)
     L0, _ = tp.laplacian(V, F, lam=0.0)
     assert torch.allclose(grad, tp.sparse.spmm(L0, V), atol=1e-13 * grad.abs().max())
 
 
-def test_lemma5_nonplanar_face():
+def test_lemma5_nonplanar_face(device):
     """Lemma 5: Htilde_f = H_fbar, and H_f - Htilde_f = lam (d^T hbar_e) n^T."""
     gen = torch.Generator().manual_seed(5)
     for k in (4, 5, 7):
@@ -206,7 +214,7 @@ def test_lemma5_nonplanar_face():
         )
         X = torch.stack(
             [torch.cos(ang), 1.3 * torch.sin(ang), 0.3 * torch.randn(k, generator=gen, **D64)], 1
-        )
+        ).to(device)
         face = [list(range(k))]
         lam = 1.7
         ((_, (Lf,)),) = [(i, b) for i, b in tp.dec.local_laplacians(X, face, lam)]
@@ -217,7 +225,8 @@ def test_lemma5_nonplanar_face():
         ((_, (Lbar,)),) = [(i, b) for i, b in tp.dec.local_laplacians(Xbar, face, 0.0)]
         assert torch.allclose(Lg @ X, Lbar @ Xbar, atol=1e-13)
         # hbar_e: projection of h_e = d h onto ker(Ebar^T), from an independent SVD
-        d = torch.roll(torch.eye(k, **D64), 1, 1) - torch.eye(k, **D64)
+        eye = torch.eye(k, **D64, device=device)
+        d = torch.roll(eye, 1, 1) - eye
         Ebar = d @ Xbar
         C = torch.linalg.svd(Ebar.T)[2][2:].T
         hbar_e = C @ (C.T @ (d @ h))
@@ -225,8 +234,9 @@ def test_lemma5_nonplanar_face():
 
 
 @pytest.mark.parametrize("name,V,F", MESHES, ids=IDS)
-def test_inner_product_definiteness(name, V, F):
+def test_inner_product_definiteness(name, V, F, device):
     """Theorem 1: M_f positive definite for lam > 0; the geometric part alone is rank deficient."""
+    V = V.to(device)
     faces = tp.as_faces(F)
     M1 = dense(tp.dec.one_form_inner_product(V, faces, 1.0))
     M1g = dense(tp.dec.one_form_inner_product(V, faces, 0.0))
@@ -253,9 +263,10 @@ def test_inner_product_definiteness(name, V, F):
 
 
 @pytest.mark.parametrize("name,V,F", MESHES, ids=IDS)
-def test_half_edge_factorization(name, V, F):
+def test_half_edge_factorization(name, V, F, device):
     """L = d^T M1 d (AW11 eq. 3) with the half-edge coboundary of eq. 2."""
-    d = dense(tp.dec.coboundary(F, V.shape[0]))
+    V = V.to(device)
+    d = dense(tp.dec.coboundary(F, V.shape[0])).to(device)  # index-only: built on the CPU
     for lam in (0.0, 1.0):
         M1 = dense(tp.dec.one_form_inner_product(V, F, lam))
         L = dense(tp.laplacian(V, F, lam)[0])
@@ -315,16 +326,17 @@ def test_mass_matches_face_areas(mixed, device):
     )
 
 
-def test_float32_matches_float64():
-    V, F = quad_grid(5, bump=0.3, seed=6)
+def test_float32_matches_float64(device):
+    V, F = quad_grid(5, bump=0.3, seed=6, device=device)
     L64, M64 = tp.laplacian(V, F)
     L32, M32 = tp.laplacian(V.float(), F)
     assert L32.dtype == torch.float32 and M32.dtype == torch.float32
     assert torch.allclose(dense(L32).double(), dense(L64), atol=1e-5 * dense(L64).abs().max())
 
 
-def test_operators_report_the_csr_layout_they_store(mixed):
+def test_operators_report_the_csr_layout_they_store(mixed, device):
     V, F = mixed
+    V = V.to(device)
     L, M = tp.laplacian(V, F)
     P = tp.planarity_laplacian(V, F)
     lap = tp.PolygonLaplacian()
@@ -333,8 +345,9 @@ def test_operators_report_the_csr_layout_they_store(mixed):
         # the reported layout is the storage: scipy's CSR arrays of the same matrix
         ref = tp.sparse.to_scipy(A).tocsr()
         ref.sort_indices()
-        assert torch.equal(A.crow_indices(), torch.from_numpy(ref.indptr).long())
-        assert torch.equal(A.col_indices(), torch.from_numpy(ref.indices).long())
+        assert A.device.type == device.type
+        assert torch.equal(A.crow_indices().cpu(), torch.from_numpy(ref.indptr).long())
+        assert torch.equal(A.col_indices().cpu(), torch.from_numpy(ref.indices).long())
 
 
 def test_layout_is_no_argument(mixed):
@@ -346,17 +359,17 @@ def test_layout_is_no_argument(mixed):
         tp.PolygonLaplacian(layout=torch.sparse_coo)
 
 
-def test_scipy_roundtrip(mixed):
+def test_scipy_roundtrip(mixed, device):
     V, F = mixed
-    L, _ = tp.laplacian(V, F)
+    L, _ = tp.laplacian(V.to(device), F)
     S = tp.sparse.to_scipy(L)
-    assert np.allclose(S.toarray(), dense(L).numpy())
+    assert np.allclose(S.toarray(), dense(L).cpu().numpy())
     back = tp.sparse.from_scipy(S)
-    assert torch.equal(dense(back), dense(L))
+    assert torch.equal(dense(back), dense(L).cpu())
 
 
-def test_module_caches_topology():
-    V, F = quad_grid(4, bump=0.2)
+def test_module_caches_topology(device):
+    V, F = quad_grid(4, bump=0.2, device=device)
     module = tp.PolygonLaplacian(lam=2.0)
     L1, _ = module(V, F)
     topo = module.topology
@@ -392,26 +405,26 @@ def test_learnable_lambda_gets_gradient(device):
     assert torch.isclose(module.lam.grad.double(), ref, rtol=1e-6)  # the parameter is float32
 
 
-def test_generalized_eigenvalues_of_dodecahedron():
+def test_generalized_eigenvalues_of_dodecahedron(device):
     """On a regular polyhedron the spectrum has the icosahedral multiplicities 1, 3, 5..."""
-    V, F = tp.read_mesh(DATA / "dodecahedron_poly.obj")
+    V, F = tp.read_mesh(DATA / "dodecahedron_poly.obj", device=device)
     L, M0 = tp.laplacian(V, F)
-    ev = scipy.linalg.eigh(dense(L).numpy(), dense(M0).numpy(), eigvals_only=True)
+    ev = scipy.linalg.eigh(dense(L).cpu().numpy(), dense(M0).cpu().numpy(), eigvals_only=True)
     ev = ev / ev[1]
     assert abs(ev[0]) < 1e-10
     np.testing.assert_allclose(ev[1:4], 1.0, rtol=1e-8)  # threefold first eigenvalue
     assert ev[4] > 1.5
 
 
-def test_fitted_plane_nonplanarity_against_svd():
+def test_fitted_plane_nonplanarity_against_svd(device):
     """plane="fit": the least-squares plane of the corners (independent per-face SVD here), and
     the projection plane never fits the corners better in the least-squares sense."""
-    V, F = tp.read_mesh(DATA / "mixedFaring.off")
-    fit = tp.face_nonplanarity(V, F, plane="fit")
-    projection = tp.face_nonplanarity(V, F)
-    normals = tp.face_normals(V, F)
+    V, F = tp.read_mesh(DATA / "mixedFaring.off", device=device)
+    fit = tp.face_nonplanarity(V, F, plane="fit").cpu()
+    projection = tp.face_nonplanarity(V, F).cpu()
+    normals = tp.face_normals(V, F).cpu()
     for f, face in enumerate(F.tolist()[:300]):
-        x = V[face].numpy()
+        x = V[face].cpu().numpy()
         centered = x - x.mean(0)
         normal = np.linalg.svd(centered)[2][-1]
         diameter = max(np.linalg.norm(a - b) for a in x for b in x)

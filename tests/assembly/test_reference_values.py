@@ -131,25 +131,35 @@ def polylaplace_mass(verts: torch.Tensor, faces) -> np.ndarray:
     return plms_galerkin_mass(verts, faces)
 
 
-def _operators(verts: np.ndarray, faces, lam: float, method: str, mass: str):
-    """``L`` (scipy) and the lumped masses ``m`` for float64 vertices ``verts``."""
+def _operators(
+    verts: np.ndarray, faces, lam: float, method: str, mass: str, device: torch.device | str = "cpu"
+):
+    """``L`` (on ``device`` and as scipy) and the lumped masses ``m`` for float64 ``verts``."""
     V = torch.from_numpy(verts)
-    L, M0 = tp.laplacian(V, faces, lam, method=method)
+    L, M0 = tp.laplacian(V.to(device), faces, lam, method=method)
     if mass == "polylaplace" and method == "plms":
         m = polylaplace_mass(V, faces)
     else:
-        m = M0.diagonal().numpy()
+        m = M0.diagonal().cpu().numpy()
     return L, tp.sparse.to_scipy(L), m
 
 
-def experiment(name: str, path: Path, lam: float, method: str = "aw11", mass: str = "own"):
-    """The error of experiment ``name`` on the mesh at ``path``; ``mass="polylaplace"`` swaps
-    PLMS's lumped mass for :func:`polylaplace_mass` (other methods keep their own)."""
+def experiment(
+    name: str,
+    path: Path,
+    lam: float,
+    method: str = "aw11",
+    mass: str = "own",
+    device: torch.device | str = "cpu",
+):
+    """The error of experiment ``name`` on the mesh at ``path``, with the operators built on
+    ``device``; ``mass="polylaplace"`` swaps PLMS's lumped mass for :func:`polylaplace_mass`
+    (other methods keep their own)."""
     verts, faces = load(path)
     p = verts.numpy()
     if name in ("sh", "mean_curvature"):
         p = p / np.linalg.norm(p, axis=1, keepdims=True)  # spheres: onto the unit sphere first
-    L_op, L, m = _operators(p, faces, lam, method, mass)
+    L_op, L, m = _operators(p, faces, lam, method, mass, device)
     if name == "sh":
         y = sh_y32(p)
         e = y - (L @ y) / m / 12.0  # M0^-1 L approximates -lap, and -lap_S Y = 12 Y
@@ -162,11 +172,13 @@ def experiment(name: str, path: Path, lam: float, method: str = "aw11", mass: st
 
 
 def _franke_error(p: np.ndarray, faces, L: torch.Tensor, m: np.ndarray) -> float:
-    """``L u = -M0 lap(f)`` inside, ``u = f`` on the boundary vertices: RMS of ``u - f``."""
+    """``L u = -M0 lap(f)`` inside, ``u = f`` on the boundary vertices: RMS of ``u - f``; solved
+    on ``L``'s device."""
     f = franke(p[:, 0], p[:, 1])
     boundary = tp.get_topology(faces, p.shape[0]).boundary_vertices
-    rhs = torch.from_numpy(-m * franke_laplacian(p[:, 0], p[:, 1]))
-    u = tp.dirichlet_solve(L, rhs, boundary, torch.from_numpy(f)[boundary]).numpy()
+    rhs = torch.from_numpy(-m * franke_laplacian(p[:, 0], p[:, 1])).to(L.device)
+    values = torch.from_numpy(f)[boundary].to(L.device)
+    u = tp.dirichlet_solve(L, rhs, boundary, values).cpu().numpy()
     return float(((u - f) ** 2).mean()) ** 0.5
 
 
@@ -267,8 +279,8 @@ _CASES = [
 
 
 @pytest.mark.parametrize("name, mesh, lam, printed", _CASES)
-def test_reference_value(name, mesh, lam, printed):
-    value = experiment(name, DATA_DIR / f"{mesh}.obj", lam)
+def test_reference_value(name, mesh, lam, printed, device):
+    value = experiment(name, DATA_DIR / f"{mesh}.obj", lam, device=device)
     ref = float(printed)
     # Our value is a deterministic float64 computation (direct solves, no iteration), stable to
     # ~1e-12 relative; the only uncertainty is the reference's rounding. So require our value to
@@ -282,14 +294,14 @@ def test_reference_value(name, mesh, lam, printed):
 
 
 @pytest.mark.parametrize("mesh", ["grid/quad_3", "grid/voronoi_3", "grid/concave_3"])
-def test_franke_reference_uses_raw_coordinates(mesh):
+def test_franke_reference_uses_raw_coordinates(mesh, device):
     # These three grids cover [-0.5, 0.5]^2. The experiment evaluates f at the raw vertex
     # coordinates (no shift), and the table agrees with that reading only: shifting to [0, 1]^2
     # moves every value by > 10% (observed 17-33%), far outside the rounding tolerance above.
     for lam, printed in zip(LAMBDAS, REFERENCE[("franke", mesh)], strict=True):
         verts, faces = load(DATA_DIR / f"{mesh}.obj")
         p = verts.numpy() + np.array([0.5, 0.5, 0.0])
-        L, _, m = _operators(p, faces, lam, "aw11", "own")
+        L, _, m = _operators(p, faces, lam, "aw11", "own", device)
         shifted = _franke_error(p, faces, L, m)
         assert abs(shifted / float(printed) - 1.0) > 0.10
 
@@ -316,12 +328,12 @@ _METHOD_CASES = [
 
 
 @pytest.mark.parametrize("name, mesh, method, printed", _METHOD_CASES)
-def test_method_reference_value_level5(name, mesh, method, printed):
+def test_method_reference_value_level5(name, mesh, method, printed, device):
     # Level-5 meshes (up to ~25k vertices): 0.3-2 s per case on the development VM. PLMS is
     # compared with polyLaplace's own (Galerkin-lumped) mass; see the module docstring and
     # test_plms_reference_with_the_package_mass for the package's M0.
     path = shared_path(f"{mesh}.obj")
-    value = experiment(name, path, 1.0, method, "polylaplace")
+    value = experiment(name, path, 1.0, method, "polylaplace", device)
     _assert_rounds_to(value, printed, f"{name} on {mesh}, {method}")
 
 
@@ -335,17 +347,18 @@ def test_method_reference_value_level5(name, mesh, method, printed):
         for (exp, mesh), row in METHOD_REFERENCE.items()
     ],
 )
-def test_plms_reference_with_the_package_mass(name, mesh, printed):
+def test_plms_reference_with_the_package_mass(name, mesh, printed, device):
     # Same L, the package's own M0 (which lumps the fan's Galerkin mass, as polyLaplace does).
-    value = experiment(name, shared_path(f"{mesh}.obj"), 1.0, "plms", "own")
+    value = experiment(name, shared_path(f"{mesh}.obj"), 1.0, "plms", "own", device)
     _assert_rounds_to(value, printed, f"{name} on {mesh}, plms with the package's M0")
 
 
-def test_plms_galerkin_mass_matches_the_package():
+def test_plms_galerkin_mass_matches_the_package(device):
     # The independent numpy mass against the package, and its total: the fan areas sum to the
     # faces' areas when planar.
     verts, faces = load(DATA_DIR / "grid" / "quad_3.obj")
     m = plms_galerkin_mass(verts, faces)
+    verts = verts.to(device)
     _, M0 = tp.laplacian(verts, faces, method="plms")
     np.testing.assert_allclose(m, tp.sparse.to_scipy(M0).diagonal(), rtol=1e-12, atol=1e-15)
     assert m.sum() == pytest.approx(float(tp.face_areas(verts, faces).sum()), rel=1e-12)

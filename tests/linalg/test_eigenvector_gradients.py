@@ -54,12 +54,12 @@ def test_gradcheck_to_vertices(mesh, one_thread, device):
         assert torch.autograd.gradcheck(f, (X,), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
-def test_gradcheck_to_operator_values(one_thread):
+def test_gradcheck_to_operator_values(one_thread, device):
     """Gradients with respect to L's values (kept symmetric: L = B + B^T) and M's diagonal."""
     V, F = quad_grid(3, bump=0.3, seed=5)
-    L0, M0 = tp.laplacian(V.to(torch.float64), F)
+    L0, M0 = tp.laplacian(V.to(device, torch.float64), F)
     k = 4
-    w = _weights(V.shape[0], k, seed=2)
+    w = _weights(V.shape[0], k, seed=2).to(device)
     half = (0.5 * tp.sparse.sparse_values(L0)).clone().requires_grad_(True)
     mass = tp.sparse.sparse_values(M0).clone().requires_grad_(True)
 
@@ -71,15 +71,15 @@ def test_gradcheck_to_operator_values(one_thread):
     assert torch.autograd.gradcheck(f, (half, mass), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
-def test_operator_from_parts_and_m_orthonormality_are_consistent(one_thread):
+def test_operator_from_parts_and_m_orthonormality_are_consistent(one_thread, device):
     """The gradient of phi^T M phi (identically 1) is zero; of phi_i^T M phi_j zero as well."""
     V, F = mixed_mesh()
-    X = V.clone().requires_grad_(True)
+    X = V.to(device).requires_grad_(True)
     L, M0 = tp.laplacian(X, F)
     _, evecs = tp.eigs(L, M0, 4)
     gram = evecs.T @ (M0 @ evecs)
-    torch.testing.assert_close(gram.detach(), torch.eye(4, **D64), atol=1e-12, rtol=0)
-    (grad,) = torch.autograd.grad((gram * _weights(4, 4)).sum(), X)
+    torch.testing.assert_close(gram.detach().cpu(), torch.eye(4, **D64), atol=1e-12, rtol=0)
+    (grad,) = torch.autograd.grad((gram * _weights(4, 4).to(device)).sum(), X)
     assert grad.abs().max() < 1e-9
 
 
@@ -95,20 +95,20 @@ def test_matches_finite_differences_on_the_sparse_route(one_thread, device):
     assert_directional_derivative(f, V.to(device, torch.float64), rtol=1e-5)
 
 
-def test_heat_kernel_signature_gradient_reaches_the_vertices(one_thread):
+def test_heat_kernel_signature_gradient_reaches_the_vertices(one_thread, device):
     V, F = hex_pent_mesh()
-    times = torch.tensor([0.1, 1.0], **D64)
+    times = torch.tensor([0.1, 1.0], **D64, device=device)
 
     def f(X):
         evals, evecs = tp.eigs(*tp.laplacian(X, F), 6)
         return tp.heat_kernel_signature(evals, evecs, times).square().sum()
 
-    assert_directional_derivative(f, V.to(torch.float64), rtol=1e-6)
+    assert_directional_derivative(f, V.to(device, torch.float64), rtol=1e-6)
 
 
-def test_repeated_eigenvalue_names_the_cluster(one_thread):
+def test_repeated_eigenvalue_names_the_cluster(one_thread, device):
     V, F = quad_grid(4)  # regular grid: mu_1 = mu_2 exactly (x <-> y symmetry)
-    X = V.to(torch.float64).clone().requires_grad_(True)
+    X = V.to(device, torch.float64).clone().requires_grad_(True)
     evals, evecs = tp.eigs(*tp.laplacian(X, F), 4)
     assert torch.isclose(evals[1], evals[2], rtol=1e-10)
     with pytest.raises(RuntimeError, match=r"evecs\[:, 1\].*eigenvalues 1\.\.2.*mu_1 = .*mu_2 = "):
@@ -119,23 +119,23 @@ def test_repeated_eigenvalue_names_the_cluster(one_thread):
     assert torch.isfinite(grad).all()
 
 
-def test_repeated_eigenvalue_beyond_the_computed_ones(one_thread):
+def test_repeated_eigenvalue_beyond_the_computed_ones(one_thread, device):
     """k = 2 on a regular grid: mu_1's twin mu_2 was not computed, inverse iteration finds it."""
     V, F = quad_grid(4)
-    X = V.to(torch.float64).clone().requires_grad_(True)
+    X = V.to(device, torch.float64).clone().requires_grad_(True)
     evals, evecs = tp.eigs(*tp.laplacian(X, F), 2)
     mu = f"{evals[1].item():.8f}"[:-1]
     with pytest.raises(RuntimeError, match=rf"evecs\[:, 1\].*mu_1 = {mu}.*not computed, near {mu}"):
         evecs[:, 1].square().mul(X[:, 0]).sum().backward()
 
 
-def test_subspace_invariant_loss_on_a_repeated_eigenvalue(one_thread):
+def test_subspace_invariant_loss_on_a_repeated_eigenvalue(one_thread, device):
     """A loss that sees the cluster mu_1 = mu_2 of a regular grid only through its projector
     Phi_C Phi_C^T M0 has a gradient, also at the symmetric mesh itself."""
     V, F = quad_grid(4, bump=0.0)
-    V = V.to(torch.float64)
+    V = V.to(device, torch.float64)
     u = torch.cos(3 * V[:, 0]) + V[:, 1] ** 2
-    w = _weights(V.shape[0], 1, seed=6)[:, 0]
+    w = _weights(V.shape[0], 1, seed=6)[:, 0].to(device)
 
     def f(X):
         L, M0 = tp.laplacian(X, F)
@@ -152,9 +152,9 @@ def test_subspace_invariant_loss_on_a_repeated_eigenvalue(one_thread):
     assert torch.autograd.gradcheck(f, (X,), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
-def test_second_derivatives_refuse(one_thread):
+def test_second_derivatives_refuse(one_thread, device):
     V, F = mixed_mesh()
-    X = V.clone().requires_grad_(True)
+    X = V.to(device).requires_grad_(True)
     _, evecs = tp.eigs(*tp.laplacian(X, F), 3)
     with pytest.raises(RuntimeError, match="second derivatives"):
         torch.autograd.grad(evecs[:, 1].sum(), X, create_graph=True)

@@ -49,7 +49,7 @@ def _mesh_operators(name: str, device: torch.device | str = "cpu"):
 
 
 @pytest.mark.parametrize("cholmod", [True, False], ids=["cholmod", "superlu"])
-def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
+def test_sparse_eigs_match_arpack(cholmod, monkeypatch, device):
     """2310 vertices: above the dense threshold, so eigs runs block Lanczos; it must agree with
     scipy's ARPACK to round-off, with M0-orthonormal vectors spanning the same subspaces."""
     if cholmod:
@@ -58,7 +58,7 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
         )
     else:
         monkeypatch.setitem(sys.modules, "cholespy", None)  # import fails: SuperLU route
-    L, M0 = _mesh_operators("mixedFaring.off")
+    L, M0 = _mesh_operators("mixedFaring.off", device)
     k = 40
     # the route rule sends this size to ARPACK: force block Lanczos, which must not fall back
     monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: "lanczos")
@@ -67,6 +67,8 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
     monkeypatch.setattr(linalg.eigenpairs, "_eigs_arpack", lambda *a, **kw: calls.append(a))
     evals, evecs = tp.eigs(L, M0, k)
     assert not calls
+    assert evals.device.type == evecs.device.type == device.type
+    evals, evecs = evals.cpu(), evecs.cpu()  # against ARPACK on the CPU
     Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
     ref_vals, ref_vecs = spla.eigsh(Ls, k=k, M=Ms, sigma=-1e-6, which="LM", tol=0)
     np.testing.assert_allclose(evals.numpy(), np.sort(ref_vals), rtol=1e-9, atol=1e-11)
@@ -81,7 +83,7 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch):
 
 
 @pytest.mark.parametrize("route", ["arpack", "lanczos"])
-def test_sparse_eigs_count_components(route, monkeypatch):
+def test_sparse_eigs_count_components(route, monkeypatch, device):
     """Three copies of a 2310-vertex mesh: three zero eigenvalues, found by each sparse route."""
     monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: route)
     V, F = tp.read_mesh(DATA / "mixedFaring.off", dtype=torch.float64)
@@ -93,7 +95,9 @@ def test_sparse_eigs_count_components(route, monkeypatch):
     M0 = tp.sparse.from_scipy(
         sp.block_diag([tp.sparse.to_scipy(b[1]) for b in blocks], format="csr")
     )
-    evals, evecs = tp.eigs(L, M0, 6)
+    evals, evecs = tp.eigs(L.to(device), M0.to(device), 6)
+    assert evals.device.type == device.type
+    evals, evecs = evals.cpu(), evecs.cpu()
     assert (evals[:3].abs() < 1e-9).all() and evals[3] > 1e-4
     # the kernel is spanned by the indicator functions of the three copies
     indicator = np.kron(np.eye(3), np.ones((n, 1)))
@@ -152,7 +156,7 @@ def test_eigs_route_needs_a_diagonal_mass_for_lanczos():
 
 @pytest.mark.parametrize("route", ["dense", "arpack", "lanczos", "arpack-generalized"])
 @pytest.mark.parametrize("cholmod", [True, False], ids=["cholmod", "superlu"])
-def test_every_route_matches_lapack(route, cholmod, monkeypatch):
+def test_every_route_matches_lapack(route, cholmod, monkeypatch, device):
     """Each route, forced, on the 1538-vertex cube sphere (near-multiple l(l+1) clusters):
     eigenvalues within 1e-10 relative of dense LAPACK, M0-orthonormal vectors with small
     residuals."""
@@ -160,13 +164,15 @@ def test_every_route_matches_lapack(route, cholmod, monkeypatch):
         pytest.importorskip("cholespy", reason='pip install -e ".[cholmod]"')
     else:
         monkeypatch.setitem(sys.modules, "cholespy", None)
-    L, M0 = _mesh_operators("sphere/quad_3.obj")
+    L, M0 = _mesh_operators("sphere/quad_3.obj", device)
     k = 64
     if route == "arpack-generalized":  # a non-diagonal M goes through ARPACK's generalized mode
         monkeypatch.setattr(linalg.eigenpairs, "_is_diagonal", lambda S: False)
     monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: route.split("-")[0])
     evals, evecs = tp.eigs(L, M0, k)
-    Ld, Md = L.to_dense().numpy(), M0.to_dense().numpy()
+    assert evals.device.type == device.type
+    evals, evecs = evals.cpu(), evecs.cpu()  # against LAPACK on the CPU
+    Ld, Md = L.to_dense().cpu().numpy(), M0.to_dense().cpu().numpy()
     ref = scipy.linalg.eigh(Ld, Md, eigvals_only=True, subset_by_index=(0, k - 1))
     np.testing.assert_allclose(evals.numpy(), ref, rtol=1e-10, atol=1e-10 * ref.max())
     phi = evecs.numpy()

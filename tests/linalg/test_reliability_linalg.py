@@ -55,7 +55,7 @@ def _assert_eigenpairs(evals, evecs, L, M, reference) -> None:
     """The k smallest eigenvalues with their multiplicities, M-orthonormal vectors, and small
     residuals (each computed pair is an eigenpair)."""
     Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M)
-    mu, phi = evals.numpy(), evecs.numpy()
+    mu, phi = evals.cpu().numpy(), evecs.cpu().numpy()
     k = mu.size
     top = max(abs(reference[k - 1]), 1.0)
     np.testing.assert_allclose(mu, reference[:k], rtol=0, atol=1e-9 * top)
@@ -64,15 +64,17 @@ def _assert_eigenpairs(evals, evecs, L, M, reference) -> None:
     assert np.abs(residual).max() < 1e-7 * top * np.abs(Ms @ phi).max()
 
 
-def test_eigs_finds_every_copy_of_forty_disjoint_spots():
+def test_eigs_finds_every_copy_of_forty_disjoint_spots(device):
     """The case found by fuzzing: k = 128 on 40 copies of the Spot cage (7520 vertices, the
     block Lanczos route) returned an eigenvalue of multiplicity 40 only 32 times and went on
     to the next one (max error 1.4), each returned pair having a tiny residual."""
     V, F = _spot()
-    L, M0 = tp.laplacian(*_copies(V, F, 40))
+    verts, faces = _copies(V, F, 40)
+    L, M0 = tp.laplacian(verts.to(device), faces)
     reference = np.sort(np.repeat(_spectrum(V, F), 40))
     assert linalg.eigs_route(L.shape[0], 128, diagonal_mass=True, cholmod=True) == "lanczos"
     evals, evecs = tp.eigs(L, M0, 128)
+    assert evals.device.type == device.type
     _assert_eigenpairs(evals, evecs, L, M0, reference)
 
 
@@ -93,14 +95,16 @@ def test_eigs_on_disjoint_copies_has_full_multiplicities(route, count, k, seed, 
 
 @pytest.mark.parametrize("route", ["dense", "arpack", "lanczos"])
 @pytest.mark.parametrize("shape", ["cube", "sphere"])
-def test_eigs_on_symmetric_shapes_match_lapack(route, shape, monkeypatch):
+def test_eigs_on_symmetric_shapes_match_lapack(route, shape, monkeypatch, device):
     """The cube's and the cube sphere's octahedral symmetry gives eigenvalues of multiplicity
     2, 3 and 6 (and near-multiplicities on the sphere); each route against dense LAPACK."""
     monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: route)
     V, F = quad_cube(6) if shape == "cube" else quad_sphere(6)
-    L, M0 = tp.laplacian(V, F)
-    reference = scipy.linalg.eigh(L.to_dense().numpy(), M0.to_dense().numpy(), eigvals_only=True)
+    L, M0 = tp.laplacian(V.to(device), F)
+    Ld, Md = L.to_dense().cpu().numpy(), M0.to_dense().cpu().numpy()
+    reference = scipy.linalg.eigh(Ld, Md, eigvals_only=True)
     evals, evecs = tp.eigs(L, M0, 40)
+    assert evals.device.type == device.type
     _assert_eigenpairs(evals, evecs, L, M0, reference)
 
 
@@ -118,7 +122,7 @@ def _dropping(original, drop: int):
 
 
 @pytest.mark.parametrize("mass", ["diagonal", "consistent"])
-def test_eigs_completes_a_route_that_missed_eigenpairs(mass, monkeypatch):
+def test_eigs_completes_a_route_that_missed_eigenpairs(mass, monkeypatch, device):
     """The inertia count catches missing eigenpairs whatever the route and the mass matrix:
     ARPACK made to drop three from the middle of its answer (on 5 copies of Spot, so that the
     dropped ones are copies of a repeated eigenvalue), with a diagonal mass and with a
@@ -128,14 +132,17 @@ def test_eigs_completes_a_route_that_missed_eigenpairs(mass, monkeypatch):
         linalg.eigenpairs, "_eigs_arpack", _dropping(linalg.eigenpairs._eigs_arpack, 3)
     )
     V, F = _spot()
-    L, M0 = tp.laplacian(*_copies(V, F, 5))
+    verts, faces = _copies(V, F, 5)
+    L, M0 = tp.laplacian(verts.to(device), faces)
     M = M0
     if mass == "consistent":
         # M0 plus a small multiple of L: symmetric positive definite, not diagonal
         Ms = tp.sparse.to_scipy(M0) + 1e-3 * tp.sparse.to_scipy(L)
-        M = tp.sparse.from_scipy(sp.csr_matrix(Ms))
-    reference = scipy.linalg.eigh(L.to_dense().numpy(), M.to_dense().numpy(), eigvals_only=True)
+        M = tp.sparse.from_scipy(sp.csr_matrix(Ms)).to(device)
+    Ld, Md = L.to_dense().cpu().numpy(), M.to_dense().cpu().numpy()
+    reference = scipy.linalg.eigh(Ld, Md, eigvals_only=True)
     evals, evecs = tp.eigs(L, M, 24)
+    assert evals.device.type == device.type
     _assert_eigenpairs(evals, evecs, L, M, reference)
 
 
@@ -223,12 +230,12 @@ def test_eigs_accepts_an_unmarked_symmetric_matrix(data):
 # ---- solve: singular, indefinite, non-convergent ----
 
 
-def test_cg_on_a_singular_laplacian_raises_a_convergence_error():
+def test_cg_on_a_singular_laplacian_raises_a_convergence_error(device):
     """Found by fuzzing: CG's updated residual met the tolerance while |b - L x| / |b| was 5.7
     and |x| 6e14, and the result came back without a word."""
     V, F = _spot()
-    L, _ = tp.laplacian(V, F)
-    b = torch.randn(V.shape[0], generator=torch.Generator().manual_seed(0), **D64)
+    L, _ = tp.laplacian(V.to(device), F)
+    b = torch.randn(V.shape[0], generator=torch.Generator().manual_seed(0), **D64).to(device)
     with pytest.raises(ValueError, match="did not converge: relative residual") as err:
         tp.solve(L, b, backend="cg")
     assert isinstance(err.value, linalg.solves.ConvergenceError)

@@ -29,42 +29,52 @@ def heat_operator(L, M0, t):
     return torch.from_numpy(scipy.linalg.expm(-t * Linv.numpy()))
 
 
-def test_heat_kernel_signature_is_the_heat_kernel_diagonal(spot):
+def test_heat_kernel_signature_is_the_heat_kernel_diagonal(spot, device):
     _, _, L, M0, evals, evecs = spot
     times = torch.tensor([0.05, 0.2, 1.0], **D64)
-    hks = tp.heat_kernel_signature(evals, evecs, times)
+    hks = tp.heat_kernel_signature(evals.to(device), evecs.to(device), times.to(device))
+    assert hks.device.type == device.type
+    hks = hks.cpu()  # the dense references on the CPU
     m = M0.to_dense().diagonal()
     for j, t in enumerate(times.tolist()):
         kernel = heat_operator(L, M0, t) / m[None, :]  # K_t = exp(-t M^-1 L) M^-1
         assert torch.allclose(hks[:, j], kernel.diagonal(), rtol=1e-6)
 
 
-def test_spectral_and_implicit_diffusion_agree_with_expm(spot):
+def test_spectral_and_implicit_diffusion_agree_with_expm(spot, device):
     V, _, L, M0, evals, evecs = spot
     u0 = torch.stack([V[:, 0], torch.cos(3 * V[:, 1])], 1)
     t = 0.1
-    exact = heat_operator(L, M0, t) @ u0
-    spectral = tp.spectral_heat_diffusion(u0, evals, evecs, M0, t)
-    assert torch.allclose(spectral, exact, atol=1e-8)
-    per_channel = tp.spectral_heat_diffusion(u0, evals, evecs, M0, torch.tensor([t, 2 * t], **D64))
+    exact = heat_operator(L, M0, t) @ u0  # the dense references on the CPU
+    on = [x.to(device) for x in (u0, evals, evecs, M0, L)]
+    u0_d, evals_d, evecs_d, M0_d, L_d = on
+    spectral = tp.spectral_heat_diffusion(u0_d, evals_d, evecs_d, M0_d, t)
+    assert spectral.device.type == device.type
+    assert torch.allclose(spectral.cpu(), exact, atol=1e-8)
+    times = torch.tensor([t, 2 * t], **D64, device=device)
+    per_channel = tp.spectral_heat_diffusion(u0_d, evals_d, evecs_d, M0_d, times).cpu()
     assert torch.allclose(per_channel[:, 1], (heat_operator(L, M0, 2 * t) @ u0)[:, 1], atol=1e-8)
     # one implicit Euler step: (M0 + tL) u = M0 u0, first-order accurate in t
-    implicit = tp.implicit_heat_diffusion(L, M0, u0, t)
+    implicit = tp.implicit_heat_diffusion(L_d, M0_d, u0_d, t).cpu()
     ref = torch.linalg.solve(M0.to_dense() + t * L.to_dense(), M0.to_dense() @ u0)
     assert torch.allclose(implicit, ref, atol=1e-10)
     # one step's error is O(t^2) once t |mu_max| is small; on this coarse cage the stiff
     # modes still damp part of it at these steps, so ask for more than first order only
     errors = [
-        (tp.implicit_heat_diffusion(L, M0, u0, s) - heat_operator(L, M0, s) @ u0).abs().max()
+        (tp.implicit_heat_diffusion(L_d, M0_d, u0_d, s).cpu() - heat_operator(L, M0, s) @ u0)
+        .abs()
+        .max()
         for s in (1e-3, 1e-4, 1e-5)
     ]
     assert errors[1] < errors[0] / 15 and errors[2] < errors[1] / 15
 
 
-def test_wave_kernel_signature_is_mass_normalized(spot):
+def test_wave_kernel_signature_is_mass_normalized(spot, device):
     _, _, _, M0, evals, evecs = spot
     energies = torch.linspace(0.0, 4.0, 12, **D64)
-    wks = tp.wave_kernel_signature(evals, evecs, energies)
+    wks = tp.wave_kernel_signature(evals.to(device), evecs.to(device), energies.to(device))
+    assert wks.device.type == device.type
+    wks = wks.cpu()  # the reference column on the CPU
     assert wks.shape == (evecs.shape[0], 12)
     # one column from the definition (Aubry et al.), a loop over the non-constant pairs with
     # the bandwidth 7 times the energy spacing: sum_k w_k phi_k^2 / sum_k w_k
@@ -106,8 +116,8 @@ def test_eigenvector_gradients_reach_the_vertices(device):
     assert torch.isfinite(evals_only).all() and not torch.allclose(full, evals_only)
 
 
-def test_cached_eigs_round_trip(tmp_path):
-    V, F = quad_grid(4, bump=0.2, seed=1)
+def test_cached_eigs_round_trip(tmp_path, device):
+    V, F = quad_grid(4, bump=0.2, seed=1, device=device)
     F = tp.as_faces(F)
     evals, evecs = tp.cached_eigs(V, F, 5, tmp_path)
     files = list(tmp_path.glob("eigs-*.npz"))

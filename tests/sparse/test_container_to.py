@@ -72,8 +72,8 @@ def test_polygon_meshes_to_takes_every_tensor_form(form, device):
         assert got.data_ptr() != m.verts_packed().data_ptr()
 
 
-def test_polygon_meshes_to_dtype_is_float64_to_float32_and_back():
-    m = _meshes()
+def test_polygon_meshes_to_dtype_is_float64_to_float32_and_back(device):
+    m = _meshes().to(device)
     single = m.to(torch.float32)  # the call that used to raise a TypeError
     assert single.dtype == F32 and single.device == m.device
     torch.testing.assert_close(single.to(F64).verts_packed(), m.verts_packed(), rtol=1e-6, atol=0)

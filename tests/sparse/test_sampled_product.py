@@ -35,12 +35,15 @@ def test_sampled_product_equals_dense_product_at_the_pattern(problem, block):
     torch.testing.assert_close(sampled_op(G, X, pattern.crow, pattern.col, pattern.row), want)
 
 
-def test_sampled_product_of_transposed_inputs_in_float32():
-    """Non-contiguous operands (transposed views) in float32 give the same entries."""
+def test_sampled_product_of_transposed_inputs(device, dtype):
+    """Non-contiguous operands (transposed views) in either dtype give the same entries (the
+    CPU's blocked gathers, ``sampled_addmm`` elsewhere)."""
     pattern = SparsityPattern.from_rows(
         torch.tensor([0, 0, 1, 2]), torch.tensor([0, 2, 1, 0]), (3, 3)
     )
-    G = torch.randn(4, 3).t()
-    X = torch.randn(4, 3).t()
-    got = sampled_op(G, X, pattern.crow, pattern.col, pattern.row)
-    torch.testing.assert_close(got, (G @ X.t())[pattern.row, pattern.col])
+    crow, col, row = (t.to(device) for t in (pattern.crow, pattern.col, pattern.row))
+    G = torch.randn(4, 3, dtype=dtype, device=device).t()
+    X = torch.randn(4, 3, dtype=dtype, device=device).t()
+    got = sampled_op(G, X, crow, col, row)
+    assert got.device.type == device.type and got.dtype == dtype
+    torch.testing.assert_close(got, (G @ X.t())[row, col])

@@ -23,24 +23,28 @@ from torch_polylap.shapes import quad_grid
 from torch_polylap.topology.groups import moved
 
 
-def test_face_forms_agree():
-    V, F = quad_grid(3)
+def test_face_forms_agree(device):
+    V, F = quad_grid(3, device=device)
     as_list = F.tolist()
     packed = tp.PolygonFaces(F.reshape(-1), sizes=torch.full((F.shape[0],), 4))
     offsets = tp.PolygonFaces(F.reshape(-1).numpy(), offsets=np.arange(0, F.numel() + 1, 4))
     ref = tp.laplacian(V, F)[0].to_dense()
-    for form in (as_list, F.numpy(), packed, offsets, F.int()):
-        assert torch.equal(tp.laplacian(V, form)[0].to_dense(), ref)
+    # bitwise on the CPU; CUDA's parallel scatter may order the sums differently per call
+    atol = 0.0 if device.type == "cpu" else 1e-15 * float(ref.abs().max())
+    for form in (as_list, F.numpy(), packed, offsets, F.int(), F.to(device)):
+        torch.testing.assert_close(tp.laplacian(V, form)[0].to_dense(), ref, rtol=0, atol=atol)
     assert torch.equal(packed.as_uniform(), F)
     assert tp.as_faces([[0, 1, 2], [0, 2, 3, 4]]).as_uniform() is None
 
 
-def test_polygon_faces_accessors():
-    faces = tp.as_faces([[0, 1, 2], [2, 1, 3, 4]])
+def test_polygon_faces_accessors(device):
+    faces = tp.as_faces([[0, 1, 2], [2, 1, 3, 4]]).to(device)
+    assert faces.device.type == device.type and faces.corner_face.device.type == device.type
     assert faces.num_faces == 2 and faces.num_corners == 7 and len(faces) == 2
     assert faces[1].tolist() == [2, 1, 3, 4] and faces[-1].tolist() == [2, 1, 3, 4]
     assert faces.flipped().tolist() == [[2, 1, 0], [4, 3, 1, 2]]
     assert faces.corner_face.tolist() == [0, 0, 0, 1, 1, 1, 1]
+    assert faces.next_corner.tolist() == [1, 2, 0, 4, 5, 6, 3]
     assert "degrees=[3, 4]" in repr(faces)
     with pytest.raises(IndexError):
         faces[2]
@@ -79,11 +83,11 @@ def test_bad_connectivity_is_named(faces, num_verts, match):
         tp.build_topology(faces, num_verts)
 
 
-def test_bad_face_arrays():
+def test_bad_face_arrays(device):
     with pytest.raises(ValueError, match=r"shape \(F, k\)"):
-        tp.as_faces(torch.arange(6))
+        tp.as_faces(torch.arange(6, device=device))
     with pytest.raises(ValueError, match="integer vertex indices"):
-        tp.as_faces(torch.rand(2, 3))
+        tp.as_faces(torch.rand(2, 3, device=device))
     with pytest.raises(ValueError, match="sequence of vertex indices"):
         tp.as_faces([[0, 1, 2], 5])
     with pytest.raises(ValueError, match="exactly one of"):
@@ -92,15 +96,15 @@ def test_bad_face_arrays():
         tp.PolygonFaces([0, 1, 2], sizes=[4])
 
 
-def test_bad_geometry_is_named():
-    V, F = quad_grid(2)
+def test_bad_geometry_is_named(device):
+    V, F = quad_grid(2, device=device)
     bad = V.clone()
     bad[4, 1] = float("nan")
     with pytest.raises(ValueError, match=r"vertex 4 has non-finite coordinates"):
         tp.laplacian(bad, F)
     collinear = V.clone()
     collinear[[0, 1, 3, 4], 1] = 0.0  # face 0 = (0, 1, 4, 3) collapses onto the x axis
-    collinear[[0, 1, 3, 4], 0] = torch.tensor([0.0, 0.5, 0.25, 0.75], dtype=V.dtype)
+    collinear[[0, 1, 3, 4], 0] = torch.tensor([0.0, 0.5, 0.25, 0.75], dtype=V.dtype, device=device)
     with pytest.raises(
         ValueError, match=r"face 0 \(vertices \[0, 3, 4, 1\]\) has zero vector area"
     ):
@@ -113,20 +117,20 @@ def test_bad_geometry_is_named():
     with pytest.raises(TypeError, match=r"float16.*verts.float\(\)"):
         tp.laplacian(V.half(), F)
     with pytest.raises(TypeError, match=r"torch.Tensor of shape \(V, 3\), got ndarray"):
-        tp.laplacian(V.numpy(), F)
+        tp.laplacian(V.cpu().numpy(), F)
 
 
-def test_zero_area_without_validation_stays_finite():
-    V, F = quad_grid(2)
+def test_zero_area_without_validation_stays_finite(device):
+    V, F = quad_grid(2, device=device)
     V = V.clone()
     V[[0, 1, 3, 4], 1] = 0.0
     L, M0 = tp.laplacian(V, F, validate=False)
     assert torch.isfinite(L.values()).all() and torch.isfinite(M0.values()).all()
 
 
-def test_isolated_vertex_warns_and_gets_zero_mass():
-    V, F = quad_grid(2)
-    V = torch.cat([V, torch.tensor([[5.0, 5.0, 5.0]], dtype=V.dtype)])
+def test_isolated_vertex_warns_and_gets_zero_mass(device):
+    V, F = quad_grid(2, device=device)
+    V = torch.cat([V, torch.tensor([[5.0, 5.0, 5.0]], dtype=V.dtype, device=device)])
     with pytest.warns(UserWarning, match=r"1 of 10 vertices belong to no face \(first: \[9\]\)"):
         L, M0 = tp.laplacian(V, F)
     assert M0.to_dense()[9, 9] == 0 and L.to_dense()[9].abs().sum() == 0
@@ -233,11 +237,11 @@ def _next_corner(faces):
     return out
 
 
-def test_chunked_groups_match_unchunked(monkeypatch):
+def test_chunked_groups_match_unchunked(monkeypatch, device):
     """Splitting a degree group into chunks must not change L (tiny chunks force many)."""
     import torch_polylap.topology as topology
 
-    V, F = quad_grid(30, bump=0.2, seed=3)
+    V, F = quad_grid(30, bump=0.2, seed=3, device=device)
     ref = tp.laplacian(V, tp.build_topology(F, V.shape[0]))[0].to_dense()
     monkeypatch.setattr(topology.groups, "CHUNK_ELEMENTS", 1)
     topo = tp.build_topology(F, V.shape[0])
@@ -246,9 +250,9 @@ def test_chunked_groups_match_unchunked(monkeypatch):
     assert torch.allclose(tp.laplacian(V, topo)[0].to_dense(), ref, rtol=0, atol=1e-14)
 
 
-def test_functional_cache_follows_tensor_edits():
+def test_functional_cache_follows_tensor_edits(device):
     V, F = quad_grid(3)
-    F = F.clone()
+    F = F.to(device, copy=True)
     t1 = tp.get_topology(F, V.shape[0])
     assert tp.get_topology(F, V.shape[0]) is t1
     F[0] = F[0].roll(1)  # same face, relabelled corners: in-place edit invalidates the cache
@@ -333,7 +337,7 @@ def _reference_laplacian(V: torch.Tensor, F: list[list[int]]) -> np.ndarray:
 
 @pytest.mark.filterwarnings("ignore::UserWarning")
 @pytest.mark.parametrize("name,V,F,expect", IRREGULAR, ids=[m[0] for m in IRREGULAR])
-def test_laplacian_on_irregular_meshes(name, V, F, expect):
+def test_laplacian_on_irregular_meshes(name, V, F, expect, device):
     F = F.tolist() if isinstance(F, tp.PolygonFaces) else F
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -347,8 +351,9 @@ def test_laplacian_on_irregular_meshes(name, V, F, expect):
         assert report.duplicate_faces.tolist() == expect["duplicates"]
     assert report.isolated_vertices.size == expect.get("isolated", 0)
 
-    L, M0 = tp.laplacian(V, topo)
-    Ld = L.to_dense().numpy()
+    L, M0 = tp.laplacian(V.to(device), topo)
+    assert L.device.type == device.type
+    Ld = L.to_dense().cpu().numpy()  # the references below on the CPU
     assert np.allclose(Ld, Ld.T, rtol=0, atol=1e-13 * np.abs(Ld).max())
     assert np.abs(Ld.sum(1)).max() <= 1e-12 * np.abs(Ld).max()
     eig = np.linalg.eigvalsh(Ld)
@@ -361,12 +366,12 @@ def test_laplacian_on_irregular_meshes(name, V, F, expect):
         C = igl.cotmatrix(V.numpy(), np.asarray(F, dtype=np.int64)).toarray()
         assert np.allclose(Ld, -C, rtol=0, atol=1e-12 * np.abs(Ld).max())
     assert float(M0.to_dense().diagonal().sum()) == pytest.approx(
-        float(tp.face_areas(V, topo).sum()), rel=1e-12
+        float(tp.face_areas(V.to(device), topo).sum()), rel=1e-12
     )
 
 
-def test_flipping_faces_leaves_laplacian_unchanged():
-    V, F = quad_grid(4, bump=0.3, seed=5)
+def test_flipping_faces_leaves_laplacian_unchanged(device):
+    V, F = quad_grid(4, bump=0.3, seed=5, device=device)
     flipped = F.clone()
     flipped[::3] = flipped[::3].flip(1)
     with pytest.warns(UserWarning, match="inconsistent orientation"):
@@ -402,11 +407,12 @@ def test_manifold_entry_points_say_what_to_run():
         moebius.require_oriented("conformal_parameterization")
 
 
-def test_zero_area_face_is_still_an_error_on_an_irregular_mesh():
+def test_zero_area_face_is_still_an_error_on_an_irregular_mesh(device):
     V, F = _fin()
     p, q = F[-1][:2]
-    V = V.clone()
-    V[-2:] = V[p] + torch.tensor([[0.3], [0.7]], dtype=V.dtype) * (V[q] - V[p])  # fin collapses
+    V = V.to(device, copy=True)
+    t = torch.tensor([[0.3], [0.7]], dtype=V.dtype, device=device)
+    V[-2:] = V[p] + t * (V[q] - V[p])  # the fin collapses onto its edge
     with pytest.warns(UserWarning), pytest.raises(ValueError, match=r"face 9 .* zero vector area"):
         tp.laplacian(V, F)
 
@@ -414,10 +420,10 @@ def test_zero_area_face_is_still_an_error_on_an_irregular_mesh():
 # -- high-degree faces ---------------------------------------------------------------------
 
 
-def test_high_degree_face_is_vectorized():
+def test_high_degree_face_is_vectorized(device):
     k = 1500
     t = np.linspace(0, 2 * np.pi, k, endpoint=False)
-    V = torch.from_numpy(np.stack([np.cos(t), np.sin(t), 0.1 * np.sin(3 * t)], 1))
+    V = torch.from_numpy(np.stack([np.cos(t), np.sin(t), 0.1 * np.sin(3 * t)], 1)).to(device)
     start = time.perf_counter()
     topo = tp.build_topology(torch.arange(k)[None], k)
     elapsed = time.perf_counter() - start
@@ -457,8 +463,8 @@ def test_fresh_faces_tensors_do_not_leak():
     assert len(tp.topology.cache._CACHE) <= cached_before
 
 
-def test_cache_holds_no_faces_and_is_shared_with_the_module():
-    V, F = quad_grid(3)
+def test_cache_holds_no_faces_and_is_shared_with_the_module(device):
+    V, F = quad_grid(3, device=device)
     F = F.clone()
     ref = weakref.ref(F)
     module = tp.PolygonLaplacian()
