@@ -108,7 +108,7 @@ def test_energy_of_a_developable_surface_is_stationary(one_thread):
 def test_repeated_complex_eigenvalue_refuses_the_magnitude(one_thread):
     """The cube sphere's smallest cross-field eigenvalue is repeated as a complex eigenvalue
     (three times): the field is not unique even up to phase, and its magnitude has no
-    gradient; the energy, the eigenvalue itself, still has one."""
+    gradient (the energy's, one branch of the eigenvalue's, is still returned)."""
     V, F = quad_sphere(3)
     X = V.clone().requires_grad_(True)
     _, magnitude, energy = tv.smoothest_field(X, F, 4)

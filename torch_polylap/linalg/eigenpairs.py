@@ -421,9 +421,11 @@ def eigs(
 
     Eigenvector gradients solve one adjoint system per column of ``evecs`` that the loss uses,
     by Nelson's method (one sparse LU of ``L - mu M`` less a row and column, on the CPU in
-    float64; memory that factor's fill plus O(nnz + n k)). Eigenvalues within ``1e-8 max |mu|``
-    (``EIGENVECTOR_GAP_RTOL``) form a cluster whose eigenvectors have a gradient only for
-    losses that see them through their span. The derivation, Nelson's method and the rule for
+    float64; memory that factor's fill plus O(nnz + n k)). Eigenvalues within ``1e-8`` times
+    the spectral scale (``EIGENVECTOR_GAP_RTOL``; the scale is the largest of ``|mu|`` and
+    ``max_i |L_ii| / M_ii``, so that eigenvalues at 0, e.g. one per connected component, are
+    judged too) form a cluster whose eigenvectors have a gradient only for losses that see
+    them through their span. The derivation, Nelson's method and the rule for
     clusters: ``docs/math/spectral.md`` ("Eigenpairs and their derivatives").
 
     Args:

@@ -56,7 +56,8 @@ def smoothest_field(
     the directions measured in the frames, ...); any other raises a ``RuntimeError`` in the
     backward.  Where the smallest eigenvalue is repeated as a complex eigenvalue (symmetric
     meshes: spheres), the field is not unique even up to phase and the backward raises
-    ``eigs``' error for a repeated eigenvalue; ``energy`` still has its gradient.
+    ``eigs``' error for a repeated eigenvalue (``energy``'s gradient is then that of one
+    branch of the repeated eigenvalue, as for ``eigs``' ``evals``).
     """
     A, M, frames = connection_laplacian(verts, faces, lam, method=method, symmetry=symmetry)
     with torch.no_grad():
