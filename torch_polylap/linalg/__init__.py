@@ -10,6 +10,7 @@ its measured route rule).  The rest of the package imports from here, never from
 
 from .cg import ConvergenceError as ConvergenceError
 from .derivatives import top_eigenpair as top_eigenpair
+from .eigenpairs import eigenpair_gradients as eigenpair_gradients
 from .eigenpairs import eigs
 from .eigenpairs import eigs_route as eigs_route
 from .factor import CholeskyFactorization as CholeskyFactorization

@@ -70,10 +70,26 @@ class Eigenvalues(_EigenpairFunction):
 
 
 # A requested eigenvector has no derivative when another eigenvalue lies within this distance of
-# its own, relative to the spectral scale max_i |mu_i| of the computed eigenvalues.
+# its own, relative to the spectral scale (:func:`spectral_scale`): the computed eigenvectors,
+# and the adjoint solve with L - mu M, lose about eps * scale / gap of their accuracy, so below
+# it fewer than half the digits are left, and round-off alone splits an exactly repeated
+# eigenvalue by far less.
 EIGENVECTOR_GAP_RTOL = 1e-8
 # Inverse-iteration steps that estimate the gap to the first eigenvalue that was not computed.
 _GAP_ITERATIONS = 4
+
+
+def spectral_scale(evals: np.ndarray, Ls: sp.spmatrix, Ms: sp.spmatrix) -> float:
+    """The scale against which :data:`EIGENVECTOR_GAP_RTOL` measures eigenvalue gaps: the
+    largest of ``|mu_i|`` over the computed ``evals`` ``(k,)`` and ``max_i |L_ii| / M_ii``
+    (the Rayleigh quotient of a unit vector: a lower bound of the spectral radius of
+    ``M^{-1} L``, within a small factor of it for a Laplacian). The computed eigenvalues alone
+    would not do: the smallest ones of a Laplacian are about 0 (one per connected component,
+    and a parallel field on a flat or developable surface), so a gap relative to them is
+    relative to round-off, and a repeated eigenvalue at 0 passed as simple. O(n)."""
+    diagonal = np.abs(Ls.diagonal()) / Ms.diagonal()
+    operator = float(diagonal.max()) if diagonal.size else 0.0
+    return max(float(np.abs(evals).max()), operator, np.finfo(float).tiny)
 
 
 def _cluster_message(
@@ -83,10 +99,12 @@ def _cluster_message(
     which = f"eigenvalues {members[0]}..{members[-1]}" if len(members) > 1 else "eigenvalue"
     return (
         f"torch_polylap.eigs: no gradient through evecs[:, {index}]: its eigenvalue is repeated "
-        f"({which} {values}{reason}; relative gap below {EIGENVECTOR_GAP_RTOL:g} of the spectral "
-        f"scale {scale:.6g}), so each eigenvector of the cluster is any M-orthonormal basis "
-        "vector of the eigenspace and not a differentiable function of L and M (a symmetric "
-        "mesh, e.g. a regular grid, has exact multiplicities). Use a loss that depends on the "
+        f"({which} {values}{reason}; gap below {EIGENVECTOR_GAP_RTOL:g} times the spectral "
+        f"scale {scale:.6g}, the largest of |mu| and max |L_ii| / M_ii), so each eigenvector "
+        "of the cluster is any M-orthonormal basis vector of the eigenspace and not a "
+        "differentiable function of L and M (a symmetric mesh, e.g. a regular grid, has exact "
+        "multiplicities; so has the eigenvalue 0 of a mesh of several connected components, "
+        "one per component). Use a loss that depends on the "
         "cluster's eigenvectors only through their span, with every eigenpair of the cluster "
         "computed: the projector Phi_C Phi_C^T M (e.g. sum_i (phi_i^T M u)^2 over the cluster) "
         "or symmetric functions of its eigenvalues (evals are differentiable); or use "
@@ -189,7 +207,9 @@ class Eigenvectors(_EigenpairFunction):
         Gn = G.detach().cpu().double().numpy()
         k = evals.size
         active = np.any(Gn != 0, axis=0)
-        scale = max(float(np.abs(evals).max()), np.finfo(float).tiny)
+        Ls = to_scipy(L).astype(np.float64)
+        Ms = to_scipy(M).astype(np.float64)
+        scale = spectral_scale(evals, Ls, Ms)
         # A_ij = phi_i^T g_j on each cluster's diagonal block: the in-cluster coupling
         A = np.zeros((k, k))
         runs = [c for c in _clusters(evals, scale) if active[c].any()]
@@ -213,8 +233,6 @@ class Eigenvectors(_EigenpairFunction):
                     )
                 block = 0.5 * (block + block.T)
             A[np.ix_(c, c)] = block
-        Ls = to_scipy(L).astype(np.float64)
-        Ms = to_scipy(M).astype(np.float64)
         W = np.zeros_like(Phi)
         for c in runs:
             for i in (j for j in c if active[j]):

@@ -421,9 +421,11 @@ def eigs(
 
     Eigenvector gradients solve one adjoint system per column of ``evecs`` that the loss uses,
     by Nelson's method (one sparse LU of ``L - mu M`` less a row and column, on the CPU in
-    float64; memory that factor's fill plus O(nnz + n k)). Eigenvalues within ``1e-8 max |mu|``
-    (``EIGENVECTOR_GAP_RTOL``) form a cluster whose eigenvectors have a gradient only for
-    losses that see them through their span. The derivation, Nelson's method and the rule for
+    float64; memory that factor's fill plus O(nnz + n k)). Eigenvalues within ``1e-8`` times
+    the spectral scale (``EIGENVECTOR_GAP_RTOL``; the scale is the largest of ``|mu|`` and
+    ``max_i |L_ii| / M_ii``, so that eigenvalues at 0, e.g. one per connected component, are
+    judged too) form a cluster whose eigenvectors have a gradient only for losses that see
+    them through their span. The derivation, Nelson's method and the rule for
     clusters: ``docs/math/spectral.md`` ("Eigenpairs and their derivatives").
 
     Args:
@@ -471,9 +473,26 @@ def eigs(
     L, M = as_operator(L), as_operator(M)
     k, Ls, Ms = _check_input(L, M, k, tol)
     evals, evecs = _solve(Ls, Ms, k, sigma, tol, L.device)
-    l_values, m_values = sparse_values(L), sparse_values(M)
+    l_values = sparse_values(L)
     evals_t = torch.from_numpy(evals).to(l_values)
     evecs_t = torch.from_numpy(evecs).to(l_values)
+    return eigenpair_gradients(L, M, evals_t, evecs_t)
+
+
+def eigenpair_gradients(
+    L: torch.Tensor, M: torch.Tensor, evals: torch.Tensor, evecs: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eigenpairs of ``L phi = mu M phi`` computed elsewhere, ``evals`` ``(k,)`` ascending and
+    ``evecs`` ``(n, k)`` ``M``-orthonormal (no gradient of their own), returned equal with
+    :func:`eigs`'s gradients with respect to the values of ``L`` and ``M`` attached.
+
+    For a caller that knows an eigenpair :func:`eigs` did not return: the twin ``i X`` of a
+    complex Hermitian operator's eigenvector ``X`` in its real form, whose eigenvalue is the
+    same, so that the backward sees both in one cluster (and no uncomputed eigenvalue there).
+    """
+    L, M = as_operator(L), as_operator(M)
+    l_values, m_values = sparse_values(L), sparse_values(M)
+    evals_t, evecs_t = evals.detach(), evecs.detach()
     opaque = OpaqueOperator(L), OpaqueOperator(M)
     mu = Eigenvalues.apply(l_values, m_values, evals_t, evecs_t, *opaque)
     if torch.is_grad_enabled() and (l_values.requires_grad or m_values.requires_grad):

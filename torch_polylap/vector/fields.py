@@ -12,11 +12,14 @@ free of zeros (Poincare-Hopf), and the field's singularities appear where ``|X|`
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from .._typing import MeshFaces
 from ..checks import Lam
-from ..linalg import eigs
+from ..linalg import eigenpair_gradients, eigs
+from ..sparse import sparse_values
 from .connection import connection_laplacian
 
 __all__ = ["smoothest_field"]
@@ -43,17 +46,69 @@ def smoothest_field(
         ``directions`` ``(V, 3)``: one unit tangent vector per vertex, the representative
         ``theta = arg(X) / n`` (the others are its rotations by ``2 pi k / n``);
         ``magnitude`` ``(V,)``: ``|X|`` with ``X^* M X = 1``, small near singularities;
-        ``energy``: the eigenvalue ``mu`` (0-dim), ``X^* A_n X``.  Differentiable in ``verts``
-        through :func:`~torch_polylap.eigs` while the smallest eigenvalue is simple.  At a
-        vertex where ``X = 0`` exactly (a singularity on a vertex) the direction is the
-        frame's ``e_x`` and the magnitude 0, both with a zero gradient there.
+        ``energy``: the eigenvalue ``mu`` (0-dim), ``X^* A_n X``.  At a vertex where ``X = 0``
+        exactly (a singularity on a vertex) the direction is the frame's ``e_x`` and the
+        magnitude 0, both with a zero gradient there.
+
+    Gradients (in ``verts``, through :func:`~torch_polylap.eigs`): the field is unique only up
+    to its phase, ``X -> e^{i t} X``, which turns every direction by ``t / n``, so only a loss
+    that does not change under that turn has one (``magnitude``, ``energy``, angles between
+    the directions measured in the frames, ...); any other raises a ``RuntimeError`` in the
+    backward.  Where the smallest eigenvalue is repeated as a complex eigenvalue (symmetric
+    meshes: spheres), the field is not unique even up to phase and the backward raises
+    ``eigs``' error for a repeated eigenvalue (``energy``'s gradient is then that of one
+    branch of the repeated eigenvalue, as for ``eigs``' ``evals``).
     """
     A, M, frames = connection_laplacian(verts, faces, lam, method=method, symmetry=symmetry)
-    mu, X = eigs(A, M, k=1)
+    with torch.no_grad():
+        mu, X = eigs(A, M, k=1)
+    if torch.is_grad_enabled() and (
+        sparse_values(A).requires_grad or sparse_values(M).requires_grad
+    ):
+        # The real form of the complex A has each eigenvalue twice, for X and i X: eigs(k=1)
+        # returns one of them, and its backward sees the other as an uncomputed eigenvalue
+        # at the same place (and refuses). Both belong to the cluster the gradient needs.
+        twins = torch.stack((X[:, 0], _times_i(X[:, 0])), 1)
+        mu, twins = eigenpair_gradients(A, M, mu.repeat(2), twins)
+        X = _PhaseInvariant.apply(twins[:, :1])
     theta, magnitude = polar(X[0::2, 0], X[1::2, 0])
     theta = theta / symmetry
     directions = torch.cos(theta)[:, None] * frames.e_x + torch.sin(theta)[:, None] * frames.e_y
     return directions, magnitude, mu[0]
+
+
+def _times_i(X: torch.Tensor) -> torch.Tensor:
+    """``i X`` for interleaved complex coordinates ``X`` ``(2V,)``: ``(x, y) -> (-y, x)`` per
+    vertex, the rotation of every vector by a quarter turn in its frame."""
+    return torch.stack((-X[1::2], X[0::2]), 1).reshape(-1)
+
+
+class _PhaseInvariant(torch.autograd.Function):
+    """The identity on the field ``X`` ``(2V, 1)``, whose backward refuses a loss that depends
+    on ``X``'s phase: its upstream gradient ``G`` must be orthogonal to ``i X`` (the derivative
+    of the loss under ``X -> e^{i t} X``) up to ``sqrt(eps) |G| |X|``, as the eigenvector
+    backward checks for a cluster too, but with a message about the field."""
+
+    @staticmethod
+    def forward(ctx: Any, X: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(X)
+        return X.clone()
+
+    @staticmethod
+    def backward(ctx: Any, G: torch.Tensor) -> torch.Tensor:
+        (X,) = ctx.saved_tensors
+        rate = float((G[:, 0] * _times_i(X[:, 0])).sum())
+        size = float(torch.linalg.vector_norm(G) * torch.linalg.vector_norm(X))
+        if abs(rate) > torch.finfo(X.dtype).eps ** 0.5 * size:
+            raise RuntimeError(
+                "smoothest_field: no gradient for this loss: the smoothest field is unique "
+                "only up to its phase (turning every direction by one angle t / n in its "
+                f"tangent plane), and the loss changes under that turn (at the rate {rate:.6g} "
+                f"per radian of t, against {size:.6g} for the size of its gradient). Use a loss "
+                "that does not depend on the phase: the magnitude, the energy, or angles "
+                "between directions measured in the frames (e.g. cos(n (theta_i - theta_j)))."
+            )
+        return G
 
 
 def polar(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
