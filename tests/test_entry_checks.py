@@ -7,11 +7,10 @@ run on a misoriented grid, a Moebius band and a fin (a quad standing on an inter
 
 from __future__ import annotations
 
-import warnings
-
 import pytest
 import torch
 from conftest import DATA, on_device
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.apps import (
@@ -41,9 +40,7 @@ def flipped_grid():
 
 
 def moebius():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", tp.io.SkippedContentWarning)
-        return tp.read_mesh(DATA / "moebius.obj")
+    return read_mesh(DATA / "moebius.obj")
 
 
 def fin():

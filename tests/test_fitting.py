@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DATA, mixed_mesh
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.fitting import (
@@ -142,7 +143,7 @@ def test_sample_points_lie_inside_their_faces(device):
 
 
 def test_sample_points_on_a_sphere_mesh_and_gradient(device):
-    verts, faces = tp.read_mesh(DATA / "sphere" / "quad_2.obj", device=device)
+    verts, faces = read_mesh(DATA / "sphere" / "quad_2.obj", device=device)
     X = verts.clone().requires_grad_(True)
     S = 3000
     pts = sample_points(X, faces, S, generator=torch.Generator(device).manual_seed(5))
@@ -191,7 +192,7 @@ def test_mesh_quality_detects_reflex_corners_and_folds(device):
 
 
 def test_mesh_quality_matches_per_face_loops(device):
-    verts, faces = tp.read_mesh(DATA / "spot_control_mesh.obj")
+    verts, faces = read_mesh(DATA / "spot_control_mesh.obj")
     q = mesh_quality(verts.to(device), faces)
     V = verts.numpy()
     normals = tp.face_normals(verts, faces).numpy()

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import sys
 import types
-import warnings
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 from conftest import DATA, hex_pent_mesh, mixed_mesh
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.batch import PolygonMeshes
@@ -28,7 +28,6 @@ from torch_polylap.interop import (
     to_pytorch3d,
     triangle_faces,
 )
-from torch_polylap.io import read_mesh
 from torch_polylap.shapes import quad_grid
 
 
@@ -40,9 +39,7 @@ def three_meshes():
 
 
 def _read(name: str):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # OBJ objects/normals skipped
-        return read_mesh(DATA / name)
+    return read_mesh(DATA / name)
 
 
 def _triangle_areas(verts: torch.Tensor, tris: torch.Tensor) -> torch.Tensor:

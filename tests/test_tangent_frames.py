@@ -12,12 +12,12 @@ a torus, the Schwarz lantern and a CAD-like part.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable
 
 import pytest
 import torch
 from conftest import DATA
+from meshes import read_mesh
 
 import torch_polylap as tp
 import torch_polylap.vector as tv
@@ -33,13 +33,11 @@ def icosphere() -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def tetris() -> tuple[torch.Tensor, tp.PolygonFaces]:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", tp.io.SkippedContentWarning)
-        return tp.read_mesh(DATA / "tetris.obj", dtype=D64)
+    return read_mesh(DATA / "tetris.obj", dtype=D64)
 
 
 MESHES: dict[str, Callable[[], tuple[torch.Tensor, object]]] = {
-    "quad sphere level 2": lambda: tp.read_mesh(DATA / "sphere" / "quad_2.obj", dtype=D64),
+    "quad sphere level 2": lambda: read_mesh(DATA / "sphere" / "quad_2.obj", dtype=D64),
     "cube sphere": lambda: tp.shapes.quad_sphere(3),
     "icosphere": icosphere,
     "planar grid": lambda: tp.shapes.quad_grid(4),

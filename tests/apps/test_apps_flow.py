@@ -9,7 +9,7 @@ import pytest
 import scipy.spatial
 import torch
 from conftest import DATA, assert_directional_derivative, hex_pent_mesh
-from meshes import dumbbell
+from meshes import dumbbell, read_mesh
 
 import torch_polylap as tp
 from torch_polylap.apps import (
@@ -27,7 +27,7 @@ GUARDED = FlowOptions(stop_at_singularity=True)
 
 
 def unit_sphere(name: str):
-    verts, faces = tp.read_mesh(DATA / "sphere" / name, dtype=torch.float64)
+    verts, faces = read_mesh(DATA / "sphere" / name, dtype=torch.float64)
     return verts / verts.norm(dim=1, keepdim=True), faces
 
 
@@ -106,7 +106,7 @@ def test_enclosed_volume_matches_independent_volumes(device):
     box = (corners @ A.T + torch.tensor([3.0, -2.0, 1.0], dtype=torch.float64)).to(device)
     assert float(enclosed_volume(box, quads)) == pytest.approx(float(torch.det(A)), rel=1e-13)
     # the dodecahedron's pentagons are planar to the file's printed digits only
-    verts, faces = tp.read_mesh(DATA / "dodecahedron_poly.obj", dtype=torch.float64, device=device)
+    verts, faces = read_mesh(DATA / "dodecahedron_poly.obj", dtype=torch.float64, device=device)
     hull = scipy.spatial.ConvexHull(verts.cpu().numpy())
     assert float(enclosed_volume(verts, faces)) == pytest.approx(hull.volume, rel=1e-6)
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DATA
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.apps.planarize import PlanarizeOptions, planarize
@@ -25,7 +26,7 @@ def _perturbed_grid(n: int = 8, noise: float = 0.02, seed: int = 0):
 
 def test_planar_faces_have_zero_energy_and_are_a_fixed_point(device):
     # planar, strongly non-convex 4- to 10-gons
-    V, F = tp.read_mesh(DATA / "tetris.obj", device=device)
+    V, F = read_mesh(DATA / "tetris.obj", device=device)
     X = V.clone().requires_grad_(True)
     energy = tp.planarity_energy(X, F, 2.0)
     (grad,) = torch.autograd.grad(energy, X)
@@ -129,7 +130,7 @@ def test_both_methods_planarize_a_perturbed_grid(method, device):
     ],
 )
 def test_defaults_converge_on_the_test_meshes(name, bound, device):
-    V, F = tp.read_mesh(DATA / name, device=device)
+    V, F = read_mesh(DATA / name, device=device)
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)  # no "did not converge" warning
         warnings.filterwarnings("ignore", message=".*(read vertex|consistently oriented).*")
@@ -144,7 +145,7 @@ def test_defaults_converge_on_bumped_grid_and_embedded_mesh(device):
     V, F = quad_grid(12, bump=0.4, seed=4, device=device)
     res = planarize(V, F)
     assert res.converged and res.iterations <= 12
-    V, F = tp.read_mesh(DEFAULT_MESH, device=device)
+    V, F = read_mesh(DEFAULT_MESH, device=device)
     res = planarize(V, F)
     assert res.converged and res.iterations <= 12 and res.verts.device.type == device.type
 

@@ -11,6 +11,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 from conftest import DATA, assert_directional_derivative
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.apps import navier_deflection, plate_bending, plate_error
@@ -19,7 +20,7 @@ from torch_polylap.shapes import quad_grid
 
 def unit_square_grid(name: str):
     """A mesh of ``tests/data/grid`` moved onto ``[0, 1]^2`` (some cover ``[-1/2, 1/2]^2``)."""
-    verts, faces = tp.read_mesh(DATA / "grid" / name, dtype=torch.float64)
+    verts, faces = read_mesh(DATA / "grid" / name, dtype=torch.float64)
     return verts - torch.cat([verts[:, :2].min(0).values, verts.new_zeros(1)]), faces
 
 
@@ -199,7 +200,7 @@ def test_plate_symmetry_gradient_and_errors(device):
     assert_directional_derivative(
         lambda X: (plate_bending(X, quads, lam=1.5) ** 2).sum(), bumpy, rtol=1e-6
     )
-    sphere, sphere_faces = tp.read_mesh(
+    sphere, sphere_faces = read_mesh(
         DATA / "sphere" / "quad_2.obj", dtype=torch.float64, device=device
     )
     with pytest.raises(ValueError, match="no boundary"):

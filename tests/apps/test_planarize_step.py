@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DATA
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.shapes import quad_grid
@@ -78,7 +79,7 @@ def test_step_through_plane_conditions_equals_dense_step_with_normals(closeness)
     """Mixed degrees (4- to 10-gons), some vertices fixed, with and without a closeness pull:
     the ``R x R`` solve in the plane conditions gives the Levenberg-Marquardt step of the
     problem in positions and normals, as a dense solve of its normal equations does."""
-    V, F = tp.read_mesh(DATA / "tetris.obj")  # planar: perturb it
+    V, F = read_mesh(DATA / "tetris.obj")  # planar: perturb it
     g = torch.Generator().manual_seed(0)
     y = V.double() + 0.05 * torch.randn(V.shape, generator=g, dtype=torch.float64)
     n = y.shape[0]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DATA, ROOT, hex_pent_mesh, mixed_mesh, tolerances
-from meshes import plms_galerkin_mass
+from meshes import plms_galerkin_mass, read_mesh
 
 import torch_polylap as tp
 from torch_polylap.kernels.frames import corner_terms, gather_corners
@@ -45,12 +45,6 @@ RANK_DECIDED_PLANAR = {
 TEST_DATA = ("bunny_poly.ply", "dodecahedron_poly.obj", "mixedFaring.off", "spot_control_mesh.obj")
 
 
-def _read(path: Path):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return tp.read_mesh(path)
-
-
 def _igl_plms(verts: torch.Tensor, faces: tp.PolygonFaces):
     """libigl's PLMS ``(L, M, P)`` in this package's sign (``L`` positive semi-definite)."""
     idx = faces.indices.numpy().astype(np.int64)
@@ -77,7 +71,7 @@ def _require(path: Path) -> None:
 
 @pytest.mark.parametrize("name", TEST_DATA)
 def test_plms_matches_igl_on_test_data(name, device):
-    verts, faces = _read(DATA / name)
+    verts, faces = read_mesh(DATA / name)
     L, M0 = tp.laplacian(verts.to(device), faces, method="plms")
     Li, _, _ = _igl_plms(verts, faces)
     assert _rel(to_scipy(L), Li) < 1e-10
@@ -87,7 +81,7 @@ def test_plms_matches_igl_on_test_data(name, device):
 @pytest.mark.parametrize("name", WELL_CONDITIONED)
 def test_plms_matches_igl_on_real_meshes(name, device):
     _require(REAL / name)
-    verts, faces = _read(REAL / name)
+    verts, faces = read_mesh(REAL / name)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         L, M0 = tp.laplacian(verts.to(device), faces, method="plms")
@@ -99,7 +93,7 @@ def test_plms_matches_igl_on_real_meshes(name, device):
 @pytest.mark.parametrize("name", ["quad_3.obj", "triangle_3.obj", "str_hex_3.obj", "voronoi_3.obj"])
 def test_plms_matches_igl_on_grids(name, device):
     _require(GRID / name)
-    verts, faces = _read(GRID / name)
+    verts, faces = read_mesh(GRID / name)
     L, M0 = tp.laplacian(verts.to(device), faces, method="plms")
     Li, _, _ = _igl_plms(verts, faces)
     assert _rel(to_scipy(L), Li) < 1e-9
@@ -111,7 +105,7 @@ def test_plms_virtual_vertex_matches_igl():
     if not REAL.exists():
         pytest.skip(f"{REAL} absent: the shared meshes are not checked out")
     for path in sorted(p for p in REAL.iterdir() if p.suffix in (".obj", ".off", ".ply")):
-        verts, faces = _read(path)
+        verts, faces = read_mesh(path)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             topo = tp.get_topology(faces, verts.shape[0])
@@ -152,7 +146,7 @@ def _real_and_grid_paths() -> list[Path]:
 @pytest.mark.parametrize("beta", [1.0, 2.0])
 def test_degoes_matches_lagrange(beta, device):
     for path in _real_and_grid_paths():
-        verts, faces = _read(path)
+        verts, faces = read_mesh(path)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             L, M0 = tp.laplacian(verts.to(device), faces, beta, method="degoes")

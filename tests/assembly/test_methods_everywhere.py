@@ -16,6 +16,7 @@ import pytest
 import scipy.sparse.linalg as spla
 import torch
 from conftest import DATA, hex_pent_mesh, mixed_mesh
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap import losses
@@ -332,7 +333,7 @@ def test_conformal_defaults_and_method_matters(pair):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_plate_bending(method, device):
-    V, F = tp.read_mesh(DATA / "grid" / "irr_poly_1.obj", dtype=torch.float64)
+    V, F = read_mesh(DATA / "grid" / "irr_poly_1.obj", dtype=torch.float64)
     V = V + torch.tensor([0.5, 0.5, 0.0], dtype=V.dtype)
     V[:, 2] = 0.05 * torch.sin(3 * V[:, 0]) * torch.cos(2 * V[:, 1])  # non-planar faces too
     u = tp.apps.plate_bending(V.to(device), F, load=1.0, lam=LAM, method=method)
@@ -379,7 +380,7 @@ def test_cli_spectrum(method, tmp_path, capsys, one_thread):
     assert method in out
     data = np.load(tmp_path / "dodecahedron_poly_spectrum.npz")
     assert str(data["method"]) == method
-    verts, faces = tp.read_mesh(mesh, dtype=torch.float64)
+    verts, faces = read_mesh(mesh, dtype=torch.float64)
     L, M0 = direct(verts, faces, method)
     expected = tp.eigs(L, M0, 5)[0].numpy()
     np.testing.assert_allclose(data["eigenvalues"], expected, rtol=1e-9, atol=1e-9)
@@ -397,8 +398,8 @@ def test_cli_smooth_and_param(method, tmp_path, capsys, one_thread):
     argv = ["smooth", str(mesh), "--steps", "2", "--dt", "0.01", "--lam", str(LAM)]
     assert main([*argv, "--method", method, "--no-plot", "--no-progress", "-o", str(tmp_path)]) == 0
     assert _field(capsys.readouterr().out, "Laplacian").startswith(method)
-    verts, faces = tp.read_mesh(mesh, dtype=torch.float64)
-    smoothed, _ = tp.read_mesh(tmp_path / "dodecahedron_poly_smooth.obj", dtype=torch.float64)
+    verts, faces = read_mesh(mesh, dtype=torch.float64)
+    smoothed, _ = read_mesh(tmp_path / "dodecahedron_poly_smooth.obj", dtype=torch.float64)
     expected = tp.apps.mean_curvature_flow(verts, faces, 0.01, 2, lam=LAM, method=method).verts
     # the OBJ writer prints 17 significant digits
     torch.testing.assert_close(smoothed, expected, rtol=1e-12, atol=1e-14)
@@ -409,7 +410,7 @@ def test_cli_smooth_and_param(method, tmp_path, capsys, one_thread):
     argv = ["param", str(disk), "--lam", str(LAM), "--method", method, "--no-plot"]
     assert main([*argv, "-o", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    uv, _ = tp.read_mesh(tmp_path / "disk_param.obj", dtype=torch.float64)
+    uv, _ = read_mesh(tmp_path / "disk_param.obj", dtype=torch.float64)
     expected = tp.apps.conformal_parameterization(verts, faces, lam=LAM, method=method)
     torch.testing.assert_close(uv[:, :2], expected, rtol=1e-10, atol=1e-12)
     energy = float(tp.apps.conformal_energy(expected, verts, faces, LAM, method=method))

@@ -9,6 +9,7 @@ import pytest
 import scipy.linalg
 import torch
 from conftest import DATA, hex_pent_mesh, mixed_mesh, tolerances
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.shapes import quad_grid
@@ -25,7 +26,7 @@ def meshes():
     out = [("mixed", *mixed_mesh()), ("hexpent", *hex_pent_mesh())]
     out.append(("grid", *quad_grid(4, 3, bump=0.3, seed=1)))
     for name in ("tetris.obj", "spot_control_mesh.obj", "dodecahedron_poly.obj"):
-        v, f = tp.read_mesh(DATA / name)
+        v, f = read_mesh(DATA / name)
         out.append((name, v, f))
     return out
 
@@ -151,7 +152,7 @@ def test_linear_precision_on_planar_mesh(device):
 
 
 def test_linear_precision_nonconvex_polygons(device):
-    V, F = tp.read_mesh(DATA / "tetris.obj", device=device)  # planar, non-convex 4- to 10-gons
+    V, F = read_mesh(DATA / "tetris.obj", device=device)  # planar, non-convex 4- to 10-gons
     topo = tp.build_topology(F, V.shape[0])
     interior = torch.ones(V.shape[0], dtype=torch.bool, device=device)
     interior[topo.boundary_vertices] = False
@@ -297,7 +298,7 @@ def test_planarity_operator_and_energy(hexpent, device):
 
 
 def test_mean_curvature_on_sphere(device):
-    V, F = tp.read_mesh(DATA / "sphere" / "quad_3.obj", device=device)
+    V, F = read_mesh(DATA / "sphere" / "quad_3.obj", device=device)
     V = V / V.norm(dim=1, keepdim=True)
     H = tp.mean_curvature_normal(V, F)
     err = ((H.norm(dim=1) / 2 - 1) ** 2).mean().sqrt()
@@ -407,7 +408,7 @@ def test_learnable_lambda_gets_gradient(device):
 
 def test_generalized_eigenvalues_of_dodecahedron(device):
     """On a regular polyhedron the spectrum has the icosahedral multiplicities 1, 3, 5..."""
-    V, F = tp.read_mesh(DATA / "dodecahedron_poly.obj", device=device)
+    V, F = read_mesh(DATA / "dodecahedron_poly.obj", device=device)
     L, M0 = tp.laplacian(V, F)
     ev = scipy.linalg.eigh(dense(L).cpu().numpy(), dense(M0).cpu().numpy(), eigvals_only=True)
     ev = ev / ev[1]
@@ -419,7 +420,7 @@ def test_generalized_eigenvalues_of_dodecahedron(device):
 def test_fitted_plane_nonplanarity_against_svd(device):
     """plane="fit": the least-squares plane of the corners (independent per-face SVD here), and
     the projection plane never fits the corners better in the least-squares sense."""
-    V, F = tp.read_mesh(DATA / "mixedFaring.off", device=device)
+    V, F = read_mesh(DATA / "mixedFaring.off", device=device)
     fit = tp.face_nonplanarity(V, F, plane="fit").cpu()
     projection = tp.face_nonplanarity(V, F).cpu()
     normals = tp.face_normals(V, F).cpu()

@@ -22,7 +22,7 @@ import scipy.linalg
 import scipy.sparse.linalg
 import torch
 from conftest import DATA, ROOT
-from meshes import dumbbell
+from meshes import dumbbell, read_mesh
 
 import torch_polylap as tp
 from torch_polylap.cli import COMMANDS, build_parser, main
@@ -155,7 +155,7 @@ def test_info_output_dir_writes_its_report_with_the_eigenvalues_of_eigs(
     evals = np.array(report["eigenvalues"])
     assert evals.shape == (8,)
 
-    verts, faces = tp.read_mesh(DEFAULT_MESH)
+    verts, faces = read_mesh(DEFAULT_MESH)
     L, M0 = tp.laplacian(verts, faces)
     assert evals == pytest.approx(tp.eigs(L, M0, 8)[0].numpy(), rel=1e-12, abs=1e-12)
     Ls, Ms = tp.sparse.to_scipy(L), tp.sparse.to_scipy(M0)
@@ -189,7 +189,7 @@ def _dumbbell(path):
 
 
 def _largest_scaled_curvature(path):
-    verts, faces = tp.read_mesh(path, dtype=torch.float64)
+    verts, faces = read_mesh(path, dtype=torch.float64)
     L, M0 = tp.laplacian(verts, faces)
     h = tp.strong_laplacian(L, M0, verts).norm(dim=1) / 2
     return float(h.max()) * math.sqrt(float(tp.face_areas(verts, faces).sum()) / (4 * math.pi))
@@ -240,8 +240,8 @@ def test_demo_writes_report_meshes_and_figures(tmp_path):
     assert report.count("## ") == 4 and "| --" not in report.splitlines()[0]
 
     # mean-curvature flow with area normalization: same connectivity, same total area
-    v0, f0 = tp.read_mesh(DEFAULT_MESH)
-    v1, f1 = tp.read_mesh(out / "spot_control_mesh_smooth.obj")
+    v0, f0 = read_mesh(DEFAULT_MESH)
+    v1, f1 = read_mesh(out / "spot_control_mesh_smooth.obj")
     assert torch.equal(f1.indices, f0.indices) and torch.equal(f1.sizes, f0.sizes)
     area = [
         sum(np.linalg.norm(shoelace_normal(p)) for p in polygons(v.numpy(), f0)) for v in (v0, v1)
@@ -253,8 +253,8 @@ def test_demo_writes_report_meshes_and_figures(tmp_path):
     assert std[1] < 0.7 * std[0]
 
     # conformal map of the hemisphere: a flat (z = 0) copy, no flipped polygon, angles kept
-    vd, fd = tp.read_mesh(DISK_MESH)
-    uv, fu = tp.read_mesh(out / "hex_hemisphere_param.obj")
+    vd, fd = read_mesh(DISK_MESH)
+    uv, fu = read_mesh(out / "hex_hemisphere_param.obj")
     assert uv.shape == vd.shape and torch.equal(fu.indices, fd.indices)
     assert torch.all(uv[:, 2] == 0)
     flat, curved = polygons(uv.numpy(), fd), polygons(vd.numpy(), fd)
@@ -270,15 +270,15 @@ def test_demo_writes_report_meshes_and_figures(tmp_path):
     assert field(stdout, "flipped faces") == "0"
 
     # planarization: every face planar by an independent least-squares plane fit
-    vp, fp = tp.read_mesh(out / "spot_control_mesh_planar.obj")
+    vp, fp = read_mesh(out / "spot_control_mesh_planar.obj")
     before = max(plane_fit_nonplanarity(p) for p in polygons(v0.numpy(), f0))
     after = max(plane_fit_nonplanarity(p) for p in polygons(vp.numpy(), fp))
     assert before > 0.1 and after < 1e-3
     assert field(stdout, "converged") == "yes"
 
     # plate: the deflection mesh is the plate with z = u, close to Navier's series solution
-    vg, fg = tp.read_mesh(DATA_DIR / "grid_voronoi_1.obj")
-    plate, _ = tp.read_mesh(out / "plate_deflection.obj")
+    vg, fg = read_mesh(DATA_DIR / "grid_voronoi_1.obj")
+    plate, _ = read_mesh(out / "plate_deflection.obj")
     assert torch.allclose(plate[:, :2], vg[:, :2] + 0.5, atol=1e-15)
     ours, navier = numbers(field(stdout, "max deflection: ours / Navier"))
     assert float(plate[:, 2].max()) == pytest.approx(ours, rel=1e-3)
@@ -304,7 +304,7 @@ def test_spectrum_default_output_directory_and_npz(tmp_path, monkeypatch, capsys
     out = tmp_path / "polylap_out"  # the documented default output directory
     assert is_png(out / "spot_control_mesh_spectrum.png")
     data = np.load(out / "spot_control_mesh_spectrum.npz")
-    verts, faces = tp.read_mesh(DEFAULT_MESH)
+    verts, faces = read_mesh(DEFAULT_MESH)
     L, M0 = tp.laplacian(verts, faces)
     Ld, Md = tp.sparse.to_scipy(L).toarray(), tp.sparse.to_scipy(M0).toarray()
     expected = scipy.linalg.eigh(Ld, Md, eigvals_only=True)[:8]
@@ -390,8 +390,8 @@ def test_smooth_frozen_volume_on_a_file(tmp_path, capsys, one_thread):
     argv = ["smooth", str(mesh), "--steps", "3", "--frozen", "--normalize", "volume"]
     assert main([*argv, "--no-plot", "--no-progress", "-o", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    v0, f0 = tp.read_mesh(mesh)
-    v1, _ = tp.read_mesh(tmp_path / "dodecahedron_poly_smooth.obj")
+    v0, f0 = read_mesh(mesh)
+    v1, _ = read_mesh(tmp_path / "dodecahedron_poly_smooth.obj")
     # divergence theorem: V = 1/3 sum_f c_f . a_f for the closed, outward-oriented mesh
     vol = [
         sum(p.mean(0) @ shoelace_normal(p) for p in polygons(v.numpy(), f0)) / 3 for v in (v0, v1)
@@ -404,8 +404,8 @@ def test_smooth_frozen_volume_on_a_file(tmp_path, capsys, one_thread):
 def test_param_free_boundary_and_pins(tmp_path, capsys, one_thread):
     assert main(["param", "--free-boundary", "--no-plot", "-o", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    uv, faces = tp.read_mesh(tmp_path / "hex_hemisphere_param.obj")
-    verts, _ = tp.read_mesh(DISK_MESH)
+    uv, faces = read_mesh(tmp_path / "hex_hemisphere_param.obj")
+    verts, _ = read_mesh(DISK_MESH)
     # the free-boundary map is scaled to the source's total area (AW11 eq. 13-15)
     flat = sum(shoelace_normal(p)[2] for p in polygons(uv.numpy(), faces))
     area = sum(np.linalg.norm(shoelace_normal(p)) for p in polygons(verts.numpy(), faces))
@@ -415,7 +415,7 @@ def test_param_free_boundary_and_pins(tmp_path, capsys, one_thread):
     boundary = tp.build_topology(faces, verts.shape[0]).boundary_edges
     i, j = (int(boundary[0, 0]), int(boundary[5, 1]))
     assert main(["param", "--pins", str(i), str(j), "--no-plot", "-o", str(tmp_path)]) == 0
-    uv, _ = tp.read_mesh(tmp_path / "hex_hemisphere_param.obj")
+    uv, _ = read_mesh(tmp_path / "hex_hemisphere_param.obj")
     # the pins land at (0, 0) and (|x_i - x_j|, 0)
     assert uv[i].tolist() == pytest.approx([0.0, 0.0, 0.0], abs=1e-12)
     d = float(torch.linalg.vector_norm(verts[i] - verts[j]))
@@ -428,7 +428,7 @@ def test_planarize_on_a_file_without_convergence(tmp_path, capsys, one_thread):
     out = capsys.readouterr().out
     assert field(out, "converged").startswith("no")
     assert field(out, "iterations / time").startswith("1 /")
-    v, f = tp.read_mesh(tmp_path / "spot_control_mesh_planar.obj")
+    v, f = read_mesh(tmp_path / "spot_control_mesh_planar.obj")
     assert v.shape == (188, 3) and f.num_faces == 180
 
 

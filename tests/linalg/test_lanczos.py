@@ -11,6 +11,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 from conftest import DATA
+from meshes import read_mesh
 
 import torch_polylap as tp
 import torch_polylap.linalg as linalg
@@ -44,7 +45,7 @@ def test_block_lanczos_reports_failure_when_the_basis_is_too_small():
 
 
 def _mesh_operators(name: str, device: torch.device | str = "cpu"):
-    V, F = tp.read_mesh(DATA / name, dtype=torch.float64, device=device)
+    V, F = read_mesh(DATA / name, dtype=torch.float64, device=device)
     return tp.laplacian(V, F)
 
 
@@ -86,7 +87,7 @@ def test_sparse_eigs_match_arpack(cholmod, monkeypatch, device):
 def test_sparse_eigs_count_components(route, monkeypatch, device):
     """Three copies of a 2310-vertex mesh: three zero eigenvalues, found by each sparse route."""
     monkeypatch.setattr(linalg.eigenpairs, "eigs_route", lambda *a, **kw: route)
-    V, F = tp.read_mesh(DATA / "mixedFaring.off", dtype=torch.float64)
+    V, F = read_mesh(DATA / "mixedFaring.off", dtype=torch.float64)
     n = V.shape[0]
     blocks = [tp.laplacian(V + 10.0 * i, F) for i in range(3)]
     L = tp.sparse.from_scipy(

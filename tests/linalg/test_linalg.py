@@ -8,7 +8,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import torch
 from conftest import DATA, assert_directional_derivative, hex_pent_mesh, mixed_mesh
-from meshes import require_shared
+from meshes import read_mesh, require_shared
 
 import torch_polylap as tp
 from torch_polylap.shapes import quad_grid
@@ -130,7 +130,7 @@ def test_singular_system_is_a_clear_error(device):
 
 def test_dirichlet_solve_reproduces_linear_functions(device):
     """Linear precision: harmonic interpolation of linear boundary data is that linear function."""
-    V, F = tp.read_mesh(DATA / "grid" / "quad_3.obj", device=device)
+    V, F = read_mesh(DATA / "grid" / "quad_3.obj", device=device)
     topo = tp.build_topology(F, V.shape[0])
     L, _ = tp.laplacian(V, topo, 2.0)
     boundary = topo.boundary_vertices
@@ -164,7 +164,7 @@ def test_gradcheck_dirichlet_solve(device):
 
 
 def test_eigs_match_dense_and_are_m_orthonormal(device):
-    V, F = tp.read_mesh(DATA / "spot_control_mesh.obj", device=device)
+    V, F = read_mesh(DATA / "spot_control_mesh.obj", device=device)
     L, M0 = tp.laplacian(V, F)
     evals, evecs = tp.eigs(L, M0, 10)
     assert evals.device == evecs.device == V.device
@@ -216,7 +216,7 @@ def test_sphere_spectrum_converges_at_second_order(family, device):
     exact = torch.tensor([ell * (ell + 1) for ell in range(4) for _ in range(2 * ell + 1)], **D64)
     errors, sizes = [], []
     for level in (2, 3, 4):
-        V, F = tp.read_mesh(shared / "sphere" / f"{family}_{level}.obj", device=device)
+        V, F = read_mesh(shared / "sphere" / f"{family}_{level}.obj", device=device)
         V = V / V.norm(dim=1, keepdim=True)
         evals, _ = tp.eigs(*tp.laplacian(V, F, 1.0), 16)
         evals = evals.cpu()

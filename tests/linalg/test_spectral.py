@@ -8,6 +8,7 @@ import pytest
 import scipy.linalg
 import torch
 from conftest import DATA, mixed_mesh
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.shapes import quad_grid
@@ -17,7 +18,7 @@ D64 = {"dtype": torch.float64}
 
 @pytest.fixture(scope="module")
 def spot():
-    V, F = tp.read_mesh(DATA / "spot_control_mesh.obj")
+    V, F = read_mesh(DATA / "spot_control_mesh.obj")
     L, M0 = tp.laplacian(V, F)
     evals, evecs = tp.eigs(L, M0, V.shape[0] - 1)  # all but the largest eigenpair
     return V, F, L, M0, evals, evecs

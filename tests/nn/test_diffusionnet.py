@@ -22,8 +22,6 @@
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import pytest
 import scipy.linalg
@@ -31,11 +29,11 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 from conftest import DATA, hex_pent_mesh, mixed_mesh
+from meshes import read_mesh
 
 import torch_polylap as tp
 import torch_polylap.interop as interop
 from torch_polylap.interop import to_diffusionnet
-from torch_polylap.io import read_mesh
 from torch_polylap.shapes import quad_grid, quad_sphere
 
 
@@ -48,9 +46,7 @@ def _triangle_sphere():
 def _planar_polygons():
     """A planar mesh of irregular polygons (degrees 3 to 10, the file's z = 0 plane) turned out
     of the xy plane, and the unit normal of its plane."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        verts, faces = read_mesh(DATA / "grid" / "irr_poly_2.obj")
+    verts, faces = read_mesh(DATA / "grid" / "irr_poly_2.obj")
     rotation, _ = torch.linalg.qr(
         torch.randn(3, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
     )

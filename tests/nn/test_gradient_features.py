@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DATA, hex_pent_mesh, mixed_mesh
+from meshes import read_mesh
 
 import torch_polylap as tp
 import torch_polylap.nn as tnn
@@ -64,7 +65,7 @@ def test_gradient_of_a_linear_function_is_exact_on_a_planar_mesh(which, device):
 def test_gradient_of_a_smooth_function_converges_on_a_curved_mesh(device):
     errors = []
     for level in (2, 3):
-        V, F = tp.read_mesh(DATA / "sphere" / f"quad_{level}.obj", dtype=torch.float64)
+        V, F = read_mesh(DATA / "sphere" / f"quad_{level}.obj", dtype=torch.float64)
         V = (V / V.norm(dim=1, keepdim=True)).to(device)
         normal, e_x, e_y = tnn.vertex_tangent_frames(V, F)
         grad_x, grad_y = tnn.vertex_gradient_operators(V, F)

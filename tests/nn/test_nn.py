@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 from conftest import DATA, assert_directional_derivative, mixed_mesh
+from meshes import read_mesh
 
 import torch_polylap as tp
 import torch_polylap.nn as tnn
@@ -17,7 +18,7 @@ D64 = {"dtype": torch.float64}
 
 
 def mesh_with_spectrum(path, k):
-    V, F = tp.read_mesh(path, dtype=torch.float64)
+    V, F = read_mesh(path, dtype=torch.float64)
     L, M0 = tp.laplacian(V, F)
     evals, evecs = tp.eigs(L, M0, k)
     return V, F, L, M0, evals, evecs
@@ -209,7 +210,7 @@ def test_spectrum_from_polygon_meshes_uses_the_disk_cache(batch, tmp_path, devic
 
 
 def test_diffusion_gradcheck(device):
-    V, F = tp.read_mesh(DATA / "dodecahedron_poly.obj", dtype=torch.float64, device=device)
+    V, F = read_mesh(DATA / "dodecahedron_poly.obj", dtype=torch.float64, device=device)
     L, M0 = tp.laplacian(V, F)
     evals, evecs = tp.eigs(L, M0, 6)
     spectrum = tnn.Spectrum.from_meshes([(evals, evecs, M0)])

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DATA
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap import repair
@@ -31,7 +32,7 @@ def test_orient_faces_flips_the_minority_back(device):
 
 
 def test_orient_faces_on_a_closed_mesh_with_random_flips(device):
-    V, F = tp.read_mesh(DATA / "sphere" / "quad_2.obj", device=device)
+    V, F = read_mesh(DATA / "sphere" / "quad_2.obj", device=device)
     rng = np.random.default_rng(0)
     flip = rng.random(F.num_faces) < 0.3
     bad = tp.PolygonFaces(
@@ -48,7 +49,7 @@ def test_orient_faces_on_a_closed_mesh_with_random_flips(device):
 
 
 def test_orient_faces_reports_a_moebius_band(device):
-    V, F = tp.read_mesh(DATA / "moebius.obj", device=device)
+    V, F = read_mesh(DATA / "moebius.obj", device=device)
     _, fixed, rep = repair.orient_faces(V, F)
     assert rep.non_orientable_components == 1 and rep.non_orientable_faces.size == F.num_faces
     assert fixed.tolist() == F.tolist()

@@ -16,6 +16,7 @@ import torch
 from conftest import DATA, mixed_mesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from meshes import read_mesh
 
 import torch_polylap as tp
 from torch_polylap.assembly import gather_plan_of
@@ -284,7 +285,7 @@ def irregular_meshes():
     F = F.tolist()
     F[4] = F[4][::-1]
     out.append(("flipped_face", V, F, {"oriented": False, "manifold": True}))
-    V, F = tp.read_mesh(DATA / "moebius.obj")
+    V, F = read_mesh(DATA / "moebius.obj")
     out.append(("moebius", V, F, {"oriented": False, "manifold": True, "non_orientable": 1}))
     V, F = _fin()
     out.append(("fin", V, F, {"oriented": True, "manifold": False}))
@@ -401,7 +402,7 @@ def test_manifold_entry_points_say_what_to_run():
         ValueError, match=r"half_edge_twin needs a manifold mesh.*non-manifold edge"
     ):
         _ = fin.half_edge_twin
-    V, F = tp.read_mesh(DATA / "moebius.obj")
+    V, F = read_mesh(DATA / "moebius.obj")
     moebius = tp.build_topology(F, V.shape[0], warn=False)
     with pytest.raises(ValueError, match=r"1 of its components cannot be oriented"):
         moebius.require_oriented("conformal_parameterization")

@@ -4,14 +4,12 @@ against adobe-lagrange's ``polyddg`` and potpourri3d, and by gradcheck."""
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import pytest
 import scipy.linalg as sl
 import torch
 from conftest import DATA
-from meshes import load, shared_path
+from meshes import load, read_mesh, shared_path
 
 import torch_polylap as tp
 import torch_polylap.vector as tv
@@ -23,9 +21,7 @@ SPHERES = ("quad_3", "hex_3", "voronoi_3", "concave_3", "hex_cos_3")
 
 def sphere(name: str) -> tuple[torch.Tensor, tp.PolygonFaces]:
     """A polyLaplace unit-sphere mesh from ``tests/data/sphere``, projected onto the sphere."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        verts, faces = tp.read_mesh(DATA / "sphere" / f"{name}.obj", dtype=torch.float64)
+    verts, faces = read_mesh(DATA / "sphere" / f"{name}.obj", dtype=torch.float64)
     return verts / verts.norm(dim=1, keepdim=True), faces
 
 
@@ -90,7 +86,7 @@ def test_planar_mesh_gives_scalar_laplacian_on_each_component(method, device):
     """On a plane every transport is the identity in a common frame: A = L (x) I_2. In the
     default frames (each vertex's own reference edge) the same operator is seen through the
     block rotation R of each vertex's angle to the common frame: A = R^T (L (x) I_2) R."""
-    verts, faces = tp.read_mesh(DATA / "grid" / "irr_poly_2.obj", dtype=torch.float64)
+    verts, faces = read_mesh(DATA / "grid" / "irr_poly_2.obj", dtype=torch.float64)
     verts = verts.to(device)
     A, M, frames = tv.connection_laplacian(verts, faces, method=method)
     L, M0 = tp.laplacian(verts, faces, method=method)
@@ -521,7 +517,7 @@ def test_fitted_normals_on_a_plane_and_on_boundaries(device):
     """A tilted planar grid of irregular polygons: the fitted normals are the plane's at every
     vertex, boundary corners included (rings too small or too one-sided for a quadric), and the
     curvatures vanish."""
-    verts, faces = tp.read_mesh(DATA / "grid" / "irr_poly_3.obj", dtype=torch.float64)
+    verts, faces = read_mesh(DATA / "grid" / "irr_poly_3.obj", dtype=torch.float64)
     tilt = torch.tensor([[1.0, 0.3, -0.2], [0.1, 0.9, 0.4], [-0.3, 0.2, 1.1]], dtype=verts.dtype)
     q, _ = torch.linalg.qr(tilt)
     verts = (verts @ q.T).to(device)
@@ -596,7 +592,7 @@ def test_curvature_gradcheck(device):
 def test_smoothest_field_on_a_plane_is_constant(n, device):
     """A planar grid of irregular polygons carries parallel fields: the smoothest n-direction
     field has zero energy and one direction everywhere (mod 2 pi / n)."""
-    verts, faces = tp.read_mesh(DATA / "grid" / "voronoi_3.obj", dtype=torch.float64, device=device)
+    verts, faces = read_mesh(DATA / "grid" / "voronoi_3.obj", dtype=torch.float64, device=device)
     directions, magnitude, energy = tv.smoothest_field(verts, faces, n)
     assert directions.device.type == device.type
     assert abs(float(energy)) < 1e-8

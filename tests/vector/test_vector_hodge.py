@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DATA
+from meshes import read_mesh
 
 import torch_polylap as tp
 import torch_polylap.vector as tv
@@ -18,9 +19,7 @@ from torch_polylap.sparse import to_scipy
 
 
 def read(path: Path) -> tuple[torch.Tensor, tp.PolygonFaces]:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return tp.read_mesh(path, dtype=torch.float64)
+    return read_mesh(path, dtype=torch.float64)
 
 
 def sphere(name: str) -> tuple[torch.Tensor, tp.PolygonFaces]:
