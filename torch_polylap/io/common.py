@@ -12,7 +12,7 @@ import os
 import re
 import stat
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -253,29 +253,18 @@ _COMMENT = re.compile(rb"#[^\n]*")
 _LATIN1_SPACES = bytes.maketrans(b"\x85\xa0", b"  ")
 
 
-def plain_text(data: bytes) -> bytes | None:
-    """``data`` as the bulk parsers read it: ``\\n`` line breaks, ``#`` comments removed (line
-    breaks kept, so line numbers stay), and the non-ASCII bytes that ``str.split`` splits at on
-    latin-1 text made spaces.  None when it holds ESC (not whitespace, but below the space, so
-    the bulk tokenizer would split at it): the line parsers read such files."""
+def plain_text(data: bytes, comments: bool = True) -> bytes:
+    """``data`` as the text readers read it: ``\\n`` line breaks, ``#`` comments removed when
+    ``comments`` (line breaks kept, so line numbers stay), and the non-ASCII bytes that
+    ``str.split`` splits at on latin-1 text made spaces."""
     text = data
     if b"\r" in text:
         text = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
-    if b"#" in text:
+    if comments and b"#" in text:
         text = _COMMENT.sub(b"", text)
-    if b"\x1b" in text:
-        return None
     if b"\x85" in text or b"\xa0" in text:
         text = text.translate(_LATIN1_SPACES)
     return text
-
-
-def text_lines(data: bytes) -> list[str]:
-    """The lines of a text file, split at LF, CRLF or a lone CR (classic Mac OS)."""
-    text = data.decode("latin-1")  # every byte maps to one character: odd bytes cannot fail
-    if "\r" in text:
-        text = text.replace("\r\n", "\n").replace("\r", "\n")
-    return text.split("\n")
 
 
 def count_lines(data: bytes) -> int:
@@ -375,18 +364,6 @@ def check_mesh(name: str, parsed: Parsed, where: Callable[[int], str]) -> None:
             UserWarning,
             stacklevel=3,
         )
-
-
-def content_lines(lines: list[str], start: int) -> Iterator[tuple[int, list[str]]]:
-    """``(1-based line number, tokens)`` of each line from ``start`` that has data after
-    removing ``#`` comments."""
-    for no in range(start, len(lines)):
-        line = lines[no]
-        if "#" in line:
-            line = line[: line.index("#")]
-        toks = line.split()
-        if toks:
-            yield no + 1, toks
 
 
 def verts_numpy(verts: ArrayLike) -> np.ndarray:

@@ -1,16 +1,16 @@
 """Polygon File Format (Stanford PLY): ASCII and binary, any extra properties and elements.
 
-ASCII bodies are read in bulk (:func:`_read_ply_ascii_bulk`: numpy tokens and numbers, a chunk
-of lines at a time) when each wanted element has at most one list property; anything else, and
-every malformed file, goes to the record-by-record parser, the reference whose messages name
-the offending line.
+ASCII bodies are read a chunk of lines at a time (:mod:`.text`): when an element has at most
+one list property, a record's layout follows from its list length, and its values are
+converted in one numpy call per chunk; records of elements with several lists, and broken ones
+(whose messages name the line), are walked property by property.
 """
 
 from __future__ import annotations
 
 import re
 import struct
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,9 +26,8 @@ from .common import (
     check_text,
     numbers,
     plain_text,
-    text_lines,
 )
-from .tokens import Chunk, chunks, runs
+from .text import Chunk, chunks, runs
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -478,295 +477,188 @@ def _read_ply_ascii(
     name: str,
     record_line: dict[str, Callable[[int], int]],
 ) -> _Columns:
-    """Columns of the wanted elements; ``record_line`` gets each one's record -> line number."""
-    # '#' starts no comment in a PLY body (the record parser refuses it as a number)
-    if data.find(b"#", pos) < 0:
-        # a body plain_text would leave as it is is read in place: no copy of the file
-        as_is = all(data.find(byte, pos) < 0 for byte in (b"\r", b"\x1b", b"\x85", b"\xa0"))
-        text, begin = (data, pos) if as_is else (plain_text(data[pos:]), 0)
-        if text is not None:
-            bulk = _read_ply_ascii_bulk(
-                text, begin, header_lines + 1, elements, wanted, record_line
-            )
-            if bulk is not None:
-                return bulk
-    lines = text_lines(data[pos:])
-    # Records are found by line index; tokens are split from the line when needed, so no
-    # per-record lists stay alive (millions of them make the cyclic GC rescan quadratically).
-    records = [i for i, line in enumerate(lines) if line and not line.isspace()]
-    out: _Columns = {}
-    start = 0
+    """Columns of the wanted elements of the ASCII body ``data[pos:]``, each record one
+    non-blank line, read a chunk of lines at a time (the reader stops once it has them all);
+    ``record_line`` gets each one's record -> line number."""
+    # '#' starts no comment in a PLY body: a token holding one is no number
+    if any(data.find(byte, pos) >= 0 for byte in (b"\r", b"\x85", b"\xa0")):
+        text, begin = plain_text(data[pos:], comments=False), 0
+    else:  # read in place: no copy of the file
+        text, begin = data, pos
+    spans: list[tuple[_PlyElement, int]] = []  # the elements up to the last wanted, and rank
+    rank = 0
     for el in elements:
-        if set(out) == set(wanted):
+        if {sp[0].name for sp in spans if sp[0].name in wanted} == set(wanted):
             break
-        rows = records[start : start + el.count]
-        start += el.count
-        if len(rows) < el.count:
+        spans.append((el, rank))
+        rank += el.count
+    reader = {
+        el.name: _AsciiElement(el, wanted[el.name], name) for el, _ in spans if el.name in wanted
+    }
+    seen = 0  # records (non-blank lines) before the chunk
+    for chunk in chunks(text, begin):
+        if seen >= rank:
+            break
+        chunk.line0 += header_lines
+        lines = np.flatnonzero(chunk.count)
+        for el, first in spans:
+            a, b = max(first - seen, 0), min(first + el.count - seen, len(lines))
+            if a < b and el.name in reader:
+                reader[el.name].add(chunk, lines[a:b], seen + a - first)
+        seen += len(lines)
+    for el, first in spans:
+        if first + el.count > seen:
             raise ValueError(
                 f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
-                f"after {len(rows)} (truncated file)."
+                f"after {max(seen - first, 0)} (truncated file)."
             )
-        if el.name in wanted:
-            table = _AsciiRows(lines, rows, header_lines + 1)
-            out[el.name] = _ascii_element(table, el, wanted[el.name], name)
-            record_line[el.name] = table.line_no
-    return out
-
-
-@dataclass
-class _AsciiRows:
-    """The records of one ASCII PLY element: ``lines[rows[r]]`` is record ``r``."""
-
-    lines: list[str]
-    rows: list[int]
-    first_line: int  # file line number of lines[0]
-
-    def line_no(self, record: int) -> int:
-        return self.rows[record] + self.first_line
-
-
-_Tokens = tuple[dict[str, list[str]], Mapping[str, list[int] | np.ndarray]]
-
-
-def _ascii_element(
-    table: _AsciiRows, el: _PlyElement, want: set[str], name: str
-) -> dict[str, _Column]:
-    """Wanted properties of an ASCII element: arrays (scalars) or (values, sizes) (lists)."""
-    scalars, sizes = _ascii_tokens_fast(table, el, want) or _ascii_tokens(table, el, want, name)
-    cols: dict[str, _Column] = {}
-    for prop in el.props:
-        if prop.name not in scalars:
-            continue
-        kind = int if prop.count_dtype is not None and prop.dtype[0] != "f" else float
-        try:
-            values = numbers(scalars[prop.name], kind)
-        except BadNumber as e:
-            record = e.position
-            if prop.count_dtype is not None:
-                record = int(np.searchsorted(np.cumsum(sizes[prop.name]), e.position, "right"))
-            raise ValueError(
-                f"{name}, line {table.line_no(record)}: element {el.name!r} record {record}: "
-                f"cannot parse {prop.name!r} value {e.token!r}."
-            ) from None
-        if prop.count_dtype is None:
-            cols[prop.name] = values
-        else:
-            cols[prop.name] = (values, np.asarray(sizes[prop.name], dtype=np.int64))
-    return cols
-
-
-def _ascii_tokens_fast(table: _AsciiRows, el: _PlyElement, want: set[str]) -> _Tokens | None:
-    """Tokens of the wanted properties, column-wise, for elements with at most one list.
-
-    Then a record's layout follows from its list length alone, so every record is sliced the
-    same way and the lengths are checked afterwards, all at once.  None when some record does
-    not fit (the caller's record-by-record walk then reports where).
-    """
-    lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
-    if len(lists) > 1:
-        return None
-    n = len(el.props)
-    at = lists[0] if lists else n
-    after = n - at - 1 if lists else 0
-    # Scalars after the list are addressed from the end of the record.
-    picks = [i if i < at else i - n for i, p in enumerate(el.props) if i != at and p.name in want]
-    picked: list[str] = []
-    counts: list[str] = []
-    values: list[str] = []
-    lengths: list[int] = []
-    end = -after or None
-    lines = table.lines
-    try:
-        for r in table.rows:
-            toks = lines[r].split()
-            lengths.append(len(toks))
-            picked.extend([toks[i] for i in picks])
-            if lists:
-                counts.append(toks[at])
-                values.extend(toks[at + 1 : end])
-    except IndexError:
-        return None
-    length = np.asarray(lengths, dtype=np.int64)
-    if lists:
-        try:
-            sizes = numbers(counts, int)
-        except BadNumber:
-            return None
-        if (sizes < 0).any() or (length != at + 1 + after + sizes).any():
-            return None
-    elif (length != n).any():
-        return None
-    scalar_names = [p.name for i, p in enumerate(el.props) if i != at and p.name in want]
-    scalars = {nm: picked[j :: len(picks)] for j, nm in enumerate(scalar_names)}
-    if lists and el.props[at].name in want:
-        scalars[el.props[at].name] = values
-        return scalars, {el.props[at].name: sizes}
-    return scalars, {}
-
-
-def _ascii_tokens(table: _AsciiRows, el: _PlyElement, want: set[str], name: str) -> _Tokens:
-    """Tokens of the wanted properties, walking each record property by property."""
-    scalars: dict[str, list[str]] = {p.name: [] for p in el.props if p.name in want}
-    sizes: dict[str, list[int]] = {
-        p.name: [] for p in el.props if p.name in want and p.count_dtype is not None
-    }
-    for record, r in enumerate(table.rows):
-        toks = table.lines[r].split()
-        no = table.line_no(record)
-        at = 0
-        for prop in el.props:
-            if prop.count_dtype is None:
-                if prop.name in scalars:
-                    scalars[prop.name].append(toks[at] if at < len(toks) else "")
-                at += 1
-                continue
-            try:
-                k = int(toks[at])
-            except (IndexError, ValueError):
-                raise ValueError(
-                    f"{name}, line {no}: element {el.name!r} record {record}: expected the "
-                    f"length of list {prop.name!r}."
-                ) from None
-            if k < 0:
-                raise ValueError(
-                    f"{name}, line {no}: element {el.name!r} record {record}: list "
-                    f"{prop.name!r} has negative length {k}."
-                )
-            if prop.name in scalars:
-                scalars[prop.name].extend(toks[at + 1 : at + 1 + k])
-                sizes[prop.name].append(k)
-            at += 1 + k
-        if at != len(toks):
-            raise ValueError(
-                f"{name}, line {no}: element {el.name!r} record {record} has {len(toks)} values, "
-                f"but its properties need {at}."
-            )
-    return scalars, sizes
-
-
-# A wanted element as the bulk parser reads it: the element, the rank of its first record among
-# the body's non-blank lines, and the index of its list property (None when it has none).
-_Span = tuple[_PlyElement, int, int | None]
-
-
-def _ply_spans(elements: list[_PlyElement], wanted: dict[str, set[str]]) -> tuple[list[_Span], int]:
-    """The wanted elements the record parser would read (it stops once it has them all) and
-    the number of records up to the end of the last one; an element with more than one list
-    property is no span (the bulk parser then gives up)."""
-    spans: list[_Span] = []
-    start = 0
-    for el in elements:
-        if {sp[0].name for sp in spans} == set(wanted):
-            break
-        if el.name in wanted:
-            lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
-            if len(lists) > 1 or any(sp[0].name == el.name for sp in spans):
-                return [], -1
-            spans.append((el, start, lists[0] if lists else None))
-        start += el.count
-    return spans, start
-
-
-def _read_ply_ascii_bulk(
-    text: bytes,
-    begin: int,
-    first_line: int,
-    elements: list[_PlyElement],
-    wanted: dict[str, set[str]],
-    record_line: dict[str, Callable[[int], int]],
-) -> _Columns | None:
-    """Columns of the wanted elements of an ASCII body (``text[begin:]``, prepared by
-    :func:`plain_text`), each record one line (``first_line``: the file line of the body's
-    first); None for what the record parser must read (two lists in one element, and every
-    error, whose message that one words)."""
-    spans, needed = _ply_spans(elements, wanted)
-    if needed < 0:
-        return None
-    parts: dict[str, dict[str, list[np.ndarray]]] = {sp[0].name: {} for sp in spans}
-    line_parts: dict[str, list[np.ndarray]] = {sp[0].name: [] for sp in spans}
-    seen = 0  # non-blank lines before the chunk
-    for chunk in chunks(text, begin):
-        if seen >= needed:
-            break
-        lines = np.flatnonzero(chunk.per_line)
-        first_token = chunk.first_token
-        for el, rank, at in spans:
-            a, b = max(rank - seen, 0), min(rank + el.count - seen, len(lines))
-            if a >= b:
-                continue
-            sel = lines[a:b]
-            got = _ply_records(chunk, first_token[sel], chunk.per_line[sel], el, at, wanted)
-            if got is None:
-                return None
-            for key, values in got.items():
-                parts[el.name].setdefault(key, []).append(values)
-            line_parts[el.name].append(chunk.line0 + sel)
-        seen += len(lines)
-    if seen < needed:
-        return None  # truncated: the record parser says so
     out: _Columns = {}
-    for el, _, at in spans:
-        pieces = parts[el.name]
-        cols: dict[str, _Column] = {}
-        for i, prop in enumerate(el.props):
-            if prop.name not in wanted[el.name]:
-                continue
-            is_int = i == at and prop.dtype[0] != "f"
-            values = _joined(pieces.get(prop.name, []), np.int64 if is_int else np.float64)
-            if i == at:
-                cols[prop.name] = (values, _joined(pieces.get(" sizes", []), np.int64))
-            else:
-                cols[prop.name] = values
-        out[el.name] = cols
-        record_line[el.name] = _line_numbers(_joined(line_parts[el.name], np.int64), first_line)
+    for key, element in reader.items():
+        out[key] = element.columns()
+        record_line[key] = _line_numbers(_joined(element.lines, np.int64))
     return out
 
 
-def _line_numbers(line_of: np.ndarray, first_line: int) -> Callable[[int], int]:
-    """Record -> file line, from each record's line index in the body."""
-    return lambda record: first_line + int(line_of[record])
+def _line_numbers(line_of: np.ndarray) -> Callable[[int], int]:
+    """Record -> file line, from each record's line."""
+    return lambda record: int(line_of[record])
 
 
 def _joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
     return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
 
 
-def _ply_records(
-    chunk: Chunk,
-    first: np.ndarray,
-    count: np.ndarray,
-    el: _PlyElement,
-    at: int | None,
-    wanted: dict[str, set[str]],
-) -> dict[str, np.ndarray] | None:
-    """Wanted values of the records of ``el`` on lines whose first tokens are ``first`` and
-    token counts ``count`` (``" sizes"``: the list lengths); None when a record does not fit
-    the element or holds something but numbers."""
-    n = len(el.props)
-    out: dict[str, np.ndarray] = {}
-    try:
-        if at is None:
-            if (count != n).any():
-                return None
-            k = np.zeros(0, dtype=np.int64)
-        else:
-            k = chunk.ints(first + at)
-            if (k < 0).any() or (count != n + k).any():
-                return None
-            out[" sizes"] = k
-        scalars = [i for i, p in enumerate(el.props) if i != at and p.name in wanted[el.name]]
-        if scalars:  # one conversion for all scalar columns; those after the list sit k further
-            picks = np.asarray(scalars, dtype=np.int64)
-            tokens = first[:, None] + picks
+class _AsciiElement:
+    """The wanted properties of one ASCII PLY element, collected a chunk at a time."""
+
+    def __init__(self, el: _PlyElement, want: set[str], name: str) -> None:
+        self.el = el
+        self.name = name
+        lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
+        self.at = lists[0] if len(lists) == 1 else None  # the one list property
+        self.walk = len(lists) > 1  # records laid out by every list's length: walked
+        self.scalars = [
+            i for i, p in enumerate(el.props) if p.count_dtype is None and p.name in want
+        ]
+        self.list_wanted = self.at is not None and el.props[self.at].name in want
+        self.values: dict[str, list[np.ndarray]] = {}
+        self.sizes: dict[str, list[np.ndarray]] = {}
+        self.lines: list[np.ndarray] = []
+        self.want = want
+
+    def _error(self, no: int, record: int, what: str) -> ValueError:
+        return ValueError(f"{self.name}, line {no}: element {self.el.name!r} record {record}{what}")
+
+    def add(self, chunk: Chunk, lines: np.ndarray, record0: int) -> None:
+        """Read the records on ``lines`` (chunk-relative) of ``chunk``, the first being record
+        ``record0`` of the element."""
+        first, count = chunk.first.take(lines), chunk.count.take(lines)
+        line_no = chunk.line0 + lines + 1
+        self.lines.append(line_no)
+        n, at = len(self.el.props), self.at
+        k = None
+        if not self.walk:
+            fits = count == n
             if at is not None:
-                tokens += k[:, None] * (picks > at)
-            values = chunk.floats(tokens.reshape(-1)).reshape(-1, len(scalars))
-            for j, i in enumerate(scalars):
-                out[el.props[i].name] = values[:, j]
-        if at is not None and el.props[at].name in wanted[el.name]:
-            tokens = runs(first + at + 1, k)
-            is_float = el.props[at].dtype[0] == "f"
-            out[el.props[at].name] = chunk.floats(tokens) if is_float else chunk.ints(tokens)
-    except BadNumber:
-        return None
-    return out
+                k = np.zeros(len(first), dtype=np.int64)
+                has = count > at
+                try:
+                    k[has] = chunk.token_values(first[has] + at, int)
+                except BadNumber:
+                    has[:] = False
+                fits = has & (k >= 0) & (count == n + k)
+            if not fits.all():
+                self.walk = True  # the walk below names what is wrong
+        if self.walk:
+            self._walk(chunk, lines, line_no, record0)
+            return
+        if self.scalars:
+            picks = np.asarray(self.scalars, dtype=np.int64)
+            tokens = first[:, None] + picks
+            if k is not None and at is not None:
+                tokens += k[:, None] * (picks > at)  # the scalars after the list sit k further
+            try:
+                values = chunk.token_values(tokens.reshape(-1), float).reshape(-1, len(picks))
+            except BadNumber as e:
+                r, j = divmod(e.position, len(picks))
+                what = f": cannot parse {self.el.props[self.scalars[j]].name!r} value {e.token!r}."
+                raise self._error(int(line_no[r]), record0 + r, what) from None
+            for j, i in enumerate(self.scalars):
+                self.values.setdefault(self.el.props[i].name, []).append(values[:, j])
+        if k is not None and at is not None and self.list_wanted:
+            listed = self.el.props[at]
+            try:
+                values = chunk.token_values(runs(first + at + 1, k), _kind(listed))
+            except BadNumber as e:
+                r = int(np.searchsorted(np.cumsum(k), e.position, side="right"))
+                what = f": cannot parse {listed.name!r} value {e.token!r}."
+                raise self._error(int(line_no[r]), record0 + r, what) from None
+            self.values.setdefault(listed.name, []).append(values)
+            self.sizes.setdefault(listed.name, []).append(k)
+
+    def _walk(self, chunk: Chunk, lines: np.ndarray, line_no: np.ndarray, record0: int) -> None:
+        """Records laid out by more than one list, or broken: walked property by property."""
+        scalars: dict[str, list[str]] = {p.name: [] for p in self.el.props if p.name in self.want}
+        sizes: dict[str, list[int]] = {}
+        for r, (line, no) in enumerate(zip(lines.tolist(), line_no.tolist(), strict=True)):
+            toks = chunk.line_text(line).split()
+            record = record0 + r
+            at = 0
+            for prop in self.el.props:
+                if prop.count_dtype is None:
+                    if prop.name in scalars:
+                        scalars[prop.name].append(toks[at] if at < len(toks) else "")
+                    at += 1
+                    continue
+                try:
+                    k = int(toks[at])
+                except (IndexError, ValueError):
+                    raise self._error(
+                        no, record, f": expected the length of list {prop.name!r}."
+                    ) from None
+                if k < 0:
+                    raise self._error(no, record, f": list {prop.name!r} has negative length {k}.")
+                if prop.name in scalars:
+                    scalars[prop.name] += toks[at + 1 : at + 1 + k]
+                    sizes.setdefault(prop.name, []).append(k)
+                at += 1 + k
+            if at != len(toks):
+                raise self._error(
+                    no, record, f" has {len(toks)} values, but its properties need {at}."
+                )
+        for prop in self.el.props:
+            if prop.name not in scalars:
+                continue
+            try:
+                values = numbers(scalars[prop.name], _kind(prop))
+            except BadNumber as e:
+                r = e.position
+                if prop.count_dtype is not None:
+                    r = int(np.searchsorted(np.cumsum(sizes[prop.name]), e.position, "right"))
+                raise self._error(
+                    int(line_no[r]), record0 + r, f": cannot parse {prop.name!r} value {e.token!r}."
+                ) from None
+            self.values.setdefault(prop.name, []).append(values)
+            if prop.count_dtype is not None:
+                self.sizes.setdefault(prop.name, []).append(np.asarray(sizes[prop.name], np.int64))
+
+    def columns(self) -> dict[str, _Column]:
+        """Each wanted property: an array (scalar) or (values, sizes) (list)."""
+        cols: dict[str, _Column] = {}
+        for prop in self.el.props:
+            if prop.name not in self.want:
+                continue
+            values = _joined(self.values.get(prop.name, []), np.float64)
+            if prop.count_dtype is None:
+                cols[prop.name] = values
+            else:
+                if _kind(prop) is int:
+                    values = values.astype(np.int64)
+                cols[prop.name] = (values, _joined(self.sizes.get(prop.name, []), np.int64))
+        return cols
+
+
+def _kind(prop: _PlyProperty) -> type:
+    """How a property's ASCII values are read: list items of an integer type as ints, all
+    else as floats."""
+    return int if prop.count_dtype is not None and prop.dtype[0] != "f" else float

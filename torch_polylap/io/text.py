@@ -1,0 +1,147 @@
+"""Whitespace tokens of mesh text, found with numpy a chunk of lines at a time, and their numbers.
+
+The text readers (OBJ, OFF, ASCII PLY) see a file as lines of tokens.  :func:`chunks` cuts the
+prepared text (``\\n`` line breaks, see :func:`.common.plain_text`) after line breaks into pieces
+of about :data:`CHUNK_BYTES`, so that the per-byte work arrays stay small whatever the file
+size, and :class:`Chunk` finds every token's byte range and the tokens of each line.
+Whitespace is ASCII's (space and ``\\t \\n \\v \\f \\r``), as ``bytes.split`` has it.
+
+Numbers are converted by numpy's own text parser (``np.fromstring(..., sep=" ")``, whose
+``strtod``/``strtoll`` give the correctly rounded double of a decimal and the exact integer):
+the wanted tokens are cut out of the chunk by blanking every other byte, and parsed in one
+call.  When that call cannot vouch for a one-to-one result (a token it refuses or splits in
+two, an integer too long for int64), Python's ``float``/``int`` convert the tokens one by one
+(:func:`.common.numbers`) and name the first bad one, so every value is what
+``float(token)`` or ``int(token)`` gives.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from .common import numbers
+
+__all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
+
+CHUNK_BYTES = 1 << 20
+_SPACE = np.zeros(256, dtype=bool)
+_SPACE[[9, 10, 11, 12, 13, 32]] = True
+_LONGEST_INT = 18  # digits strtoll reads without clamping to the int64 range
+
+
+def runs(first: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """``first[i], first[i] + 1, ..., first[i] + size[i] - 1`` for every i, concatenated."""
+    if len(size) and (size == size[0]).all():  # one degree: a reshape
+        return (first[:, None] + np.arange(int(size[0]))).reshape(-1)
+    starts = np.cumsum(size) - size
+    within = np.arange(int(size.sum())) - np.repeat(starts, size)
+    return np.repeat(first, size) + within
+
+
+class Chunk:
+    """The tokens of a run of whole lines.
+
+    Attributes:
+        buf: the lines' bytes, ``(B,)`` uint8 (a view of the text).
+        start, end: ``(T,)`` int64 byte offsets in ``buf`` of each token (end exclusive).
+        count: ``(L,)`` int64 number of tokens on each line, blank lines included.
+        first: ``(L,)`` int64 index of each line's first token.
+        line0: 0-based index of the chunk's first line in the whole text.
+    """
+
+    def __init__(self, text: bytes, begin: int, stop: int, line0: int) -> None:
+        self.buf = np.frombuffer(text, dtype=np.uint8, count=stop - begin, offset=begin)
+        self.line0 = line0
+        # a token starts where a blank is followed by a non-blank, and ends at the reverse
+        edge = np.diff(_SPACE.take(self.buf).view(np.int8), prepend=1, append=1)
+        self.start = np.flatnonzero(edge == -1)
+        self.end = np.flatnonzero(edge == 1)
+        breaks = np.flatnonzero(self.buf == 10)
+        lines = len(breaks) + (len(self.buf) > 0 and self.buf[-1] != 10)
+        self.count = np.bincount(np.searchsorted(breaks, self.start), minlength=lines)
+        self.first = np.cumsum(self.count) - self.count
+
+    def text(self, start: int, end: int) -> str:
+        """The bytes ``buf[start:end]`` as text."""
+        return self.buf[start:end].tobytes().decode("latin-1")
+
+    def line_text(self, line: int) -> str:
+        """The tokens of line ``line`` (chunk-relative), single-spaced."""
+        first, count = int(self.first[line]), int(self.count[line])
+        return " ".join(
+            self.text(s, e)
+            for s, e in zip(
+                self.start[first : first + count], self.end[first : first + count], strict=True
+            )
+        )
+
+    def cut(self, start: np.ndarray, end: np.ndarray, byte: int, skip: int = 0) -> np.ndarray:
+        """Offset of the ``skip + 1``-th ``byte`` in each range ``[start, end)`` (ranges
+        increasing and disjoint), or its ``end`` when it has fewer."""
+        at = np.flatnonzero(self.buf == byte)
+        owner = np.searchsorted(start, at, side="right") - 1
+        inside = (owner >= 0) & (at < end.take(np.maximum(owner, 0)))
+        at, owner = at[inside], owner[inside]
+        rank = np.arange(len(owner)) - np.searchsorted(owner, owner)  # k-th in its range
+        pick = rank == skip
+        stop = end.copy()
+        stop[owner[pick]] = at[pick]
+        return stop
+
+    def values(
+        self, start: np.ndarray, end: np.ndarray, kind: type, whole: bool = False
+    ) -> np.ndarray:
+        """float64 (``kind`` float) or int64 (int) values of the byte ranges
+        ``buf[start:end]`` (increasing, disjoint, not touching), each exactly
+        ``float(token)`` or ``int(token)``; ``whole``: they are all the tokens from the first
+        to the last (nothing to blank out between them).
+
+        Raises:
+            BadNumber: a range holds no such number; ``position`` is its index.
+        """
+        dtype = np.float64 if kind is float else np.int64
+        n = len(start)
+        if n == 0:
+            return np.zeros(0, dtype=dtype)
+        length = end - start
+        if int(length.min()) > 0 and (kind is float or int(length.max()) <= _LONGEST_INT):
+            lo, hi = int(start[0]), int(end[-1])
+            if whole:
+                piece = self.buf[lo:hi].tobytes()
+            else:
+                marks = np.zeros(hi - lo + 1, dtype=np.int8)
+                marks[start - lo] = 1
+                marks[end - lo] = -1
+                keep = np.cumsum(marks[:-1], dtype=np.int8).view(bool)
+                piece = np.where(keep, self.buf[lo:hi], np.uint8(32)).tobytes()
+            try:
+                out = np.fromstring(piece, dtype=dtype, sep=" ")
+            except ValueError:  # numpy refuses some token (and stops there)
+                out = None
+            if out is not None and len(out) == n:  # one value per token: each read whole
+                return out
+        tokens = [self.text(s, e) for s, e in zip(start.tolist(), end.tolist(), strict=True)]
+        return numbers(tokens, kind)
+
+    def token_values(self, tokens: np.ndarray, kind: type, whole: bool = False) -> np.ndarray:
+        """:meth:`values` of whole tokens (indices, increasing)."""
+        return self.values(self.start.take(tokens), self.end.take(tokens), kind, whole)
+
+
+def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
+    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks."""
+    pos, line0 = begin, 0
+    size = len(text)
+    while pos < size:
+        stop = min(pos + CHUNK_BYTES, size)
+        if stop < size:
+            cut = text.rfind(b"\n", pos, stop)
+            if cut < 0:
+                cut = text.find(b"\n", stop)
+            stop = size if cut < 0 else cut + 1
+        chunk = Chunk(text, pos, stop, line0)
+        line0 += len(chunk.count)
+        pos = stop
+        yield chunk
