@@ -52,7 +52,19 @@ def read_obj(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     check_text(data, name, "OBJ")
     reader = _ObjReader(name, want_attributes)
     for chunk in chunks(_join_continuations(plain_text(data), name)):
-        reader.add(chunk)
+        counts = {kind: refs.count for kind, refs in reader.refs.items()}
+        faces = reader.faces
+        try:
+            reader.add(chunk)
+        except ValueError:
+            # a chunk's errors are found kind by kind: line by line, the first one in the file
+            probe = _ObjReader(name, want_attributes)
+            for kind, refs in probe.refs.items():
+                refs.count = counts[kind]
+            probe.faces = faces
+            for line in chunk.lines():
+                probe.add(line)
+            raise
     parsed = reader.finish(skipped)
     _warn_unterminated(data, name)
     return parsed
@@ -132,13 +144,12 @@ class _ObjReader:
 
     def add(self, chunk: Chunk) -> None:
         """Read the records of ``chunk``."""
-        buf = chunk.buf
         lines = np.flatnonzero(chunk.count)
         key = chunk.first.take(lines)
         count = chunk.count.take(lines)
         at = chunk.start.take(key)
         length = chunk.end.take(key) - at
-        c0, c1 = buf.take(at), buf.take(np.minimum(at + 1, len(buf) - 1))
+        c0, c1 = chunk.buf.take(at), chunk.buf.take(np.minimum(at + 1, len(chunk.buf) - 1))
         is_v = (length == 1) & (c0 == 118)
         is_f = (length == 1) & (c0 == 102)
         is_vt = (length == 2) & (c0 == 118) & (c1 == 116)
@@ -149,81 +160,55 @@ class _ObjReader:
             record = _skipped_what(parts[0], parts, int(line_no[i]))
             if record is not None:
                 self.found.append((int(line_no[i]), *record))
+        kinds = {"vertex": is_v, "uv": is_vt, "normals": is_vn}
         # rows of each kind before each face line: negative references count back from them
-        before = {
-            kind: self.refs[kind].count + np.cumsum(mask)[is_f]
-            for kind, mask in (("vertex", is_v), ("uv", is_vt), ("normals", is_vn))
-        }
-        self._vertices(chunk, lines[is_v], key[is_v], count[is_v], line_no[is_v])
-        for kind, mask, width in (("uv", is_vt, 2), ("normals", is_vn, 3)):
-            if self.want:
-                self._attribute(chunk, kind, width, lines[mask], key[mask], count[mask],
-                                line_no[mask])  # fmt: skip
-            elif mask.any():
-                self.found.append((int(line_no[np.argmax(mask)]), _SKIPPED[
-                    "vt" if kind == "uv" else "vn"], int(mask.sum()), None))  # fmt: skip
+        before = {kind: self.refs[kind].count + np.cumsum(m)[is_f] for kind, m in kinds.items()}
+        for kind, m in kinds.items():
+            if kind == "vertex" or self.want:
+                self._rows(chunk, kind, lines[m], key[m], count[m] - 1, line_no[m])
+            elif m.any():
+                what = _SKIPPED["vt" if kind == "uv" else "vn"]
+                self.found.append((int(line_no[np.argmax(m)]), what, int(m.sum()), None))
                 self.hint = True
         self._faces(chunk, key[is_f], count[is_f] - 1, line_no[is_f], before)
 
-    def _vertices(
-        self,
-        chunk: Chunk,
-        lines: np.ndarray,
-        key: np.ndarray,
-        count: np.ndarray,
-        line_no: np.ndarray,
-    ) -> None:
-        if (count < 4).any():
-            i = int(np.argmax(count < 4))
-            raise ValueError(
-                f"{self.name}, line {line_no[i]}: a vertex needs 3 coordinates, got "
-                f"{chunk.line_text(int(lines[i]))!r}."
-            )
-        extra = count > 4
-        if extra.any():
-            self.found.append(
-                (int(line_no[np.argmax(extra)]), _EXTRA_VALUES, int(extra.sum()), None)
-            )
-        try:
-            self.coords.append(
-                chunk.token_values((key[:, None] + np.arange(1, 4)).reshape(-1), float)
-            )
-        except BadNumber as e:
-            raise ValueError(
-                f"{self.name}, line {line_no[e.position // 3]}: cannot parse vertex coordinate "
-                f"{e.token!r}."
-            ) from None
-        self.refs["vertex"].count += len(key)
-
-    def _attribute(
+    def _rows(
         self,
         chunk: Chunk,
         kind: str,
-        width: int,
         lines: np.ndarray,
         key: np.ndarray,
-        count: np.ndarray,
+        given: np.ndarray,
         line_no: np.ndarray,
     ) -> None:
-        """``vt`` (u, v; v defaults to 0, w is dropped) or ``vn`` (x, y, z) records."""
-        given = np.minimum(count - 1, width)
-        need = 1 if width == 2 else width
-        if (given < need).any():
-            i = int(np.argmax(given < need))
-            keyword = "vt" if kind == "uv" else "vn"
+        """``v`` (x, y, z; values after them skipped), ``vt`` (u, v; v defaults to 0, w is
+        dropped) or ``vn`` (x, y, z) records, ``given`` values after their keywords."""
+        width = 2 if kind == "uv" else 3
+        short = given < (1 if kind == "uv" else 3)
+        if short.any():
+            i = int(np.argmax(short))
+            needs = "a vertex needs 3 coordinates" if kind == "vertex" else (
+                f"{chunk.line_text(int(lines[i])).split()[0]!r} needs {width} values"
+            )  # fmt: skip
             raise ValueError(
-                f"{self.name}, line {line_no[i]}: {keyword!r} needs {width} values, got "
-                f"{chunk.line_text(int(lines[i]))!r}."
+                f"{self.name}, line {line_no[i]}: {needs}, got {chunk.line_text(int(lines[i]))!r}."
             )
-        values = np.zeros((len(key), width))
-        have = np.arange(width) < given[:, None]
+        extra = given > 3
+        if kind == "vertex" and extra.any():
+            line = int(line_no[np.argmax(extra)])
+            self.found.append((line, _EXTRA_VALUES, int(extra.sum()), None))
+        values = np.zeros(len(key) * width)
+        pick = np.flatnonzero((np.arange(width) < given[:, None]).reshape(-1))
+        tokens = (key[:, None] + 1 + np.arange(width)).reshape(-1)
         try:
-            values[have] = chunk.token_values((key[:, None] + 1 + np.arange(width))[have], float)
+            values[pick] = chunk.token_values(tokens.take(pick), float)
         except BadNumber as e:
+            what = "vertex coordinate" if kind == "vertex" else f"{_WHAT[kind]} value"
+            line = line_no[pick[e.position] // width]
             raise ValueError(
-                f"{self.name}: cannot parse {_WHAT[kind]} value {e.token!r}."
+                f"{self.name}, line {line}: cannot parse {what} {e.token!r}."
             ) from None
-        self.values[kind].append(values)
+        (self.coords if kind == "vertex" else self.values[kind]).append(values)
         self.refs[kind].count += len(key)
 
     def _faces(

@@ -145,22 +145,21 @@ class _OffReader:
         count: np.ndarray,
         line_no: np.ndarray,
     ) -> None:
-        if (count < 3).any():
-            i = int(np.argmax(count < 3))
-            raise ValueError(
-                f"{self.name}, line {line_no[i]}: a vertex needs 3 coordinates, got "
-                f"{chunk.line_text(int(lines[i]))!r}."
-            )
-        self.extra += int((count > 3).sum())
-        plain = bool((count == 3).all())
-        tokens = (first[:, None] + np.arange(3)).reshape(-1)
-        try:
-            values = chunk.token_values(tokens, float, whole=plain)
+        short = int(np.argmax(count < 3)) if (count < 3).any() else len(count)
+        self.extra += int((count[:short] > 3).sum())
+        tokens = (first[:short, None] + np.arange(3)).reshape(-1)
+        try:  # the lines before a short one: the first error in the file is named
+            values = chunk.token_values(tokens, float, whole=bool((count == 3).all()))
         except BadNumber as e:
             raise ValueError(
                 f"{self.name}, line {line_no[e.position // 3]}: cannot parse vertex coordinate "
                 f"{e.token!r}."
             ) from None
+        if short < len(count):
+            raise ValueError(
+                f"{self.name}, line {line_no[short]}: a vertex needs 3 coordinates, got "
+                f"{chunk.line_text(int(lines[short]))!r}."
+            )
         self.verts[self.read : self.read + len(first)] = values.reshape(-1, 3)
         self.read += len(first)
 
@@ -180,28 +179,37 @@ class _OffReader:
         sizes_list: list[int] = []
         lines_list: list[int] = []
         starts_list: list[int] = []
+
+        def add() -> None:  # a record begun in an earlier chunk gets its later corners here:
+            # in this chunk's numbering they come before its first record
+            self._add_faces(
+                chunk,
+                np.asarray(corner_list, dtype=np.int64),
+                np.asarray(sizes_list, dtype=np.int64),
+                np.asarray(starts_list, dtype=np.int64),
+                np.asarray(lines_list, dtype=np.int64),
+            )
+
         for at, n, no in zip(first.tolist(), count.tolist(), line_no.tolist(), strict=True):
             pos = 0
             if self.need == 0:
-                if self.faces + len(sizes_list) == self.num_faces:
-                    raise ValueError(
-                        f"{self.name}, line {no}: data after the {self.num_faces} faces "
-                        "declared in the header."
-                    )
                 face = self.faces + len(sizes_list)
                 token = chunk.text(int(chunk.start[at]), int(chunk.end[at]))
                 try:
-                    self.need = int(token)
+                    k: int | None = int(token)
                 except ValueError:
-                    raise ValueError(
-                        f"{self.name}, line {no}: face {face} starts with {token!r}, expected "
-                        "its vertex count."
-                    ) from None
-                if self.need < 3:
-                    raise ValueError(
-                        f"{self.name}, line {no}: face {face} has {self.need} vertices; a polygon "
-                        "needs at least 3."
-                    )
+                    k = None
+                error = None
+                if face == self.num_faces:
+                    error = f"data after the {self.num_faces} faces declared in the header."
+                elif k is None:
+                    error = f"face {face} starts with {token!r}, expected its vertex count."
+                elif k < 3:
+                    error = f"face {face} has {k} vertices; a polygon needs at least 3."
+                if error is not None or k is None:
+                    add()  # an unparsable index before it is the first error
+                    raise ValueError(f"{self.name}, line {no}: {error}")
+                self.need = k
                 sizes_list.append(self.need)
                 lines_list.append(no)
                 starts_list.append(len(corner_list))
@@ -210,15 +218,7 @@ class _OffReader:
             corner_list += range(at + pos, at + pos + take)
             self.need -= take
             self.coloured += self.need == 0 and pos + take < n
-        # a record begun in an earlier chunk gets its later corners there: in this chunk's
-        # numbering they come before its first record
-        self._add_faces(
-            chunk,
-            np.asarray(corner_list, dtype=np.int64),
-            np.asarray(sizes_list, dtype=np.int64),
-            np.asarray(starts_list, dtype=np.int64),
-            np.asarray(lines_list, dtype=np.int64),
-        )
+        add()
 
     def _add_faces(
         self,

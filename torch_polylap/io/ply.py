@@ -24,7 +24,6 @@ from .common import (
     check_faces,
     check_sizes_binary,
     check_text,
-    numbers,
     plain_text,
 )
 from .text import Chunk, chunks, runs
@@ -40,7 +39,7 @@ _FACE_LISTS = ("vertex_indices", "vertex_index")
 _PLY_FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
 
 
-@dataclass
+@dataclass(frozen=True)
 class _PlyProperty:
     name: str
     dtype: str  # numpy type code without byte order, e.g. "f4"
@@ -533,18 +532,14 @@ class _AsciiElement:
 
     def __init__(self, el: _PlyElement, want: set[str], name: str) -> None:
         self.el = el
+        self.want = want
         self.name = name
         lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
         self.at = lists[0] if len(lists) == 1 else None  # the one list property
         self.walk = len(lists) > 1  # records laid out by every list's length: walked
-        self.scalars = [
-            i for i, p in enumerate(el.props) if p.count_dtype is None and p.name in want
-        ]
-        self.list_wanted = self.at is not None and el.props[self.at].name in want
         self.values: dict[str, list[np.ndarray]] = {}
         self.sizes: dict[str, list[np.ndarray]] = {}
         self.lines: list[np.ndarray] = []
-        self.want = want
 
     def _error(self, no: int, record: int, what: str) -> ValueError:
         return ValueError(f"{self.name}, line {no}: element {self.el.name!r} record {record}{what}")
@@ -555,107 +550,118 @@ class _AsciiElement:
         first, count = chunk.first.take(lines), chunk.count.take(lines)
         line_no = chunk.line0 + lines + 1
         self.lines.append(line_no)
-        n, at = len(self.el.props), self.at
-        k = None
-        if not self.walk:
-            fits = count == n
-            if at is not None:
-                k = np.zeros(len(first), dtype=np.int64)
-                has = count > at
-                try:
-                    k[has] = chunk.token_values(first[has] + at, int)
-                except BadNumber:
-                    has[:] = False
-                fits = has & (k >= 0) & (count == n + k)
-            if not fits.all():
-                self.walk = True  # the walk below names what is wrong
-        if self.walk:
-            self._walk(chunk, lines, line_no, record0)
-            return
-        if self.scalars:
-            picks = np.asarray(self.scalars, dtype=np.int64)
-            tokens = first[:, None] + picks
-            if k is not None and at is not None:
-                tokens += k[:, None] * (picks > at)  # the scalars after the list sit k further
+        layout = None if self.walk else self._layout(chunk, first, count)
+        broken = None
+        if layout is None:
+            self.walk = True  # from here on: the walk names what is wrong
+            layout, broken = self._walk(chunk, first, count)
+        errors = []  # (record, message): the first in the file is raised
+        for prop, (tokens, sizes) in layout.items():
             try:
-                values = chunk.token_values(tokens.reshape(-1), float).reshape(-1, len(picks))
+                values = chunk.token_values(tokens, _kind(prop))
             except BadNumber as e:
-                r, j = divmod(e.position, len(picks))
-                what = f": cannot parse {self.el.props[self.scalars[j]].name!r} value {e.token!r}."
-                raise self._error(int(line_no[r]), record0 + r, what) from None
-            for j, i in enumerate(self.scalars):
-                self.values.setdefault(self.el.props[i].name, []).append(values[:, j])
-        if k is not None and at is not None and self.list_wanted:
-            listed = self.el.props[at]
-            try:
-                values = chunk.token_values(runs(first + at + 1, k), _kind(listed))
-            except BadNumber as e:
-                r = int(np.searchsorted(np.cumsum(k), e.position, side="right"))
-                what = f": cannot parse {listed.name!r} value {e.token!r}."
-                raise self._error(int(line_no[r]), record0 + r, what) from None
-            self.values.setdefault(listed.name, []).append(values)
-            self.sizes.setdefault(listed.name, []).append(k)
+                r = e.position
+                if sizes is not None:
+                    r = int(np.searchsorted(np.cumsum(sizes), r, side="right"))
+                errors.append((r, f": cannot parse {prop.name!r} value {e.token!r}."))
+                continue
+            self.values.setdefault(prop.name, []).append(values)
+            if sizes is not None:
+                self.sizes.setdefault(prop.name, []).append(sizes)
+        if broken is not None:
+            errors.append(broken)
+        if errors:
+            r, what = min(errors)
+            raise self._error(int(line_no[r]), record0 + r, what)
 
-    def _walk(self, chunk: Chunk, lines: np.ndarray, line_no: np.ndarray, record0: int) -> None:
-        """Records laid out by more than one list, or broken: walked property by property."""
-        scalars: dict[str, list[str]] = {p.name: [] for p in self.el.props if p.name in self.want}
-        sizes: dict[str, list[int]] = {}
-        for r, (line, no) in enumerate(zip(lines.tolist(), line_no.tolist(), strict=True)):
-            toks = chunk.line_text(line).split()
-            record = record0 + r
+    def _layout(self, chunk: Chunk, first: np.ndarray, count: np.ndarray) -> _Layout | None:
+        """The wanted properties' tokens (and list lengths) when each record has at most one
+        list and fits the element (its layout then follows from the list length); else None."""
+        n, at = len(self.el.props), self.at
+        k = np.zeros(len(first), dtype=np.int64)
+        if at is not None:
+            has = count > at
+            try:
+                k[has] = chunk.token_values(first[has] + at, int)
+            except BadNumber:
+                return None
+            if not (has & (k >= 0)).all():
+                return None
+        if (count != n + k).any():
+            return None
+        out: _Layout = {}
+        for i, prop in enumerate(self.el.props):
+            if prop.name not in self.want:
+                continue
+            if i == at:
+                out[prop] = (runs(first + at + 1, k), k)
+            else:  # the scalars after the list sit k further
+                out[prop] = (first + i + (k if at is not None and i > at else 0), None)
+        return out
+
+    def _walk(
+        self, chunk: Chunk, first: np.ndarray, count: np.ndarray
+    ) -> tuple[_Layout, tuple[int, str] | None]:
+        """:meth:`_layout` record by record, property by property, up to the first record that
+        does not fit the element, and that record and what is wrong with it (or None)."""
+        tokens: dict[str, list[int]] = {p.name: [] for p in self.el.props if p.name in self.want}
+        sizes: dict[str, list[int]] = {p.name: [] for p in self.el.props}
+        broken = None
+        for r, (t0, n) in enumerate(zip(first.tolist(), count.tolist(), strict=True)):
+            got: dict[str, list[int]] = {name: [] for name in tokens}
+            lengths: dict[str, int] = {}
             at = 0
             for prop in self.el.props:
                 if prop.count_dtype is None:
-                    if prop.name in scalars:
-                        scalars[prop.name].append(toks[at] if at < len(toks) else "")
+                    got.get(prop.name, []).append(t0 + at)
                     at += 1
                     continue
                 try:
-                    k = int(toks[at])
-                except (IndexError, ValueError):
-                    raise self._error(
-                        no, record, f": expected the length of list {prop.name!r}."
-                    ) from None
+                    if at >= n:
+                        raise ValueError
+                    k = int(chunk.text(int(chunk.start[t0 + at]), int(chunk.end[t0 + at])))
+                except ValueError:
+                    broken = (r, f": expected the length of list {prop.name!r}.")
+                    break
                 if k < 0:
-                    raise self._error(no, record, f": list {prop.name!r} has negative length {k}.")
-                if prop.name in scalars:
-                    scalars[prop.name] += toks[at + 1 : at + 1 + k]
-                    sizes.setdefault(prop.name, []).append(k)
+                    broken = (r, f": list {prop.name!r} has negative length {k}.")
+                    break
+                got.get(prop.name, []).extend(range(t0 + at + 1, t0 + at + 1 + k))
+                lengths[prop.name] = k
                 at += 1 + k
-            if at != len(toks):
-                raise self._error(
-                    no, record, f" has {len(toks)} values, but its properties need {at}."
-                )
-        for prop in self.el.props:
-            if prop.name not in scalars:
-                continue
-            try:
-                values = numbers(scalars[prop.name], _kind(prop))
-            except BadNumber as e:
-                r = e.position
-                if prop.count_dtype is not None:
-                    r = int(np.searchsorted(np.cumsum(sizes[prop.name]), e.position, "right"))
-                raise self._error(
-                    int(line_no[r]), record0 + r, f": cannot parse {prop.name!r} value {e.token!r}."
-                ) from None
-            self.values.setdefault(prop.name, []).append(values)
-            if prop.count_dtype is not None:
-                self.sizes.setdefault(prop.name, []).append(np.asarray(sizes[prop.name], np.int64))
+            if broken is None and at != n:
+                broken = (r, f" has {n} values, but its properties need {at}.")
+            if broken is not None:
+                break
+            for name, more in got.items():
+                tokens[name] += more
+            for name, k in lengths.items():
+                sizes[name].append(k)
+        layout = {
+            p: (
+                np.asarray(tokens[p.name], dtype=np.int64),
+                None if p.count_dtype is None else np.asarray(sizes[p.name], dtype=np.int64),
+            )
+            for p in self.el.props
+            if p.name in tokens
+        }
+        return layout, broken
 
     def columns(self) -> dict[str, _Column]:
         """Each wanted property: an array (scalar) or (values, sizes) (list)."""
         cols: dict[str, _Column] = {}
         for prop in self.el.props:
-            if prop.name not in self.want:
-                continue
-            values = _joined(self.values.get(prop.name, []), np.float64)
-            if prop.count_dtype is None:
-                cols[prop.name] = values
-            else:
+            if prop.name in self.want:
+                values = _joined(self.values.get(prop.name, []), np.float64)
                 if _kind(prop) is int:
                     values = values.astype(np.int64)
-                cols[prop.name] = (values, _joined(self.sizes.get(prop.name, []), np.int64))
+                sizes = _joined(self.sizes.get(prop.name, []), np.int64)
+                cols[prop.name] = values if prop.count_dtype is None else (values, sizes)
         return cols
+
+
+# per wanted property: its token indices, and for a list each record's length
+_Layout = dict[_PlyProperty, tuple[np.ndarray, np.ndarray | None]]
 
 
 def _kind(prop: _PlyProperty) -> type:

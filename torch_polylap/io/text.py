@@ -49,19 +49,38 @@ class Chunk:
         count: ``(L,)`` int64 number of tokens on each line, blank lines included.
         first: ``(L,)`` int64 index of each line's first token.
         line0: 0-based index of the chunk's first line in the whole text.
+        source: the text and the offset of the chunk in it.
     """
 
     def __init__(self, text: bytes, begin: int, stop: int, line0: int) -> None:
         self.buf = np.frombuffer(text, dtype=np.uint8, count=stop - begin, offset=begin)
+        self.source = (text, begin)
         self.line0 = line0
+        # below the space, text holds only whitespace and ESC (see check_text), which is none
+        if 27 in self.buf:
+            blank = _SPACE.take(self.buf)
+        else:
+            blank = self.buf <= 32
         # a token starts where a blank is followed by a non-blank, and ends at the reverse
-        edge = np.diff(_SPACE.take(self.buf).view(np.int8), prepend=1, append=1)
+        edge = np.diff(blank.view(np.int8), prepend=1, append=1)
         self.start = np.flatnonzero(edge == -1)
         self.end = np.flatnonzero(edge == 1)
         breaks = np.flatnonzero(self.buf == 10)
-        lines = len(breaks) + (len(self.buf) > 0 and self.buf[-1] != 10)
-        self.count = np.bincount(np.searchsorted(breaks, self.start), minlength=lines)
-        self.first = np.cumsum(self.count) - self.count
+        if len(self.buf) and self.buf[-1] != 10:  # the text's last line, without its break
+            breaks = np.append(breaks, len(self.buf))
+        before = np.searchsorted(self.start, breaks)  # tokens before each line's end
+        self.count = np.diff(before, prepend=0)
+        self.first = before - self.count
+
+    def lines(self) -> Iterator[Chunk]:
+        """The chunk's lines, each a chunk of its own (to find the first of several errors)."""
+        text, begin = self.source
+        ends = np.flatnonzero(self.buf == 10) + 1
+        for i, (a, b) in enumerate(
+            zip([0, *ends.tolist()], [*ends.tolist(), len(self.buf)], strict=True)
+        ):
+            if b > a:
+                yield Chunk(text, begin + a, begin + b, self.line0 + i)
 
     def text(self, start: int, end: int) -> str:
         """The bytes ``buf[start:end]`` as text."""
