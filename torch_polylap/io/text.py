@@ -99,7 +99,7 @@ class Chunk:
     def cut(self, start: np.ndarray, end: np.ndarray, byte: int, skip: int = 0) -> np.ndarray:
         """Offset of the ``skip + 1``-th ``byte`` in each range ``[start, end)`` (ranges
         increasing and disjoint), or its ``end`` when it has fewer."""
-        at = np.flatnonzero(self.buf == byte)
+        at = np.flatnonzero(self.buf == byte) if len(start) else start
         owner = np.searchsorted(start, at, side="right") - 1
         inside = (owner >= 0) & (at < end.take(np.maximum(owner, 0)))
         at, owner = at[inside], owner[inside]
@@ -139,7 +139,8 @@ class Chunk:
                 out = np.fromstring(piece, dtype=dtype, sep=" ")
             except ValueError:  # numpy refuses some token (and stops there)
                 out = None
-            if out is not None and len(out) == n:  # one value per token: each read whole
+            # one value per token: each read whole (numpy's "nan(...)" is no float for Python)
+            if out is not None and len(out) == n and (kind is int or b"(" not in piece):
                 return out
         tokens = [self.text(s, e) for s, e in zip(start.tolist(), end.tolist(), strict=True)]
         return numbers(tokens, kind)
