@@ -201,7 +201,7 @@ class _ObjReader:
         pick = np.flatnonzero((np.arange(width) < given[:, None]).reshape(-1))
         tokens = (key[:, None] + 1 + np.arange(width)).reshape(-1)
         try:
-            values[pick] = chunk.token_values(tokens.take(pick), float)
+            values[pick] = chunk.values(tokens.take(pick), float)
         except BadNumber as e:
             what = "vertex coordinate" if kind == "vertex" else f"{_WHAT[kind]} value"
             line = line_no[pick[e.position] // width]
@@ -240,9 +240,9 @@ class _ObjReader:
             written = np.zeros(len(a), dtype=np.int64)
             try:
                 if kind == "vertex":
-                    written = chunk.values(a, b, int)
+                    written = chunk.values(corners, int, a, b)
                 elif given.any():
-                    written[given] = chunk.values(a[given], b[given], int)
+                    written[given] = chunk.values(corners[given], int, a[given], b[given])
             except BadNumber as e:
                 corner = e.position if kind == "vertex" else int(np.flatnonzero(given)[e.position])
                 f = int(np.searchsorted(offsets, corner, side="right"))

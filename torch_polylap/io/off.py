@@ -149,7 +149,7 @@ class _OffReader:
         self.extra += int((count[:short] > 3).sum())
         tokens = (first[:short, None] + np.arange(3)).reshape(-1)
         try:  # the lines before a short one: the first error in the file is named
-            values = chunk.token_values(tokens, float, whole=bool((count == 3).all()))
+            values = chunk.values(tokens, float)
         except BadNumber as e:
             raise ValueError(
                 f"{self.name}, line {line_no[e.position // 3]}: cannot parse vertex coordinate "
@@ -232,7 +232,7 @@ class _OffReader:
         """Faces of ``sizes`` whose corners are the tokens ``corners`` (``values``, when
         already read), starting at ``starts`` of them, on lines ``line_no``."""
         try:
-            self.indices.append(chunk.token_values(corners, int) if values is None else values)
+            self.indices.append(chunk.values(corners, int) if values is None else values)
         except BadNumber as e:
             f = int(np.searchsorted(starts, e.position, side="right")) - 1
             face = self.faces + f if f >= 0 else self.faces - 1
@@ -275,9 +275,7 @@ def _one_per_line(
     if len(first) and (count == count[0]).all():  # one degree, no colours: a block of ints
         width = int(count[0])
         try:
-            block = chunk.token_values(
-                np.arange(first[0], first[0] + len(first) * width), int, True
-            )
+            block = chunk.values(np.arange(first[0], first[0] + len(first) * width), int)
         except BadNumber:
             return None
         block = block.reshape(len(first), width)
@@ -286,7 +284,7 @@ def _one_per_line(
             corners = (first[:, None] + np.arange(1, width)).reshape(-1)
             return sizes, corners, 0, block[:, 1:].reshape(-1)
     try:
-        k = chunk.token_values(first, int)
+        k = chunk.values(first, int)
     except BadNumber:
         return None
     if (k < 3).any() or (count < k + 1).any():

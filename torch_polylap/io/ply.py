@@ -558,7 +558,7 @@ class _AsciiElement:
         errors = []  # (record, message): the first in the file is raised
         for prop, (tokens, sizes) in layout.items():
             try:
-                values = chunk.token_values(tokens, _kind(prop))
+                values = chunk.values(tokens, _kind(prop))
             except BadNumber as e:
                 r = e.position
                 if sizes is not None:
@@ -582,7 +582,7 @@ class _AsciiElement:
         if at is not None:
             has = count > at
             try:
-                k[has] = chunk.token_values(first[has] + at, int)
+                k[has] = chunk.values(first[has] + at, int)
             except BadNumber:
                 return None
             if not (has & (k >= 0)).all():

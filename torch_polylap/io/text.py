@@ -110,44 +110,59 @@ class Chunk:
         return stop
 
     def values(
-        self, start: np.ndarray, end: np.ndarray, kind: type, whole: bool = False
+        self,
+        tokens: np.ndarray,
+        kind: type,
+        start: np.ndarray | None = None,
+        end: np.ndarray | None = None,
     ) -> np.ndarray:
-        """float64 (``kind`` float) or int64 (int) values of the byte ranges
-        ``buf[start:end]`` (increasing, disjoint, not touching), each exactly
-        ``float(token)`` or ``int(token)``; ``whole``: they are all the tokens from the first
-        to the last (nothing to blank out between them).
+        """float64 (``kind`` float) or int64 (int) values of the tokens ``tokens`` (indices,
+        increasing), or of the byte ranges ``buf[start:end]`` inside them, each exactly
+        ``float(text)`` or ``int(text)``.
+
+        The bytes from the first to the last are parsed by one numpy call, the other tokens
+        among them and the rest of each token blanked out first.
 
         Raises:
             BadNumber: a range holds no such number; ``position`` is its index.
         """
         dtype = np.float64 if kind is float else np.int64
-        n = len(start)
+        n = len(tokens)
         if n == 0:
             return np.zeros(0, dtype=dtype)
-        length = end - start
+        s, e = self.start.take(tokens), self.end.take(tokens)
+        a = s if start is None else start
+        b = e if end is None else end
+        length = b - a
         if int(length.min()) > 0 and (kind is float or int(length.max()) <= _LONGEST_INT):
-            lo, hi = int(start[0]), int(end[-1])
-            if whole:
-                piece = self.buf[lo:hi].tobytes()
-            else:
-                marks = np.zeros(hi - lo + 1, dtype=np.int8)
-                marks[start - lo] = 1
-                marks[end - lo] = -1
-                keep = np.cumsum(marks[:-1], dtype=np.int8).view(bool)
-                piece = np.where(keep, self.buf[lo:hi], np.uint8(32)).tobytes()
+            lo, hi = int(a[0]), int(b[-1])
+            first, last = int(tokens[0]), int(tokens[-1])
+            blank = []  # byte ranges to make spaces
+            if last - first + 1 != n:  # other tokens among them
+                other = np.ones(last - first + 1, dtype=bool)
+                other[tokens - first] = False
+                o = np.flatnonzero(other) + first
+                blank.append((self.start.take(o), self.end.take(o)))
+            if start is not None:  # the bytes of each token before its range
+                blank.append((np.maximum(s, lo), a))
+            if end is not None:  # and after it
+                blank.append((b, np.minimum(e, hi)))
+            piece = self.buf[lo:hi]
+            if blank:
+                piece = piece.copy()
+                for x, y in blank:
+                    cut = np.flatnonzero(y > x)
+                    piece[runs(x.take(cut) - lo, y.take(cut) - x.take(cut))] = 32
+            data = piece.tobytes()
             try:
-                out = np.fromstring(piece, dtype=dtype, sep=" ")
+                out = np.fromstring(data, dtype=dtype, sep=" ")
             except ValueError:  # numpy refuses some token (and stops there)
                 out = None
             # one value per token: each read whole (numpy's "nan(...)" is no float for Python)
-            if out is not None and len(out) == n and (kind is int or b"(" not in piece):
+            if out is not None and len(out) == n and (kind is int or b"(" not in data):
                 return out
-        tokens = [self.text(s, e) for s, e in zip(start.tolist(), end.tolist(), strict=True)]
-        return numbers(tokens, kind)
-
-    def token_values(self, tokens: np.ndarray, kind: type, whole: bool = False) -> np.ndarray:
-        """:meth:`values` of whole tokens (indices, increasing)."""
-        return self.values(self.start.take(tokens), self.end.take(tokens), kind, whole)
+        texts = [self.text(x, y) for x, y in zip(a.tolist(), b.tolist(), strict=True)]
+        return numbers(texts, kind)
 
 
 def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
