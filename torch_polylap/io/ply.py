@@ -314,104 +314,73 @@ def _binary_list_element(
 
     When every record's lists have the lengths of the first record's (all-triangle or all-quad
     faces), one structured ``frombuffer`` reads everything.  Otherwise a Python loop walks the
-    records reading only the list counts, and numpy gathers all values from those positions.
+    records reading only the list lengths, and numpy gathers all values from those offsets.
     """
     if el.count == 0:
         return {p.name: _empty_column(p) for p in el.props if p.name in want}, pos
     uniform = _binary_uniform_lists(data, pos, order, el, want)
     if uniform is not None:
         return uniform
-
-    # Records split into segments: segment j is the scalars before list j followed by list j;
-    # the last segment is the scalars after the last list.
-    lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
-    seg_of = np.searchsorted(lists, np.arange(len(el.props)))  # segment of each property
-    seg_scalar_bytes = [0] * (len(lists) + 1)
-    prop_offset: list[int] = []
-    for i, prop in enumerate(el.props):
-        prop_offset.append(seg_scalar_bytes[seg_of[i]])
-        if prop.count_dtype is None:
-            seg_scalar_bytes[seg_of[i]] += np.dtype(prop.dtype).itemsize
-    readers: list[Callable[[int], int]] = []
-    steps: list[tuple[int, int, int]] = []  # (scalar bytes before the count, count size, item size)
-    for j, i in enumerate(lists):
-        prop = el.props[i]
-        count_dtype = prop.count_dtype
-        assert count_dtype is not None  # `lists` holds the list properties
-        if count_dtype == "u1":
-            readers.append(data.__getitem__)
-        else:
-            readers.append(_count_reader(data, order + _STRUCT_CODES[count_dtype]))
-        steps.append(
-            (
-                seg_scalar_bytes[j],
-                np.dtype(count_dtype).itemsize,
-                np.dtype(prop.dtype).itemsize,
-            )
-        )
-    tail = seg_scalar_bytes[-1]
-    seg_starts: list[list[int]] = [[] for _ in range(len(lists) + 1)]
-    # seg_starts has one more list (the tail after the last list property) than readers
-    plan = list(zip(readers, steps, seg_starts, strict=False))
-    last = seg_starts[-1]
-    p = pos
-    size = len(data)
+    # per property: its (items') size, and for a list its length's size and reader
+    layout = [(np.dtype(p.dtype).itemsize, *_length_reader(data, order, p)) for p in el.props]
+    offsets: list[list[int]] = [[] for _ in el.props]
+    p, size, record = pos, len(data), 0
+    plan = list(zip(layout, offsets, strict=True))
     try:
         for record in range(el.count):
-            for read, (before, count_size, item_size), starts in plan:
+            for (item, count_size, read), starts in plan:
                 starts.append(p)
-                p += before
+                if read is None:
+                    p += item
+                    continue
                 k = read(p)
                 if k < 0:
                     raise ValueError(
                         f"{name}: PLY element {el.name!r} record {record} has a list of "
                         f"negative length {k}."
                     )
-                p += count_size + k * item_size
+                p += count_size + k * item
                 if p > size:
-                    _list_too_long(name, el, record, k, size - (p - k * item_size))
-            last.append(p)
-            p += tail
+                    raise ValueError(
+                        f"{name}: PLY element {el.name!r} record {record} declares a list of {k} "
+                        f"values, but only {max(size - (p - k * item), 0)} bytes are left in the "
+                        "file (truncated file, or a corrupt count); re-export or re-download it."
+                    )
     except (IndexError, struct.error):
-        p = len(data) + 1
-    if p > len(data):
-        record = min(len(last), el.count - 1)  # the first record not fully inside the file
+        p = size + 1
+    if p > size:
         raise ValueError(
             f"{name}: the file ends before record {record} of the {el.count} records of PLY "
             f"element {el.name!r} is complete (truncated file)."
         )
     buf = np.frombuffer(data, np.uint8)
     cols: dict[str, _Column] = {}
-    for i, prop in enumerate(el.props):
+    for prop, starts, (item, count_size, _) in zip(el.props, offsets, layout, strict=True):
         if prop.name not in want:
             continue
-        at = np.asarray(seg_starts[seg_of[i]], dtype=np.int64) + prop_offset[i]
+        at = np.asarray(starts, dtype=np.int64)
         if prop.count_dtype is None:
             cols[prop.name] = _gather(buf, at, order + prop.dtype)
             continue
         sizes = _gather(buf, at, order + prop.count_dtype).astype(np.int64)
         check_sizes_binary(name, sizes, f"element {el.name!r} record")
-        item = np.dtype(prop.dtype).itemsize
-        first = np.repeat(at + np.dtype(prop.count_dtype).itemsize, sizes)
-        within = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-        cols[prop.name] = (_gather(buf, first + within * item, order + prop.dtype), sizes)
+        within = runs(np.zeros_like(at), sizes)  # each value's place in its list
+        corners = np.repeat(at + count_size, sizes) + within * item
+        cols[prop.name] = (_gather(buf, corners, order + prop.dtype), sizes)
     return cols, p
 
 
-def _list_too_long(name: str, el: _PlyElement, record: int, count: int, left: int) -> None:
-    """Refuse a list length the rest of the file cannot hold, naming it (a corrupt count, or
-    the truncated last record)."""
-    raise ValueError(
-        f"{name}: PLY element {el.name!r} record {record} declares a list of {count} values, "
-        f"but only {max(left, 0)} bytes are left in the file (truncated file, or a corrupt "
-        "count); re-export or re-download it."
-    )
-
-
-def _count_reader(data: bytes, fmt: str) -> Callable[[int], int]:
-    """Reads the list length (struct format ``fmt``) stored at a byte offset of ``data``."""
-    unpack = struct.Struct(fmt).unpack_from
-    return lambda q: unpack(data, q)[0]
+def _length_reader(
+    data: bytes, order: str, prop: _PlyProperty
+) -> tuple[int, Callable[[int], int] | None]:
+    """Size and reader (byte offset -> value) of a list property's length; (0, None) for a
+    scalar."""
+    if prop.count_dtype is None:
+        return 0, None
+    if prop.count_dtype == "u1":
+        return 1, data.__getitem__
+    unpack = struct.Struct(order + _STRUCT_CODES[prop.count_dtype]).unpack_from
+    return struct.calcsize(_STRUCT_CODES[prop.count_dtype]), lambda q: unpack(data, q)[0]
 
 
 def _binary_uniform_lists(
