@@ -19,7 +19,6 @@ from .common import (
     Skipped,
     check_count,
     check_faces,
-    check_sizes_binary,
     check_text,
     plain_text,
 )
@@ -328,7 +327,7 @@ def _read_off_binary(body: bytes, keyword: str, name: str, skipped: Skipped) -> 
             "(truncated file or unknown layout)."
         )
     sizes = words[starts].astype(np.int64)
-    check_sizes_binary(name, sizes, "binary OFF face record")
+    check_faces(name, sizes[:0], sizes, None, lambda f: f"binary OFF face record {f}")
     if with_colours:
         skipped.add("face colours", int((words[starts + sizes + 1] > 0).sum()))
     first = np.repeat(starts + 1, sizes)

@@ -22,7 +22,6 @@ from .common import (
     Skipped,
     check_count,
     check_faces,
-    check_sizes_binary,
     check_text,
     plain_text,
 )
@@ -363,7 +362,7 @@ def _binary_list_element(
             cols[prop.name] = _gather(buf, at, order + prop.dtype)
             continue
         sizes = _gather(buf, at, order + prop.count_dtype).astype(np.int64)
-        check_sizes_binary(name, sizes, f"element {el.name!r} record")
+        check_faces(name, sizes[:0], sizes, None, lambda f: f"element {el.name!r} record {f}")
         within = runs(np.zeros_like(at), sizes)  # each value's place in its list
         corners = np.repeat(at + count_size, sizes) + within * item
         cols[prop.name] = (_gather(buf, corners, order + prop.dtype), sizes)
