@@ -239,8 +239,9 @@ class _ObjReader:
             given = b > a  # an empty texture or normal reference: none
             written = np.zeros(len(a), dtype=np.int64)
             try:
-                if kind == "vertex":
-                    written = chunk.values(corners, int, a, b)
+                if kind == "vertex":  # most corners are the vertex alone: nothing to cut
+                    cut = b if (b < end).any() else None
+                    written = chunk.values(corners, int, end=cut)
                 elif given.any():
                     written[given] = chunk.values(corners[given], int, a[given], b[given])
             except BadNumber as e:
