@@ -198,13 +198,15 @@ class _ObjReader:
             line = int(line_no[np.argmax(extra)])
             self.found.append((line, _EXTRA_VALUES, int(extra.sum()), None))
         values = np.zeros(len(key) * width)
-        pick = np.flatnonzero((np.arange(width) < given[:, None]).reshape(-1))
         tokens = (key[:, None] + 1 + np.arange(width)).reshape(-1)
+        pick: np.ndarray | slice = slice(None)  # every value given (vertices always)
+        if (given < width).any():
+            pick = np.flatnonzero((np.arange(width) < given[:, None]).reshape(-1))
         try:
-            values[pick] = chunk.values(tokens.take(pick), float)
+            values[pick] = chunk.values(tokens[pick], float)
         except BadNumber as e:
             what = "vertex coordinate" if kind == "vertex" else f"{_WHAT[kind]} value"
-            line = line_no[pick[e.position] // width]
+            line = line_no[np.arange(len(tokens))[pick][e.position] // width]
             raise ValueError(
                 f"{self.name}, line {line}: cannot parse {what} {e.token!r}."
             ) from None

@@ -62,9 +62,13 @@ class Chunk:
         else:
             blank = self.buf <= 32
         # a token starts where a blank is followed by a non-blank, and ends at the reverse
-        edge = np.diff(blank.view(np.int8), prepend=1, append=1)
-        self.start = np.flatnonzero(edge == -1)
-        self.end = np.flatnonzero(edge == 1)
+        filled = ~blank
+        self.start = np.flatnonzero(filled[1:] > filled[:-1]) + 1
+        self.end = np.flatnonzero(filled[:-1] > filled[1:]) + 1
+        if len(filled) and filled[0]:
+            self.start = np.concatenate([[0], self.start])
+        if len(filled) and filled[-1]:
+            self.end = np.append(self.end, len(filled))
         breaks = np.flatnonzero(self.buf == 10)
         if len(self.buf) and self.buf[-1] != 10:  # the text's last line, without its break
             breaks = np.append(breaks, len(self.buf))
