@@ -8,11 +8,11 @@ Whitespace is ASCII's (space and ``\\t \\n \\v \\f \\r``), as ``bytes.split`` ha
 
 Numbers are converted by numpy's own text parser (``np.fromstring(..., sep=" ")``, whose
 ``strtod``/``strtoll`` give the correctly rounded double of a decimal and the exact integer):
-the wanted tokens are cut out of the chunk by blanking every other byte, and parsed in one
-call.  When that call cannot vouch for a one-to-one result (a token it refuses or splits in
-two, an integer too long for int64), Python's ``float``/``int`` convert the tokens one by one
-(:func:`.common.numbers`) and name the first bad one, so every value is what
-``float(token)`` or ``int(token)`` gives.
+the bytes from the first wanted token to the last, the other tokens among them blanked out,
+are parsed in one call.  When that call cannot vouch for a one-to-one result (a token it
+refuses or splits in two, an integer too long for int64, numpy's ``nan(...)``), Python's
+``float``/``int`` convert the tokens one by one (:func:`.common.numbers`) and name the first
+bad one, so every value is what ``float(token)`` or ``int(token)`` gives.
 """
 
 from __future__ import annotations
