@@ -54,7 +54,7 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     # truncated file gets the precise message of the record readers below.
     check_count(name, "vertices", num_verts, len(data), f"line {line0}")
     check_count(name, "faces", num_faces, len(data), f"line {line0}")
-    reader = _OffReader(name, num_verts, num_faces)
+    reader = _OffReader(name, num_verts, num_faces, len(text) - body)
     for chunk in chunks(text, body):
         chunk.line0 += line0
         reader.add(chunk)
@@ -111,11 +111,13 @@ def _header(text: bytes, name: str) -> tuple[str, int, int, int, int]:
 class _OffReader:
     """Collects the vertex and face records of an ASCII OFF body, a :class:`Chunk` at a time."""
 
-    def __init__(self, name: str, num_verts: int, num_faces: int) -> None:
+    def __init__(self, name: str, num_verts: int, num_faces: int, room: int) -> None:
         self.name = name
         self.num_verts = num_verts
         self.num_faces = num_faces
-        self.verts = np.empty((num_verts, 3))  # the counts are checked against the file size
+        # rows for the vertex lines the body has room for ("x y z" and a line break: 6 bytes;
+        # more are declared only by a truncated file, which fails before filling them)
+        self.verts = np.empty((min(num_verts, (room + 1) // 6), 3))
         self.read = 0  # vertex lines read
         self.extra = 0  # vertex lines with values after x y z
         self.indices: list[np.ndarray] = []
