@@ -698,7 +698,8 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
     """Ours against lagrange on the ``n x n`` quad grid, the two calls alternating (A B A B) so
     that load from other processes hits both alike: median wall and CPU (process) seconds of
     each read (OBJ, OFF, ASCII PLY, as ``write_mesh`` writes them) and write (OBJ, ASCII PLY:
-    lagrange writes no OFF), and the ratios ours / lagrange."""
+    lagrange writes no OFF), the ratios ours / lagrange, and the peak memory of one more call
+    of ours (tracemalloc) over the file's size."""
     import time
 
     grid = quad_grid(n)
@@ -728,6 +729,10 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
                     quietly(fn)
                     samples[name].append((time.perf_counter() - wall, time.process_time() - cpu))
             med = {k: np.median(np.array(v), axis=0) for k, v in samples.items()}
+            tracemalloc.start()  # numpy's arrays are traced too; the read's own peak
+            quietly(ours)
+            peak = tracemalloc.get_traced_memory()[1]
+            tracemalloc.stop()
             rows.append(
                 {
                     "op": what,
@@ -737,6 +742,7 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
                     "ours_cpu_s": float(med["ours"][1]),
                     "lagrange_wall_s": float(med["lagrange"][0]),
                     "lagrange_cpu_s": float(med["lagrange"][1]),
+                    "ours_peak_bytes": peak,
                 }
             )
         if fmt != "obj":
@@ -747,12 +753,13 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
 def interleaved_table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
     """Header and rows of the interleaved comparison (ratios ours / lagrange)."""
     head = ["op", "format", "ours wall", "lagrange wall", "ours/lagrange wall", "ours CPU",
-            "lagrange CPU", "ours/lagrange CPU"]  # fmt: skip
+            "lagrange CPU", "ours/lagrange CPU", "ours peak/file"]  # fmt: skip
     table = [
         [
             r["op"], r["format"], fmt_time(r["ours_wall_s"]), fmt_time(r["lagrange_wall_s"]),
             f"{r['ours_wall_s'] / r['lagrange_wall_s']:.2f}", fmt_time(r["ours_cpu_s"]),
             fmt_time(r["lagrange_cpu_s"]), f"{r['ours_cpu_s'] / r['lagrange_cpu_s']:.2f}",
+            f"{r['ours_peak_bytes'] / r['bytes']:.2f}",
         ]
         for r in rows
     ]  # fmt: skip

@@ -1,6 +1,9 @@
 """Property-based tests of the mesh readers and writers (hypothesis).
 
-* Random valid polygon meshes written in every format read back bit for bit.
+* Random valid polygon meshes written in every format read back bit for bit; the text
+  formats hold each coordinate as Python's ``repr``; comments and blank lines added to the
+  text change nothing; a number replaced by a non-number gives a ValueError naming the file
+  and the line.
 * Random corruptions of real files (truncation, flipped bytes, garbage lines, other line
   endings, a byte-order mark, a wrong extension) either raise a ValueError naming the file or
   give a valid mesh: finite coordinates (or a warning saying they are not), every index in
@@ -67,6 +70,56 @@ def test_random_meshes_round_trip_bit_for_bit(tmp_path, mesh, fmt):
     got_verts, got_faces = read_mesh(tmp_path / name)
     assert np.array_equal(got_verts.numpy().view(np.int64), verts.view(np.int64))  # -0.0 too
     assert got_faces.tolist() == faces
+    if not binary:
+        prefix = "v " if name.endswith(".obj") else ""
+        lines = "".join(prefix + " ".join(map(repr, row)) + "\n" for row in verts.tolist())
+        assert lines.encode() in (tmp_path / name).read_bytes()
+
+
+TEXT_FORMATS = ["m.obj", "m.off", "m.ply"]
+
+
+@FUZZ
+@given(mesh=polygon_meshes(), name=st.sampled_from(TEXT_FORMATS[:2]), data=st.data())
+def test_comments_and_blank_lines_change_nothing(tmp_path, mesh, name, data):
+    TRIED["comments / blank lines"] += 1
+    verts, faces = mesh
+    write_mesh(tmp_path / name, verts, faces)
+    lines = (tmp_path / name).read_bytes().split(b"\n")
+    extra = st.sampled_from([b"", b"   ", b"# a comment 1 2 3", b"\t# f 1 2 3"])
+    for _ in range(data.draw(st.integers(1, 5))):
+        at = data.draw(st.integers(1, len(lines) - 1))  # after the first line (OFF's keyword)
+        lines.insert(at, data.draw(extra))
+    at = data.draw(st.integers(1, len(lines) - 2))
+    lines[at] += data.draw(st.sampled_from([b" # trailing", b"#", b" "]))
+    (tmp_path / name).write_bytes(b"\n".join(lines))
+    got_verts, got_faces = read_mesh(tmp_path / name)
+    assert np.array_equal(got_verts.numpy().view(np.int64), verts.view(np.int64))
+    assert got_faces.tolist() == faces
+
+
+@FUZZ
+@given(
+    mesh=polygon_meshes(),
+    name=st.sampled_from(TEXT_FORMATS),
+    data=st.data(),
+    bad=st.sampled_from([b"x", b"1..5", b"--2", b"1e", b"0x1", b"1,5", b"nan(1)"]),
+)
+def test_a_broken_number_is_named_with_its_line(tmp_path, mesh, name, data, bad):
+    """Any number of a written text file replaced by a non-number: the error names the line."""
+    TRIED["broken number"] += 1
+    verts, faces = mesh
+    write_mesh(tmp_path / name, verts, faces)
+    lines = (tmp_path / name).read_bytes().split(b"\n")
+    first = lines.index(b"end_header") + 1 if name == "m.ply" else 2 * (name == "m.off")
+    no = data.draw(st.integers(first, len(lines) - 2))
+    toks = lines[no].split(b" ")
+    which = data.draw(st.integers(1 if name == "m.obj" else 0, len(toks) - 1))
+    toks[which] = bad
+    lines[no] = b" ".join(toks)
+    (tmp_path / name).write_bytes(b"\n".join(lines))
+    with pytest.raises(ValueError, match=re.escape(f"{tmp_path / name}, line {no + 1}: ")):
+        read_mesh(tmp_path / name)
 
 
 @FUZZ

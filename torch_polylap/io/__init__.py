@@ -14,8 +14,9 @@ one :class:`SkippedContentWarning` per read; ``return_attributes=True`` returns 
 coordinates and normals.  Writing is atomic: a file is either the old one or the complete new
 one, whatever happens during the write.
 
-Modules: :mod:`.obj`, :mod:`.off`, :mod:`.ply` (one per format), :mod:`.common` (what they
-share), :mod:`.writers` (text blocks, PLY) and :mod:`.triangulate` (the triangles that
+Modules: :mod:`.obj`, :mod:`.off`, :mod:`.ply` (one reader per format), :mod:`.text` (the
+text readers' tokens and numbers: numpy's parser), :mod:`.common` (what they share),
+:mod:`.writers` (text blocks, PLY) and :mod:`.triangulate` (the triangles that
 :func:`torch_polylap.interop.to_trimesh` and :func:`torch_polylap.interop.to_pytorch3d` hand over).
 """
 
@@ -187,15 +188,12 @@ def write_mesh(
 ) -> None:
     """Write a polygon mesh as OBJ, OFF or PLY, chosen by the file extension, atomically.
 
-    Coordinates are written as decimals that read back as the same doubles (text formats; each
-    is checked by parsing it back, or is a 17-digit decimal rounded exactly, which always does)
-    or as doubles (binary PLY), so reading the file back with
-    ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The decimals are the shortest
-    that do (Python's ``repr``: at most 17 significant digits) but in rare cases one digit
-    longer (see :mod:`torch_polylap.io.float_text`).  The
-    file is written to a temporary file in the same folder and moved onto ``path`` only once
-    complete (see :func:`~torch_polylap.atomic.atomic_write`): an existing file is never
-    left half-overwritten.
+    Coordinates are written as Python's ``repr`` of each double (text formats: the shortest
+    decimal that reads back as the same double) or as doubles (binary PLY), so reading the
+    file back with ``dtype=torch.float64`` reproduces ``verts`` bit for bit.  The file is
+    written to a temporary file in the same folder and moved onto ``path`` only once complete
+    (see :func:`~torch_polylap.atomic.atomic_write`): an existing file is never left
+    half-overwritten.
 
     Args:
         path: the file to write (replaced if it exists).

@@ -12,7 +12,7 @@ import os
 import re
 import stat
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -104,11 +104,6 @@ class Skipped:
             SkippedContentWarning,
             stacklevel=3,
         )
-
-
-# --------------------------------------------------------------------------------------------
-# file access and content sniffing
-# --------------------------------------------------------------------------------------------
 
 
 def read_regular_file(path: Path) -> bytes:
@@ -218,69 +213,42 @@ def _looks_utf16(head: bytes) -> bool:
     return even.count(0) > 0.4 * len(even) or odd.count(0) > 0.4 * len(odd)
 
 
+# bytes that never occur in text meshes: NUL and the C0 controls other than tab, the line
+# breaks, VT, FF and ESC (random bytes hit one with probability ~1/9 per byte)
+_BINARY = bytes(range(9)) + bytes(range(14, 27)) + bytes(range(28, 32)) + b"\x7f"
+_NOT_BINARY = bytes(set(range(256)) - set(_BINARY))
+
+
 def check_text(data: bytes, name: str, fmt: str, first_line: int = 1) -> None:
     """Reject binary bytes in what must be text, naming the first line holding one."""
-    # NUL and the C0 controls other than tab, newlines, form feed and vertical tab never occur in
-    # text meshes; random bytes hit one with probability ~1/9 per byte.
-    if not _has_control_bytes(data):
+    found = data.translate(None, _NOT_BINARY)  # one C loop; the rare hit is then located
+    if not found:
         return
-    bad = re.search(rb"[\x00-\x08\x0e-\x1a\x1c-\x1f\x7f]", data)
-    if bad is None:
-        return
-    line = first_line + count_lines(data[: bad.start()])
+    at = data.index(found[:1])
+    line = first_line + data.count(b"\n", 0, at) + data.count(b"\r", 0, at)
+    line -= data.count(b"\r\n", 0, at)
     raise ValueError(
-        f"{name}, line {line}: binary data (byte 0x{data[bad.start()]:02x}) in a text {fmt} file: "
+        f"{name}, line {line}: binary data (byte 0x{data[at]:02x}) in a text {fmt} file: "
         "the file is corrupt, compressed or in another format; re-export or re-download it."
     )
-
-
-def _has_control_bytes(data: bytes) -> bool:
-    """Whether ``data`` may hold a byte :func:`check_text` refuses: a quick count with numpy (a
-    regular-expression scan takes seconds on a large file), then the regex only to locate it."""
-    whole = np.frombuffer(data, dtype=np.uint8)
-    for at in range(0, len(whole), 1 << 20):  # slices: small temporaries, hot in the cache
-        u = whole[at : at + (1 << 20)]
-        # bytes below the space are, in most files, line breaks only: one count settles it
-        below = np.count_nonzero(u < 32)
-        if below and below != np.count_nonzero(u == 10):
-            below -= np.count_nonzero((u - np.uint8(9)) <= 4)  # tab, line breaks, VT, FF
-            if below != np.count_nonzero(u == 27):  # ESC
-                return True
-    return b"\x7f" in data
 
 
 _COMMENT = re.compile(rb"#[^\n]*")
 _LATIN1_SPACES = bytes.maketrans(b"\x85\xa0", b"  ")
 
 
-def plain_text(data: bytes) -> bytes | None:
-    """``data`` as the bulk parsers read it: ``\\n`` line breaks, ``#`` comments removed (line
-    breaks kept, so line numbers stay), and the non-ASCII bytes that ``str.split`` splits at on
-    latin-1 text made spaces.  None when it holds ESC (not whitespace, but below the space, so
-    the bulk tokenizer would split at it): the line parsers read such files."""
+def plain_text(data: bytes, comments: bool = True) -> bytes:
+    """``data`` as the text readers read it: ``\\n`` line breaks, ``#`` comments removed when
+    ``comments`` (line breaks kept, so line numbers stay), and the non-ASCII bytes that
+    ``str.split`` splits at on latin-1 text made spaces."""
     text = data
     if b"\r" in text:
         text = text.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
-    if b"#" in text:
+    if comments and b"#" in text:
         text = _COMMENT.sub(b"", text)
-    if b"\x1b" in text:
-        return None
     if b"\x85" in text or b"\xa0" in text:
         text = text.translate(_LATIN1_SPACES)
     return text
-
-
-def text_lines(data: bytes) -> list[str]:
-    """The lines of a text file, split at LF, CRLF or a lone CR (classic Mac OS)."""
-    text = data.decode("latin-1")  # every byte maps to one character: odd bytes cannot fail
-    if "\r" in text:
-        text = text.replace("\r\n", "\n").replace("\r", "\n")
-    return text.split("\n")
-
-
-def count_lines(data: bytes) -> int:
-    """Line breaks (LF, CRLF or lone CR) in ``data``."""
-    return data.count(b"\n") + data.count(b"\r") - data.count(b"\r\n")
 
 
 def check_count(name: str, what: str, count: int, room: int, where: str = "the header") -> None:
@@ -291,11 +259,6 @@ def check_count(name: str, what: str, count: int, room: int, where: str = "the h
             f"{name}: {where} declares {count} {what}, but the file has room for at most {room}: "
             "the header is corrupt or the file truncated; re-export or re-download it."
         )
-
-
-# --------------------------------------------------------------------------------------------
-# numbers and faces
-# --------------------------------------------------------------------------------------------
 
 
 class BadNumber(Exception):
@@ -325,17 +288,20 @@ def check_faces(
     name: str,
     indices: np.ndarray,
     sizes: np.ndarray,
-    num_verts: int,
+    num_verts: int | None,
     where: Callable[[int], str],
     written: np.ndarray | None = None,
 ) -> None:
-    """Reject faces with < 3 corners and indices outside ``[0, V)``, naming the face."""
+    """Reject faces with < 3 corners and indices outside ``[0, V)`` (``num_verts`` None: no
+    range check), naming the face."""
     if sizes.size and sizes.min() < 3:
         f = int(np.flatnonzero(sizes < 3)[0])
         raise ValueError(
             f"{name}, {where(f)}: face {f} has {int(sizes[f])} vertices; "
             "a polygon needs at least 3."
         )
+    if num_verts is None:
+        return
     bad = (indices < 0) | (indices >= num_verts)
     if bad.any():
         corner = int(np.flatnonzero(bad)[0])
@@ -344,16 +310,6 @@ def check_faces(
         raise ValueError(
             f"{name}, {where(f)}: face {f} refers to vertex {shown}, "
             f"out of range for the {num_verts} vertices in the file."
-        )
-
-
-def check_sizes_binary(name: str, sizes: np.ndarray, what: str) -> None:
-    """Reject faces with fewer than 3 corners in a binary file, naming the record."""
-    if sizes.size and sizes.min() < 3:
-        f = int(np.flatnonzero(sizes < 3)[0])
-        raise ValueError(
-            f"{name}, {what} {f}: face {f} has {int(sizes[f])} vertices; "
-            "a polygon needs at least 3."
         )
 
 
@@ -375,18 +331,6 @@ def check_mesh(name: str, parsed: Parsed, where: Callable[[int], str]) -> None:
             UserWarning,
             stacklevel=3,
         )
-
-
-def content_lines(lines: list[str], start: int) -> Iterator[tuple[int, list[str]]]:
-    """``(1-based line number, tokens)`` of each line from ``start`` that has data after
-    removing ``#`` comments."""
-    for no in range(start, len(lines)):
-        line = lines[no]
-        if "#" in line:
-            line = line[: line.index("#")]
-        toks = line.split()
-        if toks:
-            yield no + 1, toks
 
 
 def verts_numpy(verts: ArrayLike) -> np.ndarray:

@@ -1,34 +1,22 @@
 """Wavefront OBJ: ``v``/``f`` records, and on request ``vt``/``vn`` with per-corner references.
 
-Two parsers read the same files to the same result.  The bulk one (:func:`_read_obj_bulk`)
-finds tokens and converts numbers with numpy, a chunk of lines at a time; it handles ``v``,
-``vt``, ``vn`` and ``f`` records in bulk and loops in Python only over the other records
-(groups, materials...), which files hold few of.  Whenever it meets something it does not
-handle (line continuations, per-corner attributes on request) or anything wrong with the file,
-it gives up and the line-by-line parser (:func:`_read_obj_lines`) reads the file instead: that
-one is the reference, and the one whose messages name the offending line.
+The text is read a chunk of lines at a time (:mod:`.text`): each line's keyword is classified
+with numpy, the ``v``, ``vt``, ``vn`` and ``f`` records' numbers are converted in one numpy call
+per chunk and kind, and only the other records (groups, materials...), which files hold few
+of, are looked at line by line.  Every error names the line of the record at fault.
 """
 
 from __future__ import annotations
 
 import re
 import warnings
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .common import (
-    BadNumber,
-    Parsed,
-    Skipped,
-    check_faces,
-    check_text,
-    numbers,
-    plain_text,
-    text_lines,
-)
-from .float_text import float_pieces
-from .tokens import Chunk, chunks, runs
-from .writers import Pieces, face_pieces, vertex_block
+from .common import BadNumber, Parsed, Skipped, check_text, plain_text
+from .text import Chunk, chunks, runs
+from .writers import Pieces, face_pieces, float_pieces
 
 # Records that carry no polygon connectivity, as the skipped-content warning names them.
 _SKIPPED = {
@@ -48,24 +36,9 @@ _FREE_FORM |= {"scrv", "sp", "end", "con", "mg", "bevel", "c_interp", "d_interp"
 _FREE_FORM |= {"shadow_obj", "trace_obj", "ctech", "stech", "call", "csh", "maplib", "usemap"}
 _EXTRA_VALUES = "vertex colours or weights (values after x y z)"
 _CONTINUATION = re.compile(rb"\\[ \t\x0b\x0c]*(?:\n|$)")
-
-
-class _Corners:
-    """Per-corner ``vt``/``vn`` references of the faces, collected when attributes are wanted."""
-
-    def __init__(self) -> None:
-        self.uv: list[str] = []
-        self.normals: list[str] = []
-        self.uv_before: list[int] = []  # negative references count back from those read so far
-        self.normals_before: list[int] = []
-
-    def add_face(self, toks: list[str], num_uv: int, num_normals: int) -> None:
-        for tok in toks:
-            parts = tok.split("/")
-            self.uv.append(parts[1] if len(parts) > 1 and parts[1] else "0")
-            self.normals.append(parts[2] if len(parts) > 2 and parts[2] else "0")
-        self.uv_before.append(num_uv)
-        self.normals_before.append(num_normals)
+_SLASH = 47
+# per reference kind: its rows' name in messages, and the attributes key
+_WHAT = {"vertex": "vertex", "uv": "texture coordinate", "normals": "normal"}
 
 
 def read_obj(data: bytes, name: str, skipped: Skipped, want_attributes: bool) -> Parsed:
@@ -74,25 +47,50 @@ def read_obj(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     A file whose last line is a ``v`` or ``f`` record without a line break after it may have
     been cut short in the middle of that record (a truncated download): it is read, with a
     warning naming the line.  A corner ending in ``/`` (``12/``, what is left of ``12/7`` cut
-    short) is an error.
+    short) is vertex 12 (the polyLaplace research code writes faces so).
     """
     check_text(data, name, "OBJ")
-    text = _plain_text(data)
-    parsed = None
-    if text is not None and not want_attributes:
-        parsed = _read_obj_bulk(text, name, skipped)
-    if parsed is None:
-        parsed = _read_obj_lines(data, name, skipped, want_attributes)
+    reader = _ObjReader(name, want_attributes)
+    for chunk in chunks(_join_continuations(plain_text(data), name)):
+        counts = {kind: refs.count for kind, refs in reader.refs.items()}
+        faces = reader.faces
+        try:
+            reader.add(chunk)
+        except ValueError:
+            # a chunk's errors are found kind by kind: line by line, the first one in the file
+            probe = _ObjReader(name, want_attributes)
+            for kind, refs in probe.refs.items():
+                refs.count = counts[kind]
+            probe.faces = faces
+            for line in chunk.lines():
+                probe.add(line)
+            raise
+    parsed = reader.finish(skipped)
     _warn_unterminated(data, name)
     return parsed
 
 
-def _plain_text(data: bytes) -> bytes | None:
-    """:func:`plain_text`, or None for line continuations (left to the line parser)."""
-    text = plain_text(data)
-    if text is None or (b"\\" in text and _CONTINUATION.search(text)):
-        return None
-    return text
+def _join_continuations(text: bytes, name: str) -> bytes:
+    """``text`` with each line ending in ``\\`` joined to the next: the record on its first
+    line, blank lines in place of the others, so that line numbers stay (comments are already
+    cut, so a backslash ending a comment continues nothing)."""
+    if b"\\" not in text or not _CONTINUATION.search(text):
+        return text
+    out: list[bytes] = []
+    pending: bytes | None = None
+    held = 0
+    for line in text.split(b"\n"):
+        if pending is not None:
+            line = pending + line
+        stripped = line.rstrip()
+        if stripped.endswith(b"\\"):
+            pending, held = stripped[:-1] + b" ", held + 1
+            continue
+        out += [line] + [b""] * held
+        pending, held = None, 0
+    if pending is not None:
+        raise ValueError(f"{name}, line {len(out) + 1}: the file ends in a line continuation.")
+    return b"\n".join(out)
 
 
 def _warn_unterminated(data: bytes, name: str) -> None:
@@ -117,249 +115,214 @@ def _warn_unterminated(data: bytes, name: str) -> None:
     )
 
 
-def _read_obj_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
-    """Parse OBJ text prepared by :func:`_plain_text` in bulk; None when the file needs the
-    line parser (for anything unusual, and for every error, whose message that one words).
+@dataclass
+class _Refs:
+    """One kind of per-corner reference (vertex, texture coordinate, normal) as read so far:
+    0-based rows, and the first corner whose negative reference counts back past the first
+    row (a message needs the file's row count, known at the end only)."""
 
-    A chunk holding only ``v x y z`` lines, or only faces of one degree (the usual layout), is
-    read as a block of consecutive tokens; any other chunk line by line in numpy (keywords
-    classified per line, values through index arrays)."""
-    coords: list[np.ndarray] = []
-    indices: list[np.ndarray] = []
-    sizes: list[np.ndarray] = []
-    found: list[tuple[int, str, int, str | None]] = []  # (line, what, count, example)
-    hint = False
-    num_verts = 0
-    for chunk in chunks(text):
-        uniform = _uniform_block(chunk)
-        if uniform is not None:  # only ``v x y z`` lines, or only faces of one degree
-            keyword, rows, width = uniform
-            start, end = chunk.block(0, rows, width, 1)
-            try:
-                if keyword == "v":
-                    coords.append(chunk.floats_at(start, end))
-                    num_verts += rows
-                    continue
-                written = chunk.ints_at(start, end, cut=47)
-            except BadNumber:
-                return None
-            if not _resolve(written, num_verts):
-                return None
-            indices.append(written)
-            sizes.append(np.full(rows, width - 1, dtype=np.int64))
-            continue
-        buf, per_line = chunk.buf, chunk.per_line
-        lines = np.flatnonzero(per_line)
-        key = chunk.first_token[lines]
-        count = per_line[lines]
-        at = chunk.start[key]
-        length = chunk.end[key] - at
-        c0, c1 = buf[at], buf[at + 1]
+    rows: list[np.ndarray] = field(default_factory=list)
+    count: int = 0  # rows (v, vt or vn records) read so far
+    before_first: tuple[int, int] | None = None  # (corner, written reference)
+
+
+class _ObjReader:
+    """Collects the records of an OBJ file, a :class:`Chunk` at a time."""
+
+    def __init__(self, name: str, want_attributes: bool) -> None:
+        self.name = name
+        self.want = want_attributes
+        self.coords: list[np.ndarray] = []
+        self.values: dict[str, list[np.ndarray]] = {"uv": [], "normals": []}
+        self.refs = {"vertex": _Refs(), "uv": _Refs(), "normals": _Refs()}
+        self.sizes: list[np.ndarray] = []
+        self.face_lines: list[np.ndarray] = []
+        self.found: list[tuple[int, str, int, str | None]] = []  # (line, what, count, example)
+        self.hint = False
+        self.faces = 0
+        self.corners = 0
+
+    def add(self, chunk: Chunk) -> None:
+        """Read the records of ``chunk``."""
+        lines = np.flatnonzero(chunk.count)
+        key = chunk.first.take(lines)
+        count = chunk.count.take(lines)
+        at = chunk.start.take(key)
+        length = chunk.end.take(key) - at
+        c0, c1 = chunk.buf.take(at), chunk.buf.take(np.minimum(at + 1, len(chunk.buf) - 1))
         is_v = (length == 1) & (c0 == 118)
         is_f = (length == 1) & (c0 == 102)
         is_vt = (length == 2) & (c0 == 118) & (c1 == 116)
         is_vn = (length == 2) & (c0 == 118) & (c1 == 110)
         line_no = chunk.line0 + lines + 1
-
-        def note(mask: np.ndarray, what: str, line_no: np.ndarray = line_no) -> None:
-            if mask.any():
-                found.append((int(line_no[np.argmax(mask)]), what, int(mask.sum()), None))
-
-        note(is_vt, _SKIPPED["vt"])
-        note(is_vn, _SKIPPED["vn"])
-        hint |= bool(is_vt.any() or is_vn.any())
         for i in np.flatnonzero(~(is_v | is_f | is_vt | is_vn)).tolist():
-            parts = chunk.line_text(int(key[i]), int(count[i])).split()
+            parts = chunk.line_text(int(lines[i])).split()
             record = _skipped_what(parts[0], parts, int(line_no[i]))
             if record is not None:
-                found.append((int(line_no[i]), *record))
+                self.found.append((int(line_no[i]), *record))
+        kinds = {"vertex": is_v, "uv": is_vt, "normals": is_vn}
+        # rows of each kind before each face line: negative references count back from them
+        before = {kind: self.refs[kind].count + np.cumsum(m)[is_f] for kind, m in kinds.items()}
+        for kind, m in kinds.items():
+            if kind == "vertex" or self.want:
+                self._rows(chunk, kind, lines[m], key[m], count[m] - 1, line_no[m])
+            elif m.any():
+                what = _SKIPPED["vt" if kind == "uv" else "vn"]
+                self.found.append((int(line_no[np.argmax(m)]), what, int(m.sum()), None))
+                self.hint = True
+        self._faces(chunk, key[is_f], count[is_f] - 1, line_no[is_f], before)
 
-        v_count = count[is_v]
-        if (v_count < 4).any():
-            return None
-        note(v_count > 4, _EXTRA_VALUES, line_no[is_v])
-        first = key[is_v]
+    def _rows(
+        self,
+        chunk: Chunk,
+        kind: str,
+        lines: np.ndarray,
+        key: np.ndarray,
+        given: np.ndarray,
+        line_no: np.ndarray,
+    ) -> None:
+        """``v`` (x, y, z; values after them skipped), ``vt`` (u, v; v defaults to 0, w is
+        dropped) or ``vn`` (x, y, z) records, ``given`` values after their keywords."""
+        width = 2 if kind == "uv" else 3
+        short = given < (1 if kind == "uv" else 3)
+        if short.any():
+            i = int(np.argmax(short))
+            needs = "a vertex needs 3 coordinates" if kind == "vertex" else (
+                f"{chunk.line_text(int(lines[i])).split()[0]!r} needs {width} values"
+            )  # fmt: skip
+            raise ValueError(
+                f"{self.name}, line {line_no[i]}: {needs}, got {chunk.line_text(int(lines[i]))!r}."
+            )
+        extra = given > 3
+        if kind == "vertex" and extra.any():
+            line = int(line_no[np.argmax(extra)])
+            self.found.append((line, _EXTRA_VALUES, int(extra.sum()), None))
+        values = np.zeros(len(key) * width)
+        tokens = (key[:, None] + 1 + np.arange(width)).reshape(-1)
+        pick: np.ndarray | slice = slice(None)  # every value given (vertices always)
+        if (given < width).any():
+            pick = np.flatnonzero((np.arange(width) < given[:, None]).reshape(-1))
         try:
-            values = chunk.floats((first[:, None] + np.arange(1, 4)).reshape(-1))
-        except BadNumber:
-            return None
-        coords.append(values)
+            values[pick] = chunk.values(tokens[pick], float)
+        except BadNumber as e:
+            what = "vertex coordinate" if kind == "vertex" else f"{_WHAT[kind]} value"
+            line = line_no[np.arange(len(tokens))[pick][e.position] // width]
+            raise ValueError(
+                f"{self.name}, line {line}: cannot parse {what} {e.token!r}."
+            ) from None
+        (self.coords if kind == "vertex" else self.values[kind]).append(values)
+        self.refs[kind].count += len(key)
 
-        f_size = count[is_f] - 1
-        corners = runs(key[is_f] + 1, f_size)
-        try:  # "12/" and "12//" are vertex 12
-            written = chunk.ints_at(*chunk.bounds(corners), cut=47)
-        except BadNumber:
-            return None
-        if (written == 0).any():
-            return None
-        if (written < 0).any():  # negative indices count back from the vertices read so far
-            before = num_verts + np.cumsum(is_v.astype(np.int64))[is_f]
-            indices.append(np.where(written > 0, written - 1, np.repeat(before, f_size) + written))
-        else:
-            written -= 1
-            indices.append(written)
-        sizes.append(f_size)
-        num_verts += len(first)
-
-    verts = np.concatenate(coords).reshape(-1, 3) if coords else np.zeros((0, 3))
-    index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
-    size = np.concatenate(sizes) if sizes else np.zeros(0, dtype=np.int64)
-    if size.size and size.min() < 3:
-        return None
-    if index.size and (index.min() < 0 or index.max() >= len(verts)):
-        return None
-    for _, what, n, example in sorted(found, key=lambda item: item[0]):
-        skipped.add(what, n, example)
-    skipped.attributes_hint |= hint
-    return Parsed(verts, index, size)
-
-
-def _uniform_block(chunk: Chunk) -> tuple[str, int, int] | None:
-    """``(keyword, lines, tokens per line)`` when every line of ``chunk`` is a ``v x y z``
-    record, or every one an ``f`` record of the same degree (the usual layout: their values
-    are then blocks of consecutive tokens); None otherwise."""
-    first, count, _ = chunk.lines()
-    lines = len(count)
-    if lines == 0 or first[0] != 0:
-        return None
-    width = int(count[0])
-    if width < 4 or not (count == width).all():
-        return None
-    key_start = chunk.start[: lines * width : width]
-    if not (chunk.end[: lines * width : width] - key_start == 1).all():
-        return None
-    key = chunk.buf.take(key_start)
-    if width == 4 and (key == 118).all():
-        return "v", lines, width
-    if (key == 102).all():
-        return "f", lines, width
-    return None
-
-
-def _resolve(written: np.ndarray, num_verts: int) -> bool:
-    """Turn OBJ's written indices (1-based, negative counting back from the ``num_verts``
-    vertices read so far) into 0-based ones, in place; False for a 0 among them."""
-    if written.size == 0:
-        return True
-    low = int(written.min())
-    if low > 0:
-        written -= 1
-        return True
-    if (written == 0).any():
-        return False
-    negative = written < 0
-    written -= 1
-    np.add(written, num_verts + 1, out=written, where=negative)
-    return True
-
-
-def _read_obj_lines(data: bytes, name: str, skipped: Skipped, want_attributes: bool) -> Parsed:
-    """The line-by-line reference parser (every feature, and the messages of every error)."""
-    coords: list[str] = []
-    vert_lines: list[int] = []
-    corners: list[str] = []
-    sizes: list[int] = []
-    face_lines: list[int] = []
-    verts_before: list[int] = []  # negative indices count back from the vertices read so far
-    uv: list[str] = []
-    normals: list[str] = []
-    refs = _Corners() if want_attributes else None
-    pending = ""
-    start = 0
-    for no, line in enumerate(text_lines(data), 1):
-        if pending:
-            line = pending + line
-        else:
-            start = no
-        # Comments are cut first so that a backslash at the end of a comment continues nothing.
-        if "#" in line:
-            line = line[: line.index("#")]
-        if "\\" in line:
-            stripped = line.rstrip()
-            if stripped.endswith("\\"):
-                pending = stripped[:-1] + " "
-                continue
-        pending = ""
-        parts = line.split()
-        if not parts:
-            continue
-        key = parts[0]
-        if key == "v":
-            if len(parts) < 4:
+    def _faces(
+        self,
+        chunk: Chunk,
+        key: np.ndarray,
+        size: np.ndarray,
+        line_no: np.ndarray,
+        before: dict[str, np.ndarray],
+    ) -> None:
+        if (size < 3).any():
+            f = int(np.argmax(size < 3))
+            raise ValueError(
+                f"{self.name}, line {line_no[f]}: face {self.faces + f} has {int(size[f])} "
+                "vertices; a polygon needs at least 3."
+            )
+        corners = runs(key + 1, size)
+        start, end = chunk.start.take(corners), chunk.end.take(corners)
+        offsets = np.cumsum(size)
+        parts = {"vertex": (start, chunk.cut(start, end, _SLASH))}
+        if self.want:
+            first = parts["vertex"][1]
+            second = chunk.cut(start, end, _SLASH, 1)
+            third = chunk.cut(start, end, _SLASH, 2)
+            parts["uv"] = (np.minimum(first + 1, end), second)
+            parts["normals"] = (np.minimum(second + 1, end), third)
+        for kind, (a, b) in parts.items():
+            given = b > a  # an empty texture or normal reference: none
+            written = np.zeros(len(a), dtype=np.int64)
+            try:
+                if kind == "vertex":  # most corners are the vertex alone: nothing to cut
+                    cut = b if (b < end).any() else None
+                    written = chunk.values(corners, int, end=cut)
+                elif given.any():
+                    written[given] = chunk.values(corners[given], int, a[given], b[given])
+            except BadNumber as e:
+                corner = e.position if kind == "vertex" else int(np.flatnonzero(given)[e.position])
+                f = int(np.searchsorted(offsets, corner, side="right"))
                 raise ValueError(
-                    f"{name}, line {start}: a vertex needs 3 coordinates, got {line.strip()!r}."
+                    f"{self.name}, line {line_no[f]}: face {self.faces + f} has an unparsable "
+                    f"{_WHAT[kind]} index {e.token!r}."
+                ) from None
+            if kind == "vertex" and (written == 0).any():
+                f = int(np.searchsorted(offsets, int(np.argmax(written == 0)), side="right"))
+                raise ValueError(
+                    f"{self.name}, line {line_no[f]}: face {self.faces + f} refers to vertex 0, "
+                    "but OBJ vertex indices start at 1 (negative indices count back from the "
+                    "last vertex read)."
                 )
-            coords.extend(parts[1:4])
-            vert_lines.append(start)
-            if len(parts) > 4:
-                skipped.add("vertex colours or weights (values after x y z)")
-        elif key == "f":
-            # a corner "12/" is vertex 12 (the polyLaplace research code writes faces so); a
-            # file cut in the middle of a face is caught by the last-line check instead
-            toks = parts[1:]
-            if refs is not None:
-                refs.add_face(toks, len(uv) // 2, len(normals) // 3)
-            if "/" in line:
-                toks = [t.partition("/")[0] for t in toks]
-            corners.extend(toks)
-            sizes.append(len(toks))
-            face_lines.append(start)
-            verts_before.append(len(vert_lines))
-        elif key == "vt" and refs is not None:
-            _attribute_values(parts, 2, uv, name, start)
-        elif key == "vn" and refs is not None:
-            _attribute_values(parts, 3, normals, name, start)
-        else:
-            _skip_record(key, parts, skipped, start)
-    if pending:
-        raise ValueError(f"{name}, line {start}: the file ends in a line continuation.")
+            self._resolve(self.refs[kind], written, np.repeat(before[kind], size))
+        self.sizes.append(size)
+        self.face_lines.append(line_no)
+        self.faces += len(size)
+        self.corners += len(corners)
 
-    try:
-        verts = numbers(coords, float).reshape(-1, 3)
-    except BadNumber as e:
-        raise ValueError(
-            f"{name}, line {vert_lines[e.position // 3]}: cannot parse vertex coordinate "
-            f"{e.token!r}."
-        ) from None
-    size_arr = np.asarray(sizes, dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(size_arr)])
+    def _resolve(self, refs: _Refs, written: np.ndarray, before: np.ndarray) -> None:
+        """0-based rows of 1-based references (negative: counting back from ``before``; 0:
+        none, -1)."""
+        rows = written - 1
+        negative = written < 0
+        if negative.any():
+            rows[negative] = before[negative] + written[negative]
+            past = negative & (rows < 0)
+            if past.any() and refs.before_first is None:
+                corner = int(np.argmax(past))
+                refs.before_first = (self.corners + corner, int(written[corner]))
+        refs.rows.append(rows)
 
-    def face_at(corner: int) -> int:
-        return int(np.searchsorted(offsets, corner, side="right")) - 1
+    def finish(self, skipped: Skipped) -> Parsed:
+        """The mesh read; raises for references past the file's rows."""
+        verts = _joined(self.coords, np.float64).reshape(-1, 3)
+        sizes = _joined(self.sizes, np.int64)
+        face_lines = _joined(self.face_lines, np.int64)
+        offsets = np.cumsum(sizes)
+        indices = self._checked("vertex", len(verts), offsets, face_lines)
+        parsed = Parsed(verts, indices, sizes)
+        if self.want:
+            for kind, width in (("uv", 2), ("normals", 3)):
+                values = _joined(self.values[kind], np.float64).reshape(-1, width)
+                rows = self._checked(kind, len(values), offsets, face_lines)
+                if len(values):
+                    parsed.attributes[kind] = values
+                if (rows >= 0).any():
+                    parsed.attributes["corner_" + kind] = rows
+        for _, what, n, example in sorted(self.found, key=lambda item: item[0]):
+            skipped.add(what, n, example)
+        skipped.attributes_hint |= self.hint
+        return parsed
 
-    try:
-        written = numbers(corners, int)
-    except BadNumber as e:
-        f = face_at(e.position)
-        raise ValueError(
-            f"{name}, line {face_lines[f]}: face {f} has an unparsable vertex index {e.token!r}."
-        ) from None
-    if (written == 0).any():
-        f = face_at(int(np.flatnonzero(written == 0)[0]))
-        raise ValueError(
-            f"{name}, line {face_lines[f]}: face {f} refers to vertex 0, but OBJ vertex indices "
-            "start at 1 (negative indices count back from the last vertex read)."
-        )
-    before = np.repeat(np.asarray(verts_before, dtype=np.int64), size_arr)
-    indices = np.where(written > 0, written - 1, before + written)
-    check_faces(name, indices, size_arr, len(verts), lambda f: f"line {face_lines[f]}", written)
-    parsed = Parsed(verts, indices, size_arr)
-    if refs is not None:
-        where = (name, face_lines, size_arr, face_at)
-        _add_attribute(parsed, "uv", uv, 2, refs.uv, refs.uv_before, "texture coordinate", where)
-        _add_attribute(
-            parsed, "normals", normals, 3, refs.normals, refs.normals_before, "normal", where
-        )
-    return parsed
+    def _checked(
+        self, kind: str, total: int, offsets: np.ndarray, face_lines: np.ndarray
+    ) -> np.ndarray:
+        """The rows of references of ``kind``, refusing one outside the ``total`` rows."""
+        refs = self.refs[kind]
+        rows = _joined(refs.rows, np.int64)
+        past = np.flatnonzero(rows >= total)
+        bad = [(int(past[0]), int(rows[past[0]]) + 1)] if len(past) else []
+        if refs.before_first is not None:
+            bad.append(refs.before_first)
+        if bad:
+            corner, written = min(bad)
+            f = int(np.searchsorted(offsets, corner, side="right"))
+            of = "vertices in the file" if kind == "vertex" else "in the file"
+            raise ValueError(
+                f"{self.name}, line {face_lines[f]}: face {f} refers to {_WHAT[kind]} {written}, "
+                f"out of range for the {total} {of}."
+            )
+        return rows
 
 
-def _skip_record(key: str, parts: list[str], skipped: Skipped, line: int) -> None:
-    """Count a record the reader does not return (a nameless group or ``s off`` loses nothing)."""
-    what = _skipped_what(key, parts, line)
-    if what is not None:
-        skipped.add(*what)
-        skipped.attributes_hint |= key in ("vt", "vn")
+def _joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
+    return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
 
 
 def _skipped_what(key: str, parts: list[str], line: int) -> tuple[str, int, str | None] | None:
@@ -375,57 +338,6 @@ def _skipped_what(key: str, parts: list[str], line: int) -> tuple[str, int, str 
     return "records with an unknown keyword", 1, f"{key[:20]!r} at line {line}"
 
 
-def _attribute_values(parts: list[str], width: int, out: list[str], name: str, line: int) -> None:
-    """Append a ``vt`` (u, v; v defaults to 0, w is dropped) or ``vn`` (x, y, z) record."""
-    values = parts[1 : 1 + width]
-    if width == 2 and len(values) == 1:
-        values.append("0")
-    if len(values) < width:
-        raise ValueError(
-            f"{name}, line {line}: {parts[0]!r} needs {width} values, got {' '.join(parts)!r}."
-        )
-    out.extend(values)
-
-
-def _add_attribute(
-    parsed: Parsed,
-    key: str,
-    value_tokens: list[str],
-    width: int,
-    ref_tokens: list[str],
-    ref_before: list[int],
-    what: str,
-    where: tuple,
-) -> None:
-    """Parse the values of one attribute and resolve its per-corner references (0 = none)."""
-    name, face_lines, sizes, face_at = where
-    try:
-        values = numbers(value_tokens, float).reshape(-1, width)
-    except BadNumber as e:
-        raise ValueError(f"{name}: cannot parse {what} value {e.token!r}.") from None
-    try:
-        written = numbers(ref_tokens, int)
-    except BadNumber as e:
-        f = face_at(e.position)
-        raise ValueError(
-            f"{name}, line {face_lines[f]}: face {f} has an unparsable {what} index {e.token!r}."
-        ) from None
-    before = np.repeat(np.asarray(ref_before, dtype=np.int64), sizes)
-    refs = np.where(written > 0, written - 1, np.where(written < 0, before + written, -1))
-    bad = (written != 0) & ((refs < 0) | (refs >= len(values)))
-    if bad.any():
-        corner = int(np.flatnonzero(bad)[0])
-        f = face_at(corner)
-        raise ValueError(
-            f"{name}, line {face_lines[f]}: face {f} refers to {what} {int(written[corner])}, "
-            f"out of range for the {len(values)} in the file."
-        )
-    if len(values):
-        parsed.attributes[key] = values
-    if (refs >= 0).any():
-        parsed.attributes["corner_" + key] = refs
-
-
 def obj_text(
     v: np.ndarray,
     indices: np.ndarray,
@@ -433,7 +345,7 @@ def obj_text(
     attributes: dict[str, np.ndarray],
 ) -> Pieces:
     """OBJ text: ``vt``/``vn`` records and ``v/t/n`` corners when ``attributes`` has them."""
-    pieces = vertex_block(v, "v ")
+    pieces = float_pieces(v, b"v ")
     if "uv" in attributes:
         pieces += float_pieces(attributes["uv"], b"vt ")  # exact, as the vertices
     if "normals" in attributes:

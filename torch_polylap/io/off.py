@@ -1,16 +1,15 @@
 """Object File Format: ASCII ``OFF``/``COFF``/``NOFF``/``CNOFF``/``STOFF`` and ``OFF BINARY``.
 
-ASCII files are read in bulk (:func:`_read_off_bulk`: numpy tokens and numbers, a chunk of lines
-at a time) when every face record sits on one line; a face wrapped over several lines, and every
-malformed file, is read by the record-by-record parser, the reference whose messages name the
-offending line.
+ASCII bodies are read a chunk of lines at a time (:mod:`.text`): the vertex lines' numbers in
+one numpy call per chunk, and the face records, when each sits on one line (the usual layout),
+likewise.  Face records wrapped over several lines are followed token by token.  Every error
+names the line of the record at fault.
 """
 
 from __future__ import annotations
 
 import re
 import struct
-from collections.abc import Iterator
 
 import numpy as np
 
@@ -20,15 +19,10 @@ from .common import (
     Skipped,
     check_count,
     check_faces,
-    check_sizes_binary,
     check_text,
-    content_lines,
-    numbers,
     plain_text,
-    text_lines,
 )
-from .numparse import Scratch, parse_decimal_block, parse_index_block
-from .tokens import Chunk, chunks, runs
+from .text import Chunk, chunks, runs
 
 _OFF_KEYWORD = re.compile(r"(?:ST|C|N)*OFF")
 _FIRST_LINE = re.compile(rb"([^\r\n]*)(\r\n|\r|\n|$)")
@@ -55,23 +49,46 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
 
     check_text(data, name, "OFF")
     text = plain_text(data)
-    if text is not None:
-        parsed = _read_off_bulk(text, name, skipped)
-        if parsed is not None:
-            return parsed
-    content = content_lines(text_lines(data), 0)
-    head = next(content, None)
-    if head is None:
+    keyword, num_verts, num_faces, body, line0 = _header(text, name)
+    # Only absurd counts are caught here (every record takes more than a byte); a merely
+    # truncated file gets the precise message of the record readers below.
+    check_count(name, "vertices", num_verts, len(data), f"line {line0}")
+    check_count(name, "faces", num_faces, len(data), f"line {line0}")
+    reader = _OffReader(name, num_verts, num_faces, len(text) - body)
+    for chunk in chunks(text, body):
+        chunk.line0 += line0
+        reader.add(chunk)
+    return reader.finish(skipped, keyword)
+
+
+def _next_tokens(text: bytes, pos: int, line: int) -> tuple[list[str], int, int] | None:
+    """The tokens of the first non-blank line from ``pos`` (line number ``line``), the offset
+    after it and its line number (None at the end of the text)."""
+    toks: list[str] = []
+    while not toks:
+        if pos >= len(text):
+            return None
+        end = text.find(b"\n", pos)
+        end = len(text) if end < 0 else end + 1
+        toks, pos, line = text[pos:end].decode("latin-1").split(), end, line + 1
+    return toks, pos, line
+
+
+def _header(text: bytes, name: str) -> tuple[str, int, int, int, int]:
+    """``(keyword, vertices, faces, byte offset of the body, line of the counts)`` of
+    prepared ASCII OFF text."""
+    found = _next_tokens(text, 0, 0)
+    if found is None:
         raise ValueError(f"{name}: the file holds only comments, no OFF header.")
-    no, toks = head
+    toks, pos, no = found
     keyword = toks[0]
     if _OFF_KEYWORD.fullmatch(keyword):
         toks = toks[1:]
         if not toks:
-            head = next(content, None)
-            if head is None:
+            found = _next_tokens(text, pos, no)
+            if found is None:
                 raise ValueError(f"{name}: the file ends after the {keyword!r} header.")
-            no, toks = head
+            toks, pos, no = found
     elif keyword.endswith("OFF"):
         raise ValueError(
             f"{name}, line {no}: unsupported OFF variant {keyword!r} "
@@ -88,276 +105,192 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
             f"{name}, line {no}: expected the counts 'vertices faces [edges]', got "
             f"{' '.join(toks)!r}."
         ) from None
-    # Only absurd counts are caught here (every record takes more than a byte); a merely
-    # truncated file gets the precise message of the record loops below.
-    check_count(name, "vertices", num_verts, len(data), f"line {no}")
-    check_count(name, "faces", num_faces, len(data), f"line {no}")
-    verts = _ascii_vertices(content, num_verts, name, skipped, keyword)
-    indices, sizes, face_lines = _ascii_faces(content, num_faces, name, skipped)
-    check_faces(name, indices, sizes, num_verts, lambda f: f"line {face_lines[f]}")
-    return Parsed(verts, indices, sizes)
+    return keyword, num_verts, num_faces, pos, no
 
 
-def _next_tokens(text: bytes, pos: int) -> tuple[list[str], int] | None:
-    """The tokens of the first non-blank line from ``pos`` and the offset after it (None at
-    the end of the text)."""
-    toks: list[str] = []
-    while not toks:
-        if pos >= len(text):
+class _OffReader:
+    """Collects the vertex and face records of an ASCII OFF body, a :class:`Chunk` at a time."""
+
+    def __init__(self, name: str, num_verts: int, num_faces: int, room: int) -> None:
+        self.name = name
+        self.num_verts = num_verts
+        self.num_faces = num_faces
+        # rows for the vertex lines the body has room for ("x y z" and a line break: 6 bytes;
+        # more are declared only by a truncated file, which fails before filling them)
+        self.verts = np.empty((min(num_verts, (room + 1) // 6), 3))
+        self.read = 0  # vertex lines read
+        self.extra = 0  # vertex lines with values after x y z
+        self.indices: list[np.ndarray] = []
+        self.sizes: list[np.ndarray] = []
+        self.face_lines: list[np.ndarray] = []
+        self.faces = 0  # face records begun
+        self.need = 0  # corners the last face record still lacks (wrapped over lines)
+        self.coloured = 0
+
+    def add(self, chunk: Chunk) -> None:
+        """Read the records of ``chunk``."""
+        lines = np.flatnonzero(chunk.count)
+        first, count = chunk.first.take(lines), chunk.count.take(lines)
+        line_no = chunk.line0 + lines + 1
+        nv = min(self.num_verts - self.read, len(lines))
+        if nv:
+            self._vertices(chunk, lines[:nv], first[:nv], count[:nv], line_no[:nv])
+        if nv < len(lines):
+            self._faces(chunk, first[nv:], count[nv:], line_no[nv:])
+
+    def _vertices(
+        self,
+        chunk: Chunk,
+        lines: np.ndarray,
+        first: np.ndarray,
+        count: np.ndarray,
+        line_no: np.ndarray,
+    ) -> None:
+        short = int(np.argmax(count < 3)) if (count < 3).any() else len(count)
+        self.extra += int((count[:short] > 3).sum())
+        tokens = (first[:short, None] + np.arange(3)).reshape(-1)
+        try:  # the lines before a short one: the first error in the file is named
+            values = chunk.values(tokens, float)
+        except BadNumber as e:
+            raise ValueError(
+                f"{self.name}, line {line_no[e.position // 3]}: cannot parse vertex coordinate "
+                f"{e.token!r}."
+            ) from None
+        if short < len(count):
+            raise ValueError(
+                f"{self.name}, line {line_no[short]}: a vertex needs 3 coordinates, got "
+                f"{chunk.line_text(int(lines[short]))!r}."
+            )
+        self.verts[self.read : self.read + len(first)] = values.reshape(-1, 3)
+        self.read += len(first)
+
+    def _faces(
+        self, chunk: Chunk, first: np.ndarray, count: np.ndarray, line_no: np.ndarray
+    ) -> None:
+        """Face lines: one record each when they are (``k i1 .. ik [colour]``), in bulk; else
+        followed token by token."""
+        found = None if self.need else _one_per_line(chunk, first, count)
+        if found is not None and self.faces + len(first) <= self.num_faces:
+            sizes, corners, coloured, values = found
+            starts = np.cumsum(sizes) - sizes
+            self._add_faces(chunk, corners, sizes, starts, line_no, values)
+            self.coloured += coloured
+            return
+        corner_list: list[int] = []
+        sizes_list: list[int] = []
+        lines_list: list[int] = []
+        starts_list: list[int] = []
+
+        def add() -> None:  # a record begun in an earlier chunk gets its later corners here:
+            # in this chunk's numbering they come before its first record
+            self._add_faces(
+                chunk,
+                np.asarray(corner_list, dtype=np.int64),
+                np.asarray(sizes_list, dtype=np.int64),
+                np.asarray(starts_list, dtype=np.int64),
+                np.asarray(lines_list, dtype=np.int64),
+            )
+
+        for at, n, no in zip(first.tolist(), count.tolist(), line_no.tolist(), strict=True):
+            pos = 0
+            if self.need == 0:
+                face = self.faces + len(sizes_list)
+                token = chunk.text(int(chunk.start[at]), int(chunk.end[at]))
+                try:
+                    k: int | None = int(token)
+                except ValueError:
+                    k = None
+                error = None
+                if face == self.num_faces:
+                    error = f"data after the {self.num_faces} faces declared in the header."
+                elif k is None:
+                    error = f"face {face} starts with {token!r}, expected its vertex count."
+                elif k < 3:
+                    error = f"face {face} has {k} vertices; a polygon needs at least 3."
+                if error is not None or k is None:
+                    add()  # an unparsable index before it is the first error
+                    raise ValueError(f"{self.name}, line {no}: {error}")
+                self.need = k
+                sizes_list.append(self.need)
+                lines_list.append(no)
+                starts_list.append(len(corner_list))
+                pos = 1
+            take = min(self.need, n - pos)
+            corner_list += range(at + pos, at + pos + take)
+            self.need -= take
+            self.coloured += self.need == 0 and pos + take < n
+        add()
+
+    def _add_faces(
+        self,
+        chunk: Chunk,
+        corners: np.ndarray,
+        sizes: np.ndarray,
+        starts: np.ndarray,
+        line_no: np.ndarray,
+        values: np.ndarray | None = None,
+    ) -> None:
+        """Faces of ``sizes`` whose corners are the tokens ``corners`` (``values``, when
+        already read), starting at ``starts`` of them, on lines ``line_no``."""
+        try:
+            self.indices.append(chunk.values(corners, int) if values is None else values)
+        except BadNumber as e:
+            f = int(np.searchsorted(starts, e.position, side="right")) - 1
+            face = self.faces + f if f >= 0 else self.faces - 1
+            no = int(line_no[f]) if f >= 0 else int(self.face_lines[-1][-1])
+            raise ValueError(
+                f"{self.name}, line {no}: face {face} has an unparsable vertex index {e.token!r}."
+            ) from None
+        self.sizes.append(sizes)
+        self.face_lines.append(line_no)
+        self.faces += len(sizes)
+
+    def finish(self, skipped: Skipped, keyword: str) -> Parsed:
+        """The mesh read; raises for a truncated file and indices out of range."""
+        if self.read < self.num_verts:
+            raise ValueError(
+                f"{self.name}: the file ends after {self.read} of the {self.num_verts} vertices "
+                "declared in the header (truncated file)."
+            )
+        if self.faces < self.num_faces or self.need:
+            complete = self.faces - (1 if self.need else 0)
+            raise ValueError(
+                f"{self.name}: the file ends after {complete} of the {self.num_faces} faces "
+                "declared in the header (truncated file)."
+            )
+        indices = np.concatenate(self.indices) if self.indices else np.zeros(0, dtype=np.int64)
+        sizes = np.concatenate(self.sizes) if self.sizes else np.zeros(0, dtype=np.int64)
+        face_lines = np.concatenate(self.face_lines) if self.face_lines else sizes
+        check_faces(self.name, indices, sizes, self.num_verts, lambda f: f"line {face_lines[f]}")
+        skipped.add(_vertex_extras(keyword), self.extra)
+        skipped.add("face colours", self.coloured)
+        return Parsed(self.verts, indices, sizes)
+
+
+def _one_per_line(
+    chunk: Chunk, first: np.ndarray, count: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray | None] | None:
+    """``(sizes, corner tokens, coloured faces, their values or None)`` when every line is
+    one face record ``k i1 .. ik [colour]`` with ``k >= 3``, else None.  Lines of one degree
+    without colours are read as one block of integers, ``k`` included."""
+    if len(first) and (count == count[0]).all():  # one degree, no colours: a block of ints
+        width = int(count[0])
+        try:
+            block = chunk.values(np.arange(first[0], first[0] + len(first) * width), int)
+        except BadNumber:
             return None
-        end = text.find(b"\n", pos)
-        end = len(text) if end < 0 else end + 1
-        toks, pos = text[pos:end].decode("latin-1").split(), end
-    return toks, pos
-
-
-def _header(text: bytes) -> tuple[str, int, int, int] | None:
-    """``(keyword, vertices, faces, byte offset of the body)`` of prepared ASCII OFF text, or
-    None when the header is anything but well formed (the reference parser says what)."""
-    found = _next_tokens(text, 0)
-    if found is None:
-        return None
-    toks, pos = found
-    keyword = toks[0]
-    if _OFF_KEYWORD.fullmatch(keyword):
-        toks = toks[1:]
-        if not toks:
-            found = _next_tokens(text, pos)
-            if found is None:
-                return None
-            toks, pos = found
-    elif keyword.endswith("OFF"):
-        return None
-    else:
-        keyword = ""
+        block = block.reshape(len(first), width)
+        if width >= 4 and (block[:, 0] == width - 1).all():
+            sizes = np.full(len(first), width - 1, dtype=np.int64)
+            corners = (first[:, None] + np.arange(1, width)).reshape(-1)
+            return sizes, corners, 0, block[:, 1:].reshape(-1)
     try:
-        num_verts, num_faces = int(toks[0]), int(toks[1])
-    except (ValueError, IndexError):
-        return None
-    if not 0 <= num_verts <= len(text) or not 0 <= num_faces <= len(text):
-        return None
-    return keyword, num_verts, num_faces, pos
-
-
-def _read_off_bulk(text: bytes, name: str, skipped: Skipped) -> Parsed | None:
-    """ASCII OFF in bulk when each face is one line (``k i1 .. ik [colour]``); None for what
-    the record parser must read (wrapped faces, and every error).
-
-    Runs of ``x y z`` lines and of faces of one degree without colours (the usual layout) are
-    read as blocks of consecutive tokens; other lines through per-line index arrays."""
-    header = _header(text)
-    if header is None:
-        return None
-    keyword, num_verts, num_faces, body = header
-    if 6 * num_verts + 8 * num_faces > len(text) - body + 1:
-        return None  # no room for the records ("x y z", "3 a b c" lines; the last may end the
-        # file without its line break): truncated, and the record parser says so
-    # The counts are known: values go straight to the arrays returned (no concatenation).
-    verts = np.empty((num_verts, 3))
-    coords = verts.reshape(-1)
-    size = np.empty(num_faces, dtype=np.int64)
-    # Faces of the first face's degree k, read as blocks, go straight into ``block`` (F * k);
-    # the first other face switches to pieces joined at the end.
-    block: np.ndarray | None = None
-    filled = 0
-    indices: list[np.ndarray] = []
-    extra = coloured = 0
-    seen = 0  # content lines before the chunk
-    scratch = Scratch()
-    try:
-        for chunk in chunks(text, body, scratch):
-            first, count, _ = chunk.lines()
-            if seen + len(count) > num_verts + num_faces:
-                return None  # data after the faces: the record parser names the line
-            nv = min(max(num_verts - seen, 0), len(count))  # vertex lines in the chunk
-            if nv:
-                extra_lines = _vertex_lines(
-                    chunk, first[:nv], count[:nv], coords[3 * seen : 3 * (seen + nv)], scratch
-                )
-                if extra_lines is None:
-                    return None
-                extra += extra_lines
-            if nv < len(count):
-                if block is None and not indices and 4 <= count[nv] <= 10:
-                    block = np.empty(num_faces * (int(count[nv]) - 1), dtype=np.int64)
-                dest = None if block is None else block[filled:]
-                face_lines = _face_lines(chunk, first[nv:], count[nv:], scratch, dest)
-                if face_lines is None:
-                    return None
-                if block is not None and face_lines[0].base is block:
-                    filled += len(face_lines[0])
-                else:
-                    if block is not None:
-                        indices.append(block[:filled])
-                        block = None
-                    indices.append(face_lines[0])
-                faces_before = seen + nv - num_verts
-                size[faces_before : faces_before + len(face_lines[1])] = face_lines[1]
-                coloured += face_lines[2]
-            seen += len(count)
+        k = chunk.values(first, int)
     except BadNumber:
         return None
-    del scratch  # before the concatenation, the read's peak of memory
-    if seen != num_verts + num_faces:
-        return None
-    if block is not None:
-        index = block[:filled]
-    else:
-        index = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
-    if index.size and (index.min() < 0 or index.max() >= num_verts):
-        return None
-    skipped.add(_vertex_extras(keyword), extra)
-    skipped.add("face colours", coloured)
-    return Parsed(verts, index, size)
-
-
-def _vertex_lines(
-    chunk: Chunk, first: np.ndarray, count: np.ndarray, out: np.ndarray, scratch: Scratch
-) -> int | None:
-    """Read vertex lines into ``out`` (``(3 * lines,)``); the number of lines with extra
-    values, or None for a short one."""
-    if (count == 3).all():  # consecutive tokens
-        at = int(first[0])
-        if chunk.sep is not None:
-            sep = chunk.sep[at : at + len(out) + 1]
-            slow = np.flatnonzero(parse_decimal_block(chunk.buf, chunk.words, sep, out, scratch))
-            if len(slow):
-                sep = sep.take(np.stack([slow, slow + 1]))
-                sep[0] += 1
-                out[slow] = chunk.floats_at(sep[0], sep[1])
-        else:
-            out[...] = chunk.floats(slice(at, at + len(out)))
-        return 0
-    if (count < 3).any():
-        return None
-    tokens = (first[:, None] + np.arange(3)).reshape(-1)
-    out[...] = chunk.floats(tokens)
-    return int((count > 3).sum())
-
-
-def _face_lines(
-    chunk: Chunk,
-    first: np.ndarray,
-    count: np.ndarray,
-    scratch: Scratch,
-    dest: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, int] | None:
-    """``(indices, sizes, coloured faces)`` of face lines; None for a face wrapped over lines
-    or broken.  A block of one degree is parsed into the front of ``dest`` when given and
-    large enough (the indices returned are then that view)."""
-    width = int(count[0])
-    if 4 <= width <= 10 and (count == width).all():
-        # One degree, k = width - 1 a single digit on every line: the indices are a block.
-        lines, at = len(count), int(first[0])
-        sizes = np.full(lines, width - 1, dtype=np.int64)
-        if chunk.sep is not None:
-            m = lines * (width - 1)
-            if dest is not None and len(dest) >= m:
-                indices = dest[:m]
-            else:
-                indices = np.empty(m, dtype=np.int64)
-            sep = chunk.sep[at : at + lines * width + 1]
-            if parse_index_block(chunk.buf, chunk.words, sep, width, indices, scratch):
-                return indices, sizes, 0
-        k_start = chunk.start[at : at + lines * width : width]
-        k_end = chunk.end[at : at + lines * width : width]
-        if (k_end - k_start == 1).all() and (chunk.buf.take(k_start) == 47 + width).all():
-            return chunk.ints_at(*chunk.block(at, lines, width, 1)), sizes, 0
-    k = chunk.ints(first)
     if (k < 3).any() or (count < k + 1).any():
         return None
-    return chunk.ints(runs(first + 1, k)), k, int((count > k + 1).sum())
-
-
-def _ascii_vertices(
-    content: Iterator[tuple[int, list[str]]],
-    num_verts: int,
-    name: str,
-    skipped: Skipped,
-    keyword: str,
-) -> np.ndarray:
-    # Only flat lists of strings and ints are kept: millions of retained per-line lists would
-    # make the cyclic GC rescan them over and over.
-    coords: list[str] = []
-    vert_lines: list[int] = []
-    extra = 0
-    for vno, vtoks in content if num_verts else ():
-        if len(vtoks) < 3:
-            raise ValueError(
-                f"{name}, line {vno}: a vertex needs 3 coordinates, got {' '.join(vtoks)!r}."
-            )
-        coords.extend(vtoks[:3])
-        vert_lines.append(vno)
-        extra += len(vtoks) > 3
-        if len(vert_lines) == num_verts:
-            break
-    if len(vert_lines) < num_verts:
-        raise ValueError(
-            f"{name}: the file ends after {len(vert_lines)} of the {num_verts} vertices "
-            "declared in the header (truncated file)."
-        )
-    skipped.add(_vertex_extras(keyword), extra)
-    try:
-        return numbers(coords, float).reshape(-1, 3)
-    except BadNumber as e:
-        raise ValueError(
-            f"{name}, line {vert_lines[e.position // 3]}: cannot parse vertex coordinate "
-            f"{e.token!r}."
-        ) from None
-
-
-def _ascii_faces(
-    content: Iterator[tuple[int, list[str]]], num_faces: int, name: str, skipped: Skipped
-) -> tuple[np.ndarray, np.ndarray, list[int]]:
-    """Face records are a token stream: k, then k indices, possibly wrapped over several lines;
-    tokens left on the line where a record ends are its colour."""
-    corners: list[str] = []
-    sizes: list[int] = []
-    face_lines: list[int] = []
-    need = 0
-    coloured = 0
-    for fno, ftoks in content:
-        if len(sizes) == num_faces and need == 0:
-            raise ValueError(
-                f"{name}, line {fno}: data after the {num_faces} faces declared in the header."
-            )
-        pos = 0
-        if need == 0:
-            try:
-                need = int(ftoks[0])
-            except ValueError:
-                raise ValueError(
-                    f"{name}, line {fno}: face {len(sizes)} starts with {ftoks[0]!r}, "
-                    "expected its vertex count."
-                ) from None
-            if need < 3:
-                raise ValueError(
-                    f"{name}, line {fno}: face {len(sizes)} has {need} vertices; "
-                    "a polygon needs at least 3."
-                )
-            sizes.append(need)
-            face_lines.append(fno)
-            pos = 1
-        taken = ftoks[pos : pos + need]
-        corners.extend(taken)
-        need -= len(taken)
-        coloured += need == 0 and pos + len(taken) < len(ftoks)
-    if len(sizes) < num_faces or need:
-        complete = len(sizes) - (1 if need else 0)
-        raise ValueError(
-            f"{name}: the file ends after {complete} of the {num_faces} faces declared in the "
-            "header (truncated file)."
-        )
-    skipped.add("face colours", coloured)
-    size_arr = np.asarray(sizes, dtype=np.int64)
-    try:
-        indices = numbers(corners, int)
-    except BadNumber as e:
-        f = int(np.searchsorted(np.cumsum(size_arr), e.position, side="right"))
-        raise ValueError(
-            f"{name}, line {face_lines[f]}: face {f} has an unparsable vertex index {e.token!r}."
-        ) from None
-    return indices, size_arr, face_lines
+    return k, runs(first + 1, k), int((count > k + 1).sum()), None
 
 
 def _read_off_binary(body: bytes, keyword: str, name: str, skipped: Skipped) -> Parsed:
@@ -396,7 +329,7 @@ def _read_off_binary(body: bytes, keyword: str, name: str, skipped: Skipped) -> 
             "(truncated file or unknown layout)."
         )
     sizes = words[starts].astype(np.int64)
-    check_sizes_binary(name, sizes, "binary OFF face record")
+    check_faces(name, sizes[:0], sizes, None, lambda f: f"binary OFF face record {f}")
     if with_colours:
         skipped.add("face colours", int((words[starts + sizes + 1] > 0).sum()))
     first = np.repeat(starts + 1, sizes)

@@ -1,16 +1,16 @@
 """Polygon File Format (Stanford PLY): ASCII and binary, any extra properties and elements.
 
-ASCII bodies are read in bulk (:func:`_read_ply_ascii_bulk`: numpy tokens and numbers, a chunk
-of lines at a time) when each wanted element has at most one list property; anything else, and
-every malformed file, goes to the record-by-record parser, the reference whose messages name
-the offending line.
+ASCII bodies are read a chunk of lines at a time (:mod:`.text`): when an element has at most
+one list property, a record's layout follows from its list length, and its values are
+converted in one numpy call per chunk; records of elements with several lists, and broken ones
+(whose messages name the line), are walked property by property.
 """
 
 from __future__ import annotations
 
 import re
 import struct
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,13 +22,10 @@ from .common import (
     Skipped,
     check_count,
     check_faces,
-    check_sizes_binary,
     check_text,
-    numbers,
     plain_text,
-    text_lines,
 )
-from .tokens import Chunk, chunks, runs
+from .text import Chunk, chunks, runs
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -41,7 +38,7 @@ _FACE_LISTS = ("vertex_indices", "vertex_index")
 _PLY_FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
 
 
-@dataclass
+@dataclass(frozen=True)
 class _PlyProperty:
     name: str
     dtype: str  # numpy type code without byte order, e.g. "f4"
@@ -316,104 +313,73 @@ def _binary_list_element(
 
     When every record's lists have the lengths of the first record's (all-triangle or all-quad
     faces), one structured ``frombuffer`` reads everything.  Otherwise a Python loop walks the
-    records reading only the list counts, and numpy gathers all values from those positions.
+    records reading only the list lengths, and numpy gathers all values from those offsets.
     """
     if el.count == 0:
         return {p.name: _empty_column(p) for p in el.props if p.name in want}, pos
     uniform = _binary_uniform_lists(data, pos, order, el, want)
     if uniform is not None:
         return uniform
-
-    # Records split into segments: segment j is the scalars before list j followed by list j;
-    # the last segment is the scalars after the last list.
-    lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
-    seg_of = np.searchsorted(lists, np.arange(len(el.props)))  # segment of each property
-    seg_scalar_bytes = [0] * (len(lists) + 1)
-    prop_offset: list[int] = []
-    for i, prop in enumerate(el.props):
-        prop_offset.append(seg_scalar_bytes[seg_of[i]])
-        if prop.count_dtype is None:
-            seg_scalar_bytes[seg_of[i]] += np.dtype(prop.dtype).itemsize
-    readers: list[Callable[[int], int]] = []
-    steps: list[tuple[int, int, int]] = []  # (scalar bytes before the count, count size, item size)
-    for j, i in enumerate(lists):
-        prop = el.props[i]
-        count_dtype = prop.count_dtype
-        assert count_dtype is not None  # `lists` holds the list properties
-        if count_dtype == "u1":
-            readers.append(data.__getitem__)
-        else:
-            readers.append(_count_reader(data, order + _STRUCT_CODES[count_dtype]))
-        steps.append(
-            (
-                seg_scalar_bytes[j],
-                np.dtype(count_dtype).itemsize,
-                np.dtype(prop.dtype).itemsize,
-            )
-        )
-    tail = seg_scalar_bytes[-1]
-    seg_starts: list[list[int]] = [[] for _ in range(len(lists) + 1)]
-    # seg_starts has one more list (the tail after the last list property) than readers
-    plan = list(zip(readers, steps, seg_starts, strict=False))
-    last = seg_starts[-1]
-    p = pos
-    size = len(data)
+    # per property: its (items') size, and for a list its length's size and reader
+    layout = [(np.dtype(p.dtype).itemsize, *_length_reader(data, order, p)) for p in el.props]
+    offsets: list[list[int]] = [[] for _ in el.props]
+    p, size, record = pos, len(data), 0
+    plan = list(zip(layout, offsets, strict=True))
     try:
         for record in range(el.count):
-            for read, (before, count_size, item_size), starts in plan:
+            for (item, count_size, read), starts in plan:
                 starts.append(p)
-                p += before
+                if read is None:
+                    p += item
+                    continue
                 k = read(p)
                 if k < 0:
                     raise ValueError(
                         f"{name}: PLY element {el.name!r} record {record} has a list of "
                         f"negative length {k}."
                     )
-                p += count_size + k * item_size
+                p += count_size + k * item
                 if p > size:
-                    _list_too_long(name, el, record, k, size - (p - k * item_size))
-            last.append(p)
-            p += tail
+                    raise ValueError(
+                        f"{name}: PLY element {el.name!r} record {record} declares a list of {k} "
+                        f"values, but only {max(size - (p - k * item), 0)} bytes are left in the "
+                        "file (truncated file, or a corrupt count); re-export or re-download it."
+                    )
     except (IndexError, struct.error):
-        p = len(data) + 1
-    if p > len(data):
-        record = min(len(last), el.count - 1)  # the first record not fully inside the file
+        p = size + 1
+    if p > size:
         raise ValueError(
             f"{name}: the file ends before record {record} of the {el.count} records of PLY "
             f"element {el.name!r} is complete (truncated file)."
         )
     buf = np.frombuffer(data, np.uint8)
     cols: dict[str, _Column] = {}
-    for i, prop in enumerate(el.props):
+    for prop, starts, (item, count_size, _) in zip(el.props, offsets, layout, strict=True):
         if prop.name not in want:
             continue
-        at = np.asarray(seg_starts[seg_of[i]], dtype=np.int64) + prop_offset[i]
+        at = np.asarray(starts, dtype=np.int64)
         if prop.count_dtype is None:
             cols[prop.name] = _gather(buf, at, order + prop.dtype)
             continue
         sizes = _gather(buf, at, order + prop.count_dtype).astype(np.int64)
-        check_sizes_binary(name, sizes, f"element {el.name!r} record")
-        item = np.dtype(prop.dtype).itemsize
-        first = np.repeat(at + np.dtype(prop.count_dtype).itemsize, sizes)
-        within = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-        cols[prop.name] = (_gather(buf, first + within * item, order + prop.dtype), sizes)
+        check_faces(name, sizes[:0], sizes, None, lambda f: f"element {el.name!r} record {f}")
+        within = runs(np.zeros_like(at), sizes)  # each value's place in its list
+        corners = np.repeat(at + count_size, sizes) + within * item
+        cols[prop.name] = (_gather(buf, corners, order + prop.dtype), sizes)
     return cols, p
 
 
-def _list_too_long(name: str, el: _PlyElement, record: int, count: int, left: int) -> None:
-    """Refuse a list length the rest of the file cannot hold, naming it (a corrupt count, or
-    the truncated last record)."""
-    raise ValueError(
-        f"{name}: PLY element {el.name!r} record {record} declares a list of {count} values, "
-        f"but only {max(left, 0)} bytes are left in the file (truncated file, or a corrupt "
-        "count); re-export or re-download it."
-    )
-
-
-def _count_reader(data: bytes, fmt: str) -> Callable[[int], int]:
-    """Reads the list length (struct format ``fmt``) stored at a byte offset of ``data``."""
-    unpack = struct.Struct(fmt).unpack_from
-    return lambda q: unpack(data, q)[0]
+def _length_reader(
+    data: bytes, order: str, prop: _PlyProperty
+) -> tuple[int, Callable[[int], int] | None]:
+    """Size and reader (byte offset -> value) of a list property's length; (0, None) for a
+    scalar."""
+    if prop.count_dtype is None:
+        return 0, None
+    if prop.count_dtype == "u1":
+        return 1, data.__getitem__
+    unpack = struct.Struct(order + _STRUCT_CODES[prop.count_dtype]).unpack_from
+    return struct.calcsize(_STRUCT_CODES[prop.count_dtype]), lambda q: unpack(data, q)[0]
 
 
 def _binary_uniform_lists(
@@ -478,295 +444,195 @@ def _read_ply_ascii(
     name: str,
     record_line: dict[str, Callable[[int], int]],
 ) -> _Columns:
-    """Columns of the wanted elements; ``record_line`` gets each one's record -> line number."""
-    # '#' starts no comment in a PLY body (the record parser refuses it as a number)
-    if data.find(b"#", pos) < 0:
-        # a body plain_text would leave as it is is read in place: no copy of the file
-        as_is = all(data.find(byte, pos) < 0 for byte in (b"\r", b"\x1b", b"\x85", b"\xa0"))
-        text, begin = (data, pos) if as_is else (plain_text(data[pos:]), 0)
-        if text is not None:
-            bulk = _read_ply_ascii_bulk(
-                text, begin, header_lines + 1, elements, wanted, record_line
-            )
-            if bulk is not None:
-                return bulk
-    lines = text_lines(data[pos:])
-    # Records are found by line index; tokens are split from the line when needed, so no
-    # per-record lists stay alive (millions of them make the cyclic GC rescan quadratically).
-    records = [i for i, line in enumerate(lines) if line and not line.isspace()]
-    out: _Columns = {}
-    start = 0
+    """Columns of the wanted elements of the ASCII body ``data[pos:]``, each record one
+    non-blank line, read a chunk of lines at a time (the reader stops once it has them all);
+    ``record_line`` gets each one's record -> line number."""
+    # '#' starts no comment in a PLY body: a token holding one is no number
+    if any(data.find(byte, pos) >= 0 for byte in (b"\r", b"\x85", b"\xa0")):
+        text, begin = plain_text(data[pos:], comments=False), 0
+    else:  # read in place: no copy of the file
+        text, begin = data, pos
+    spans: list[tuple[_PlyElement, int]] = []  # the elements up to the last wanted, and rank
+    rank = 0
     for el in elements:
-        if set(out) == set(wanted):
+        if {sp[0].name for sp in spans if sp[0].name in wanted} == set(wanted):
             break
-        rows = records[start : start + el.count]
-        start += el.count
-        if len(rows) < el.count:
+        spans.append((el, rank))
+        rank += el.count
+    reader = {
+        el.name: _AsciiElement(el, wanted[el.name], name) for el, _ in spans if el.name in wanted
+    }
+    seen = 0  # records (non-blank lines) before the chunk
+    for chunk in chunks(text, begin):
+        if seen >= rank:
+            break
+        chunk.line0 += header_lines
+        lines = np.flatnonzero(chunk.count)
+        for el, first in spans:
+            a, b = max(first - seen, 0), min(first + el.count - seen, len(lines))
+            if a < b and el.name in reader:
+                reader[el.name].add(chunk, lines[a:b], seen + a - first)
+        seen += len(lines)
+    for el, first in spans:
+        if first + el.count > seen:
             raise ValueError(
                 f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
-                f"after {len(rows)} (truncated file)."
+                f"after {max(seen - first, 0)} (truncated file)."
             )
-        if el.name in wanted:
-            table = _AsciiRows(lines, rows, header_lines + 1)
-            out[el.name] = _ascii_element(table, el, wanted[el.name], name)
-            record_line[el.name] = table.line_no
-    return out
-
-
-@dataclass
-class _AsciiRows:
-    """The records of one ASCII PLY element: ``lines[rows[r]]`` is record ``r``."""
-
-    lines: list[str]
-    rows: list[int]
-    first_line: int  # file line number of lines[0]
-
-    def line_no(self, record: int) -> int:
-        return self.rows[record] + self.first_line
-
-
-_Tokens = tuple[dict[str, list[str]], Mapping[str, list[int] | np.ndarray]]
-
-
-def _ascii_element(
-    table: _AsciiRows, el: _PlyElement, want: set[str], name: str
-) -> dict[str, _Column]:
-    """Wanted properties of an ASCII element: arrays (scalars) or (values, sizes) (lists)."""
-    scalars, sizes = _ascii_tokens_fast(table, el, want) or _ascii_tokens(table, el, want, name)
-    cols: dict[str, _Column] = {}
-    for prop in el.props:
-        if prop.name not in scalars:
-            continue
-        kind = int if prop.count_dtype is not None and prop.dtype[0] != "f" else float
-        try:
-            values = numbers(scalars[prop.name], kind)
-        except BadNumber as e:
-            record = e.position
-            if prop.count_dtype is not None:
-                record = int(np.searchsorted(np.cumsum(sizes[prop.name]), e.position, "right"))
-            raise ValueError(
-                f"{name}, line {table.line_no(record)}: element {el.name!r} record {record}: "
-                f"cannot parse {prop.name!r} value {e.token!r}."
-            ) from None
-        if prop.count_dtype is None:
-            cols[prop.name] = values
-        else:
-            cols[prop.name] = (values, np.asarray(sizes[prop.name], dtype=np.int64))
-    return cols
-
-
-def _ascii_tokens_fast(table: _AsciiRows, el: _PlyElement, want: set[str]) -> _Tokens | None:
-    """Tokens of the wanted properties, column-wise, for elements with at most one list.
-
-    Then a record's layout follows from its list length alone, so every record is sliced the
-    same way and the lengths are checked afterwards, all at once.  None when some record does
-    not fit (the caller's record-by-record walk then reports where).
-    """
-    lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
-    if len(lists) > 1:
-        return None
-    n = len(el.props)
-    at = lists[0] if lists else n
-    after = n - at - 1 if lists else 0
-    # Scalars after the list are addressed from the end of the record.
-    picks = [i if i < at else i - n for i, p in enumerate(el.props) if i != at and p.name in want]
-    picked: list[str] = []
-    counts: list[str] = []
-    values: list[str] = []
-    lengths: list[int] = []
-    end = -after or None
-    lines = table.lines
-    try:
-        for r in table.rows:
-            toks = lines[r].split()
-            lengths.append(len(toks))
-            picked.extend([toks[i] for i in picks])
-            if lists:
-                counts.append(toks[at])
-                values.extend(toks[at + 1 : end])
-    except IndexError:
-        return None
-    length = np.asarray(lengths, dtype=np.int64)
-    if lists:
-        try:
-            sizes = numbers(counts, int)
-        except BadNumber:
-            return None
-        if (sizes < 0).any() or (length != at + 1 + after + sizes).any():
-            return None
-    elif (length != n).any():
-        return None
-    scalar_names = [p.name for i, p in enumerate(el.props) if i != at and p.name in want]
-    scalars = {nm: picked[j :: len(picks)] for j, nm in enumerate(scalar_names)}
-    if lists and el.props[at].name in want:
-        scalars[el.props[at].name] = values
-        return scalars, {el.props[at].name: sizes}
-    return scalars, {}
-
-
-def _ascii_tokens(table: _AsciiRows, el: _PlyElement, want: set[str], name: str) -> _Tokens:
-    """Tokens of the wanted properties, walking each record property by property."""
-    scalars: dict[str, list[str]] = {p.name: [] for p in el.props if p.name in want}
-    sizes: dict[str, list[int]] = {
-        p.name: [] for p in el.props if p.name in want and p.count_dtype is not None
-    }
-    for record, r in enumerate(table.rows):
-        toks = table.lines[r].split()
-        no = table.line_no(record)
-        at = 0
-        for prop in el.props:
-            if prop.count_dtype is None:
-                if prop.name in scalars:
-                    scalars[prop.name].append(toks[at] if at < len(toks) else "")
-                at += 1
-                continue
-            try:
-                k = int(toks[at])
-            except (IndexError, ValueError):
-                raise ValueError(
-                    f"{name}, line {no}: element {el.name!r} record {record}: expected the "
-                    f"length of list {prop.name!r}."
-                ) from None
-            if k < 0:
-                raise ValueError(
-                    f"{name}, line {no}: element {el.name!r} record {record}: list "
-                    f"{prop.name!r} has negative length {k}."
-                )
-            if prop.name in scalars:
-                scalars[prop.name].extend(toks[at + 1 : at + 1 + k])
-                sizes[prop.name].append(k)
-            at += 1 + k
-        if at != len(toks):
-            raise ValueError(
-                f"{name}, line {no}: element {el.name!r} record {record} has {len(toks)} values, "
-                f"but its properties need {at}."
-            )
-    return scalars, sizes
-
-
-# A wanted element as the bulk parser reads it: the element, the rank of its first record among
-# the body's non-blank lines, and the index of its list property (None when it has none).
-_Span = tuple[_PlyElement, int, int | None]
-
-
-def _ply_spans(elements: list[_PlyElement], wanted: dict[str, set[str]]) -> tuple[list[_Span], int]:
-    """The wanted elements the record parser would read (it stops once it has them all) and
-    the number of records up to the end of the last one; an element with more than one list
-    property is no span (the bulk parser then gives up)."""
-    spans: list[_Span] = []
-    start = 0
-    for el in elements:
-        if {sp[0].name for sp in spans} == set(wanted):
-            break
-        if el.name in wanted:
-            lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
-            if len(lists) > 1 or any(sp[0].name == el.name for sp in spans):
-                return [], -1
-            spans.append((el, start, lists[0] if lists else None))
-        start += el.count
-    return spans, start
-
-
-def _read_ply_ascii_bulk(
-    text: bytes,
-    begin: int,
-    first_line: int,
-    elements: list[_PlyElement],
-    wanted: dict[str, set[str]],
-    record_line: dict[str, Callable[[int], int]],
-) -> _Columns | None:
-    """Columns of the wanted elements of an ASCII body (``text[begin:]``, prepared by
-    :func:`plain_text`), each record one line (``first_line``: the file line of the body's
-    first); None for what the record parser must read (two lists in one element, and every
-    error, whose message that one words)."""
-    spans, needed = _ply_spans(elements, wanted)
-    if needed < 0:
-        return None
-    parts: dict[str, dict[str, list[np.ndarray]]] = {sp[0].name: {} for sp in spans}
-    line_parts: dict[str, list[np.ndarray]] = {sp[0].name: [] for sp in spans}
-    seen = 0  # non-blank lines before the chunk
-    for chunk in chunks(text, begin):
-        if seen >= needed:
-            break
-        lines = np.flatnonzero(chunk.per_line)
-        first_token = chunk.first_token
-        for el, rank, at in spans:
-            a, b = max(rank - seen, 0), min(rank + el.count - seen, len(lines))
-            if a >= b:
-                continue
-            sel = lines[a:b]
-            got = _ply_records(chunk, first_token[sel], chunk.per_line[sel], el, at, wanted)
-            if got is None:
-                return None
-            for key, values in got.items():
-                parts[el.name].setdefault(key, []).append(values)
-            line_parts[el.name].append(chunk.line0 + sel)
-        seen += len(lines)
-    if seen < needed:
-        return None  # truncated: the record parser says so
     out: _Columns = {}
-    for el, _, at in spans:
-        pieces = parts[el.name]
-        cols: dict[str, _Column] = {}
-        for i, prop in enumerate(el.props):
-            if prop.name not in wanted[el.name]:
-                continue
-            is_int = i == at and prop.dtype[0] != "f"
-            values = _joined(pieces.get(prop.name, []), np.int64 if is_int else np.float64)
-            if i == at:
-                cols[prop.name] = (values, _joined(pieces.get(" sizes", []), np.int64))
-            else:
-                cols[prop.name] = values
-        out[el.name] = cols
-        record_line[el.name] = _line_numbers(_joined(line_parts[el.name], np.int64), first_line)
+    for key, element in reader.items():
+        out[key] = element.columns()
+        record_line[key] = _line_numbers(_joined(element.lines, np.int64))
     return out
 
 
-def _line_numbers(line_of: np.ndarray, first_line: int) -> Callable[[int], int]:
-    """Record -> file line, from each record's line index in the body."""
-    return lambda record: first_line + int(line_of[record])
+def _line_numbers(line_of: np.ndarray) -> Callable[[int], int]:
+    """Record -> file line, from each record's line."""
+    return lambda record: int(line_of[record])
 
 
 def _joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
     return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
 
 
-def _ply_records(
-    chunk: Chunk,
-    first: np.ndarray,
-    count: np.ndarray,
-    el: _PlyElement,
-    at: int | None,
-    wanted: dict[str, set[str]],
-) -> dict[str, np.ndarray] | None:
-    """Wanted values of the records of ``el`` on lines whose first tokens are ``first`` and
-    token counts ``count`` (``" sizes"``: the list lengths); None when a record does not fit
-    the element or holds something but numbers."""
-    n = len(el.props)
-    out: dict[str, np.ndarray] = {}
-    try:
-        if at is None:
-            if (count != n).any():
+class _AsciiElement:
+    """The wanted properties of one ASCII PLY element, collected a chunk at a time."""
+
+    def __init__(self, el: _PlyElement, want: set[str], name: str) -> None:
+        self.el = el
+        self.want = want
+        self.name = name
+        lists = [i for i, p in enumerate(el.props) if p.count_dtype is not None]
+        self.at = lists[0] if len(lists) == 1 else None  # the one list property
+        self.walk = len(lists) > 1  # records laid out by every list's length: walked
+        self.values: dict[str, list[np.ndarray]] = {}
+        self.sizes: dict[str, list[np.ndarray]] = {}
+        self.lines: list[np.ndarray] = []
+
+    def _error(self, no: int, record: int, what: str) -> ValueError:
+        return ValueError(f"{self.name}, line {no}: element {self.el.name!r} record {record}{what}")
+
+    def add(self, chunk: Chunk, lines: np.ndarray, record0: int) -> None:
+        """Read the records on ``lines`` (chunk-relative) of ``chunk``, the first being record
+        ``record0`` of the element."""
+        first, count = chunk.first.take(lines), chunk.count.take(lines)
+        line_no = chunk.line0 + lines + 1
+        self.lines.append(line_no)
+        layout = None if self.walk else self._layout(chunk, first, count)
+        broken = None
+        if layout is None:
+            self.walk = True  # from here on: the walk names what is wrong
+            layout, broken = self._walk(chunk, first, count)
+        errors = []  # (record, message): the first in the file is raised
+        for prop, (tokens, sizes) in layout.items():
+            try:
+                values = chunk.values(tokens, _kind(prop))
+            except BadNumber as e:
+                r = e.position
+                if sizes is not None:
+                    r = int(np.searchsorted(np.cumsum(sizes), r, side="right"))
+                errors.append((r, f": cannot parse {prop.name!r} value {e.token!r}."))
+                continue
+            self.values.setdefault(prop.name, []).append(values)
+            if sizes is not None:
+                self.sizes.setdefault(prop.name, []).append(sizes)
+        if broken is not None:
+            errors.append(broken)
+        if errors:
+            r, what = min(errors)
+            raise self._error(int(line_no[r]), record0 + r, what)
+
+    def _layout(self, chunk: Chunk, first: np.ndarray, count: np.ndarray) -> _Layout | None:
+        """The wanted properties' tokens (and list lengths) when each record has at most one
+        list and fits the element (its layout then follows from the list length); else None."""
+        n, at = len(self.el.props), self.at
+        k = np.zeros(len(first), dtype=np.int64)
+        if at is not None:
+            has = count > at
+            try:
+                k[has] = chunk.values(first[has] + at, int)
+            except BadNumber:
                 return None
-            k = np.zeros(0, dtype=np.int64)
-        else:
-            k = chunk.ints(first + at)
-            if (k < 0).any() or (count != n + k).any():
+            if not (has & (k >= 0)).all():
                 return None
-            out[" sizes"] = k
-        scalars = [i for i, p in enumerate(el.props) if i != at and p.name in wanted[el.name]]
-        if scalars:  # one conversion for all scalar columns; those after the list sit k further
-            picks = np.asarray(scalars, dtype=np.int64)
-            tokens = first[:, None] + picks
-            if at is not None:
-                tokens += k[:, None] * (picks > at)
-            values = chunk.floats(tokens.reshape(-1)).reshape(-1, len(scalars))
-            for j, i in enumerate(scalars):
-                out[el.props[i].name] = values[:, j]
-        if at is not None and el.props[at].name in wanted[el.name]:
-            tokens = runs(first + at + 1, k)
-            is_float = el.props[at].dtype[0] == "f"
-            out[el.props[at].name] = chunk.floats(tokens) if is_float else chunk.ints(tokens)
-    except BadNumber:
-        return None
-    return out
+        if (count != n + k).any():
+            return None
+        out: _Layout = {}
+        for i, prop in enumerate(self.el.props):
+            if prop.name not in self.want:
+                continue
+            if i == at:
+                out[prop] = (runs(first + at + 1, k), k)
+            else:  # the scalars after the list sit k further
+                out[prop] = (first + i + (k if at is not None and i > at else 0), None)
+        return out
+
+    def _walk(
+        self, chunk: Chunk, first: np.ndarray, count: np.ndarray
+    ) -> tuple[_Layout, tuple[int, str] | None]:
+        """:meth:`_layout` record by record, property by property, up to the first record that
+        does not fit the element, and that record and what is wrong with it (or None)."""
+        tokens: dict[str, list[int]] = {p.name: [] for p in self.el.props if p.name in self.want}
+        sizes: dict[str, list[int]] = {p.name: [] for p in self.el.props}
+        broken = None
+        for r, (t0, n) in enumerate(zip(first.tolist(), count.tolist(), strict=True)):
+            got: dict[str, list[int]] = {name: [] for name in tokens}
+            lengths: dict[str, int] = {}
+            at = 0
+            for prop in self.el.props:
+                if prop.count_dtype is None:
+                    got.get(prop.name, []).append(t0 + at)
+                    at += 1
+                    continue
+                try:
+                    if at >= n:
+                        raise ValueError
+                    k = int(chunk.text(int(chunk.start[t0 + at]), int(chunk.end[t0 + at])))
+                except ValueError:
+                    broken = (r, f": expected the length of list {prop.name!r}.")
+                    break
+                if k < 0:
+                    broken = (r, f": list {prop.name!r} has negative length {k}.")
+                    break
+                got.get(prop.name, []).extend(range(t0 + at + 1, t0 + at + 1 + k))
+                lengths[prop.name] = k
+                at += 1 + k
+            if broken is None and at != n:
+                broken = (r, f" has {n} values, but its properties need {at}.")
+            if broken is not None:
+                break
+            for name, more in got.items():
+                tokens[name] += more
+            for name, k in lengths.items():
+                sizes[name].append(k)
+        layout = {
+            p: (
+                np.asarray(tokens[p.name], dtype=np.int64),
+                None if p.count_dtype is None else np.asarray(sizes[p.name], dtype=np.int64),
+            )
+            for p in self.el.props
+            if p.name in tokens
+        }
+        return layout, broken
+
+    def columns(self) -> dict[str, _Column]:
+        """Each wanted property: an array (scalar) or (values, sizes) (list)."""
+        cols: dict[str, _Column] = {}
+        for prop in self.el.props:
+            if prop.name in self.want:
+                values = _joined(self.values.get(prop.name, []), np.float64)
+                if _kind(prop) is int:
+                    values = values.astype(np.int64)
+                sizes = _joined(self.sizes.get(prop.name, []), np.int64)
+                cols[prop.name] = values if prop.count_dtype is None else (values, sizes)
+        return cols
+
+
+# per wanted property: its token indices, and for a list each record's length
+_Layout = dict[_PlyProperty, tuple[np.ndarray, np.ndarray | None]]
+
+
+def _kind(prop: _PlyProperty) -> type:
+    """How a property's ASCII values are read: list items of an integer type as ints, all
+    else as floats."""
+    return int if prop.count_dtype is not None and prop.dtype[0] != "f" else float

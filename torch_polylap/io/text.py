@@ -1,0 +1,186 @@
+"""Whitespace tokens of mesh text, found with numpy a chunk of lines at a time, and their numbers.
+
+The text readers (OBJ, OFF, ASCII PLY) see a file as lines of tokens.  :func:`chunks` cuts the
+prepared text (``\\n`` line breaks, see :func:`.common.plain_text`) after line breaks into pieces
+of about :data:`CHUNK_BYTES`, so that the per-byte work arrays stay small whatever the file
+size, and :class:`Chunk` finds every token's byte range and the tokens of each line.
+Whitespace is ASCII's (space and ``\\t \\n \\v \\f \\r``), as ``bytes.split`` has it.
+
+Numbers are converted by numpy's own text parser (``np.fromstring(..., sep=" ")``, whose
+``strtod``/``strtoll`` give the correctly rounded double of a decimal and the exact integer):
+the bytes from the first wanted token to the last, the other tokens among them blanked out,
+are parsed in one call.  When that call cannot vouch for a one-to-one result (a token it
+refuses or splits in two, an integer too long for int64, numpy's ``nan(...)``), Python's
+``float``/``int`` convert the tokens one by one (:func:`.common.numbers`) and name the first
+bad one, so every value is what ``float(token)`` or ``int(token)`` gives.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from .common import numbers
+
+__all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
+
+CHUNK_BYTES = 1 << 20
+_SPACE = np.zeros(256, dtype=bool)
+_SPACE[[9, 10, 11, 12, 13, 32]] = True
+_LONGEST_INT = 18  # digits strtoll reads without clamping to the int64 range
+
+
+def runs(first: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """``first[i], first[i] + 1, ..., first[i] + size[i] - 1`` for every i, concatenated."""
+    if len(size) and (size == size[0]).all():  # one degree: a reshape
+        return (first[:, None] + np.arange(int(size[0]))).reshape(-1)
+    starts = np.cumsum(size) - size
+    within = np.arange(int(size.sum())) - np.repeat(starts, size)
+    return np.repeat(first, size) + within
+
+
+class Chunk:
+    """The tokens of a run of whole lines.
+
+    Attributes:
+        buf: the lines' bytes, ``(B,)`` uint8 (a view of the text).
+        start, end: ``(T,)`` int64 byte offsets in ``buf`` of each token (end exclusive).
+        count: ``(L,)`` int64 number of tokens on each line, blank lines included.
+        first: ``(L,)`` int64 index of each line's first token.
+        line0: 0-based index of the chunk's first line in the whole text.
+        source: the text and the offset of the chunk in it.
+    """
+
+    def __init__(self, text: bytes, begin: int, stop: int, line0: int) -> None:
+        self.buf = np.frombuffer(text, dtype=np.uint8, count=stop - begin, offset=begin)
+        self.source = (text, begin)
+        self.line0 = line0
+        # below the space, text holds only whitespace and ESC (see check_text), which is none
+        if 27 in self.buf:
+            blank = _SPACE.take(self.buf)
+        else:
+            blank = self.buf <= 32
+        # a token starts where a blank is followed by a non-blank, and ends at the reverse
+        filled = ~blank
+        self.start = np.flatnonzero(filled[1:] > filled[:-1]) + 1
+        self.end = np.flatnonzero(filled[:-1] > filled[1:]) + 1
+        if len(filled) and filled[0]:
+            self.start = np.concatenate([[0], self.start])
+        if len(filled) and filled[-1]:
+            self.end = np.append(self.end, len(filled))
+        breaks = np.flatnonzero(self.buf == 10)
+        if len(self.buf) and self.buf[-1] != 10:  # the text's last line, without its break
+            breaks = np.append(breaks, len(self.buf))
+        before = np.searchsorted(self.start, breaks)  # tokens before each line's end
+        self.count = np.diff(before, prepend=0)
+        self.first = before - self.count
+
+    def lines(self) -> Iterator[Chunk]:
+        """The chunk's lines, each a chunk of its own (to find the first of several errors)."""
+        text, begin = self.source
+        ends = np.flatnonzero(self.buf == 10) + 1
+        for i, (a, b) in enumerate(
+            zip([0, *ends.tolist()], [*ends.tolist(), len(self.buf)], strict=True)
+        ):
+            if b > a:
+                yield Chunk(text, begin + a, begin + b, self.line0 + i)
+
+    def text(self, start: int, end: int) -> str:
+        """The bytes ``buf[start:end]`` as text."""
+        return self.buf[start:end].tobytes().decode("latin-1")
+
+    def line_text(self, line: int) -> str:
+        """The tokens of line ``line`` (chunk-relative), single-spaced."""
+        first, count = int(self.first[line]), int(self.count[line])
+        return " ".join(
+            self.text(s, e)
+            for s, e in zip(
+                self.start[first : first + count], self.end[first : first + count], strict=True
+            )
+        )
+
+    def cut(self, start: np.ndarray, end: np.ndarray, byte: int, skip: int = 0) -> np.ndarray:
+        """Offset of the ``skip + 1``-th ``byte`` in each range ``[start, end)`` (ranges
+        increasing and disjoint), or its ``end`` when it has fewer."""
+        at = np.flatnonzero(self.buf == byte) if len(start) else start
+        owner = np.searchsorted(start, at, side="right") - 1
+        inside = (owner >= 0) & (at < end.take(np.maximum(owner, 0)))
+        at, owner = at[inside], owner[inside]
+        rank = np.arange(len(owner)) - np.searchsorted(owner, owner)  # k-th in its range
+        pick = rank == skip
+        stop = end.copy()
+        stop[owner[pick]] = at[pick]
+        return stop
+
+    def values(
+        self,
+        tokens: np.ndarray,
+        kind: type,
+        start: np.ndarray | None = None,
+        end: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """float64 (``kind`` float) or int64 (int) values of the tokens ``tokens`` (indices,
+        increasing), or of the byte ranges ``buf[start:end]`` inside them, each exactly
+        ``float(text)`` or ``int(text)``.
+
+        The bytes from the first to the last are parsed by one numpy call, the other tokens
+        among them and the rest of each token blanked out first.
+
+        Raises:
+            BadNumber: a range holds no such number; ``position`` is its index.
+        """
+        dtype = np.float64 if kind is float else np.int64
+        n = len(tokens)
+        if n == 0:
+            return np.zeros(0, dtype=dtype)
+        s, e = self.start.take(tokens), self.end.take(tokens)
+        a = s if start is None else start
+        b = e if end is None else end
+        length = b - a
+        if int(length.min()) > 0 and (kind is float or int(length.max()) <= _LONGEST_INT):
+            lo, hi = int(a[0]), int(b[-1])
+            first, last = int(tokens[0]), int(tokens[-1])
+            blank = []  # byte ranges to make spaces
+            if last - first + 1 != n:  # other tokens among them
+                other = np.ones(last - first + 1, dtype=bool)
+                other[tokens - first] = False
+                o = np.flatnonzero(other) + first
+                blank.append((self.start.take(o), self.end.take(o)))
+            if start is not None:  # the bytes of each token before its range
+                blank.append((np.maximum(s, lo), a))
+            if end is not None:  # and after it
+                blank.append((b, np.minimum(e, hi)))
+            piece = self.buf[lo:hi]
+            if blank:
+                piece = piece.copy()
+                for x, y in blank:
+                    cut = np.flatnonzero(y > x)
+                    piece[runs(x.take(cut) - lo, y.take(cut) - x.take(cut))] = 32
+            data = piece.tobytes()
+            try:
+                out = np.fromstring(data, dtype=dtype, sep=" ")
+            except ValueError:  # numpy refuses some token (and stops there)
+                out = None
+            # one value per token: each read whole (numpy's "nan(...)" is no float for Python)
+            if out is not None and len(out) == n and (kind is int or b"(" not in data):
+                return out
+        texts = [self.text(x, y) for x, y in zip(a.tolist(), b.tolist(), strict=True)]
+        return numbers(texts, kind)
+
+
+def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
+    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks."""
+    pos, line0 = begin, 0
+    size = len(text)
+    while pos < size:
+        stop = min(pos + CHUNK_BYTES, size)
+        if stop < size:
+            cut = text.rfind(b"\n", pos, stop)
+            if cut < 0:
+                cut = text.find(b"\n", stop)
+            stop = size if cut < 0 else cut + 1
+        chunk = Chunk(text, pos, stop, line0)
+        line0 += len(chunk.count)
+        pos = stop
+        yield chunk
