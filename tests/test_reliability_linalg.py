@@ -8,6 +8,7 @@ for the small linear systems.
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
@@ -305,6 +306,60 @@ def test_solve_refuses_singular_systems(n, seed, components, backend):
         assert isinstance(error, linalg.solves.ConvergenceError) or "p^T A p" in str(error)
         if isinstance(error, linalg.solves.ConvergenceError):
             assert error.residual > 1e-10 and f"{error.residual:.3g}" in str(error)
+
+
+def _shifted_solution(L: torch.Tensor, M0: torch.Tensor, shift: float, b: np.ndarray):
+    """``(L + shift M0)^-1 b`` for a Laplacian ``L`` of a closed connected mesh, to float64
+    accuracy however small ``shift``: the constants are the kernel of ``L`` and
+    ``(L + shift M0) 1 = shift M0 1``, so the part of ``b`` along ``M0 1`` solves in closed
+    form, and the rest with ``L + shift M0 + w w^T`` (``w = M0 1`` scaled like ``L``), which
+    acts alike on the rest and is well-conditioned."""
+    Ld, Md = L.to_dense().numpy(), M0.to_dense().numpy()
+    w = Md @ np.ones(b.size)
+    along = w * (b.sum() / w.sum())  # 1^T (b - along) = 0
+    constant = b.sum() / (shift * w.sum())
+    fixed = Ld + shift * Md + np.outer(w, w) * (np.abs(Ld).max() / (w @ w))
+    return constant + np.linalg.solve(fixed, b - along)
+
+
+@pytest.mark.parametrize("backend", ["splu", "cholesky", "ldl"])
+def test_ill_conditioned_positive_definite_solve_warns_and_solves(backend):
+    """``L + 1e-12 M0`` is positive definite with condition number about 8e12 on spot: it was
+    refused as singular by its solution growth alone. Solved now, to the digits the warning
+    promises, against a reference that needs no ill-conditioned solve."""
+    if backend == "ldl" and not linalg.qdldl_available():
+        pytest.skip("needs qdldl")
+    if backend == "cholesky" and not linalg.cholespy_available():
+        pytest.skip("needs cholespy")
+    V, F = _spot()
+    L, M0 = tp.laplacian(V, F)
+    b = np.random.default_rng(3).standard_normal(V.shape[0])
+    with pytest.warns(tp.IllConditionedWarning, match=r"ill-conditioned .* correct digits") as w:
+        x = tp.solve(L + 1e-12 * M0, torch.from_numpy(b), backend=backend).numpy()
+    digits = int(re.search(r"about (\d+) correct digits", str(w[0].message))[1])
+    reference = _shifted_solution(L, M0, 1e-12, b)
+    assert digits >= 2
+    assert np.abs(x - reference).max() <= 10.0**-digits * np.abs(reference).max()
+    # a shift 100x larger is well enough conditioned to pass without a word
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tp.IllConditionedWarning)
+        x = tp.solve(L + 1e-10 * M0, torch.from_numpy(b), backend=backend).numpy()
+    reference = _shifted_solution(L, M0, 1e-10, b)
+    assert np.abs(x - reference).max() <= 1e-4 * np.abs(reference).max()
+
+
+@pytest.mark.parametrize("backend", ["splu", "cholesky", "ldl"])
+def test_laplacian_alone_stays_singular(backend):
+    """``L`` of a closed mesh with a right-hand side outside its range (``M0 1``): no
+    refinement converges, so the error names the singular matrix and the remedy."""
+    if backend == "ldl" and not linalg.qdldl_available():
+        pytest.skip("needs qdldl")
+    if backend == "cholesky" and not linalg.cholespy_available():
+        pytest.skip("needs cholespy")
+    V, F = _spot()
+    L, M0 = tp.laplacian(V, F)
+    with pytest.raises(ValueError, match=r"is singular .*M0 \+ h L"):
+        tp.solve(L, M0 @ torch.ones(V.shape[0], **D64), backend=backend)
 
 
 @FAST
