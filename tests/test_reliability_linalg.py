@@ -362,6 +362,48 @@ def test_laplacian_alone_stays_singular(backend):
         tp.solve(L, M0 @ torch.ones(V.shape[0], **D64), backend=backend)
 
 
+def _with_entry(A: torch.Tensor, k: int, value: float):
+    """``A`` with its ``k``-th stored entry (CSR order) set to ``value``, and that entry's
+    ``(row, col)`` as scipy reads the same matrix."""
+    values = tp.sparse.sparse_values(A).detach().clone()
+    values[k] = value
+    S = tp.sparse.to_scipy(A).tocoo()
+    return A.with_values(values), (int(S.row[k]), int(S.col[k]))
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_operands_are_named_before_anything_else(value):
+    """A NaN in L was reported by eigs as an asymmetry ("L[0, 0] = nan but L[0, 0] = nan")
+    and by solve as a singular matrix; both now name the first non-finite entry."""
+    V, F = _spot()
+    L, M0 = tp.laplacian(V, F)
+    n = V.shape[0]
+    k = tp.sparse.sparse_values(L).numel() // 3
+    bad_L, (i, j) = _with_entry(L, k, value)
+    pattern = rf"eigs: L holds non-finite values: L\[{i}, {j}\] = {value} \(1 such entries\)"
+    with pytest.raises(ValueError, match=pattern):
+        tp.eigs(bad_L, M0, k=3)
+    with pytest.raises(ValueError, match=r"eigs: L holds non-finite values: L\[0, 0\] = nan"):
+        tp.eigs(L * float("nan"), M0, k=3)
+    bad_M, (i, j) = _with_entry(M0, 7, value)
+    assert i == j == 7  # M0 is diagonal
+    with pytest.raises(ValueError, match=rf"eigs: M holds non-finite values: M\[7, 7\] = {value}"):
+        tp.eigs(L, bad_M, k=3)
+    A = M0 + 0.1 * L
+    bad_A, (i, j) = _with_entry(A, k, value)
+    b = torch.ones(n, **D64)
+    with pytest.raises(ValueError, match=rf"solve: A holds non-finite values: A\[{i}, {j}\]"):
+        tp.solve(bad_A, b)
+    B = torch.ones(n, 2, **D64)
+    B[11, 1] = value
+    with pytest.raises(
+        ValueError, match=rf"solve: B holds non-finite values: B\[11, 1\] = {value}"
+    ):
+        tp.solve(A, B)
+    with pytest.raises(ValueError, match=r"solve: B holds non-finite values: B\[11\]"):
+        tp.solve(A, B[:, 1].contiguous())
+
+
 @FAST
 @given(n=st.integers(3, 25), seed=st.integers(0, 2**16), negative=st.integers(1, 2))
 def test_indefinite_systems_are_named_indefinite(n, seed, negative):
