@@ -311,6 +311,8 @@ def planarize(
     if not closeness >= 0 or not math.isfinite(closeness):
         raise ValueError(f"closeness must be finite and >= 0, got {closeness}.")
     n = verts.shape[0]
+    if n == 0:
+        raise ValueError("planarize: the mesh has no vertices; nothing to planarize.")
     topo = get_topology(faces, n)
     x0 = verts.detach()
     center = (x0.amax(0) + x0.amin(0)) / 2
