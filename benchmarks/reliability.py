@@ -21,7 +21,12 @@ Categories and references:
 * ``PLY, non-integral indices``: a face list with a fractional index; must refuse.
 * ``free-boundary map, not a disk``: a grid with holes; must refuse.
 
-``python benchmarks/reliability.py [--cases 40] [--seed 0]`` writes
+Then the sweep (below): every public entry point on empty and degenerate meshes
+(``ENTRY_POINTS`` x ``INPUTS``), ill-conditioned but valid systems (``ILL_CONDITIONED``), and
+every CLI command sent SIGINT at each phase (``CLI_COMMANDS`` x ``CLI_PHASES``; some minutes,
+``--no-cli`` skips it), each run classified as a result, a clear error or a raw error.
+
+``python benchmarks/reliability.py [--cases 40] [--seed 0] [--no-cli]`` writes
 ``benchmarks/results/reliability.json`` (or ``--json PATH``).
 """
 
