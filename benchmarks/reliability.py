@@ -556,6 +556,7 @@ def block(where):
 class BlockTorch:
     def find_spec(self, name, path=None, target=None):
         if name == "torch":
+            sys.meta_path.remove(self)  # once: Python's shutdown may import again
             block("start-up")
 
 
@@ -576,15 +577,16 @@ sys.stdout = open(os.devnull, "w")
 sys.argv = ["polylap", *argv]
 from _polylap_launcher import main
 
-main()
+sys.exit(main())  # as pip's console-script wrapper calls it
 """
 CLI_PHASES = ("start-up", "compute", "writing", "after writing")
 
 
 def cli_interrupt(command: str, phase: str, timeout: float = 300.0) -> tuple[str, str]:
     """``(outcome, detail)`` of ``polylap COMMAND`` sent SIGINT at ``phase``: ``"clear"``
-    (status 130 and the one line ``polylap: interrupted``), ``"raw"`` (anything else) or
-    ``"not reached"`` (the command ended without reaching the phase)."""
+    (status 130 and the one line ``polylap: interrupted``), ``"raw"`` (anything else, or no
+    exit within ``timeout`` seconds of the signal) or ``"not reached"`` (the command ended
+    without reaching the phase)."""
     with tempfile.TemporaryDirectory() as out:
         argv = [sys.executable, "-c", CLI_CHILD, phase, command, *CLI_COMMANDS[command]]
         argv += ["-o", out]
@@ -600,7 +602,12 @@ def cli_interrupt(command: str, phase: str, timeout: float = 300.0) -> tuple[str
                 _, err = proc.communicate()
                 return "not reached", f"status {proc.returncode}: {err.strip()[-200:]}"
             proc.send_signal(signal.SIGINT)
-            _, err = proc.communicate(timeout=timeout)
+            try:
+                _, err = proc.communicate(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                _, err = proc.communicate()
+                return "raw", f"still running {timeout:g} s after the signal: {err[-200:]}"
         finally:
             if proc.poll() is None:
                 proc.kill()
