@@ -106,6 +106,18 @@ def _run() -> int:
         return _end(signal.SIGINT)
     except Terminated as ended:
         return _end(ended.signum)
+    except SystemExit as done:  # argparse: --help, --version, a bad argument
+        return _status(done.code)
+
+
+def _status(code: object) -> int:
+    """The exit status of ``SystemExit(code)``, as Python gives it (a message: printed, 1)."""
+    if code is None:
+        return 0
+    if isinstance(code, int):
+        return code
+    print(code, file=sys.stderr)
+    return 1
 
 
 def _exit(status: int) -> NoReturn:

@@ -314,20 +314,31 @@ def test_signal_after_every_command_wrote_its_files(command, signame, tmp_path):
     _signal_while_ending(command, signame, tmp_path)
 
 
-def test_console_script_runs_the_command(capsys):
-    """The launcher setup.py names runs torch_polylap.cli.main with the process's arguments."""
-    import importlib
-
+def test_console_script_runs_the_command():
+    """The launcher setup.py names runs torch_polylap.cli.main with the process's arguments,
+    and ends the process with its status (argparse's exits included)."""
     module, function = console_script()
-    launcher = getattr(importlib.import_module(module), function)
-    argv = sys.argv
-    sys.argv = ["polylap", "info", "--help"]
-    try:
-        with pytest.raises(SystemExit) as exit_info:
-            launcher()
-    finally:
-        sys.argv = argv
-    assert exit_info.value.code == 0 and "usage: polylap info" in capsys.readouterr().out
+    runs = {
+        ("info", "--help"): (0, "stdout", "usage: polylap info"),
+        ("info", "--eigs", "x"): (2, "stderr", "invalid int value: 'x'"),
+    }
+    for args, (status, stream, text) in runs.items():
+        argv = ["polylap", *args]
+        code = f"import sys; sys.argv = {argv!r}; from {module} import {function}"
+        code += f"; sys.exit({function}())"
+        result = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, env=ENV
+        )
+        assert result.returncode == status and text in getattr(result, stream), result.stderr
+
+
+@needs_posix_signals
+def test_ctrl_c_while_ending_after_help(tmp_path):
+    """argparse ends ``--help`` with SystemExit: that process too ends with the one line."""
+    module, function = console_script()
+    code = ENDING_SCRIPT.format(module=module, function=function)
+    result = interrupt([sys.executable, "-c", code, "info", "--help"], "blocked in", "SIGINT")
+    assert (result.returncode, result.stderr) == (130, "polylap: interrupted\n")
 
 
 # --------------------------------------------------------------------------------------------
