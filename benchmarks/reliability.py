@@ -380,7 +380,9 @@ ENTRY_POINTS: dict[str, Callable[[torch.Tensor, object], object]] = {
     "apps.conformal_energy": lambda V, F: tp.apps.conformal_energy(V[:, :2], V, F),
     "apps.conformal_matrix": lambda V, F: tp.apps.conformal_matrix(V, F),
     "apps.angle_distortion": lambda V, F: tp.apps.angle_distortion(V[:, :2], V, F).per_corner,
-    "apps.planarize": lambda V, F: tp.apps.planarize(V, F, max_iter=2, warn=False).verts,
+    "apps.planarize": lambda V, F: tp.apps.planarize(
+        V, F, max_iter=2, options=tp.apps.PlanarizeOptions(warn=False)
+    ).verts,
     # layers
     "nn.Spectrum.from_polygon_meshes": _spectrum,
     "nn.SpectralFeatures": lambda V, F: tp.nn.SpectralFeatures(num_features=4)(_spectrum(V, F)),
