@@ -44,30 +44,36 @@ from . import (
     topology,
     vector,
 )
-from .batch import *
+from .batch import PolygonMeshes
 from .calculus import *
 from .compiled import *
-from .faces import *
+from .faces import PolygonFaces, as_faces
 from .geodesics import *
 from .interop import from_pyg, from_pytorch3d, from_trimesh, to_pyg, to_pytorch3d, to_trimesh
 from .io import read_mesh, write_mesh
 from .linalg import *
 from .measures import *
 from .operators import *
-from .spectral import *
+from .spectral import (
+    cached_eigs,
+    heat_kernel_signature,
+    implicit_heat_diffusion,
+    spectral_heat_diffusion,
+    wave_kernel_signature,
+)
 from .topology import Topology, TopologyReport, build_topology, get_topology
 
 __version__ = "0.1.0"
 
+# The building blocks dec and kernels stay importable (torch_polylap.dec, torch_polylap.kernels)
+# but are not exported: they are for extending the package, not for using it.
 _SUBPACKAGES = (
     "apps",
     "checks",
     "datasets",
-    "dec",
     "fitting",
     "interop",
     "io",
-    "kernels",
     "losses",
     "nn",
     "plot",

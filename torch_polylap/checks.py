@@ -38,6 +38,7 @@ __all__ = [
     "NotAnIntegerError",
     "inverse_or_zero",
     "check_finite",
+    "check_finite_operand",
     "Lam",
     "warn_outside_package",
 ]
@@ -288,3 +289,44 @@ def warn_outside_package(message: str) -> None:
         level += 1
         frame = frame.f_back
     warnings.warn(message, UserWarning, stacklevel=level)
+
+
+def check_finite_operand(A: torch.Tensor, name: str, caller: str) -> None:
+    """Raise a ValueError naming the first NaN or infinite entry of ``A`` (row, column, value),
+    an operand of a linear-algebra call (``solve``, ``eigs``): checked before anything else,
+    so that a NaN is not reported as an asymmetry or a singular matrix.
+
+    Args:
+        A: a sparse operator of this package ``(n, m)`` (its stored entries are checked), or a
+            dense ``(n,)`` or ``(n, c)`` tensor.
+        name: the argument's name in the message (``"L"``, ``"B"``).
+        caller: the function that received it.
+
+    One reduction and one host sync when every entry is finite. Traced (torch.compile) or
+    under vmap, an in-graph assertion instead (:func:`~torch_polylap.tracing.require`), whose
+    message names the operand but not the entry.
+    """
+    from .sparse import is_operator
+    from .sparse.construct import csr_indices, sparse_values
+
+    sparse = is_operator(A)
+    values = sparse_values(A) if sparse else A
+    finite = torch.isfinite(values)
+    if require(finite, f"{caller}: {name} holds a NaN or an infinity."):
+        return
+    bad = torch.nonzero(~finite.reshape(-1))[:, 0]
+    first = int(bad[0])
+    if sparse:
+        crow, col = csr_indices(A)
+        row = int(torch.searchsorted(crow, first, right=True)) - 1
+        where = f"{name}[{row}, {int(col[first])}]"
+    elif values.dim() == 2:
+        where = f"{name}[{first // values.shape[1]}, {first % values.shape[1]}]"
+    else:
+        where = f"{name}[{first}]"
+    raise ValueError(
+        f"{caller}: {name} holds non-finite values: {where} = "
+        f"{values.reshape(-1)[first].item()} ({bad.numel()} such entries). Find where they "
+        "came from (a NaN vertex coordinate, a division by zero, a diverged optimization) "
+        "and fix them first."
+    )

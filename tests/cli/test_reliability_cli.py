@@ -253,20 +253,94 @@ def test_signal_during_the_imports_of_the_console_script(signame, tmp_path):
     assert (result.returncode, result.stderr) == (status, line + "\n")
 
 
-def test_console_script_runs_the_command(capsys):
-    """The launcher setup.py names runs torch_polylap.cli.main with the process's arguments."""
-    import importlib
+# the console script with an atexit callback that blocks: the process is ending (its command
+# done, its files written and its table printed) when the signal comes. The table goes to
+# /dev/null so that the marker is the first line on stdout.
+ENDING_SCRIPT = """
+import atexit
+import os
+import sys
+import time
 
+
+def block():
+    print("blocked in shutdown", file=sys.__stdout__, flush=True)
+    time.sleep(600)
+
+
+atexit.register(block)
+sys.stdout = open(os.devnull, "w")
+sys.argv = ["polylap", *sys.argv[1:]]
+from {module} import {function}
+
+sys.exit({function}())
+"""
+
+# a quick run of every command that writes files, with the figure where it has one
+AFTER_WRITING = {
+    "smooth": ["--steps", "2", "--no-progress"],
+    "info": ["--eigs", "2", "--json"],
+    "param": [],
+    "planarize": ["--max-iter", "1", "--no-progress"],
+    "spectrum": ["-k", "2", "--npz"],
+    "bench": [str(DATA / "dodecahedron_poly.obj"), "--repeat", "1", "-k", "2", "--json"],
+    "demo": ["--no-plot", "--no-progress"],
+}
+
+
+def _signal_while_ending(command: str, signame: str, out: Path) -> None:
     module, function = console_script()
-    launcher = getattr(importlib.import_module(module), function)
-    argv = sys.argv
-    sys.argv = ["polylap", "info", "--help"]
-    try:
-        with pytest.raises(SystemExit) as exit_info:
-            launcher()
-    finally:
-        sys.argv = argv
-    assert exit_info.value.code == 0 and "usage: polylap info" in capsys.readouterr().out
+    code = ENDING_SCRIPT.format(module=module, function=function)
+    argv = [sys.executable, "-c", code, command, *AFTER_WRITING[command], "-o", str(out)]
+    result = interrupt(argv, "blocked in shutdown", signame)
+    status, line = ENDINGS[signame]
+    # what the command itself wrote to stderr (bench: its progress bar) comes first
+    assert result.returncode == status, result.stderr
+    assert result.stderr.endswith(f"{line}\n") and result.stderr.count("polylap:") == 1
+    assert "Traceback" not in result.stderr
+    assert any(out.iterdir()) and not [p for p in out.iterdir() if TEMPORARY.fullmatch(p.name)]
+
+
+@needs_posix_signals
+def test_ctrl_c_after_the_command_wrote_its_files(tmp_path):
+    """Ctrl-C once ``polylap smooth`` wrote its PNG: Python's shutdown used to print a
+    KeyboardInterrupt traceback from an atexit callback and exit with status 0."""
+    _signal_while_ending("smooth", "SIGINT", tmp_path)
+
+
+@pytest.mark.slow
+@needs_posix_signals
+@pytest.mark.parametrize("signame", sorted(ENDINGS))
+@pytest.mark.parametrize("command", sorted(AFTER_WRITING))
+def test_signal_after_every_command_wrote_its_files(command, signame, tmp_path):
+    _signal_while_ending(command, signame, tmp_path)
+
+
+def test_console_script_runs_the_command():
+    """The launcher setup.py names runs torch_polylap.cli.main with the process's arguments,
+    and ends the process with its status (argparse's exits included)."""
+    module, function = console_script()
+    runs = {
+        ("info", "--help"): (0, "stdout", "usage: polylap info"),
+        ("info", "--eigs", "x"): (2, "stderr", "invalid int value: 'x'"),
+    }
+    for args, (status, stream, text) in runs.items():
+        argv = ["polylap", *args]
+        code = f"import sys; sys.argv = {argv!r}; from {module} import {function}"
+        code += f"; sys.exit({function}())"
+        result = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, env=ENV
+        )
+        assert result.returncode == status and text in getattr(result, stream), result.stderr
+
+
+@needs_posix_signals
+def test_ctrl_c_while_ending_after_help(tmp_path):
+    """argparse ends ``--help`` with SystemExit: that process too ends with the one line."""
+    module, function = console_script()
+    code = ENDING_SCRIPT.format(module=module, function=function)
+    result = interrupt([sys.executable, "-c", code, "info", "--help"], "blocked in", "SIGINT")
+    assert (result.returncode, result.stderr) == (130, "polylap: interrupted\n")
 
 
 # --------------------------------------------------------------------------------------------

@@ -8,6 +8,9 @@ for the small linear systems.
 
 from __future__ import annotations
 
+import re
+import warnings
+
 import numpy as np
 import pytest
 import scipy.linalg
@@ -309,6 +312,102 @@ def test_solve_refuses_singular_systems(n, seed, components, backend):
         assert isinstance(error, linalg.solves.ConvergenceError) or "p^T A p" in str(error)
         if isinstance(error, linalg.solves.ConvergenceError):
             assert error.residual > 1e-10 and f"{error.residual:.3g}" in str(error)
+
+
+def _shifted_solution(L: torch.Tensor, M0: torch.Tensor, shift: float, b: np.ndarray):
+    """``(L + shift M0)^-1 b`` for a Laplacian ``L`` of a closed connected mesh, to float64
+    accuracy however small ``shift``: the constants are the kernel of ``L`` and
+    ``(L + shift M0) 1 = shift M0 1``, so the part of ``b`` along ``M0 1`` solves in closed
+    form, and the rest with ``L + shift M0 + w w^T`` (``w = M0 1`` scaled like ``L``), which
+    acts alike on the rest and is well-conditioned."""
+    Ld, Md = L.to_dense().numpy(), M0.to_dense().numpy()
+    w = Md @ np.ones(b.size)
+    along = w * (b.sum() / w.sum())  # 1^T (b - along) = 0
+    constant = b.sum() / (shift * w.sum())
+    fixed = Ld + shift * Md + np.outer(w, w) * (np.abs(Ld).max() / (w @ w))
+    return constant + np.linalg.solve(fixed, b - along)
+
+
+@pytest.mark.parametrize("backend", ["splu", "cholesky", "ldl"])
+def test_ill_conditioned_positive_definite_solve_warns_and_solves(backend):
+    """``L + 1e-12 M0`` is positive definite with condition number about 8e12 on spot: it was
+    refused as singular by its solution growth alone. Solved now, to the digits the warning
+    promises, against a reference that needs no ill-conditioned solve."""
+    if backend == "ldl" and not linalg.qdldl_available():
+        pytest.skip("needs qdldl")
+    if backend == "cholesky" and not linalg.cholespy_available():
+        pytest.skip("needs cholespy")
+    V, F = _spot()
+    L, M0 = tp.laplacian(V, F)
+    b = np.random.default_rng(3).standard_normal(V.shape[0])
+    with pytest.warns(tp.IllConditionedWarning, match=r"ill-conditioned .* correct digits") as w:
+        x = tp.solve(L + 1e-12 * M0, torch.from_numpy(b), backend=backend).numpy()
+    digits = int(re.search(r"about (\d+) correct digits", str(w[0].message))[1])
+    reference = _shifted_solution(L, M0, 1e-12, b)
+    assert digits >= 2
+    assert np.abs(x - reference).max() <= 10.0**-digits * np.abs(reference).max()
+    # a shift 100x larger is well enough conditioned to pass without a word
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", tp.IllConditionedWarning)
+        x = tp.solve(L + 1e-10 * M0, torch.from_numpy(b), backend=backend).numpy()
+    reference = _shifted_solution(L, M0, 1e-10, b)
+    assert np.abs(x - reference).max() <= 1e-4 * np.abs(reference).max()
+
+
+@pytest.mark.parametrize("backend", ["splu", "cholesky", "ldl"])
+def test_laplacian_alone_stays_singular(backend):
+    """``L`` of a closed mesh with a right-hand side outside its range (``M0 1``): no
+    refinement converges, so the error names the singular matrix and the remedy."""
+    if backend == "ldl" and not linalg.qdldl_available():
+        pytest.skip("needs qdldl")
+    if backend == "cholesky" and not linalg.cholespy_available():
+        pytest.skip("needs cholespy")
+    V, F = _spot()
+    L, M0 = tp.laplacian(V, F)
+    with pytest.raises(ValueError, match=r"is singular .*M0 \+ h L"):
+        tp.solve(L, M0 @ torch.ones(V.shape[0], **D64), backend=backend)
+
+
+def _with_entry(A: torch.Tensor, k: int, value: float):
+    """``A`` with its ``k``-th stored entry (CSR order) set to ``value``, and that entry's
+    ``(row, col)`` as scipy reads the same matrix."""
+    values = tp.sparse.sparse_values(A).detach().clone()
+    values[k] = value
+    S = tp.sparse.to_scipy(A).tocoo()
+    return A.with_values(values), (int(S.row[k]), int(S.col[k]))
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_operands_are_named_before_anything_else(value):
+    """A NaN in L was reported by eigs as an asymmetry ("L[0, 0] = nan but L[0, 0] = nan")
+    and by solve as a singular matrix; both now name the first non-finite entry."""
+    V, F = _spot()
+    L, M0 = tp.laplacian(V, F)
+    n = V.shape[0]
+    k = tp.sparse.sparse_values(L).numel() // 3
+    bad_L, (i, j) = _with_entry(L, k, value)
+    pattern = rf"eigs: L holds non-finite values: L\[{i}, {j}\] = {value} \(1 such entries\)"
+    with pytest.raises(ValueError, match=pattern):
+        tp.eigs(bad_L, M0, k=3)
+    with pytest.raises(ValueError, match=r"eigs: L holds non-finite values: L\[0, 0\] = nan"):
+        tp.eigs(L * float("nan"), M0, k=3)
+    bad_M, (i, j) = _with_entry(M0, 7, value)
+    assert i == j == 7  # M0 is diagonal
+    with pytest.raises(ValueError, match=rf"eigs: M holds non-finite values: M\[7, 7\] = {value}"):
+        tp.eigs(L, bad_M, k=3)
+    A = M0 + 0.1 * L
+    bad_A, (i, j) = _with_entry(A, k, value)
+    b = torch.ones(n, **D64)
+    with pytest.raises(ValueError, match=rf"solve: A holds non-finite values: A\[{i}, {j}\]"):
+        tp.solve(bad_A, b)
+    B = torch.ones(n, 2, **D64)
+    B[11, 1] = value
+    with pytest.raises(
+        ValueError, match=rf"solve: B holds non-finite values: B\[11, 1\] = {value}"
+    ):
+        tp.solve(A, B)
+    with pytest.raises(ValueError, match=r"solve: B holds non-finite values: B\[11\]"):
+        tp.solve(A, B[:, 1].contiguous())
 
 
 @FAST

@@ -299,7 +299,7 @@ def test_unwritable_cache_warns_and_returns_the_result(tmp_path, monkeypatch, de
 
     # root ignores chmod: emulate it where the one eigenpair cache writes
     monkeypatch.setattr(tp.spectral, "atomic_write", read_only)
-    with pytest.warns(tp.CacheWriteWarning, match="Permission denied"):
+    with pytest.warns(tp.spectral.CacheWriteWarning, match="Permission denied"):
         got = to_diffusionnet(v, f, k_eig=5, cache_dir=tmp_path / "ro")
     _same(got, expected)
 

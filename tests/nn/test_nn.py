@@ -143,8 +143,8 @@ def test_diffusion_conserves_heat_on_closed_meshes(batch, mode, device):
     layer = tnn.LearnedDiffusion(3, mode=mode, init_times=(0.01, 1.0)).double().to(device)
     out = layer(x, spectrum, L, M0)
     assert out.device.type == device.type
-    before = tp.per_mesh_mean(x, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
-    after = tp.per_mesh_mean(out, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
+    before = tp.batch.per_mesh_mean(x, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
+    after = tp.batch.per_mesh_mean(out, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
     assert torch.allclose(before, after, atol=1e-10)
     assert not torch.allclose(out, x, atol=1e-3)  # it did diffuse
 
@@ -334,7 +334,7 @@ def test_classifier_pools_with_mass_weights(batch, device):
         for p in model.blocks.parameters():
             p.zero_()
     logits = model(x, spectrum)
-    mean = tp.per_mesh_mean(x, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
+    mean = tp.batch.per_mesh_mean(x, spectrum.vert_to_mesh, 3, weights=spectrum.mass)
     expected = model.head(model.lift(mean))
     assert logits.shape == (3, 4) and torch.allclose(logits, expected, atol=1e-12)
     for b in range(3):

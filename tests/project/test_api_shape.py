@@ -121,3 +121,12 @@ def test_at_most_a_hundred_lines():
         if (count := _line_count(function)) > MAX_LINES
     }
     assert not offenders, f"longer than {MAX_LINES} lines: {offenders}"
+
+
+def test_the_top_level_exports_at_most_sixty_names():
+    """The top level is the core and the subpackages; helpers, building blocks and type aliases
+    live in their own modules, so a user's ``dir(tp)`` stays readable."""
+    import torch_polylap as tp
+
+    assert len(tp.__all__) <= 60, sorted(tp.__all__)
+    assert all(hasattr(tp, name) for name in tp.__all__)

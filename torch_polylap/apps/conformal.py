@@ -457,6 +457,8 @@ def angle_distortion(uv: torch.Tensor, verts: torch.Tensor, faces: MeshFaces) ->
     theta_2d = _interior_angle(uv[prv] - uv[cur], uv[nxt] - uv[cur], None)
     err = theta_2d - theta_3d
     mag = err.detach().abs()
+    if not mag.numel():  # a mean and a maximum of nothing would be NaN and an IndexError
+        raise ValueError("angle_distortion: the mesh has no faces, so no angle to compare.")
     return AngleDistortion(
         per_corner=err,
         mean=float(mag.mean()),

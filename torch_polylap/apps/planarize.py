@@ -350,6 +350,8 @@ def planarize(
     options = options or PlanarizeOptions()
     max_iter = _checked_max_iter(verts, tol, max_iter, method, options)
     n = verts.shape[0]
+    if n == 0:
+        raise ValueError("planarize: the mesh has no vertices; nothing to planarize.")
     topo = get_topology(faces, n)
     x0 = verts.detach()
     center = (x0.amax(0) + x0.amin(0)) / 2

@@ -1,7 +1,6 @@
-"""``python -m torch_polylap.cli``: the ``polylap`` command."""
+"""``python -m torch_polylap.cli``: the ``polylap`` command, ended as the console script ends it
+(one line and ``128 + signal`` for a signal up to the end of the process)."""
 
-import sys
+from _polylap_launcher import main
 
-from . import main
-
-sys.exit(main())
+main()

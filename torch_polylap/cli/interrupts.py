@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from types import FrameType
 
-__all__ = ["Terminated", "signals_as_exceptions", "ignore_signals"]
+__all__ = ["Terminated", "raise_terminated", "signals_as_exceptions", "ignore_signals"]
 
 # the signals that end a command, as exceptions (SIGHUP does not exist on Windows)
 _ENDING = tuple(
@@ -39,7 +39,8 @@ class Terminated(SystemExit):
         return signal.Signals(self.signum).name
 
 
-def _raise_terminated(signum: int, frame: FrameType | None) -> None:
+def raise_terminated(signum: int, frame: FrameType | None) -> None:
+    """The handler :func:`signals_as_exceptions` installs for SIGTERM and SIGHUP."""
     raise Terminated(signum)
 
 
@@ -58,7 +59,7 @@ def signals_as_exceptions() -> Iterator[None]:
     previous = {signum: signal.getsignal(signum) for signum in _ENDING}
     for signum, current in previous.items():
         if current is signal.SIG_DFL:  # not ignored, not Python's KeyboardInterrupt, no user's
-            ours = signal.default_int_handler if signum == signal.SIGINT else _raise_terminated
+            ours = signal.default_int_handler if signum == signal.SIGINT else raise_terminated
             signal.signal(signum, ours)
     try:
         yield
@@ -74,5 +75,5 @@ def ignore_signals() -> None:
     if threading.current_thread() is not threading.main_thread():
         return
     for signum in _ENDING:
-        if signal.getsignal(signum) in (signal.default_int_handler, _raise_terminated):
+        if signal.getsignal(signum) in (signal.default_int_handler, raise_terminated):
             signal.signal(signum, signal.SIG_IGN)

@@ -15,6 +15,7 @@ from .eigenpairs import eigs
 from .eigenpairs import eigs_route as eigs_route
 from .factor import CholeskyFactorization as CholeskyFactorization
 from .factor import Factorization as Factorization
+from .factor import IllConditionedWarning as IllConditionedWarning
 from .factor import LDLFactorization as LDLFactorization
 from .factor import cached_factorization as cached_factorization
 from .factor import cholespy_available as cholespy_available
@@ -22,4 +23,4 @@ from .factor import qdldl_available as qdldl_available
 from .factor import spd_splu as spd_splu
 from .solves import dirichlet_solve, solve
 
-__all__ = ["solve", "dirichlet_solve", "eigs"]
+__all__ = ["solve", "dirichlet_solve", "eigs", "IllConditionedWarning"]

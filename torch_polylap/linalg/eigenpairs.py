@@ -13,6 +13,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from ..checks import check_finite_operand
 from ..sparse import (
     SparseOperator,
     as_operator,
@@ -519,6 +520,8 @@ def _check_input(
         )
     if tol < 0:
         raise ValueError(f"eigs: tol must be >= 0, got {tol}.")
+    check_finite_operand(L, "L", "eigs")
+    check_finite_operand(M, "M", "eigs")
     Ls = to_scipy(L).astype(np.float64).tocsr()
     Ms = to_scipy(M).astype(np.float64).tocsr()
     _check_symmetric(L, Ls, "L")

@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from ..checks import check_index_or_mask
+from ..checks import check_finite_operand, check_index_or_mask
 from ..sparse import SparseOperator, as_operator, sparse_values, submatrix
 from ..sparse.construct import csr_indices, sampled_gradient
 from ..tracing import tracing
@@ -143,6 +143,8 @@ def solve(
         )
     if B.dtype != A.dtype:
         raise ValueError(f"solve: A has dtype {A.dtype} but B has {B.dtype}; convert one of them.")
+    check_finite_operand(A, "A", "solve")
+    check_finite_operand(B, "B", "solve")
     if backend == "auto":
         if A.symmetric and cholespy_available():
             backend = "cholesky"

@@ -28,6 +28,7 @@ from torch import nn
 
 from ..sparse import as_operator, identity
 from ..sparse.construct import mark_symmetric
+from ..tracing import require
 from .spectrum import masses_of
 
 __all__ = ["chebyshev_operator", "chebyshev_filter", "ChebyshevFilter"]
@@ -61,6 +62,18 @@ def chebyshev_operator(
     L = as_operator(L)
     m = masses_of(M0).to(L.dtype)
     n = L.shape[0]
+    if not require(
+        m > 0, "chebyshev_operator: M0 has a mass <= 0; see remove_unreferenced_vertices"
+    ):
+        # the normalization divides by the masses: a zero one (a vertex no face references)
+        # would fill the whole operator with NaN through lambda_max
+        bad = torch.nonzero(~(m > 0))[:, 0]
+        raise ValueError(
+            f"chebyshev_operator: vertex {int(bad[0])} has mass {float(m[bad[0]]):g} "
+            f"({bad.numel()} such vertices), and the normalization divides by the masses. A "
+            "vertex that no face references has none: remove such vertices first with "
+            "torch_polylap.repair.remove_unreferenced_vertices(verts, faces)."
+        )
     if normalization == "sym":
         r = torch.rsqrt(m)
         S = L * r[:, None] * r[None, :]
