@@ -239,6 +239,7 @@ def test_fitted_plane_nonplanarity_matches_sources(name):
         assert abs(float(ours) - printed) <= 0.51 * digit, (name, float(ours), printed)
 
 
+@pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")  # on purpose
 def test_moebius_builds_operators_and_refuses_what_needs_an_orientation():
     verts, faces = load(_path("moebius.obj"))
     with pytest.warns(UserWarning, match=r"1 non-orientable component"):

@@ -200,6 +200,7 @@ def test_a_degenerate_reference_edge_falls_back_to_the_other_edge_of_the_corner(
     assert x.grad is not None and torch.isfinite(x.grad).all()
 
 
+@pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")  # on purpose
 def test_isolated_vertices_keep_the_fixed_frame():
     verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5]], dtype=D64)
     normal, e_x, e_y = tp.tangent.vertex_tangent_frames(verts, [[0, 1, 2]])

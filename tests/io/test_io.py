@@ -145,7 +145,8 @@ OBJ_FACES = [[0, 1, 2, 3], [1, 4, 2], [1, 4, 2], [4, 1, 2], [5, 4, 2]]
 @pytest.mark.parametrize("newline", ["\n", "\r\n"])
 def test_obj_dialects(tmp_path, newline):
     path = write_text(tmp_path / "d.obj", OBJ_TEXT, newline)
-    verts, faces = read_mesh(path)
+    with pytest.warns(SkippedContentWarning, match=r"skipped material libraries \(mtllib\)"):
+        verts, faces = read_mesh(path)
     expected = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [3, 3, 3]]
     assert verts.tolist() == expected
     assert faces.tolist() == OBJ_FACES
@@ -160,7 +161,8 @@ def test_obj_comment_ending_in_backslash_continues_nothing(tmp_path):
 
 def test_non_finite_coordinates_are_read(tmp_path):
     path = write_text(tmp_path / "n.obj", "v nan inf -inf\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
-    verts, _ = read_mesh(path)
+    with pytest.warns(UserWarning, match=r"vertex 0: 1 vertices have non-finite coordinates"):
+        verts, _ = read_mesh(path)
     assert torch.isnan(verts[0, 0])
     assert verts[0, 1] == float("inf")
     assert verts[0, 2] == float("-inf")
@@ -192,7 +194,8 @@ OFF_FACES = [[0, 1, 2, 3], [1, 4, 5, 2], [0, 2, 3]]
 )
 def test_off_dialects(tmp_path, header):
     path = write_text(tmp_path / "d.off", header + OFF_BODY)
-    verts, faces = read_mesh(path)
+    with pytest.warns(SkippedContentWarning, match="face colours"):
+        verts, faces = read_mesh(path)
     assert verts.tolist() == [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]]
     assert faces.tolist() == OFF_FACES
 
@@ -211,7 +214,11 @@ def _binary_off(order: str, with_colours: bool) -> bytes:
 def test_binary_off(tmp_path, order, with_colours):
     path = tmp_path / "b.off"
     path.write_bytes(_binary_off(order, with_colours))
-    verts, faces = read_mesh(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        verts, faces = read_mesh(path)
+    # the face colours are reported as skipped, and nothing else is
+    assert [str(w.message).endswith("face colours (2).") for w in caught] == [True] * with_colours
     assert verts.tolist() == [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0]]
     assert faces.tolist() == [[0, 1, 2, 3], [1, 4, 2]]
 
@@ -285,7 +292,8 @@ def _hand_ply(fmt: str, faces: list[list[int]], vertex_list: bool) -> bytes:
 def test_ply_with_extra_properties(tmp_path, fmt, faces, vertex_list):
     path = tmp_path / "hand.ply"
     path.write_bytes(_hand_ply(fmt, faces, vertex_list))
-    verts, got = read_mesh(path)
+    with pytest.warns(SkippedContentWarning, match="skipped PLY element 'material'"):
+        verts, got = read_mesh(path)
     assert verts.tolist() == PLY_VERTS
     assert got.tolist() == faces
 
@@ -544,7 +552,8 @@ def _two_list_ply(fmt: str) -> bytes:
 def test_ply_face_with_two_lists(tmp_path, fmt):
     path = tmp_path / "two.ply"
     path.write_bytes(_two_list_ply(fmt))
-    verts, faces = read_mesh(path)
+    with pytest.warns(SkippedContentWarning, match="texcoord"):
+        verts, faces = read_mesh(path)
     assert verts.tolist() == PLY_VERTS
     assert faces.tolist() == [[0, 1, 2, 3], [1, 4, 2]]
 
@@ -697,7 +706,9 @@ def test_skipped_off_and_ply_content_is_named(tmp_path):
 
 def test_obj_attributes_round_trip_exactly(tmp_path):
     path = write_text(tmp_path / "d.obj", OBJ_TEXT)
-    verts, faces, attrs = read_mesh(path, return_attributes=True)
+    # the attributes come back; what they cannot hold (materials, objects, ...) is reported
+    with pytest.warns(SkippedContentWarning, match="mtllib"):
+        verts, faces, attrs = read_mesh(path, return_attributes=True)
     assert faces.tolist() == OBJ_FACES
     assert attrs.uv.tolist() == [[0, 0], [1, 0]]
     assert attrs.normals.tolist() == [[0, 0, 1]]
@@ -724,7 +735,8 @@ def test_attributes_default_return_is_unchanged_and_off_has_none(tmp_path, mixed
 def test_ply_per_vertex_normals_as_attributes(tmp_path):
     path = tmp_path / "hand.ply"
     path.write_bytes(_hand_ply("binary_big_endian", PLY_MIXED, vertex_list=False))
-    _, faces, attrs = read_mesh(path, return_attributes=True)
+    with pytest.warns(SkippedContentWarning, match="material"):
+        _, faces, attrs = read_mesh(path, return_attributes=True)
     assert attrs.normals.tolist() == [[0.0, 0.0, 1.0]] * 5
     assert torch.equal(attrs.corner_normals, faces.indices) and attrs.uv is None
 

@@ -27,6 +27,10 @@ hypothesis = pytest.importorskip(
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
+# the fuzzed meshes are non-manifold and misoriented on purpose: the warning that says so is
+# expected (tests/topology/test_topology.py checks its text)
+pytestmark = pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")
+
 COUNTS: Counter = Counter()
 FUZZ = settings(
     max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True

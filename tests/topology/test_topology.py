@@ -476,6 +476,7 @@ def test_cache_holds_no_faces_and_is_shared_with_the_module(device):
     assert ref() is None
 
 
+@pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")  # on purpose
 def test_cache_sees_edits_through_shared_numpy_memory():
     V, F = quad_grid(3)
     arr = F.numpy().copy()

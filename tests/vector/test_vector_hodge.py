@@ -309,6 +309,7 @@ def test_corner_gradients_are_the_hat_gradients_on_triangles(device):
     np.testing.assert_allclose(w.numpy(), ref, atol=1e-12)
 
 
+@pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")  # on purpose
 def test_corner_gradients_reproduce_linear_functions_on_polygons(device):
     """On every polygon, planar or not (AW11 Lemma 1): the rows of a face sum to zero and
     ``sum_i w_i x_i^T`` is the projector on the plane orthogonal to the face's vector area
