@@ -26,11 +26,13 @@ __all__ = ["face_groups", "gather_chunks"]
 
 
 def _gather(verts_t: torch.Tensor, corners_t: torch.Tensor) -> torch.Tensor:
-    """``(3, k, c)`` positions of the corners ``corners_t`` ``(k, c)``: one ``take`` per
-    coordinate row (about twice as fast as a 2-D ``index_select`` on the CPU)."""
+    """``(3, k, c)`` positions of the corners ``corners_t`` ``(k, c)``: one 1-D
+    ``index_select`` per coordinate row over the flattened corners (faster on the CPU than
+    ``take`` or a 2-D ``index_select``)."""
     out = verts_t.new_empty((3, *corners_t.shape))
+    flat = corners_t.reshape(-1)
     for i in range(3):
-        torch.take(verts_t[i], corners_t, out=out[i])
+        torch.index_select(verts_t[i], 0, flat, out=out[i].view(-1))
     return out
 
 

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import torch
 
-from ..tracing import in_vmap
-
 __all__ = [
     "gather_corners",
     "gather_coordinates",
@@ -169,9 +167,10 @@ def gather_coordinates(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Corner coordinates of a degree group as three ``(k, F)`` tensors ``(X, Y, Z)``.
 
-    One ``take`` per coordinate row is about twice as fast as a 2-D ``index_select`` on the CPU;
-    under vmap, which has no batching rule for ``take``, plain indexing.
+    One 1-D ``index_select`` per coordinate row over the flattened corners: faster on the CPU
+    than ``take`` (forward and backward), and unlike ``take``, whose backward is ``put``, it
+    has batching rules both ways, so torch.func's transforms run it without a slow fallback.
     """
-    if in_vmap():
-        return verts_t[0][corners_t], verts_t[1][corners_t], verts_t[2][corners_t]
-    return verts_t[0].take(corners_t), verts_t[1].take(corners_t), verts_t[2].take(corners_t)
+    flat = corners_t.reshape(-1)
+    X, Y, Z = (torch.index_select(verts_t[i], 0, flat).view(corners_t.shape) for i in range(3))
+    return X, Y, Z

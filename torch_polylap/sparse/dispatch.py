@@ -703,6 +703,11 @@ def _build_handlers() -> dict[Callable, Callable]:
 
 
 HANDLERS.update(_build_handlers())
+# Newer torch.compile traces the transposing properties (``A.T``, ``A.mT``, ``A.mH``) as calls
+# of the aten operators themselves rather than of the property getters: the same handler serves
+# those spellings (not listed in the supported-operations table, which names the public ones).
+for _op in (torch.ops.aten.numpy_T, torch.ops.aten.mT, torch.ops.aten.mH):
+    HANDLERS[_op] = HANDLERS[_op.default] = _transpose
 
 PASSTHROUGH.update(
     {
