@@ -95,6 +95,7 @@ def test_chebyshev_operator_names_a_vertex_without_mass():
     assert evals.min() >= -1 - 1e-12 and evals.max() <= 1 + 1e-12
 
 
+@pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")  # no faces
 def test_angle_distortion_of_a_mesh_without_faces_is_a_clear_error():
     V = torch.rand(4, 3, dtype=torch.float64)
     with pytest.raises(ValueError, match="angle_distortion: the mesh has no faces"):
