@@ -156,7 +156,7 @@ def load_real_case(path: Path, min_verts: int, max_verts: int):
         return None
     if bool(topo.isolated.any()):
         return None
-    tris = tp.io.triangulate_faces(verts, faces).astype(np.int64)
+    tris = tp.triangulate.triangulate_faces(verts, faces).astype(np.int64)
     exact = igl.exact_geodesic(
         verts.numpy(),
         tris,

@@ -16,8 +16,8 @@ one, whatever happens during the write.
 
 Modules: :mod:`.obj`, :mod:`.off`, :mod:`.ply` (one reader per format), :mod:`.text` (the
 text readers' tokens and numbers: numpy's parser), :mod:`.common` (what they share),
-:mod:`.writers` (text blocks, PLY) and :mod:`.triangulate` (the triangles that
-:func:`torch_polylap.interop.to_trimesh` and :func:`torch_polylap.interop.to_pytorch3d` hand over).
+:mod:`.writers` (text blocks, PLY).  The triangles that :func:`torch_polylap.interop.to_trimesh`
+hands over come from :mod:`torch_polylap.triangulate`.
 """
 
 from __future__ import annotations
@@ -46,14 +46,12 @@ from .common import (
 from .obj import obj_text, read_obj
 from .off import read_off
 from .ply import read_ply
-from .triangulate import triangulate_faces
 from .writers import off_text, ply_text
 
 __all__ = [
     "MeshAttributes",
     "SkippedContentWarning",
     "read_mesh",
-    "triangulate_faces",
     "write_mesh",
 ]
 
