@@ -57,24 +57,28 @@ class Chunk:
         self.source = (text, begin)
         self.line0 = line0
         # below the space, text holds only whitespace and ESC (see check_text), which is none
-        if 27 in self.buf:
-            blank = _SPACE.take(self.buf)
-        else:
-            blank = self.buf <= 32
-        # a token starts where a blank is followed by a non-blank, and ends at the reverse
-        filled = ~blank
-        self.start = np.flatnonzero(filled[1:] > filled[:-1]) + 1
-        self.end = np.flatnonzero(filled[:-1] > filled[1:]) + 1
-        if len(filled) and filled[0]:
-            self.start = np.concatenate([[0], self.start])
-        if len(filled) and filled[-1]:
-            self.end = np.append(self.end, len(filled))
+        blank = _SPACE.take(self.buf) if 27 in self.buf else self.buf <= 32
+        # tokens start and end where blank and non-blank bytes meet: one pass finds both
+        edge = np.flatnonzero(blank[1:] != blank[:-1]) + 1
+        if len(blank) and not blank[0]:
+            edge = np.concatenate([[0], edge])
+        if len(edge) % 2:  # the text's last token, ending with it
+            edge = np.append(edge, len(blank))
+        self.start, self.end = edge.reshape(-1, 2).T.copy()  # contiguous, for fast takes
         breaks = np.flatnonzero(self.buf == 10)
         if len(self.buf) and self.buf[-1] != 10:  # the text's last line, without its break
             breaks = np.append(breaks, len(self.buf))
-        before = np.searchsorted(self.start, breaks)  # tokens before each line's end
-        self.count = np.diff(before, prepend=0)
-        self.first = before - self.count
+        n, w = len(self.start), len(self.start) // max(len(breaks), 1)
+        # the usual layout, w tokens on every line, needs no search: no line holds fewer than w
+        # (its first and last within its breaks) and the total leaves none more
+        fits = w and n == w * len(breaks) and (self.start[w - 1 :: w] < breaks).all()
+        if fits and (self.start[w::w] > breaks[:-1]).all():
+            self.first = np.arange(0, n, w)
+            self.count = np.full(len(breaks), w)
+        else:
+            before = np.searchsorted(self.start, breaks)  # tokens before each line's end
+            self.count = np.diff(before, prepend=0)
+            self.first = before - self.count
 
     def lines(self) -> Iterator[Chunk]:
         """The chunk's lines, each a chunk of its own (to find the first of several errors)."""
