@@ -28,10 +28,11 @@ from typing import Literal, overload
 import numpy as np
 import torch
 
+from .._typing import ArrayLike
 from ..atomic import atomic_write
+from ..checks import check_verts_array
 from ..faces import FacesLike, PolygonFaces, as_faces
 from .common import (
-    ArrayLike,
     MeshAttributes,
     Parsed,
     PathLike,
@@ -41,7 +42,6 @@ from .common import (
     check_mesh,
     read_regular_file,
     strip_bom,
-    verts_numpy,
 )
 from .obj import obj_text, read_obj
 from .off import read_off
@@ -222,7 +222,7 @@ def write_mesh(
         raise ValueError(
             f"{path}: attributes (texture coordinates, normals) can only be written to .obj files."
         )
-    v = verts_numpy(verts)
+    v = check_verts_array(verts)
     pf = as_faces(faces)
     indices = pf.indices.cpu().numpy()
     sizes = pf.sizes.cpu().numpy()

@@ -19,9 +19,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._typing import ArrayLike
-from ..checks import check_verts_array
-
 __all__ = ["MeshAttributes", "SkippedContentWarning"]
 
 PathLike = str | os.PathLike
@@ -284,6 +281,17 @@ def numbers(tokens: list[str], kind: type) -> np.ndarray:
         raise
 
 
+def joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
+    """The arrays ``pieces`` end to end (an empty one of ``dtype`` for none)."""
+    return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
+
+
+def face_of(sizes: np.ndarray, corner: int) -> int:
+    """The face holding ``corner`` (an index into the faces' packed corners), of faces of
+    ``sizes`` corners each."""
+    return int(np.searchsorted(np.cumsum(sizes), corner, side="right"))
+
+
 def check_faces(
     name: str,
     indices: np.ndarray,
@@ -305,7 +313,7 @@ def check_faces(
     bad = (indices < 0) | (indices >= num_verts)
     if bad.any():
         corner = int(np.flatnonzero(bad)[0])
-        f = int(np.searchsorted(np.cumsum(sizes), corner, side="right"))
+        f = face_of(sizes, corner)
         shown = int((indices if written is None else written)[corner])
         raise ValueError(
             f"{name}, {where(f)}: face {f} refers to vertex {shown}, "
@@ -331,8 +339,3 @@ def check_mesh(name: str, parsed: Parsed, where: Callable[[int], str]) -> None:
             UserWarning,
             stacklevel=3,
         )
-
-
-def verts_numpy(verts: ArrayLike) -> np.ndarray:
-    """``(V, 3)`` float64 array of a tensor (detached, on the CPU) or array."""
-    return check_verts_array(verts)

@@ -20,6 +20,7 @@ from .common import (
     check_count,
     check_faces,
     check_text,
+    joined,
     plain_text,
 )
 from .text import Chunk, chunks, runs
@@ -55,8 +56,7 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     check_count(name, "vertices", num_verts, len(data), f"line {line0}")
     check_count(name, "faces", num_faces, len(data), f"line {line0}")
     reader = _OffReader(name, num_verts, num_faces, len(text) - body)
-    for chunk in chunks(text, body):
-        chunk.line0 += line0
+    for chunk in chunks(text, body, line0):
         reader.add(chunk)
     return reader.finish(skipped, keyword)
 
@@ -129,9 +129,7 @@ class _OffReader:
 
     def add(self, chunk: Chunk) -> None:
         """Read the records of ``chunk``."""
-        lines = np.flatnonzero(chunk.count)
-        first, count = chunk.first.take(lines), chunk.count.take(lines)
-        line_no = chunk.line0 + lines + 1
+        lines, first, count, line_no = chunk.records()
         nv = min(self.num_verts - self.read, len(lines))
         if nv:
             self._vertices(chunk, lines[:nv], first[:nv], count[:nv], line_no[:nv])
@@ -258,9 +256,8 @@ class _OffReader:
                 f"{self.name}: the file ends after {complete} of the {self.num_faces} faces "
                 "declared in the header (truncated file)."
             )
-        indices = np.concatenate(self.indices) if self.indices else np.zeros(0, dtype=np.int64)
-        sizes = np.concatenate(self.sizes) if self.sizes else np.zeros(0, dtype=np.int64)
-        face_lines = np.concatenate(self.face_lines) if self.face_lines else sizes
+        indices, sizes = joined(self.indices, np.int64), joined(self.sizes, np.int64)
+        face_lines = joined(self.face_lines, np.int64)
         check_faces(self.name, indices, sizes, self.num_verts, lambda f: f"line {face_lines[f]}")
         skipped.add(_vertex_extras(keyword), self.extra)
         skipped.add("face colours", self.coloured)
@@ -332,9 +329,7 @@ def _read_off_binary(body: bytes, keyword: str, name: str, skipped: Skipped) -> 
     check_faces(name, sizes[:0], sizes, None, lambda f: f"binary OFF face record {f}")
     if with_colours:
         skipped.add("face colours", int((words[starts + sizes + 1] > 0).sum()))
-    first = np.repeat(starts + 1, sizes)
-    within = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-    indices = words[first + within].astype(np.int64)
+    indices = words[runs(starts + 1, sizes)].astype(np.int64)
     check_faces(name, indices, sizes, num_verts, lambda f: f"binary OFF face record {f}")
     return Parsed(verts, indices, sizes)
 

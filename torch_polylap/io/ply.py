@@ -23,6 +23,8 @@ from .common import (
     check_count,
     check_faces,
     check_text,
+    face_of,
+    joined,
     plain_text,
 )
 from .text import Chunk, chunks, runs
@@ -125,7 +127,7 @@ def _check_whole(
     bad = ~(values == np.trunc(values)) | (np.abs(values) >= 2.0**62)
     if bad.any():
         corner = int(np.flatnonzero(bad)[0])
-        f = int(np.searchsorted(np.cumsum(sizes), corner, side="right"))
+        f = face_of(sizes, corner)
         raise ValueError(
             f"{name}, {where(f)}: face {f} lists {float(values[corner])!r} in {prop!r}, which is "
             "no vertex index (a whole number): the file is corrupt or not a mesh; re-export it."
@@ -276,48 +278,25 @@ def _read_ply_binary(
     for el in elements:
         if set(out) == set(wanted):
             break  # later elements (edges, materials...) are not needed
-        if any(p.count_dtype is not None for p in el.props):
-            cols, pos = _binary_list_element(data, pos, order, el, wanted.get(el.name, set()), name)
-        else:
-            cols, pos = _binary_fixed_element(
-                data, pos, order, el, wanted.get(el.name, set()), name
-            )
+        cols, pos = _binary_element(data, pos, order, el, wanted.get(el.name, set()), name)
         if el.name in wanted:
             out[el.name] = cols
     return out
 
 
-def _binary_fixed_element(
+def _binary_element(
     data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
 ) -> tuple[dict[str, _Column], int]:
-    dt = np.dtype([(f"p{i}", order + p.dtype) for i, p in enumerate(el.props)])
-    available = (len(data) - pos) // dt.itemsize if dt.itemsize else el.count
-    if available < el.count:
-        raise ValueError(
-            f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
-            f"after {available} (truncated file)."
-        )
-    if not dt.itemsize:
-        return {}, pos  # an element without properties
-    rec = np.frombuffer(data, dt, el.count, pos)
-    cols: dict[str, _Column] = {
-        p.name: rec[f"p{i}"] for i, p in enumerate(el.props) if p.name in want
-    }
-    return cols, pos + el.count * dt.itemsize
+    """An element's records, of fixed length or, with list properties, of varying length.
 
-
-def _binary_list_element(
-    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
-) -> tuple[dict[str, _Column], int]:
-    """An element with list properties: records of varying length.
-
-    When every record's lists have the lengths of the first record's (all-triangle or all-quad
-    faces), one structured ``frombuffer`` reads everything.  Otherwise a Python loop walks the
-    records reading only the list lengths, and numpy gathers all values from those offsets.
+    When every record's lists have the lengths of the first record's (no lists, all-triangle or
+    all-quad faces), one structured ``frombuffer`` reads everything.  Otherwise a Python loop
+    walks the records reading only the list lengths, and numpy gathers all values from those
+    offsets.
     """
-    if el.count == 0:
+    if el.count == 0 or not el.props:  # no records, or records of no bytes
         return {p.name: _empty_column(p) for p in el.props if p.name in want}, pos
-    uniform = _binary_uniform_lists(data, pos, order, el, want)
+    uniform = _binary_uniform(data, pos, order, el, want, name)
     if uniform is not None:
         return uniform
     # per property: its (items') size, and for a list its length's size and reader
@@ -363,8 +342,7 @@ def _binary_list_element(
             continue
         sizes = _gather(buf, at, order + prop.count_dtype).astype(np.int64)
         check_faces(name, sizes[:0], sizes, None, lambda f: f"element {el.name!r} record {f}")
-        within = runs(np.zeros_like(at), sizes)  # each value's place in its list
-        corners = np.repeat(at + count_size, sizes) + within * item
+        corners = np.repeat(at + count_size, sizes) + runs(np.zeros_like(at), sizes) * item
         cols[prop.name] = (_gather(buf, corners, order + prop.dtype), sizes)
     return cols, p
 
@@ -382,10 +360,10 @@ def _length_reader(
     return struct.calcsize(_STRUCT_CODES[prop.count_dtype]), lambda q: unpack(data, q)[0]
 
 
-def _binary_uniform_lists(
-    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str]
+def _binary_uniform(
+    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
 ) -> tuple[dict[str, _Column], int] | None:
-    """Read a list element in one go if all its lists have the first record's lengths."""
+    """Read an element in one go if all its lists (if any) have the first record's lengths."""
     fields: list[tuple[Any, ...]] = []  # (name, dtype) or (name, dtype, shape)
     lengths: dict[int, int] = {}
     p = pos
@@ -405,7 +383,13 @@ def _binary_uniform_lists(
         fields.append((f"p{i}", order + prop.dtype, (k,)))
         p += count_dt.itemsize + k * np.dtype(prop.dtype).itemsize
     dt = np.dtype(fields)
-    if pos + el.count * dt.itemsize > len(data):
+    available = (len(data) - pos) // dt.itemsize
+    if available < el.count and not lengths:  # records of one size: the count says it all
+        raise ValueError(
+            f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
+            f"after {available} (truncated file)."
+        )
+    if available < el.count:
         return None
     rec = np.frombuffer(data, dt, el.count, pos)
     if not all((rec[f"c{i}"] == k).all() for i, k in lengths.items()):
@@ -463,16 +447,15 @@ def _read_ply_ascii(
         el.name: _AsciiElement(el, wanted[el.name], name) for el, _ in spans if el.name in wanted
     }
     seen = 0  # records (non-blank lines) before the chunk
-    for chunk in chunks(text, begin):
+    for chunk in chunks(text, begin, header_lines):
         if seen >= rank:
             break
-        chunk.line0 += header_lines
-        lines = np.flatnonzero(chunk.count)
+        records = chunk.records()[1:]  # (first, count, line_no) of the non-blank lines
         for el, first in spans:
-            a, b = max(first - seen, 0), min(first + el.count - seen, len(lines))
+            a, b = max(first - seen, 0), min(first + el.count - seen, len(records[0]))
             if a < b and el.name in reader:
-                reader[el.name].add(chunk, lines[a:b], seen + a - first)
-        seen += len(lines)
+                reader[el.name].add(chunk, *(r[a:b] for r in records), seen + a - first)
+        seen += len(records[0])
     for el, first in spans:
         if first + el.count > seen:
             raise ValueError(
@@ -482,17 +465,13 @@ def _read_ply_ascii(
     out: _Columns = {}
     for key, element in reader.items():
         out[key] = element.columns()
-        record_line[key] = _line_numbers(_joined(element.lines, np.int64))
+        record_line[key] = _line_numbers(joined(element.lines, np.int64))
     return out
 
 
 def _line_numbers(line_of: np.ndarray) -> Callable[[int], int]:
     """Record -> file line, from each record's line."""
     return lambda record: int(line_of[record])
-
-
-def _joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
-    return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
 
 
 class _AsciiElement:
@@ -512,11 +491,11 @@ class _AsciiElement:
     def _error(self, no: int, record: int, what: str) -> ValueError:
         return ValueError(f"{self.name}, line {no}: element {self.el.name!r} record {record}{what}")
 
-    def add(self, chunk: Chunk, lines: np.ndarray, record0: int) -> None:
-        """Read the records on ``lines`` (chunk-relative) of ``chunk``, the first being record
-        ``record0`` of the element."""
-        first, count = chunk.first.take(lines), chunk.count.take(lines)
-        line_no = chunk.line0 + lines + 1
+    def add(
+        self, chunk: Chunk, first: np.ndarray, count: np.ndarray, line_no: np.ndarray, record0: int
+    ) -> None:
+        """Read the records of ``chunk`` on lines ``line_no`` (first token and token count of
+        each: see :meth:`Chunk.records`), the first being record ``record0`` of the element."""
         self.lines.append(line_no)
         layout = None if self.walk else self._layout(chunk, first, count)
         broken = None
@@ -530,7 +509,7 @@ class _AsciiElement:
             except BadNumber as e:
                 r = e.position
                 if sizes is not None:
-                    r = int(np.searchsorted(np.cumsum(sizes), r, side="right"))
+                    r = face_of(sizes, r)
                 errors.append((r, f": cannot parse {prop.name!r} value {e.token!r}."))
                 continue
             self.values.setdefault(prop.name, []).append(values)
@@ -620,10 +599,10 @@ class _AsciiElement:
         cols: dict[str, _Column] = {}
         for prop in self.el.props:
             if prop.name in self.want:
-                values = _joined(self.values.get(prop.name, []), np.float64)
+                values = joined(self.values.get(prop.name, []), np.float64)
                 if _kind(prop) is int:
                     values = values.astype(np.int64)
-                sizes = _joined(self.sizes.get(prop.name, []), np.int64)
+                sizes = joined(self.sizes.get(prop.name, []), np.int64)
                 cols[prop.name] = values if prop.count_dtype is None else (values, sizes)
         return cols
 

@@ -80,6 +80,12 @@ class Chunk:
             self.count = np.diff(before, prepend=0)
             self.first = before - self.count
 
+    def records(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(lines, first, count, line_no)`` of the non-blank lines: each one's chunk-relative
+        index, first token, number of tokens and 1-based line number in the file."""
+        lines = np.flatnonzero(self.count)
+        return lines, self.first.take(lines), self.count.take(lines), self.line0 + lines + 1
+
     def lines(self) -> Iterator[Chunk]:
         """The chunk's lines, each a chunk of its own (to find the first of several errors)."""
         text, begin = self.source
@@ -173,9 +179,10 @@ class Chunk:
         return numbers(texts, kind)
 
 
-def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
-    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks."""
-    pos, line0 = begin, 0
+def chunks(text: bytes, begin: int = 0, line0: int = 0) -> Iterator[Chunk]:
+    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks, its first line being line
+    ``line0 + 1`` of the file."""
+    pos = begin
     size = len(text)
     while pos < size:
         stop = min(pos + CHUNK_BYTES, size)
