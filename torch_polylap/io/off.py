@@ -23,6 +23,7 @@ from .common import (
     joined,
     plain_text,
 )
+from .ply import PlyElement, PlyProperty, binary_element, list_column
 from .text import Chunk, chunks, runs
 
 _OFF_KEYWORD = re.compile(r"(?:ST|C|N)*OFF")
@@ -315,47 +316,25 @@ def _read_off_binary(body: bytes, keyword: str, name: str, skipped: Skipped) -> 
     verts = np.frombuffer(body, order + "f4", floats_per_vert * num_verts, 12)
     verts = verts.reshape(num_verts, floats_per_vert)[:, :3].astype(np.float64)
     skipped.add(_vertex_extras(keyword), num_verts if floats_per_vert > 3 else 0)
-    words = np.frombuffer(body, order + "i4", (len(body) - vert_end) // 4, vert_end)
-    for with_colours in (False, True):
-        starts = _walk_off_faces(words, num_faces, with_colours)
-        if starts is not None:
+    # the face records: a list of int32 indices after an int32 length, and Geomview's colours
+    # another such list of floats
+    corners = PlyProperty("vertex_indices", "i4", "i4")
+    for props in ([corners], [corners, PlyProperty("colours", "f4", "i4")]):
+        face = PlyElement("face", num_faces, props)
+        try:
+            cols, end = binary_element(body, vert_end, order, face, {p.name for p in props}, name)
+        except ValueError:  # a negative length, or lists past the file's end
+            continue
+        if len(body) - end < 4:
             break
     else:
         raise ValueError(
             f"{name}: binary OFF face records do not match the {num_faces} faces declared "
             "(truncated file or unknown layout)."
         )
-    sizes = words[starts].astype(np.int64)
-    check_faces(name, sizes[:0], sizes, None, lambda f: f"binary OFF face record {f}")
-    if with_colours:
-        skipped.add("face colours", int((words[starts + sizes + 1] > 0).sum()))
-    indices = words[runs(starts + 1, sizes)].astype(np.int64)
+    values, sizes = list_column(cols["vertex_indices"])
+    if len(props) > 1:
+        skipped.add("face colours", int((list_column(cols["colours"])[1] > 0).sum()))
+    indices = values.astype(np.int64)
     check_faces(name, indices, sizes, num_verts, lambda f: f"binary OFF face record {f}")
     return Parsed(verts, indices, sizes)
-
-
-def _walk_off_faces(words: np.ndarray, num_faces: int, with_colours: bool) -> np.ndarray | None:
-    """Start of each face record in ``words``, or None if they do not end at the file's end."""
-    if num_faces == 0:
-        return np.zeros(0, dtype=np.int64) if len(words) == 0 else None
-    k = int(words[0]) if len(words) else -1
-    if not with_colours and k >= 0 and len(words) == num_faces * (k + 1):
-        starts = np.arange(num_faces, dtype=np.int64) * (k + 1)
-        if (words[starts] == k).all():
-            return starts
-    seq = words.tolist()
-    starts_list = []
-    p = 0
-    n = len(seq)
-    try:
-        for _ in range(num_faces):
-            starts_list.append(p)
-            k = seq[p]
-            if k < 0:
-                return None
-            p += k + 1
-            if with_colours:
-                p += seq[p] + 1
-    except IndexError:
-        return None
-    return np.asarray(starts_list, dtype=np.int64) if p == n else None

@@ -41,19 +41,19 @@ _PLY_FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": "
 
 
 @dataclass(frozen=True)
-class _PlyProperty:
+class PlyProperty:
     name: str
     dtype: str  # numpy type code without byte order, e.g. "f4"
     count_dtype: str | None = None  # set for list properties
 
 
 @dataclass
-class _PlyElement:
+class PlyElement:
     name: str
     count: int
-    props: list[_PlyProperty] = field(default_factory=list)
+    props: list[PlyProperty] = field(default_factory=list)
 
-    def find(self, prop: str) -> _PlyProperty | None:
+    def find(self, prop: str) -> PlyProperty | None:
         return next((p for p in self.props if p.name == prop), None)
 
 
@@ -103,7 +103,7 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
 
     vcols = columns["vertex"]
     verts = np.stack([_scalar(vcols[a]).astype(np.float64) for a in "xyz"], axis=1)
-    values, counts = _list(columns["face"][face_list.name])
+    values, counts = list_column(columns["face"][face_list.name])
     sizes = counts.astype(np.int64)
     if face_list.dtype[0] == "f":
         _check_whole(name, values, sizes, face_list.name, where)
@@ -134,7 +134,7 @@ def _check_whole(
         )
 
 
-def _vertex_attributes(vertex: _PlyElement) -> tuple[tuple[str, ...], tuple[str, ...]]:
+def _vertex_attributes(vertex: PlyElement) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """Names of the vertex's normal and texture-coordinate properties (empty when absent)."""
 
     def scalars(names: tuple[str, ...]) -> bool:
@@ -146,7 +146,7 @@ def _vertex_attributes(vertex: _PlyElement) -> tuple[tuple[str, ...], tuple[str,
 
 
 def _name_skipped(
-    elements: list[_PlyElement], wanted: dict[str, set[str]], skipped: Skipped, hint: bool
+    elements: list[PlyElement], wanted: dict[str, set[str]], skipped: Skipped, hint: bool
 ) -> None:
     """Count the properties and elements the reader does not return, for the warning."""
     for el in elements:
@@ -159,7 +159,7 @@ def _name_skipped(
     skipped.attributes_hint |= hint
 
 
-def _check_counts(data: bytes, body: int, elements: list[_PlyElement], name: str) -> None:
+def _check_counts(data: bytes, body: int, elements: list[PlyElement], name: str) -> None:
     """Reject absurd element counts (every record takes at least a byte) before reading; a
     merely truncated file gets the precise message of the element readers."""
     for el in elements:
@@ -167,7 +167,7 @@ def _check_counts(data: bytes, body: int, elements: list[_PlyElement], name: str
             check_count(name, f"records of element {el.name!r}", el.count, len(data) - body)
 
 
-def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], int, int]:
+def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[PlyElement], int, int]:
     """Format, elements, byte offset of the body, and number of header lines.
 
     The header's line ending (LF, CRLF or a lone CR) is the one ending the ``ply`` line; the
@@ -178,7 +178,7 @@ def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], i
         raise ValueError(f"{name}: not a PLY file (it does not start with a 'ply' line).")
     newline = first.group(1)
     fmt = None
-    elements: list[_PlyElement] = []
+    elements: list[PlyElement] = []
     pos = first.end()
     no = 1
     while True:
@@ -212,7 +212,7 @@ def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], i
                 count = int(toks[2])
                 if count < 0:
                     raise ValueError
-                elements.append(_PlyElement(toks[1], count))
+                elements.append(PlyElement(toks[1], count))
             except (IndexError, ValueError):
                 raise ValueError(
                     f"{name}, line {no}: expected 'element <name> <count>', got {' '.join(toks)!r}."
@@ -229,7 +229,7 @@ def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], i
     return fmt, elements, pos, no
 
 
-def _parse_ply_property(toks: list[str], no: int, name: str) -> _PlyProperty:
+def _parse_ply_property(toks: list[str], no: int, name: str) -> PlyProperty:
     def type_code(t: str) -> str:
         if t not in _PLY_TYPES:
             raise ValueError(
@@ -239,12 +239,12 @@ def _parse_ply_property(toks: list[str], no: int, name: str) -> _PlyProperty:
         return _PLY_TYPES[t]
 
     if len(toks) == 3:
-        return _PlyProperty(toks[2], type_code(toks[1]))
+        return PlyProperty(toks[2], type_code(toks[1]))
     if len(toks) == 5 and toks[1] == "list":
         count = type_code(toks[2])
         if count[0] == "f":
             raise ValueError(f"{name}, line {no}: a list count type must be an integer type.")
-        return _PlyProperty(toks[4], type_code(toks[3]), count)
+        return PlyProperty(toks[4], type_code(toks[3]), count)
     raise ValueError(f"{name}, line {no}: malformed property line {' '.join(toks)!r}.")
 
 
@@ -259,7 +259,7 @@ def _scalar(column: _Column) -> np.ndarray:
     return column
 
 
-def _list(column: _Column) -> tuple[np.ndarray, np.ndarray]:
+def list_column(column: _Column) -> tuple[np.ndarray, np.ndarray]:
     """A column that the header declares a list (checked by the caller)."""
     assert isinstance(column, tuple)
     return column
@@ -269,7 +269,7 @@ def _read_ply_binary(
     data: bytes,
     pos: int,
     order: str,
-    elements: list[_PlyElement],
+    elements: list[PlyElement],
     wanted: dict[str, set[str]],
     name: str,
 ) -> _Columns:
@@ -278,14 +278,14 @@ def _read_ply_binary(
     for el in elements:
         if set(out) == set(wanted):
             break  # later elements (edges, materials...) are not needed
-        cols, pos = _binary_element(data, pos, order, el, wanted.get(el.name, set()), name)
+        cols, pos = binary_element(data, pos, order, el, wanted.get(el.name, set()), name)
         if el.name in wanted:
             out[el.name] = cols
     return out
 
 
-def _binary_element(
-    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
+def binary_element(
+    data: bytes, pos: int, order: str, el: PlyElement, want: set[str], name: str
 ) -> tuple[dict[str, _Column], int]:
     """An element's records, of fixed length or, with list properties, of varying length.
 
@@ -341,14 +341,13 @@ def _binary_element(
             cols[prop.name] = _gather(buf, at, order + prop.dtype)
             continue
         sizes = _gather(buf, at, order + prop.count_dtype).astype(np.int64)
-        check_faces(name, sizes[:0], sizes, None, lambda f: f"element {el.name!r} record {f}")
         corners = np.repeat(at + count_size, sizes) + runs(np.zeros_like(at), sizes) * item
         cols[prop.name] = (_gather(buf, corners, order + prop.dtype), sizes)
     return cols, p
 
 
 def _length_reader(
-    data: bytes, order: str, prop: _PlyProperty
+    data: bytes, order: str, prop: PlyProperty
 ) -> tuple[int, Callable[[int], int] | None]:
     """Size and reader (byte offset -> value) of a list property's length; (0, None) for a
     scalar."""
@@ -361,7 +360,7 @@ def _length_reader(
 
 
 def _binary_uniform(
-    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
+    data: bytes, pos: int, order: str, el: PlyElement, want: set[str], name: str
 ) -> tuple[dict[str, _Column], int] | None:
     """Read an element in one go if all its lists (if any) have the first record's lengths."""
     fields: list[tuple[Any, ...]] = []  # (name, dtype) or (name, dtype, shape)
@@ -413,7 +412,7 @@ def _gather(buf: np.ndarray, at: np.ndarray, dtype: str) -> np.ndarray:
     return raw.view(dt).reshape(-1)
 
 
-def _empty_column(prop: _PlyProperty) -> _Column:
+def _empty_column(prop: PlyProperty) -> _Column:
     if prop.count_dtype is None:
         return np.zeros(0, dtype=prop.dtype)
     return np.zeros(0, dtype=prop.dtype), np.zeros(0, dtype=np.int64)
@@ -423,7 +422,7 @@ def _read_ply_ascii(
     data: bytes,
     pos: int,
     header_lines: int,
-    elements: list[_PlyElement],
+    elements: list[PlyElement],
     wanted: dict[str, set[str]],
     name: str,
     record_line: dict[str, Callable[[int], int]],
@@ -436,7 +435,7 @@ def _read_ply_ascii(
         text, begin = plain_text(data[pos:], comments=False), 0
     else:  # read in place: no copy of the file
         text, begin = data, pos
-    spans: list[tuple[_PlyElement, int]] = []  # the elements up to the last wanted, and rank
+    spans: list[tuple[PlyElement, int]] = []  # the elements up to the last wanted, and rank
     rank = 0
     for el in elements:
         if {sp[0].name for sp in spans if sp[0].name in wanted} == set(wanted):
@@ -450,12 +449,12 @@ def _read_ply_ascii(
     for chunk in chunks(text, begin, header_lines):
         if seen >= rank:
             break
-        records = chunk.records()[1:]  # (first, count, line_no) of the non-blank lines
+        _, tokens, count, line_no = chunk.records()
         for el, first in spans:
-            a, b = max(first - seen, 0), min(first + el.count - seen, len(records[0]))
+            a, b = max(first - seen, 0), min(first + el.count - seen, len(count))
             if a < b and el.name in reader:
-                reader[el.name].add(chunk, *(r[a:b] for r in records), seen + a - first)
-        seen += len(records[0])
+                reader[el.name].add(chunk, tokens[a:b], count[a:b], line_no[a:b], seen + a - first)
+        seen += len(count)
     for el, first in spans:
         if first + el.count > seen:
             raise ValueError(
@@ -477,7 +476,7 @@ def _line_numbers(line_of: np.ndarray) -> Callable[[int], int]:
 class _AsciiElement:
     """The wanted properties of one ASCII PLY element, collected a chunk at a time."""
 
-    def __init__(self, el: _PlyElement, want: set[str], name: str) -> None:
+    def __init__(self, el: PlyElement, want: set[str], name: str) -> None:
         self.el = el
         self.want = want
         self.name = name
@@ -608,10 +607,10 @@ class _AsciiElement:
 
 
 # per wanted property: its token indices, and for a list each record's length
-_Layout = dict[_PlyProperty, tuple[np.ndarray, np.ndarray | None]]
+_Layout = dict[PlyProperty, tuple[np.ndarray, np.ndarray | None]]
 
 
-def _kind(prop: _PlyProperty) -> type:
+def _kind(prop: PlyProperty) -> type:
     """How a property's ASCII values are read: list items of an integer type as ints, all
     else as floats."""
     return int if prop.count_dtype is not None and prop.dtype[0] != "f" else float
