@@ -298,7 +298,6 @@ def check_faces(
     sizes: np.ndarray,
     num_verts: int | None,
     where: Callable[[int], str],
-    written: np.ndarray | None = None,
 ) -> None:
     """Reject faces with < 3 corners and indices outside ``[0, V)`` (``num_verts`` None: no
     range check), naming the face."""
@@ -314,9 +313,8 @@ def check_faces(
     if bad.any():
         corner = int(np.flatnonzero(bad)[0])
         f = face_of(sizes, corner)
-        shown = int((indices if written is None else written)[corner])
         raise ValueError(
-            f"{name}, {where(f)}: face {f} refers to vertex {shown}, "
+            f"{name}, {where(f)}: face {f} refers to vertex {int(indices[corner])}, "
             f"out of range for the {num_verts} vertices in the file."
         )
 

@@ -90,7 +90,7 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     if want_attributes:
         wanted["vertex"] |= set(normals) | set(uv)
     _name_skipped(elements, wanted, skipped, bool(normals or uv) and not want_attributes)
-    record_line: dict[str, Callable[[int], int]] = {}
+    record_line: dict[str, np.ndarray] = {}  # ASCII PLY: each record's line, per element
     if fmt == "ascii":
         check_text(data[body:], name, "ASCII PLY", header_lines + 1)
         columns = _read_ply_ascii(data, body, header_lines, elements, wanted, name, record_line)
@@ -99,7 +99,7 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
 
     def where(f: int) -> str:
         line = record_line.get("face")
-        return (f"line {line(f)}: " if line else "") + f"element 'face' record {f}"
+        return (f"line {int(line[f])}: " if line is not None else "") + f"element 'face' record {f}"
 
     vcols = columns["vertex"]
     verts = np.stack([_scalar(vcols[a]).astype(np.float64) for a in "xyz"], axis=1)
@@ -425,11 +425,11 @@ def _read_ply_ascii(
     elements: list[PlyElement],
     wanted: dict[str, set[str]],
     name: str,
-    record_line: dict[str, Callable[[int], int]],
+    record_line: dict[str, np.ndarray],
 ) -> _Columns:
     """Columns of the wanted elements of the ASCII body ``data[pos:]``, each record one
     non-blank line, read a chunk of lines at a time (the reader stops once it has them all);
-    ``record_line`` gets each one's record -> line number."""
+    ``record_line`` gets the line number of each of their records."""
     # '#' starts no comment in a PLY body: a token holding one is no number
     if any(data.find(byte, pos) >= 0 for byte in (b"\r", b"\x85", b"\xa0")):
         text, begin = plain_text(data[pos:], comments=False), 0
@@ -464,13 +464,8 @@ def _read_ply_ascii(
     out: _Columns = {}
     for key, element in reader.items():
         out[key] = element.columns()
-        record_line[key] = _line_numbers(joined(element.lines, np.int64))
+        record_line[key] = joined(element.lines, np.int64)
     return out
-
-
-def _line_numbers(line_of: np.ndarray) -> Callable[[int], int]:
-    """Record -> file line, from each record's line."""
-    return lambda record: int(line_of[record])
 
 
 class _AsciiElement:

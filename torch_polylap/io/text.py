@@ -103,12 +103,9 @@ class Chunk:
     def line_text(self, line: int) -> str:
         """The tokens of line ``line`` (chunk-relative), single-spaced."""
         first, count = int(self.first[line]), int(self.count[line])
-        return " ".join(
-            self.text(s, e)
-            for s, e in zip(
-                self.start[first : first + count], self.end[first : first + count], strict=True
-            )
-        )
+        if not count:
+            return ""
+        return " ".join(self.text(int(self.start[first]), int(self.end[first + count - 1])).split())
 
     def cut(self, start: np.ndarray, end: np.ndarray, byte: int, skip: int = 0) -> np.ndarray:
         """Offset of the ``skip + 1``-th ``byte`` in each range ``[start, end)`` (ranges
