@@ -84,7 +84,9 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
             f"{name}: PLY element 'face' has no list property 'vertex_indices' "
             f"(or 'vertex_index'); its properties are {[p.name for p in face.props]}."
         )
-    _check_counts(data, body, elements, name)
+    for el in elements:  # absurd counts (a record takes a byte); the readers name truncation
+        if el.props:
+            check_count(name, f"records of element {el.name!r}", el.count, len(data) - body)
     normals, uv = _vertex_attributes(vertex)
     wanted = {"vertex": {"x", "y", "z"}, "face": {face_list.name}}
     if want_attributes:
@@ -102,7 +104,7 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
         return (f"line {int(line[f])}: " if line is not None else "") + f"element 'face' record {f}"
 
     vcols = columns["vertex"]
-    verts = np.stack([_scalar(vcols[a]).astype(np.float64) for a in "xyz"], axis=1)
+    verts = np.stack([np.asarray(vcols[a], dtype=np.float64) for a in "xyz"], axis=1)
     values, counts = list_column(columns["face"][face_list.name])
     sizes = counts.astype(np.int64)
     if face_list.dtype[0] == "f":
@@ -113,7 +115,7 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     for key, names in (("normals", normals), ("uv", uv)):
         if want_attributes and names:
             parsed.attributes[key] = np.stack(
-                [_scalar(vcols[n]).astype(np.float64) for n in names], 1
+                [np.asarray(vcols[n], dtype=np.float64) for n in names], 1
             )
             parsed.attributes["corner_" + key] = indices.copy()
     return parsed
@@ -157,14 +159,6 @@ def _name_skipped(
         if extra:
             skipped.add(f"PLY {el.name} properties {' '.join(extra)}", el.count)
     skipped.attributes_hint |= hint
-
-
-def _check_counts(data: bytes, body: int, elements: list[PlyElement], name: str) -> None:
-    """Reject absurd element counts (every record takes at least a byte) before reading; a
-    merely truncated file gets the precise message of the element readers."""
-    for el in elements:
-        if el.props:
-            check_count(name, f"records of element {el.name!r}", el.count, len(data) - body)
 
 
 def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[PlyElement], int, int]:
@@ -251,12 +245,6 @@ def _parse_ply_property(toks: list[str], no: int, name: str) -> PlyProperty:
 # a scalar property's values, or a list property's (values, list lengths)
 _Column = np.ndarray | tuple[np.ndarray, np.ndarray]
 _Columns = dict[str, dict[str, _Column]]
-
-
-def _scalar(column: _Column) -> np.ndarray:
-    """A column that the header declares scalar (checked by the caller)."""
-    assert not isinstance(column, tuple)
-    return column
 
 
 def list_column(column: _Column) -> tuple[np.ndarray, np.ndarray]:
@@ -521,14 +509,13 @@ class _AsciiElement:
         n, at = len(self.el.props), self.at
         k = np.zeros(len(first), dtype=np.int64)
         if at is not None:
-            has = count > at
+            if (count <= at).any():  # a record too short to hold the list's length
+                return None
             try:
-                k[has] = chunk.values(first[has] + at, int)
+                k = chunk.values(first + at, int)
             except BadNumber:
                 return None
-            if not (has & (k >= 0)).all():
-                return None
-        if (count != n + k).any():
+        if (k < 0).any() or (count != n + k).any():
             return None
         out: _Layout = {}
         for i, prop in enumerate(self.el.props):
