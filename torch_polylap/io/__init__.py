@@ -41,7 +41,6 @@ from .common import (
     check_content,
     check_mesh,
     read_regular_file,
-    strip_bom,
 )
 from .obj import obj_text, read_obj
 from .off import read_off
@@ -153,7 +152,7 @@ def read_mesh(
             f"supported extensions are {', '.join(_SUPPORTED)}."
         )
     name = str(path)
-    data = strip_bom(read_regular_file(path))
+    data = read_regular_file(path)
     check_content(data, name, path.suffix.lower())
     skipped = Skipped()
     parsed = reader(data, name, skipped, return_attributes)

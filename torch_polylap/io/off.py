@@ -182,13 +182,8 @@ class _OffReader:
 
         def add() -> None:  # a record begun in an earlier chunk gets its later corners here:
             # in this chunk's numbering they come before its first record
-            self._add_faces(
-                chunk,
-                np.asarray(corner_list, dtype=np.int64),
-                np.asarray(sizes_list, dtype=np.int64),
-                np.asarray(starts_list, dtype=np.int64),
-                np.asarray(lines_list, dtype=np.int64),
-            )
+            lists = (corner_list, sizes_list, starts_list, lines_list)
+            self._add_faces(chunk, *(np.asarray(x, dtype=np.int64) for x in lists))
 
         for at, n, no in zip(first.tolist(), count.tolist(), line_no.tolist(), strict=True):
             pos = 0
