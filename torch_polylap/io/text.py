@@ -53,17 +53,19 @@ class Chunk:
     """
 
     def __init__(self, text: bytes, begin: int, stop: int, line0: int) -> None:
-        self.buf = np.frombuffer(text, dtype=np.uint8, count=stop - begin, offset=begin)
+        lead = int(begin > 0 and text[begin - 1] == 10)  # the line break before, a blank
+        ext = np.frombuffer(text, dtype=np.uint8, count=stop - begin + lead, offset=begin - lead)
+        self.buf = ext[lead:]
         self.source = (text, begin)
         self.line0 = line0
         # below the space, text holds only whitespace and ESC (see check_text), which is none
-        blank = _SPACE.take(self.buf) if 27 in self.buf else self.buf <= 32
+        blank = _SPACE.take(ext) if 27 in ext else ext <= 32
         # tokens start and end where blank and non-blank bytes meet: one pass finds both
-        edge = np.flatnonzero(blank[1:] != blank[:-1]) + 1
-        if len(blank) and not blank[0]:
+        edge = np.flatnonzero(blank[1:] != blank[:-1]) + 1 - lead
+        if not lead and len(blank) and not blank[0]:  # a token at the text's start
             edge = np.concatenate([[0], edge])
         if len(edge) % 2:  # the text's last token, ending with it
-            edge = np.append(edge, len(blank))
+            edge = np.append(edge, len(self.buf))
         self.start, self.end = edge.reshape(-1, 2).T.copy()  # contiguous, for fast takes
         breaks = np.flatnonzero(self.buf == 10)
         if len(self.buf) and self.buf[-1] != 10:  # the text's last line, without its break
