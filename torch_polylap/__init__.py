@@ -43,7 +43,6 @@ from . import (
     sparse,
     tangent,
     topology,
-    triangulate,
     vector,
 )
 from .batch import *
@@ -78,7 +77,6 @@ _SUBPACKAGES = (
     "sparse",
     "tangent",
     "topology",
-    "triangulate",
     "vector",
 )
 
