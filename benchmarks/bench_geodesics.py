@@ -44,6 +44,7 @@ import torch
 from common import run_meta, table_from_markdown, write_results
 
 import torch_polylap as tp
+from torch_polylap.triangulate import triangulate_faces
 
 # A method: build its solver and answer one query -> (solver, distances); one more query.
 Method = tuple[Callable[[], tuple[object, object]], Callable[[object], object]]
@@ -156,7 +157,7 @@ def load_real_case(path: Path, min_verts: int, max_verts: int):
         return None
     if bool(topo.isolated.any()):
         return None
-    tris = tp.io.triangulate_faces(verts, faces).astype(np.int64)
+    tris = triangulate_faces(verts, faces).astype(np.int64)
     exact = igl.exact_geodesic(
         verts.numpy(),
         tris,

@@ -14,11 +14,12 @@ The API has two tiers, in the manner of pytorch3d and kornia:
   :mod:`~torch_polylap.vector` (tangent vector fields: connection, transport, curvature),
   :mod:`~torch_polylap.fitting`, :mod:`~torch_polylap.datasets`, :mod:`~torch_polylap.plot`,
   and the building blocks :mod:`~torch_polylap.sparse` (the operator type and its algebra),
-  :mod:`~torch_polylap.io`, :mod:`~torch_polylap.topology`, :mod:`~torch_polylap.kernels`,
-  :mod:`~torch_polylap.dec` (AW11's ``d`` and ``M1``), :mod:`~torch_polylap.checks` and
-  :mod:`~torch_polylap.repair`, :mod:`~torch_polylap.tangent` (vertex frames and tangent
-  gradients), and :mod:`~torch_polylap.shapes` (generated grids, cube spheres,
-  tori and the Schwarz lantern).
+  :mod:`~torch_polylap.io`, :mod:`~torch_polylap.triangulate` (polygons cut into triangles
+  for libraries that take only those), :mod:`~torch_polylap.topology`,
+  :mod:`~torch_polylap.kernels`, :mod:`~torch_polylap.dec` (AW11's ``d`` and ``M1``),
+  :mod:`~torch_polylap.checks` and :mod:`~torch_polylap.repair`, :mod:`~torch_polylap.tangent`
+  (vertex frames and tangent gradients), and :mod:`~torch_polylap.shapes` (generated grids,
+  cube spheres, tori and the Schwarz lantern).
 
 ``__all__`` is derived from the core modules' own ``__all__`` lists plus the subpackage names.
 """

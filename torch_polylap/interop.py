@@ -7,9 +7,9 @@ vertices. DiffusionNet's operators are precomputed and carry no gradient, as Dif
 
 pytorch3d
     ``Meshes`` holds triangles only. :func:`to_pytorch3d` triangulates every polygon with
-    :func:`torch_polylap.io.triangulate_faces` (the fan ``(c0, c_j, c_{j+1})`` for faces convex
-    in their maximal-projection plane, ear clipping otherwise; orientation kept; planar faces
-    tiled exactly) and keeps the vertices, so per-vertex data lines up.
+    :func:`torch_polylap.triangulate.triangulate_faces` (the fan ``(c0, c_j, c_{j+1})`` for
+    faces convex in their maximal-projection plane, ear clipping otherwise; orientation kept;
+    planar faces tiled exactly) and keeps the vertices, so per-vertex data lines up.
     :func:`from_pytorch3d` reads ``verts_list()``/``faces_list()``: the result is a triangle
     batch (the polygons a ``Meshes`` came from are not recoverable from it).
 
@@ -70,7 +70,6 @@ from ._typing import MeshFaces
 from .batch import PolygonMeshes
 from .checks import check_int, check_verts, check_verts_array
 from .faces import FacesLike, PolygonFaces, as_faces
-from .io import triangulate_faces
 from .kernels import check_method
 from .linalg import eigs
 from .operators import laplacian as mesh_laplacian
@@ -78,6 +77,7 @@ from .sparse import as_operator, sparse_values, to_torch_sparse
 from .spectral import check_cache_dir, eigs_through_cache
 from .tangent import tangent_frames, vertex_gradient_operators
 from .topology import Topology, get_topology
+from .triangulate import triangulate_faces
 
 if TYPE_CHECKING:
     import trimesh
@@ -136,9 +136,9 @@ def triangle_faces(
         For one mesh, ``(T, 3)`` int64 vertex indices on the vertices' device, ``T = sum_f
         (k_f - 2)``, face ``f``'s triangles consecutive and in face order; for a batch, one such
         tensor per mesh with indices local to it. The choice of triangles depends on the
-        positions (fan or ear clipping, see :func:`torch_polylap.io.triangulate_faces`) but is
-        a constant for autograd; the areas of the triangles of a planar face add up to the
-        face's area.
+        positions (fan or ear clipping, see
+        :func:`torch_polylap.triangulate.triangulate_faces`) but is a constant for autograd; the
+        areas of the triangles of a planar face add up to the face's area.
     """
     verts_list, faces_list, batch = _mesh_lists(meshes, faces, "triangle_faces")
     if batch is None:
@@ -234,10 +234,10 @@ def from_trimesh(
 def to_trimesh(verts: torch.Tensor | np.ndarray, faces: FacesLike) -> trimesh.Trimesh:
     """Triangulate a polygon mesh into a :class:`trimesh.Trimesh` (for viewing or export).
 
-    Uses :func:`~torch_polylap.io.triangulate_faces`: faces convex in their maximal-projection
-    plane become the fan ``(c0, c_j, c_{j+1})``, non-convex ones are ear-clipped, and every
-    triangle keeps the polygon's orientation.  The mesh is built with ``process=False`` so the
-    vertex order, and hence per-vertex data, is kept.
+    Uses :func:`~torch_polylap.triangulate.triangulate_faces`: faces convex in their
+    maximal-projection plane become the fan ``(c0, c_j, c_{j+1})``, non-convex ones are
+    ear-clipped, and every triangle keeps the polygon's orientation.  The mesh is built with
+    ``process=False`` so the vertex order, and hence per-vertex data, is kept.
 
     Args:
         verts: ``(V, 3)`` vertex positions (tensor or array).

@@ -5,8 +5,8 @@ thread unless ``polylap bench --threads N`` asks for more (:mod:`torch_polylap.t
 operations run through the library (``laplacian``, ``M0 + h * L``, :func:`torch_polylap.solve`,
 :func:`torch_polylap.eigs`); the references are libigl's triangle ``cotmatrix`` and
 ``massmatrix`` on the library's triangulation of the same mesh
-(:func:`torch_polylap.io.triangulate_faces`, when libigl is installed), scipy's CSR product,
-scipy's SuperLU with the settings of :func:`torch_polylap.linalg.spd_splu` on the same
+(:func:`torch_polylap.triangulate.triangulate_faces`, when libigl is installed), scipy's CSR
+product, scipy's SuperLU with the settings of :func:`torch_polylap.linalg.spd_splu` on the same
 ``M0 + h L``, and scipy's generalized shift-invert ``eigsh`` just below zero. Measured numbers
 and the full benchmarks (large grids, peak memory) are in ``benchmarks/``.
 """
@@ -22,12 +22,12 @@ import scipy.sparse.linalg as spla
 import torch
 
 from ..faces import PolygonFaces
-from ..io import triangulate_faces
 from ..linalg import eigs, solve, spd_splu
 from ..operators import laplacian
 from ..sparse import to_scipy
 from ..timing import fmt_time, markdown_table, median_time, pinned_threads
 from ..topology import build_topology
+from ..triangulate import triangulate_faces
 from .common import (
     Result,
     add_mesh_argument,

@@ -16,8 +16,8 @@ one, whatever happens during the write.
 
 Modules: :mod:`.obj`, :mod:`.off`, :mod:`.ply` (one reader per format), :mod:`.text` (the
 text readers' tokens and numbers: numpy's parser), :mod:`.common` (what they share),
-:mod:`.writers` (text blocks, PLY) and :mod:`.triangulate` (the triangles that
-:func:`torch_polylap.interop.to_trimesh` and :func:`torch_polylap.interop.to_pytorch3d` hand over).
+:mod:`.writers` (text blocks, PLY).  The triangles that :func:`torch_polylap.interop.to_trimesh`
+hands over come from :mod:`torch_polylap.triangulate`.
 """
 
 from __future__ import annotations
@@ -28,10 +28,11 @@ from typing import Literal, overload
 import numpy as np
 import torch
 
+from .._typing import ArrayLike
 from ..atomic import atomic_write
+from ..checks import check_verts_array
 from ..faces import FacesLike, PolygonFaces, as_faces
 from .common import (
-    ArrayLike,
     MeshAttributes,
     Parsed,
     PathLike,
@@ -40,20 +41,16 @@ from .common import (
     check_content,
     check_mesh,
     read_regular_file,
-    strip_bom,
-    verts_numpy,
 )
 from .obj import obj_text, read_obj
 from .off import read_off
 from .ply import read_ply
-from .triangulate import triangulate_faces
 from .writers import off_text, ply_text
 
 __all__ = [
     "MeshAttributes",
     "SkippedContentWarning",
     "read_mesh",
-    "triangulate_faces",
     "write_mesh",
 ]
 
@@ -155,7 +152,7 @@ def read_mesh(
             f"supported extensions are {', '.join(_SUPPORTED)}."
         )
     name = str(path)
-    data = strip_bom(read_regular_file(path))
+    data = read_regular_file(path)
     check_content(data, name, path.suffix.lower())
     skipped = Skipped()
     parsed = reader(data, name, skipped, return_attributes)
@@ -224,7 +221,7 @@ def write_mesh(
         raise ValueError(
             f"{path}: attributes (texture coordinates, normals) can only be written to .obj files."
         )
-    v = verts_numpy(verts)
+    v = check_verts_array(verts)
     pf = as_faces(faces)
     indices = pf.indices.cpu().numpy()
     sizes = pf.sizes.cpu().numpy()

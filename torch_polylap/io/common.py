@@ -19,9 +19,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .._typing import ArrayLike
-from ..checks import check_verts_array
-
 __all__ = ["MeshAttributes", "SkippedContentWarning"]
 
 PathLike = str | os.PathLike
@@ -107,8 +104,9 @@ class Skipped:
 
 
 def read_regular_file(path: Path) -> bytes:
-    """The bytes of ``path``, refusing directories, devices, FIFOs and sockets (reading those
-    could block forever or never end)."""
+    """The bytes of ``path`` without a leading UTF-8 byte-order mark (some Windows editors write
+    one), refusing directories, devices, FIFOs and sockets (reading those could block forever
+    or never end)."""
     st = os.stat(path)  # FileNotFoundError for a missing file, as open() would raise
     if stat.S_ISDIR(st.st_mode):
         raise ValueError(
@@ -119,7 +117,7 @@ def read_regular_file(path: Path) -> bytes:
             f"{path}: is not a regular file (a device, FIFO or socket), so it may never end; "
             "copy the mesh into a regular file and read that."
         )
-    return path.read_bytes()
+    return path.read_bytes().removeprefix(_UTF8_BOM)
 
 
 # (magic bytes, what the data is, what to do)
@@ -141,11 +139,6 @@ _UTF8_BOM = b"\xef\xbb\xbf"
 _OBJ_KEYWORDS = {b"v", b"vt", b"vn", b"f", b"o", b"g", b"mtllib", b"usemtl", b"s"}
 _OFF_HEADER = re.compile(rb"\s*(?:#[^\n\r]*[\r\n]+\s*)*(?:ST|C|N|4|n)*OFF(?:\s|$)")
 _FORMAT_NAMES = {".obj": "an OBJ", ".off": "an OFF", ".ply": "a PLY"}
-
-
-def strip_bom(data: bytes) -> bytes:
-    """``data`` without a leading UTF-8 byte-order mark (some Windows editors write one)."""
-    return data[len(_UTF8_BOM) :] if data.startswith(_UTF8_BOM) else data
 
 
 def check_content(data: bytes, name: str, ext: str) -> None:
@@ -271,44 +264,48 @@ class BadNumber(Exception):
 
 
 def numbers(tokens: list[str], kind: type) -> np.ndarray:
-    """Convert number tokens in one C-level pass; on failure say which token broke it."""
-    dtype = np.float64 if kind is float else np.int64
-    try:
-        return np.array(tokens, dtype=dtype).reshape(-1)
-    except (ValueError, OverflowError):
-        for i, tok in enumerate(tokens):
-            try:
-                np.array(tok, dtype=dtype)
-            except (ValueError, OverflowError):
-                raise BadNumber(i, tok) from None
-        raise
+    """Python's ``kind`` (float or int) of each token, as float64 or int64; on failure say which
+    token broke it."""
+    out = np.zeros(len(tokens), dtype=np.float64 if kind is float else np.int64)
+    for i, tok in enumerate(tokens):
+        try:
+            out[i] = kind(tok)
+        except (ValueError, OverflowError):
+            raise BadNumber(i, tok) from None
+    return out
+
+
+def joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
+    """The arrays ``pieces`` end to end (an empty one of ``dtype`` for none)."""
+    return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
+
+
+def face_of(sizes: np.ndarray, corner: int) -> int:
+    """The face holding ``corner`` (an index into the faces' packed corners), of faces of
+    ``sizes`` corners each."""
+    return int(np.searchsorted(np.cumsum(sizes), corner, side="right"))
 
 
 def check_faces(
     name: str,
     indices: np.ndarray,
     sizes: np.ndarray,
-    num_verts: int | None,
+    num_verts: int,
     where: Callable[[int], str],
-    written: np.ndarray | None = None,
 ) -> None:
-    """Reject faces with < 3 corners and indices outside ``[0, V)`` (``num_verts`` None: no
-    range check), naming the face."""
+    """Reject faces with < 3 corners and indices outside ``[0, num_verts)``, naming the face."""
     if sizes.size and sizes.min() < 3:
         f = int(np.flatnonzero(sizes < 3)[0])
         raise ValueError(
             f"{name}, {where(f)}: face {f} has {int(sizes[f])} vertices; "
             "a polygon needs at least 3."
         )
-    if num_verts is None:
-        return
     bad = (indices < 0) | (indices >= num_verts)
     if bad.any():
         corner = int(np.flatnonzero(bad)[0])
-        f = int(np.searchsorted(np.cumsum(sizes), corner, side="right"))
-        shown = int((indices if written is None else written)[corner])
+        f = face_of(sizes, corner)
         raise ValueError(
-            f"{name}, {where(f)}: face {f} refers to vertex {shown}, "
+            f"{name}, {where(f)}: face {f} refers to vertex {int(indices[corner])}, "
             f"out of range for the {num_verts} vertices in the file."
         )
 
@@ -331,8 +328,3 @@ def check_mesh(name: str, parsed: Parsed, where: Callable[[int], str]) -> None:
             UserWarning,
             stacklevel=3,
         )
-
-
-def verts_numpy(verts: ArrayLike) -> np.ndarray:
-    """``(V, 3)`` float64 array of a tensor (detached, on the CPU) or array."""
-    return check_verts_array(verts)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .common import BadNumber, Parsed, Skipped, check_text, plain_text
+from .common import BadNumber, Parsed, Skipped, check_text, face_of, joined, plain_text
 from .text import Chunk, chunks, runs
 from .writers import Pieces, face_pieces, float_pieces
 
@@ -144,9 +144,7 @@ class _ObjReader:
 
     def add(self, chunk: Chunk) -> None:
         """Read the records of ``chunk``."""
-        lines = np.flatnonzero(chunk.count)
-        key = chunk.first.take(lines)
-        count = chunk.count.take(lines)
+        lines, key, count, line_no = chunk.records()
         at = chunk.start.take(key)
         length = chunk.end.take(key) - at
         c0, c1 = chunk.buf.take(at), chunk.buf.take(np.minimum(at + 1, len(chunk.buf) - 1))
@@ -154,7 +152,6 @@ class _ObjReader:
         is_f = (length == 1) & (c0 == 102)
         is_vt = (length == 2) & (c0 == 118) & (c1 == 116)
         is_vn = (length == 2) & (c0 == 118) & (c1 == 110)
-        line_no = chunk.line0 + lines + 1
         for i in np.flatnonzero(~(is_v | is_f | is_vt | is_vn)).tolist():
             parts = chunk.line_text(int(lines[i])).split()
             record = _skipped_what(parts[0], parts, int(line_no[i]))
@@ -229,7 +226,6 @@ class _ObjReader:
             )
         corners = runs(key + 1, size)
         start, end = chunk.start.take(corners), chunk.end.take(corners)
-        offsets = np.cumsum(size)
         parts = {"vertex": (start, chunk.cut(start, end, _SLASH))}
         if self.want:
             first = parts["vertex"][1]
@@ -248,13 +244,13 @@ class _ObjReader:
                     written[given] = chunk.values(corners[given], int, a[given], b[given])
             except BadNumber as e:
                 corner = e.position if kind == "vertex" else int(np.flatnonzero(given)[e.position])
-                f = int(np.searchsorted(offsets, corner, side="right"))
+                f = face_of(size, corner)
                 raise ValueError(
                     f"{self.name}, line {line_no[f]}: face {self.faces + f} has an unparsable "
                     f"{_WHAT[kind]} index {e.token!r}."
                 ) from None
             if kind == "vertex" and (written == 0).any():
-                f = int(np.searchsorted(offsets, int(np.argmax(written == 0)), side="right"))
+                f = face_of(size, int(np.argmax(written == 0)))
                 raise ValueError(
                     f"{self.name}, line {line_no[f]}: face {self.faces + f} refers to vertex 0, "
                     "but OBJ vertex indices start at 1 (negative indices count back from the "
@@ -281,16 +277,15 @@ class _ObjReader:
 
     def finish(self, skipped: Skipped) -> Parsed:
         """The mesh read; raises for references past the file's rows."""
-        verts = _joined(self.coords, np.float64).reshape(-1, 3)
-        sizes = _joined(self.sizes, np.int64)
-        face_lines = _joined(self.face_lines, np.int64)
-        offsets = np.cumsum(sizes)
-        indices = self._checked("vertex", len(verts), offsets, face_lines)
+        verts = joined(self.coords, np.float64).reshape(-1, 3)
+        sizes = joined(self.sizes, np.int64)
+        face_lines = joined(self.face_lines, np.int64)
+        indices = self._checked("vertex", len(verts), sizes, face_lines)
         parsed = Parsed(verts, indices, sizes)
         if self.want:
             for kind, width in (("uv", 2), ("normals", 3)):
-                values = _joined(self.values[kind], np.float64).reshape(-1, width)
-                rows = self._checked(kind, len(values), offsets, face_lines)
+                values = joined(self.values[kind], np.float64).reshape(-1, width)
+                rows = self._checked(kind, len(values), sizes, face_lines)
                 if len(values):
                     parsed.attributes[kind] = values
                 if (rows >= 0).any():
@@ -301,28 +296,24 @@ class _ObjReader:
         return parsed
 
     def _checked(
-        self, kind: str, total: int, offsets: np.ndarray, face_lines: np.ndarray
+        self, kind: str, total: int, sizes: np.ndarray, face_lines: np.ndarray
     ) -> np.ndarray:
         """The rows of references of ``kind``, refusing one outside the ``total`` rows."""
         refs = self.refs[kind]
-        rows = _joined(refs.rows, np.int64)
+        rows = joined(refs.rows, np.int64)
         past = np.flatnonzero(rows >= total)
         bad = [(int(past[0]), int(rows[past[0]]) + 1)] if len(past) else []
         if refs.before_first is not None:
             bad.append(refs.before_first)
         if bad:
             corner, written = min(bad)
-            f = int(np.searchsorted(offsets, corner, side="right"))
+            f = face_of(sizes, corner)
             of = "vertices in the file" if kind == "vertex" else "in the file"
             raise ValueError(
                 f"{self.name}, line {face_lines[f]}: face {f} refers to {_WHAT[kind]} {written}, "
                 f"out of range for the {total} {of}."
             )
         return rows
-
-
-def _joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
-    return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
 
 
 def _skipped_what(key: str, parts: list[str], line: int) -> tuple[str, int, str | None] | None:

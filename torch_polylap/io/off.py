@@ -20,8 +20,10 @@ from .common import (
     check_count,
     check_faces,
     check_text,
+    joined,
     plain_text,
 )
+from .ply import PlyElement, PlyProperty, binary_element, list_column
 from .text import Chunk, chunks, runs
 
 _OFF_KEYWORD = re.compile(r"(?:ST|C|N)*OFF")
@@ -55,8 +57,7 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     check_count(name, "vertices", num_verts, len(data), f"line {line0}")
     check_count(name, "faces", num_faces, len(data), f"line {line0}")
     reader = _OffReader(name, num_verts, num_faces, len(text) - body)
-    for chunk in chunks(text, body):
-        chunk.line0 += line0
+    for chunk in chunks(text, body, line0):
         reader.add(chunk)
     return reader.finish(skipped, keyword)
 
@@ -129,9 +130,7 @@ class _OffReader:
 
     def add(self, chunk: Chunk) -> None:
         """Read the records of ``chunk``."""
-        lines = np.flatnonzero(chunk.count)
-        first, count = chunk.first.take(lines), chunk.count.take(lines)
-        line_no = chunk.line0 + lines + 1
+        lines, first, count, line_no = chunk.records()
         nv = min(self.num_verts - self.read, len(lines))
         if nv:
             self._vertices(chunk, lines[:nv], first[:nv], count[:nv], line_no[:nv])
@@ -183,13 +182,8 @@ class _OffReader:
 
         def add() -> None:  # a record begun in an earlier chunk gets its later corners here:
             # in this chunk's numbering they come before its first record
-            self._add_faces(
-                chunk,
-                np.asarray(corner_list, dtype=np.int64),
-                np.asarray(sizes_list, dtype=np.int64),
-                np.asarray(starts_list, dtype=np.int64),
-                np.asarray(lines_list, dtype=np.int64),
-            )
+            lists = (corner_list, sizes_list, starts_list, lines_list)
+            self._add_faces(chunk, *(np.asarray(x, dtype=np.int64) for x in lists))
 
         for at, n, no in zip(first.tolist(), count.tolist(), line_no.tolist(), strict=True):
             pos = 0
@@ -258,9 +252,8 @@ class _OffReader:
                 f"{self.name}: the file ends after {complete} of the {self.num_faces} faces "
                 "declared in the header (truncated file)."
             )
-        indices = np.concatenate(self.indices) if self.indices else np.zeros(0, dtype=np.int64)
-        sizes = np.concatenate(self.sizes) if self.sizes else np.zeros(0, dtype=np.int64)
-        face_lines = np.concatenate(self.face_lines) if self.face_lines else sizes
+        indices, sizes = joined(self.indices, np.int64), joined(self.sizes, np.int64)
+        face_lines = joined(self.face_lines, np.int64)
         check_faces(self.name, indices, sizes, self.num_verts, lambda f: f"line {face_lines[f]}")
         skipped.add(_vertex_extras(keyword), self.extra)
         skipped.add("face colours", self.coloured)
@@ -318,49 +311,25 @@ def _read_off_binary(body: bytes, keyword: str, name: str, skipped: Skipped) -> 
     verts = np.frombuffer(body, order + "f4", floats_per_vert * num_verts, 12)
     verts = verts.reshape(num_verts, floats_per_vert)[:, :3].astype(np.float64)
     skipped.add(_vertex_extras(keyword), num_verts if floats_per_vert > 3 else 0)
-    words = np.frombuffer(body, order + "i4", (len(body) - vert_end) // 4, vert_end)
-    for with_colours in (False, True):
-        starts = _walk_off_faces(words, num_faces, with_colours)
-        if starts is not None:
+    # the face records: a list of int32 indices after an int32 length, and Geomview's colours
+    # another such list of floats
+    corners = PlyProperty("vertex_indices", "i4", "i4")
+    for props in ([corners], [corners, PlyProperty("colours", "f4", "i4")]):
+        face = PlyElement("face", num_faces, props)
+        try:
+            cols, end = binary_element(body, vert_end, order, face, {p.name for p in props}, name)
+        except ValueError:  # a negative length, or lists past the file's end
+            continue
+        if len(body) - end < 4:
             break
     else:
         raise ValueError(
             f"{name}: binary OFF face records do not match the {num_faces} faces declared "
             "(truncated file or unknown layout)."
         )
-    sizes = words[starts].astype(np.int64)
-    check_faces(name, sizes[:0], sizes, None, lambda f: f"binary OFF face record {f}")
-    if with_colours:
-        skipped.add("face colours", int((words[starts + sizes + 1] > 0).sum()))
-    first = np.repeat(starts + 1, sizes)
-    within = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-    indices = words[first + within].astype(np.int64)
+    values, sizes = list_column(cols["vertex_indices"])
+    if len(props) > 1:
+        skipped.add("face colours", int((list_column(cols["colours"])[1] > 0).sum()))
+    indices = values.astype(np.int64)
     check_faces(name, indices, sizes, num_verts, lambda f: f"binary OFF face record {f}")
     return Parsed(verts, indices, sizes)
-
-
-def _walk_off_faces(words: np.ndarray, num_faces: int, with_colours: bool) -> np.ndarray | None:
-    """Start of each face record in ``words``, or None if they do not end at the file's end."""
-    if num_faces == 0:
-        return np.zeros(0, dtype=np.int64) if len(words) == 0 else None
-    k = int(words[0]) if len(words) else -1
-    if not with_colours and k >= 0 and len(words) == num_faces * (k + 1):
-        starts = np.arange(num_faces, dtype=np.int64) * (k + 1)
-        if (words[starts] == k).all():
-            return starts
-    seq = words.tolist()
-    starts_list = []
-    p = 0
-    n = len(seq)
-    try:
-        for _ in range(num_faces):
-            starts_list.append(p)
-            k = seq[p]
-            if k < 0:
-                return None
-            p += k + 1
-            if with_colours:
-                p += seq[p] + 1
-    except IndexError:
-        return None
-    return np.asarray(starts_list, dtype=np.int64) if p == n else None

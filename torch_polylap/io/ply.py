@@ -23,6 +23,8 @@ from .common import (
     check_count,
     check_faces,
     check_text,
+    face_of,
+    joined,
     plain_text,
 )
 from .text import Chunk, chunks, runs
@@ -39,19 +41,19 @@ _PLY_FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": "
 
 
 @dataclass(frozen=True)
-class _PlyProperty:
+class PlyProperty:
     name: str
     dtype: str  # numpy type code without byte order, e.g. "f4"
     count_dtype: str | None = None  # set for list properties
 
 
 @dataclass
-class _PlyElement:
+class PlyElement:
     name: str
     count: int
-    props: list[_PlyProperty] = field(default_factory=list)
+    props: list[PlyProperty] = field(default_factory=list)
 
-    def find(self, prop: str) -> _PlyProperty | None:
+    def find(self, prop: str) -> PlyProperty | None:
         return next((p for p in self.props if p.name == prop), None)
 
 
@@ -82,13 +84,15 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
             f"{name}: PLY element 'face' has no list property 'vertex_indices' "
             f"(or 'vertex_index'); its properties are {[p.name for p in face.props]}."
         )
-    _check_counts(data, body, elements, name)
+    for el in elements:  # absurd counts (a record takes a byte); the readers name truncation
+        if el.props:
+            check_count(name, f"records of element {el.name!r}", el.count, len(data) - body)
     normals, uv = _vertex_attributes(vertex)
     wanted = {"vertex": {"x", "y", "z"}, "face": {face_list.name}}
     if want_attributes:
         wanted["vertex"] |= set(normals) | set(uv)
     _name_skipped(elements, wanted, skipped, bool(normals or uv) and not want_attributes)
-    record_line: dict[str, Callable[[int], int]] = {}
+    record_line: dict[str, np.ndarray] = {}  # ASCII PLY: each record's line, per element
     if fmt == "ascii":
         check_text(data[body:], name, "ASCII PLY", header_lines + 1)
         columns = _read_ply_ascii(data, body, header_lines, elements, wanted, name, record_line)
@@ -97,11 +101,11 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
 
     def where(f: int) -> str:
         line = record_line.get("face")
-        return (f"line {line(f)}: " if line else "") + f"element 'face' record {f}"
+        return (f"line {int(line[f])}: " if line is not None else "") + f"element 'face' record {f}"
 
     vcols = columns["vertex"]
-    verts = np.stack([_scalar(vcols[a]).astype(np.float64) for a in "xyz"], axis=1)
-    values, counts = _list(columns["face"][face_list.name])
+    verts = np.stack([np.asarray(vcols[a], dtype=np.float64) for a in "xyz"], axis=1)
+    values, counts = list_column(columns["face"][face_list.name])
     sizes = counts.astype(np.int64)
     if face_list.dtype[0] == "f":
         _check_whole(name, values, sizes, face_list.name, where)
@@ -111,7 +115,7 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     for key, names in (("normals", normals), ("uv", uv)):
         if want_attributes and names:
             parsed.attributes[key] = np.stack(
-                [_scalar(vcols[n]).astype(np.float64) for n in names], 1
+                [np.asarray(vcols[n], dtype=np.float64) for n in names], 1
             )
             parsed.attributes["corner_" + key] = indices.copy()
     return parsed
@@ -125,14 +129,14 @@ def _check_whole(
     bad = ~(values == np.trunc(values)) | (np.abs(values) >= 2.0**62)
     if bad.any():
         corner = int(np.flatnonzero(bad)[0])
-        f = int(np.searchsorted(np.cumsum(sizes), corner, side="right"))
+        f = face_of(sizes, corner)
         raise ValueError(
             f"{name}, {where(f)}: face {f} lists {float(values[corner])!r} in {prop!r}, which is "
             "no vertex index (a whole number): the file is corrupt or not a mesh; re-export it."
         )
 
 
-def _vertex_attributes(vertex: _PlyElement) -> tuple[tuple[str, ...], tuple[str, ...]]:
+def _vertex_attributes(vertex: PlyElement) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """Names of the vertex's normal and texture-coordinate properties (empty when absent)."""
 
     def scalars(names: tuple[str, ...]) -> bool:
@@ -144,7 +148,7 @@ def _vertex_attributes(vertex: _PlyElement) -> tuple[tuple[str, ...], tuple[str,
 
 
 def _name_skipped(
-    elements: list[_PlyElement], wanted: dict[str, set[str]], skipped: Skipped, hint: bool
+    elements: list[PlyElement], wanted: dict[str, set[str]], skipped: Skipped, hint: bool
 ) -> None:
     """Count the properties and elements the reader does not return, for the warning."""
     for el in elements:
@@ -157,15 +161,7 @@ def _name_skipped(
     skipped.attributes_hint |= hint
 
 
-def _check_counts(data: bytes, body: int, elements: list[_PlyElement], name: str) -> None:
-    """Reject absurd element counts (every record takes at least a byte) before reading; a
-    merely truncated file gets the precise message of the element readers."""
-    for el in elements:
-        if el.props:
-            check_count(name, f"records of element {el.name!r}", el.count, len(data) - body)
-
-
-def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], int, int]:
+def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[PlyElement], int, int]:
     """Format, elements, byte offset of the body, and number of header lines.
 
     The header's line ending (LF, CRLF or a lone CR) is the one ending the ``ply`` line; the
@@ -176,7 +172,7 @@ def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], i
         raise ValueError(f"{name}: not a PLY file (it does not start with a 'ply' line).")
     newline = first.group(1)
     fmt = None
-    elements: list[_PlyElement] = []
+    elements: list[PlyElement] = []
     pos = first.end()
     no = 1
     while True:
@@ -210,7 +206,7 @@ def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], i
                 count = int(toks[2])
                 if count < 0:
                     raise ValueError
-                elements.append(_PlyElement(toks[1], count))
+                elements.append(PlyElement(toks[1], count))
             except (IndexError, ValueError):
                 raise ValueError(
                     f"{name}, line {no}: expected 'element <name> <count>', got {' '.join(toks)!r}."
@@ -227,7 +223,7 @@ def _parse_ply_header(data: bytes, name: str) -> tuple[str, list[_PlyElement], i
     return fmt, elements, pos, no
 
 
-def _parse_ply_property(toks: list[str], no: int, name: str) -> _PlyProperty:
+def _parse_ply_property(toks: list[str], no: int, name: str) -> PlyProperty:
     def type_code(t: str) -> str:
         if t not in _PLY_TYPES:
             raise ValueError(
@@ -237,12 +233,12 @@ def _parse_ply_property(toks: list[str], no: int, name: str) -> _PlyProperty:
         return _PLY_TYPES[t]
 
     if len(toks) == 3:
-        return _PlyProperty(toks[2], type_code(toks[1]))
+        return PlyProperty(toks[2], type_code(toks[1]))
     if len(toks) == 5 and toks[1] == "list":
         count = type_code(toks[2])
         if count[0] == "f":
             raise ValueError(f"{name}, line {no}: a list count type must be an integer type.")
-        return _PlyProperty(toks[4], type_code(toks[3]), count)
+        return PlyProperty(toks[4], type_code(toks[3]), count)
     raise ValueError(f"{name}, line {no}: malformed property line {' '.join(toks)!r}.")
 
 
@@ -251,13 +247,7 @@ _Column = np.ndarray | tuple[np.ndarray, np.ndarray]
 _Columns = dict[str, dict[str, _Column]]
 
 
-def _scalar(column: _Column) -> np.ndarray:
-    """A column that the header declares scalar (checked by the caller)."""
-    assert not isinstance(column, tuple)
-    return column
-
-
-def _list(column: _Column) -> tuple[np.ndarray, np.ndarray]:
+def list_column(column: _Column) -> tuple[np.ndarray, np.ndarray]:
     """A column that the header declares a list (checked by the caller)."""
     assert isinstance(column, tuple)
     return column
@@ -267,7 +257,7 @@ def _read_ply_binary(
     data: bytes,
     pos: int,
     order: str,
-    elements: list[_PlyElement],
+    elements: list[PlyElement],
     wanted: dict[str, set[str]],
     name: str,
 ) -> _Columns:
@@ -276,48 +266,25 @@ def _read_ply_binary(
     for el in elements:
         if set(out) == set(wanted):
             break  # later elements (edges, materials...) are not needed
-        if any(p.count_dtype is not None for p in el.props):
-            cols, pos = _binary_list_element(data, pos, order, el, wanted.get(el.name, set()), name)
-        else:
-            cols, pos = _binary_fixed_element(
-                data, pos, order, el, wanted.get(el.name, set()), name
-            )
+        cols, pos = binary_element(data, pos, order, el, wanted.get(el.name, set()), name)
         if el.name in wanted:
             out[el.name] = cols
     return out
 
 
-def _binary_fixed_element(
-    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
+def binary_element(
+    data: bytes, pos: int, order: str, el: PlyElement, want: set[str], name: str
 ) -> tuple[dict[str, _Column], int]:
-    dt = np.dtype([(f"p{i}", order + p.dtype) for i, p in enumerate(el.props)])
-    available = (len(data) - pos) // dt.itemsize if dt.itemsize else el.count
-    if available < el.count:
-        raise ValueError(
-            f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
-            f"after {available} (truncated file)."
-        )
-    if not dt.itemsize:
-        return {}, pos  # an element without properties
-    rec = np.frombuffer(data, dt, el.count, pos)
-    cols: dict[str, _Column] = {
-        p.name: rec[f"p{i}"] for i, p in enumerate(el.props) if p.name in want
-    }
-    return cols, pos + el.count * dt.itemsize
+    """An element's records, of fixed length or, with list properties, of varying length.
 
-
-def _binary_list_element(
-    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str], name: str
-) -> tuple[dict[str, _Column], int]:
-    """An element with list properties: records of varying length.
-
-    When every record's lists have the lengths of the first record's (all-triangle or all-quad
-    faces), one structured ``frombuffer`` reads everything.  Otherwise a Python loop walks the
-    records reading only the list lengths, and numpy gathers all values from those offsets.
+    When every record's lists have the lengths of the first record's (no lists, all-triangle or
+    all-quad faces), one structured ``frombuffer`` reads everything.  Otherwise a Python loop
+    walks the records reading only the list lengths, and numpy gathers all values from those
+    offsets.
     """
-    if el.count == 0:
+    if el.count == 0 or not el.props:  # no records, or records of no bytes
         return {p.name: _empty_column(p) for p in el.props if p.name in want}, pos
-    uniform = _binary_uniform_lists(data, pos, order, el, want)
+    uniform = _binary_uniform(data, pos, order, el, want, name)
     if uniform is not None:
         return uniform
     # per property: its (items') size, and for a list its length's size and reader
@@ -362,15 +329,13 @@ def _binary_list_element(
             cols[prop.name] = _gather(buf, at, order + prop.dtype)
             continue
         sizes = _gather(buf, at, order + prop.count_dtype).astype(np.int64)
-        check_faces(name, sizes[:0], sizes, None, lambda f: f"element {el.name!r} record {f}")
-        within = runs(np.zeros_like(at), sizes)  # each value's place in its list
-        corners = np.repeat(at + count_size, sizes) + within * item
+        corners = np.repeat(at + count_size, sizes) + runs(np.zeros_like(at), sizes) * item
         cols[prop.name] = (_gather(buf, corners, order + prop.dtype), sizes)
     return cols, p
 
 
 def _length_reader(
-    data: bytes, order: str, prop: _PlyProperty
+    data: bytes, order: str, prop: PlyProperty
 ) -> tuple[int, Callable[[int], int] | None]:
     """Size and reader (byte offset -> value) of a list property's length; (0, None) for a
     scalar."""
@@ -382,10 +347,10 @@ def _length_reader(
     return struct.calcsize(_STRUCT_CODES[prop.count_dtype]), lambda q: unpack(data, q)[0]
 
 
-def _binary_uniform_lists(
-    data: bytes, pos: int, order: str, el: _PlyElement, want: set[str]
+def _binary_uniform(
+    data: bytes, pos: int, order: str, el: PlyElement, want: set[str], name: str
 ) -> tuple[dict[str, _Column], int] | None:
-    """Read a list element in one go if all its lists have the first record's lengths."""
+    """Read an element in one go if all its lists (if any) have the first record's lengths."""
     fields: list[tuple[Any, ...]] = []  # (name, dtype) or (name, dtype, shape)
     lengths: dict[int, int] = {}
     p = pos
@@ -405,7 +370,13 @@ def _binary_uniform_lists(
         fields.append((f"p{i}", order + prop.dtype, (k,)))
         p += count_dt.itemsize + k * np.dtype(prop.dtype).itemsize
     dt = np.dtype(fields)
-    if pos + el.count * dt.itemsize > len(data):
+    available = (len(data) - pos) // dt.itemsize
+    if available < el.count and not lengths:  # records of one size: the count says it all
+        raise ValueError(
+            f"{name}: PLY element {el.name!r} declares {el.count} records but the file ends "
+            f"after {available} (truncated file)."
+        )
+    if available < el.count:
         return None
     rec = np.frombuffer(data, dt, el.count, pos)
     if not all((rec[f"c{i}"] == k).all() for i, k in lengths.items()):
@@ -429,7 +400,7 @@ def _gather(buf: np.ndarray, at: np.ndarray, dtype: str) -> np.ndarray:
     return raw.view(dt).reshape(-1)
 
 
-def _empty_column(prop: _PlyProperty) -> _Column:
+def _empty_column(prop: PlyProperty) -> _Column:
     if prop.count_dtype is None:
         return np.zeros(0, dtype=prop.dtype)
     return np.zeros(0, dtype=prop.dtype), np.zeros(0, dtype=np.int64)
@@ -439,20 +410,20 @@ def _read_ply_ascii(
     data: bytes,
     pos: int,
     header_lines: int,
-    elements: list[_PlyElement],
+    elements: list[PlyElement],
     wanted: dict[str, set[str]],
     name: str,
-    record_line: dict[str, Callable[[int], int]],
+    record_line: dict[str, np.ndarray],
 ) -> _Columns:
     """Columns of the wanted elements of the ASCII body ``data[pos:]``, each record one
     non-blank line, read a chunk of lines at a time (the reader stops once it has them all);
-    ``record_line`` gets each one's record -> line number."""
+    ``record_line`` gets the line number of each of their records."""
     # '#' starts no comment in a PLY body: a token holding one is no number
     if any(data.find(byte, pos) >= 0 for byte in (b"\r", b"\x85", b"\xa0")):
         text, begin = plain_text(data[pos:], comments=False), 0
     else:  # read in place: no copy of the file
         text, begin = data, pos
-    spans: list[tuple[_PlyElement, int]] = []  # the elements up to the last wanted, and rank
+    spans: list[tuple[PlyElement, int]] = []  # the elements up to the last wanted, and rank
     rank = 0
     for el in elements:
         if {sp[0].name for sp in spans if sp[0].name in wanted} == set(wanted):
@@ -463,16 +434,15 @@ def _read_ply_ascii(
         el.name: _AsciiElement(el, wanted[el.name], name) for el, _ in spans if el.name in wanted
     }
     seen = 0  # records (non-blank lines) before the chunk
-    for chunk in chunks(text, begin):
+    for chunk in chunks(text, begin, header_lines):
         if seen >= rank:
             break
-        chunk.line0 += header_lines
-        lines = np.flatnonzero(chunk.count)
+        _, tokens, count, line_no = chunk.records()
         for el, first in spans:
-            a, b = max(first - seen, 0), min(first + el.count - seen, len(lines))
+            a, b = max(first - seen, 0), min(first + el.count - seen, len(count))
             if a < b and el.name in reader:
-                reader[el.name].add(chunk, lines[a:b], seen + a - first)
-        seen += len(lines)
+                reader[el.name].add(chunk, tokens[a:b], count[a:b], line_no[a:b], seen + a - first)
+        seen += len(count)
     for el, first in spans:
         if first + el.count > seen:
             raise ValueError(
@@ -482,23 +452,14 @@ def _read_ply_ascii(
     out: _Columns = {}
     for key, element in reader.items():
         out[key] = element.columns()
-        record_line[key] = _line_numbers(_joined(element.lines, np.int64))
+        record_line[key] = joined(element.lines, np.int64)
     return out
-
-
-def _line_numbers(line_of: np.ndarray) -> Callable[[int], int]:
-    """Record -> file line, from each record's line."""
-    return lambda record: int(line_of[record])
-
-
-def _joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
-    return np.concatenate(pieces) if pieces else np.zeros(0, dtype=dtype)
 
 
 class _AsciiElement:
     """The wanted properties of one ASCII PLY element, collected a chunk at a time."""
 
-    def __init__(self, el: _PlyElement, want: set[str], name: str) -> None:
+    def __init__(self, el: PlyElement, want: set[str], name: str) -> None:
         self.el = el
         self.want = want
         self.name = name
@@ -512,11 +473,11 @@ class _AsciiElement:
     def _error(self, no: int, record: int, what: str) -> ValueError:
         return ValueError(f"{self.name}, line {no}: element {self.el.name!r} record {record}{what}")
 
-    def add(self, chunk: Chunk, lines: np.ndarray, record0: int) -> None:
-        """Read the records on ``lines`` (chunk-relative) of ``chunk``, the first being record
-        ``record0`` of the element."""
-        first, count = chunk.first.take(lines), chunk.count.take(lines)
-        line_no = chunk.line0 + lines + 1
+    def add(
+        self, chunk: Chunk, first: np.ndarray, count: np.ndarray, line_no: np.ndarray, record0: int
+    ) -> None:
+        """Read the records of ``chunk`` on lines ``line_no`` (first token and token count of
+        each: see :meth:`Chunk.records`), the first being record ``record0`` of the element."""
         self.lines.append(line_no)
         layout = None if self.walk else self._layout(chunk, first, count)
         broken = None
@@ -530,7 +491,7 @@ class _AsciiElement:
             except BadNumber as e:
                 r = e.position
                 if sizes is not None:
-                    r = int(np.searchsorted(np.cumsum(sizes), r, side="right"))
+                    r = face_of(sizes, r)
                 errors.append((r, f": cannot parse {prop.name!r} value {e.token!r}."))
                 continue
             self.values.setdefault(prop.name, []).append(values)
@@ -548,14 +509,13 @@ class _AsciiElement:
         n, at = len(self.el.props), self.at
         k = np.zeros(len(first), dtype=np.int64)
         if at is not None:
-            has = count > at
+            if (count <= at).any():  # a record too short to hold the list's length
+                return None
             try:
-                k[has] = chunk.values(first[has] + at, int)
+                k = chunk.values(first + at, int)
             except BadNumber:
                 return None
-            if not (has & (k >= 0)).all():
-                return None
-        if (count != n + k).any():
+        if (k < 0).any() or (count != n + k).any():
             return None
         out: _Layout = {}
         for i, prop in enumerate(self.el.props):
@@ -620,19 +580,19 @@ class _AsciiElement:
         cols: dict[str, _Column] = {}
         for prop in self.el.props:
             if prop.name in self.want:
-                values = _joined(self.values.get(prop.name, []), np.float64)
+                values = joined(self.values.get(prop.name, []), np.float64)
                 if _kind(prop) is int:
                     values = values.astype(np.int64)
-                sizes = _joined(self.sizes.get(prop.name, []), np.int64)
+                sizes = joined(self.sizes.get(prop.name, []), np.int64)
                 cols[prop.name] = values if prop.count_dtype is None else (values, sizes)
         return cols
 
 
 # per wanted property: its token indices, and for a list each record's length
-_Layout = dict[_PlyProperty, tuple[np.ndarray, np.ndarray | None]]
+_Layout = dict[PlyProperty, tuple[np.ndarray, np.ndarray | None]]
 
 
-def _kind(prop: _PlyProperty) -> type:
+def _kind(prop: PlyProperty) -> type:
     """How a property's ASCII values are read: list items of an integer type as ints, all
     else as floats."""
     return int if prop.count_dtype is not None and prop.dtype[0] != "f" else float

@@ -53,28 +53,40 @@ class Chunk:
     """
 
     def __init__(self, text: bytes, begin: int, stop: int, line0: int) -> None:
-        self.buf = np.frombuffer(text, dtype=np.uint8, count=stop - begin, offset=begin)
+        lead = int(begin > 0 and text[begin - 1] == 10)  # the line break before, a blank
+        ext = np.frombuffer(text, dtype=np.uint8, count=stop - begin + lead, offset=begin - lead)
+        self.buf = ext[lead:]
         self.source = (text, begin)
         self.line0 = line0
         # below the space, text holds only whitespace and ESC (see check_text), which is none
-        if 27 in self.buf:
-            blank = _SPACE.take(self.buf)
-        else:
-            blank = self.buf <= 32
-        # a token starts where a blank is followed by a non-blank, and ends at the reverse
-        filled = ~blank
-        self.start = np.flatnonzero(filled[1:] > filled[:-1]) + 1
-        self.end = np.flatnonzero(filled[:-1] > filled[1:]) + 1
-        if len(filled) and filled[0]:
-            self.start = np.concatenate([[0], self.start])
-        if len(filled) and filled[-1]:
-            self.end = np.append(self.end, len(filled))
+        blank = _SPACE.take(ext) if 27 in ext else ext <= 32
+        # tokens start and end where blank and non-blank bytes meet: one pass finds both
+        edge = np.flatnonzero(blank[1:] != blank[:-1]) + 1 - lead
+        if not lead and len(blank) and not blank[0]:  # a token at the text's start
+            edge = np.concatenate([[0], edge])
+        if len(edge) % 2:  # the text's last token, ending with it
+            edge = np.append(edge, len(self.buf))
+        self.start, self.end = edge.reshape(-1, 2).T.copy()  # contiguous, for fast takes
         breaks = np.flatnonzero(self.buf == 10)
         if len(self.buf) and self.buf[-1] != 10:  # the text's last line, without its break
             breaks = np.append(breaks, len(self.buf))
-        before = np.searchsorted(self.start, breaks)  # tokens before each line's end
-        self.count = np.diff(before, prepend=0)
-        self.first = before - self.count
+        n, w = len(self.start), len(self.start) // max(len(breaks), 1)
+        # the usual layout, w tokens on every line, needs no search: no line holds fewer than w
+        # (its first and last within its breaks) and the total leaves none more
+        fits = w and n == w * len(breaks) and (self.start[w - 1 :: w] < breaks).all()
+        if fits and (self.start[w::w] > breaks[:-1]).all():
+            self.first = np.arange(0, n, w)
+            self.count = np.full(len(breaks), w)
+        else:
+            before = np.searchsorted(self.start, breaks)  # tokens before each line's end
+            self.count = np.diff(before, prepend=0)
+            self.first = before - self.count
+
+    def records(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(lines, first, count, line_no)`` of the non-blank lines: each one's chunk-relative
+        index, first token, number of tokens and 1-based line number in the file."""
+        lines = np.flatnonzero(self.count)
+        return lines, self.first.take(lines), self.count.take(lines), self.line0 + lines + 1
 
     def lines(self) -> Iterator[Chunk]:
         """The chunk's lines, each a chunk of its own (to find the first of several errors)."""
@@ -93,12 +105,9 @@ class Chunk:
     def line_text(self, line: int) -> str:
         """The tokens of line ``line`` (chunk-relative), single-spaced."""
         first, count = int(self.first[line]), int(self.count[line])
-        return " ".join(
-            self.text(s, e)
-            for s, e in zip(
-                self.start[first : first + count], self.end[first : first + count], strict=True
-            )
-        )
+        if not count:
+            return ""
+        return " ".join(self.text(int(self.start[first]), int(self.end[first + count - 1])).split())
 
     def cut(self, start: np.ndarray, end: np.ndarray, byte: int, skip: int = 0) -> np.ndarray:
         """Offset of the ``skip + 1``-th ``byte`` in each range ``[start, end)`` (ranges
@@ -169,9 +178,10 @@ class Chunk:
         return numbers(texts, kind)
 
 
-def chunks(text: bytes, begin: int = 0) -> Iterator[Chunk]:
-    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks."""
-    pos, line0 = begin, 0
+def chunks(text: bytes, begin: int = 0, line0: int = 0) -> Iterator[Chunk]:
+    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks, its first line being line
+    ``line0 + 1`` of the file."""
+    pos = begin
     size = len(text)
     while pos < size:
         stop = min(pos + CHUNK_BYTES, size)

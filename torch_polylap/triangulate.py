@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..faces import FacesLike, as_faces
-from .common import ArrayLike, verts_numpy
+from ._typing import ArrayLike
+from .checks import check_verts_array
+from .faces import FacesLike, as_faces
 
 __all__ = ["triangulate_faces"]
 
@@ -35,7 +36,7 @@ def triangulate_faces(verts: ArrayLike, faces: FacesLike) -> np.ndarray:
         ``(sum_f (k_f - 2), 3)`` int64 vertex indices; face ``f``'s ``k_f - 2`` triangles are
         consecutive, so ``np.repeat(np.arange(F), sizes - 2)`` maps triangles to faces.
     """
-    v = verts_numpy(verts)
+    v = check_verts_array(verts)
     pf = as_faces(faces)
     indices = pf.indices.cpu().numpy()
     sizes = pf.sizes.cpu().numpy()
