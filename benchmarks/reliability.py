@@ -53,6 +53,7 @@ import torch
 from common import bench_grid, markdown_table, run_meta, table_data, write_results
 
 import torch_polylap as tp
+from torch_polylap.triangulate import triangulate_faces
 
 Outcome = str  # "error", "warned", "valid", "silent wrong"
 
@@ -353,7 +354,7 @@ ENTRY_POINTS: dict[str, Callable[[torch.Tensor, object], object]] = {
     "write_mesh / read_mesh (off)": _write_and_read("off"),
     "write_mesh / read_mesh (ply)": _write_and_read("ply"),
     "write_mesh / read_mesh (binary ply)": _write_and_read("ply", binary=True),
-    "io.triangulate_faces": lambda V, F: tp.io.triangulate_faces(V, F),
+    "triangulate.triangulate_faces": lambda V, F: triangulate_faces(V, F),
     "to_trimesh": lambda V, F: tp.to_trimesh(V, F),
     "to_pyg": lambda V, F: tp.to_pyg(V, F),
     "to_pytorch3d": lambda V, F: tp.to_pytorch3d(V, F),
