@@ -336,6 +336,44 @@ def _refuse_batched_indices(in_dims: tuple[int | None, ...], what: str) -> None:
         )
 
 
+def _product_vmap(
+    info: Any,
+    in_dims: tuple[int | None, ...],
+    values: torch.Tensor,
+    parts: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    D: torch.Tensor,
+    m: int,
+    transpose: bool,
+    symmetric: bool,
+) -> tuple[torch.Tensor, int]:
+    """The vmap rule of ``A D`` (``transpose`` false) or ``A^T D`` for ``A`` ``(n, m)`` on the
+    CSR ``parts`` ``(crow, col, row)`` and dense ``D``: one operator and a batch of ``D`` fold
+    the batch into the columns; a batch of value arrays is one block-diagonal operator."""
+    crow, col, row = parts
+    _refuse_batched_indices(
+        in_dims[1:4], "a transposed sparse product" if transpose else "a sparse product"
+    )
+    v_dim, d_dim = in_dims[0], in_dims[4]
+    n, B = crow.shape[0] - 1, info.batch_size
+    rows_in, rows_out = (n, m) if transpose else (m, n)
+    if v_dim is None:
+        assert d_dim is not None
+        Db = D.movedim(d_dim, 1).reshape(rows_in, -1)  # (rows_in, B * c)
+        if transpose:
+            out = spmm_t_op(values, crow, col, row, Db, m)
+        else:
+            out = spmm_op(values, crow, col, row, Db, symmetric)
+        return out.reshape(rows_out, B, -1), 1
+    Db = _batched(D, d_dim, B).reshape(B * rows_in, -1)
+    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
+    values_b = values.movedim(v_dim, 0).reshape(-1)
+    if transpose:
+        out = spmm_t_op(values_b, crow_b, col_b, row_b, Db, B * m)
+    else:
+        out = spmm_op(values_b, crow_b, col_b, row_b, Db, symmetric)
+    return out.reshape(B, rows_out, -1), 0
+
+
 def _spmm_vmap(
     info: Any,
     in_dims: tuple[int | None, ...],
@@ -346,20 +384,9 @@ def _spmm_vmap(
     X: torch.Tensor,
     symmetric: bool,
 ) -> tuple[torch.Tensor, int]:
-    _refuse_batched_indices(in_dims[1:4], "a sparse product")
-    v_dim, x_dim = in_dims[0], in_dims[4]
-    n, B = crow.shape[0] - 1, info.batch_size
-    if v_dim is None:
-        # one operator, B right-hand sides: fold the batch into the columns
-        assert x_dim is not None
-        Xb = X.movedim(x_dim, 1)  # (m, B, c)
-        Y = spmm_op(values, crow, col, row, Xb.reshape(Xb.shape[0], -1), symmetric)
-        return Y.reshape(n, B, -1), 1
-    m = X.shape[-2]
-    Xb = _batched(X, x_dim, B).reshape(B * m, -1)
-    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
-    Y = spmm_op(values.movedim(v_dim, 0).reshape(-1), crow_b, col_b, row_b, Xb, symmetric)
-    return Y.reshape(B, n, -1), 0
+    # A's column count is X's row count (the pattern's arrays do not hold it)
+    m = _batched(X, in_dims[4], info.batch_size).shape[1]
+    return _product_vmap(info, in_dims, values, (crow, col, row), X, m, False, symmetric)
 
 
 def _spmm_t_vmap(
@@ -372,18 +399,7 @@ def _spmm_t_vmap(
     G: torch.Tensor,
     m: int,
 ) -> tuple[torch.Tensor, int]:
-    _refuse_batched_indices(in_dims[1:4], "a transposed sparse product")
-    v_dim, g_dim = in_dims[0], in_dims[4]
-    n, B = crow.shape[0] - 1, info.batch_size
-    if v_dim is None:
-        assert g_dim is not None
-        Gb = G.movedim(g_dim, 1)  # (n, B, c)
-        Z = spmm_t_op(values, crow, col, row, Gb.reshape(n, -1), m)
-        return Z.reshape(m, B, -1), 1
-    Gb = _batched(G, g_dim, B).reshape(B * n, -1)
-    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
-    Z = spmm_t_op(values.movedim(v_dim, 0).reshape(-1), crow_b, col_b, row_b, Gb, B * m)
-    return Z.reshape(B, m, -1), 0
+    return _product_vmap(info, in_dims, values, (crow, col, row), G, m, True, False)
 
 
 def _sampled_vmap(
