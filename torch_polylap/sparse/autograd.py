@@ -487,6 +487,15 @@ def _differentiated(*tensors: torch.Tensor) -> bool:
     return any(t.requires_grad for t in tensors) or in_functorch() or forward_ad_active()
 
 
+def _apply(rule: _Rule, function: type[torch.autograd.Function], *inputs: Any) -> torch.Tensor:
+    """``rule``'s product of ``inputs``: the operator itself where traced or where nothing may
+    need its derivatives (no autograd bookkeeping), else its eager ``function``."""
+    if tracing() or not _differentiated(*(inputs[i] for i in rule.diff)):
+        return rule.op(*inputs)
+    out: torch.Tensor = function.apply(*inputs)
+    return out
+
+
 def spmm(
     values: torch.Tensor,
     crow: torch.Tensor,
@@ -496,10 +505,7 @@ def spmm(
     symmetric: bool,
 ) -> torch.Tensor:
     """``A X`` from CSR parts (``X`` ``(m, c)``), differentiable to any order in every mode."""
-    if tracing() or not _differentiated(values, X):
-        return spmm_op(values, crow, col, row, X, symmetric)
-    out: torch.Tensor = _Product.apply(values, crow, col, row, X, symmetric)
-    return out
+    return _apply(_SPMM, _Product, values, crow, col, row, X, symmetric)
 
 
 def spmm_t(
@@ -511,20 +517,14 @@ def spmm_t(
     m: int,
 ) -> torch.Tensor:
     """``A^T G`` from CSR parts (``G`` ``(n, c)``), differentiable to any order in every mode."""
-    if tracing() or not _differentiated(values, G):
-        return spmm_t_op(values, crow, col, row, G, m)
-    out: torch.Tensor = _TransposedProduct.apply(values, crow, col, row, G, m)
-    return out
+    return _apply(_SPMM_T, _TransposedProduct, values, crow, col, row, G, m)
 
 
 def sampled(
     G: torch.Tensor, X: torch.Tensor, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor
 ) -> torch.Tensor:
     """``(nnz,)`` entries of ``G X^T`` on the pattern, differentiable in every mode."""
-    if tracing() or not _differentiated(G, X):
-        return sampled_op(G, X, crow, col, row)
-    out: torch.Tensor = _Sampled.apply(G, X, crow, col, row)
-    return out
+    return _apply(_SAMPLED, _Sampled, G, X, crow, col, row)
 
 
 _EAGER = _Products(spmm, spmm_t, sampled)
