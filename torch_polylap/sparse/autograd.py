@@ -195,6 +195,21 @@ class _Products(NamedTuple):
 Pair = tuple[torch.Tensor | None, torch.Tensor | None]
 
 
+def _leibniz(
+    tangent: Pair,
+    first: Callable[[torch.Tensor], torch.Tensor],
+    second: Callable[[torch.Tensor], torch.Tensor],
+) -> list[torch.Tensor]:
+    """The terms ``f(da, b) + f(a, db)`` of the tangent of a bilinear ``f(a, b)`` for
+    ``tangent = (da, db)``, ``first(da) = f(da, b)`` and ``second(db) = f(a, db)``; an input
+    without a tangent (``None``) adds no term."""
+    da, db = tangent
+    terms = [] if da is None else [first(da)]
+    if db is not None:
+        terms.append(second(db))
+    return terms
+
+
 def _spmm_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
     values, crow, col, row, X, symmetric = inputs
     ctx.save_for_backward(values, crow, col, row, X)
@@ -219,11 +234,12 @@ def _spmm_tangents(
     ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
 ) -> list[torch.Tensor]:
     """The terms of ``d(A X) = A(dvalues) X + A dX`` (``A(dvalues)`` need not be symmetric)."""
-    (values, X), (dv, dX), (crow, col, row) = primal, tangent, ctx.parts
-    terms = [] if dv is None else [ops.spmm(dv, crow, col, row, X, False)]
-    if dX is not None:
-        terms.append(ops.spmm(values, crow, col, row, dX, ctx.symmetric))
-    return terms
+    (values, X), (crow, col, row) = primal, ctx.parts
+    return _leibniz(
+        tangent,
+        lambda dv: ops.spmm(dv, crow, col, row, X, False),
+        lambda dX: ops.spmm(values, crow, col, row, dX, ctx.symmetric),
+    )
 
 
 def _spmm_t_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
@@ -244,11 +260,12 @@ def _spmm_t_tangents(
     ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
 ) -> list[torch.Tensor]:
     """The terms of ``d(A^T G) = A(dvalues)^T G + A^T dG``."""
-    (values, G), (dv, dG), (crow, col, row) = primal, tangent, ctx.parts
-    terms = [] if dv is None else [ops.spmm_t(dv, crow, col, row, G, ctx.m)]
-    if dG is not None:
-        terms.append(ops.spmm_t(values, crow, col, row, dG, ctx.m))
-    return terms
+    (values, G), (crow, col, row) = primal, ctx.parts
+    return _leibniz(
+        tangent,
+        lambda dv: ops.spmm_t(dv, crow, col, row, G, ctx.m),
+        lambda dG: ops.spmm_t(values, crow, col, row, dG, ctx.m),
+    )
 
 
 def _sampled_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
@@ -268,11 +285,12 @@ def _sampled_tangents(
     ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
 ) -> list[torch.Tensor]:
     """The terms of ``d((G X^T)|_A) = (dG X^T)|_A + (G dX^T)|_A``."""
-    (G, X), (dG, dX) = primal, tangent
-    terms = [] if dG is None else [ops.sampled(dG, X, *ctx.parts)]
-    if dX is not None:
-        terms.append(ops.sampled(G, dX, *ctx.parts))
-    return terms
+    G, X = primal
+    return _leibniz(
+        tangent,
+        lambda dG: ops.sampled(dG, X, *ctx.parts),
+        lambda dX: ops.sampled(G, dX, *ctx.parts),
+    )
 
 
 class _Rule(NamedTuple):
