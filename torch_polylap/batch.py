@@ -403,15 +403,18 @@ class PolygonMeshes:
 
         return self._conn.cached("ffirst", self.device, make)
 
+    def _packed_to_mesh_idx(self, name: str, counts: Callable[[], torch.Tensor]) -> torch.Tensor:
+        """``(sum counts,)`` the mesh of every packed element, ``counts()`` ``(B,)`` per mesh,
+        cached under ``name``."""
+        return self._conn.cached(
+            name,
+            self.device,
+            lambda: torch.repeat_interleave(torch.arange(len(self), device=self.device), counts()),
+        )
+
     def verts_packed_to_mesh_idx(self) -> torch.Tensor:
         """``(sum V_i,)`` the mesh of every packed vertex."""
-        return self._conn.cached(
-            "v2m",
-            self.device,
-            lambda: torch.repeat_interleave(
-                torch.arange(len(self), device=self.device), self.num_verts_per_mesh()
-            ),
-        )
+        return self._packed_to_mesh_idx("v2m", self.num_verts_per_mesh)
 
     def verts_padded_to_packed_idx(self) -> torch.Tensor:
         """``(sum V_i,)`` where every packed vertex lies in the flattened padded vertices
@@ -460,13 +463,7 @@ class PolygonMeshes:
 
     def faces_packed_to_mesh_idx(self) -> torch.Tensor:
         """``(sum F_i,)`` the mesh of every packed face."""
-        return self._conn.cached(
-            "f2m",
-            self.device,
-            lambda: torch.repeat_interleave(
-                torch.arange(len(self), device=self.device), self.num_faces_per_mesh()
-            ),
-        )
+        return self._packed_to_mesh_idx("f2m", self.num_faces_per_mesh)
 
     def topology(self) -> Topology:
         """The :class:`~torch_polylap.Topology` of the packed faces, built once.

@@ -67,6 +67,12 @@ def _operator(view: TopologyView, values: torch.Tensor) -> SparseOperator:
     return operator_on(view.pattern, values, symmetric=True)
 
 
+def _mass(view: TopologyView, masses: torch.Tensor) -> SparseOperator:
+    """The diagonal lumped mass matrix ``M0`` with ``masses`` ``(V,)`` (or ``(B, V)``) on the
+    view's cached diagonal pattern."""
+    return operator_on(view.diagonal, masses, symmetric=True)
+
+
 def laplacian(
     verts: torch.Tensor,
     faces: MeshFaces,
@@ -132,8 +138,7 @@ def laplacian(
         verts, view, topo, block_kernel(method, lam), want_mass=True, validate=validate
     )
     assert masses is not None
-    M0 = operator_on(view.diagonal, masses, symmetric=True)
-    return _operator(view, values), M0
+    return _operator(view, values), _mass(view, masses)
 
 
 def _laplacian_batch(
@@ -178,8 +183,7 @@ def _laplacian_batch(
         values = torch.stack([p[0] for p in pairs])
         masses = torch.stack([p[1] for p in pairs if p[1] is not None])
     assert masses is not None
-    M0 = operator_on(view.diagonal, masses, symmetric=True)
-    return _operator(view, values), M0
+    return _operator(view, values), _mass(view, masses)
 
 
 def planarity_laplacian(

@@ -15,7 +15,7 @@ import torch
 
 from ..kernels import BlockKernel
 from ..kernels.aw11 import aw11_entries
-from ..topology import Topology
+from ..topology import DegreeGroup, Topology
 from .corners import face_groups
 from .scaling import normalizer
 
@@ -113,6 +113,14 @@ def _masses_ok(masses_n: torch.Tensor, masses: torch.Tensor) -> torch.Tensor:
     return torch.isfinite(masses) & ((masses.abs() >= tiny) | (masses_n == 0))
 
 
+def _first_face(mask: torch.Tensor, grp: DegreeGroup, topo: Topology) -> tuple[int, str]:
+    """The position in ``grp`` of the first face ``mask`` ``(F_k,)`` flags, and its name with
+    its vertices for an error message."""
+    local = int(torch.nonzero(mask)[0, 0])
+    f = int(grp.face_ids[local])
+    return local, f"face {f} (vertices {topo.faces[f].tolist()})"
+
+
 def raise_bad_input(
     verts: torch.Tensor,
     topo: Topology,
@@ -141,10 +149,9 @@ def raise_bad_input(
         _, area, size2 = aw11_entries(x, grp, 0.0)
         small = ~(size2 >= info.tiny / info.eps)
         if bool(small.any()):
-            local = int(torch.nonzero(small)[0, 0])
-            f = int(grp.face_ids[local])
+            local, face = _first_face(small, grp, topo)
             raise ValueError(
-                f"face {f} (vertices {topo.faces[f].tolist()}) is about "
+                f"{face} is about "
                 f"{math.sqrt(float(size2[local])):.1g} times the mesh's largest coordinate "
                 f"({biggest:.3g}): too small for {verts.dtype} to compute its block "
                 f"({int(small.sum())} such face(s) of degree {grp.k}). Use float64, or move "
@@ -152,11 +159,10 @@ def raise_bad_input(
             )
         bad = ~(area > info.eps * size2)
         if bool(bad.any()):
-            local = int(torch.nonzero(bad)[0, 0])
-            f = int(grp.face_ids[local])
+            local, face = _first_face(bad, grp, topo)
             rel = float(area[local] / size2[local])
             raise ValueError(
-                f"face {f} (vertices {topo.faces[f].tolist()}) has zero vector area "
+                f"{face} has zero vector area "
                 f"(|f| / s^2 = {rel:.3g}, s^2 the sum of its squared half-diagonals); its "
                 f"corners are collinear or its loop cancels out ({int(bad.sum())} such face(s) "
                 f"of degree {grp.k}). The Laplacian divides by |f|: remove the face, collapse "
@@ -173,10 +179,9 @@ def raise_bad_input(
                 finite = torch.isfinite(off).all(0) & torch.isfinite(corner_mass).all(0)
                 bad[redo] = ~finite
             if bool(bad.any()):
-                local = int(torch.nonzero(bad)[0, 0])
-                f = int(grp.face_ids[local])
+                face = _first_face(bad, grp, topo)[1]
                 raise ValueError(
-                    f"face {f} (vertices {topo.faces[f].tolist()}) has a non-finite block in "
+                    f"{face} has a non-finite block in "
                     f"{verts.dtype} ({int(bad.sum())} such face(s) of degree {grp.k}); "
                     "compute in float64 or repair the face (torch_polylap.repair)."
                 )

@@ -39,6 +39,14 @@ def _inverse_softplus(t: torch.Tensor) -> torch.Tensor:
     return t + torch.log(-torch.expm1(-t))
 
 
+def raw_times(channels: int, init_times: tuple[float, float]) -> nn.Parameter:
+    """``(C,)`` raw parameters whose softplus is ``channels`` times log-spaced over
+    ``init_times``; spaced in float64 so every default dtype starts from the same times."""
+    low, high = init_times
+    times = torch.logspace(math.log10(low), math.log10(high), channels, dtype=torch.float64)
+    return nn.Parameter(_inverse_softplus(times).to(torch.get_default_dtype()))
+
+
 class LearnedDiffusion(nn.Module):
     """Diffuse each of ``channels`` features for its own learned time.
 
@@ -65,9 +73,7 @@ class LearnedDiffusion(nn.Module):
         if mode not in ("spectral", "implicit"):
             raise ValueError(f"mode must be 'spectral' or 'implicit', got {mode!r}.")
         self.channels, self.mode = channels, mode
-        low, high = init_times
-        times = torch.logspace(math.log10(low), math.log10(high), channels, dtype=torch.float64)
-        self.raw_times = nn.Parameter(_inverse_softplus(times).to(torch.get_default_dtype()))
+        self.raw_times = raw_times(channels, init_times)
 
     @property
     def times(self) -> torch.Tensor:

@@ -31,7 +31,7 @@ from torch import nn
 
 from ..linalg import solve
 from ..sparse import as_operator
-from .diffusion import _inverse_softplus
+from .diffusion import raw_times
 
 __all__ = ["LearnedVectorDiffusion", "VectorLinear", "VectorGate", "rotate_vectors"]
 
@@ -72,9 +72,7 @@ class LearnedVectorDiffusion(nn.Module):
     def __init__(self, channels: int, init_times: tuple[float, float] = (1e-3, 1e-1)) -> None:
         super().__init__()
         self.channels = channels
-        low, high = init_times
-        times = torch.logspace(math.log10(low), math.log10(high), channels, dtype=torch.float64)
-        self.raw_times = nn.Parameter(_inverse_softplus(times).to(torch.get_default_dtype()))
+        self.raw_times = raw_times(channels, init_times)
 
     @property
     def times(self) -> torch.Tensor:

@@ -195,6 +195,21 @@ class _Products(NamedTuple):
 Pair = tuple[torch.Tensor | None, torch.Tensor | None]
 
 
+def _leibniz(
+    tangent: Pair,
+    first: Callable[[torch.Tensor], torch.Tensor],
+    second: Callable[[torch.Tensor], torch.Tensor],
+) -> list[torch.Tensor]:
+    """The terms ``f(da, b) + f(a, db)`` of the tangent of a bilinear ``f(a, b)`` for
+    ``tangent = (da, db)``, ``first(da) = f(da, b)`` and ``second(db) = f(a, db)``; an input
+    without a tangent (``None``) adds no term."""
+    da, db = tangent
+    terms = [] if da is None else [first(da)]
+    if db is not None:
+        terms.append(second(db))
+    return terms
+
+
 def _spmm_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
     values, crow, col, row, X, symmetric = inputs
     ctx.save_for_backward(values, crow, col, row, X)
@@ -219,11 +234,12 @@ def _spmm_tangents(
     ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
 ) -> list[torch.Tensor]:
     """The terms of ``d(A X) = A(dvalues) X + A dX`` (``A(dvalues)`` need not be symmetric)."""
-    (values, X), (dv, dX), (crow, col, row) = primal, tangent, ctx.parts
-    terms = [] if dv is None else [ops.spmm(dv, crow, col, row, X, False)]
-    if dX is not None:
-        terms.append(ops.spmm(values, crow, col, row, dX, ctx.symmetric))
-    return terms
+    (values, X), (crow, col, row) = primal, ctx.parts
+    return _leibniz(
+        tangent,
+        lambda dv: ops.spmm(dv, crow, col, row, X, False),
+        lambda dX: ops.spmm(values, crow, col, row, dX, ctx.symmetric),
+    )
 
 
 def _spmm_t_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
@@ -244,11 +260,12 @@ def _spmm_t_tangents(
     ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
 ) -> list[torch.Tensor]:
     """The terms of ``d(A^T G) = A(dvalues)^T G + A^T dG``."""
-    (values, G), (dv, dG), (crow, col, row) = primal, tangent, ctx.parts
-    terms = [] if dv is None else [ops.spmm_t(dv, crow, col, row, G, ctx.m)]
-    if dG is not None:
-        terms.append(ops.spmm_t(values, crow, col, row, dG, ctx.m))
-    return terms
+    (values, G), (crow, col, row) = primal, ctx.parts
+    return _leibniz(
+        tangent,
+        lambda dv: ops.spmm_t(dv, crow, col, row, G, ctx.m),
+        lambda dG: ops.spmm_t(values, crow, col, row, dG, ctx.m),
+    )
 
 
 def _sampled_setup(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
@@ -268,11 +285,12 @@ def _sampled_tangents(
     ops: _Products, ctx: Any, primal: Sequence[torch.Tensor], tangent: Pair
 ) -> list[torch.Tensor]:
     """The terms of ``d((G X^T)|_A) = (dG X^T)|_A + (G dX^T)|_A``."""
-    (G, X), (dG, dX) = primal, tangent
-    terms = [] if dG is None else [ops.sampled(dG, X, *ctx.parts)]
-    if dX is not None:
-        terms.append(ops.sampled(G, dX, *ctx.parts))
-    return terms
+    G, X = primal
+    return _leibniz(
+        tangent,
+        lambda dG: ops.sampled(dG, X, *ctx.parts),
+        lambda dX: ops.sampled(G, dX, *ctx.parts),
+    )
 
 
 class _Rule(NamedTuple):
@@ -336,6 +354,44 @@ def _refuse_batched_indices(in_dims: tuple[int | None, ...], what: str) -> None:
         )
 
 
+def _product_vmap(
+    info: Any,
+    in_dims: tuple[int | None, ...],
+    values: torch.Tensor,
+    parts: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    D: torch.Tensor,
+    m: int,
+    transpose: bool,
+    symmetric: bool,
+) -> tuple[torch.Tensor, int]:
+    """The vmap rule of ``A D`` (``transpose`` false) or ``A^T D`` for ``A`` ``(n, m)`` on the
+    CSR ``parts`` ``(crow, col, row)`` and dense ``D``: one operator and a batch of ``D`` fold
+    the batch into the columns; a batch of value arrays is one block-diagonal operator."""
+    crow, col, row = parts
+    _refuse_batched_indices(
+        in_dims[1:4], "a transposed sparse product" if transpose else "a sparse product"
+    )
+    v_dim, d_dim = in_dims[0], in_dims[4]
+    n, B = crow.shape[0] - 1, info.batch_size
+    rows_in, rows_out = (n, m) if transpose else (m, n)
+    if v_dim is None:
+        assert d_dim is not None
+        Db = D.movedim(d_dim, 1).reshape(rows_in, -1)  # (rows_in, B * c)
+        if transpose:
+            out = spmm_t_op(values, crow, col, row, Db, m)
+        else:
+            out = spmm_op(values, crow, col, row, Db, symmetric)
+        return out.reshape(rows_out, B, -1), 1
+    Db = _batched(D, d_dim, B).reshape(B * rows_in, -1)
+    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
+    values_b = values.movedim(v_dim, 0).reshape(-1)
+    if transpose:
+        out = spmm_t_op(values_b, crow_b, col_b, row_b, Db, B * m)
+    else:
+        out = spmm_op(values_b, crow_b, col_b, row_b, Db, symmetric)
+    return out.reshape(B, rows_out, -1), 0
+
+
 def _spmm_vmap(
     info: Any,
     in_dims: tuple[int | None, ...],
@@ -346,20 +402,9 @@ def _spmm_vmap(
     X: torch.Tensor,
     symmetric: bool,
 ) -> tuple[torch.Tensor, int]:
-    _refuse_batched_indices(in_dims[1:4], "a sparse product")
-    v_dim, x_dim = in_dims[0], in_dims[4]
-    n, B = crow.shape[0] - 1, info.batch_size
-    if v_dim is None:
-        # one operator, B right-hand sides: fold the batch into the columns
-        assert x_dim is not None
-        Xb = X.movedim(x_dim, 1)  # (m, B, c)
-        Y = spmm_op(values, crow, col, row, Xb.reshape(Xb.shape[0], -1), symmetric)
-        return Y.reshape(n, B, -1), 1
-    m = X.shape[-2]
-    Xb = _batched(X, x_dim, B).reshape(B * m, -1)
-    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
-    Y = spmm_op(values.movedim(v_dim, 0).reshape(-1), crow_b, col_b, row_b, Xb, symmetric)
-    return Y.reshape(B, n, -1), 0
+    # A's column count is X's row count (the pattern's arrays do not hold it)
+    m = _batched(X, in_dims[4], info.batch_size).shape[1]
+    return _product_vmap(info, in_dims, values, (crow, col, row), X, m, False, symmetric)
 
 
 def _spmm_t_vmap(
@@ -372,18 +417,7 @@ def _spmm_t_vmap(
     G: torch.Tensor,
     m: int,
 ) -> tuple[torch.Tensor, int]:
-    _refuse_batched_indices(in_dims[1:4], "a transposed sparse product")
-    v_dim, g_dim = in_dims[0], in_dims[4]
-    n, B = crow.shape[0] - 1, info.batch_size
-    if v_dim is None:
-        assert g_dim is not None
-        Gb = G.movedim(g_dim, 1)  # (n, B, c)
-        Z = spmm_t_op(values, crow, col, row, Gb.reshape(n, -1), m)
-        return Z.reshape(m, B, -1), 1
-    Gb = _batched(G, g_dim, B).reshape(B * n, -1)
-    crow_b, col_b, row_b = block_diagonal_indices(crow, col, row, B, n, m)
-    Z = spmm_t_op(values.movedim(v_dim, 0).reshape(-1), crow_b, col_b, row_b, Gb, B * m)
-    return Z.reshape(B, m, -1), 0
+    return _product_vmap(info, in_dims, values, (crow, col, row), G, m, True, False)
 
 
 def _sampled_vmap(
@@ -471,6 +505,15 @@ def _differentiated(*tensors: torch.Tensor) -> bool:
     return any(t.requires_grad for t in tensors) or in_functorch() or forward_ad_active()
 
 
+def _apply(rule: _Rule, function: type[torch.autograd.Function], *inputs: Any) -> torch.Tensor:
+    """``rule``'s product of ``inputs``: the operator itself where traced or where nothing may
+    need its derivatives (no autograd bookkeeping), else its eager ``function``."""
+    if tracing() or not _differentiated(*(inputs[i] for i in rule.diff)):
+        return rule.op(*inputs)
+    out: torch.Tensor = function.apply(*inputs)
+    return out
+
+
 def spmm(
     values: torch.Tensor,
     crow: torch.Tensor,
@@ -480,10 +523,7 @@ def spmm(
     symmetric: bool,
 ) -> torch.Tensor:
     """``A X`` from CSR parts (``X`` ``(m, c)``), differentiable to any order in every mode."""
-    if tracing() or not _differentiated(values, X):
-        return spmm_op(values, crow, col, row, X, symmetric)
-    out: torch.Tensor = _Product.apply(values, crow, col, row, X, symmetric)
-    return out
+    return _apply(_SPMM, _Product, values, crow, col, row, X, symmetric)
 
 
 def spmm_t(
@@ -495,20 +535,14 @@ def spmm_t(
     m: int,
 ) -> torch.Tensor:
     """``A^T G`` from CSR parts (``G`` ``(n, c)``), differentiable to any order in every mode."""
-    if tracing() or not _differentiated(values, G):
-        return spmm_t_op(values, crow, col, row, G, m)
-    out: torch.Tensor = _TransposedProduct.apply(values, crow, col, row, G, m)
-    return out
+    return _apply(_SPMM_T, _TransposedProduct, values, crow, col, row, G, m)
 
 
 def sampled(
     G: torch.Tensor, X: torch.Tensor, crow: torch.Tensor, col: torch.Tensor, row: torch.Tensor
 ) -> torch.Tensor:
     """``(nnz,)`` entries of ``G X^T`` on the pattern, differentiable in every mode."""
-    if tracing() or not _differentiated(G, X):
-        return sampled_op(G, X, crow, col, row)
-    out: torch.Tensor = _Sampled.apply(G, X, crow, col, row)
-    return out
+    return _apply(_SAMPLED, _Sampled, G, X, crow, col, row)
 
 
 _EAGER = _Products(spmm, spmm_t, sampled)
