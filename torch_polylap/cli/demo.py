@@ -27,6 +27,7 @@ from .common import (
     DEFAULT_OUTPUT,
     Result,
     add_method_argument,
+    command_parser,
     execute,
     figure_output,
     mesh_output,
@@ -54,12 +55,14 @@ WITH_METHOD = ("smooth", "param")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = command_parser(
+        sub,
         "demo",
-        help="run all applications on embedded meshes and write a Markdown report",
-        description="Run mean-curvature flow, conformal parameterization, planarization and "
+        "run all applications on embedded meshes and write a Markdown report",
+        "Run mean-curvature flow, conformal parameterization, planarization and "
         "thin-plate bending (AW11 sec. 5.1-5.4) on small embedded meshes; write the result "
         "meshes, figures and report.md into -o DIR.",
+        mesh=None,
     )
     p.add_argument(
         "-o",

@@ -20,11 +20,11 @@ from ..plot import PlotOptions
 from ..topology import get_topology
 from .common import (
     Result,
-    add_mesh_argument,
-    add_method_argument,
-    add_output_arguments,
+    add_laplacian_arguments,
+    command_parser,
     execute,
     figure_output,
+    finish_command,
     load_mesh,
     mesh_output,
     method_label,
@@ -45,10 +45,11 @@ MAX_HALVINGS = 6
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = command_parser(
+        sub,
         "smooth",
-        help="implicit mean-curvature flow",
-        description="Smooth a polygon mesh with implicit mean-curvature flow "
+        "implicit mean-curvature flow",
+        "Smooth a polygon mesh with implicit mean-curvature flow "
         "(M0 + dt L) X' = M0 X (AW11 sec. 5.1), L and M0 rebuilt every step unless --frozen. "
         "Writes <mesh>_smooth.<ext> and a before/after figure colored by the scale-free mean "
         "curvature |H| sqrt(A / 4 pi) (1 on any round sphere). Mean-curvature flow pinches thin "
@@ -56,7 +57,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         f"{SINGULARITY_FACTOR:g} x its initial value is refused (retried with half the default "
         f"step, up to {MAX_HALVINGS} times), and the command says where it stopped.",
     )
-    add_mesh_argument(p)
     p.add_argument(
         "--dt",
         type=positive_float,
@@ -65,8 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "halved where a step would pinch)",
     )
     p.add_argument("--steps", type=positive_int, default=10, help="implicit steps (default 10)")
-    p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
-    add_method_argument(p)
+    add_laplacian_arguments(p)
     p.add_argument(
         "--frozen",
         action="store_true",
@@ -79,8 +78,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="rescale after each step to keep the total area or enclosed volume (default none; "
         "volume needs a closed, consistently oriented mesh)",
     )
-    add_output_arguments(p)
-    p.set_defaults(func=run, compute=compute)
+    finish_command(p, run, compute)
 
 
 def compute(args: argparse.Namespace) -> Result:
