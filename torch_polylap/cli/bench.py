@@ -47,17 +47,18 @@ from .common import (
 REFERENCE_SHIFT = -1e-6
 
 
+SUMMARY = "quick timings against scipy (and libigl when installed)"
+DESCRIPTION = (
+    "Time topology, assembly, re-assembly, forward+backward, spmm, solve and "
+    "eigs on one mesh, side by side with scipy (and libigl's cotmatrix on the triangulated "
+    "mesh when libigl is installed); ratio = torch_polylap / reference. torch runs on one "
+    "thread unless --threads N says otherwise: on a busy machine tiny multi-threaded "
+    "kernels wait for descheduled threads."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(
-        sub,
-        "bench",
-        "quick timings against scipy (and libigl when installed)",
-        "Time topology, assembly, re-assembly, forward+backward, spmm, solve and "
-        "eigs on one mesh, side by side with scipy (and libigl's cotmatrix on the triangulated "
-        "mesh when libigl is installed); ratio = torch_polylap / reference. torch runs on one "
-        "thread unless --threads N says otherwise: on a busy machine tiny multi-threaded "
-        "kernels wait for descheduled threads.",
-    )
+    p = command_parser(sub, "bench", SUMMARY, DESCRIPTION)
     add_laplacian_arguments(p)
     p.add_argument("--repeat", type=positive_int, default=5, help="samples per timing (default 5)")
     p.add_argument("-k", type=positive_int, default=16, help="eigenpairs for eigs (default 16)")

@@ -54,16 +54,16 @@ PROGRESS = ("smooth", "planarize")
 WITH_METHOD = ("smooth", "param")
 
 
+SUMMARY = "run all applications on embedded meshes and write a Markdown report"
+DESCRIPTION = (
+    "Run mean-curvature flow, conformal parameterization, planarization and "
+    "thin-plate bending (AW11 sec. 5.1-5.4) on small embedded meshes; write the result "
+    "meshes, figures and report.md into -o DIR."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(
-        sub,
-        "demo",
-        "run all applications on embedded meshes and write a Markdown report",
-        "Run mean-curvature flow, conformal parameterization, planarization and "
-        "thin-plate bending (AW11 sec. 5.1-5.4) on small embedded meshes; write the result "
-        "meshes, figures and report.md into -o DIR.",
-        mesh=None,
-    )
+    p = command_parser(sub, "demo", SUMMARY, DESCRIPTION, mesh=None)
     p.add_argument(
         "-o",
         "--output",

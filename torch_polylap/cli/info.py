@@ -38,16 +38,17 @@ from .timing import FIRST_ASSEMBLY, first_assembly
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
+SUMMARY = "mesh statistics, operator properties and timings"
+DESCRIPTION = (
+    "Print mesh statistics, properties of L and M0 (with the smallest "
+    "eigenvalues of L phi = mu M0 phi from torch_polylap.eigs), and assembly timings "
+    "(torch pinned to --threads N, default 1). With -o DIR or --json also write the report "
+    "as <mesh>_info.json."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(
-        sub,
-        "info",
-        "mesh statistics, operator properties and timings",
-        "Print mesh statistics, properties of L and M0 (with the smallest "
-        "eigenvalues of L phi = mu M0 phi from torch_polylap.eigs), and assembly timings "
-        "(torch pinned to --threads N, default 1). With -o DIR or --json also write the report "
-        "as <mesh>_info.json.",
-    )
+    p = command_parser(sub, "info", SUMMARY, DESCRIPTION)
     add_laplacian_arguments(p, float, "stabilizer weight lambda (default 1)")
     p.add_argument("--dtype", choices=tuple(DTYPES), default="float64")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")

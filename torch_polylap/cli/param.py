@@ -31,17 +31,17 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 
+SUMMARY = "conformal (LSCM-type) parameterization of a mesh with boundary"
+DESCRIPTION = (
+    "Flatten a polygon mesh with boundary by minimizing the conformal energy "
+    "E_C = E_D - A (AW11 sec. 5.2): two pinned boundary vertices (default, eq. 12) or a free "
+    "boundary (--free-boundary, eq. 13-15). Writes <mesh>_param.obj (the flat mesh, z = 0) "
+    "and a figure of the mesh and its image colored by the angle distortion."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(
-        sub,
-        "param",
-        "conformal (LSCM-type) parameterization of a mesh with boundary",
-        "Flatten a polygon mesh with boundary by minimizing the conformal energy "
-        "E_C = E_D - A (AW11 sec. 5.2): two pinned boundary vertices (default, eq. 12) or a free "
-        "boundary (--free-boundary, eq. 13-15). Writes <mesh>_param.obj (the flat mesh, z = 0) "
-        "and a figure of the mesh and its image colored by the angle distortion.",
-        DISK_MESH,
-    )
+    p = command_parser(sub, "param", SUMMARY, DESCRIPTION, DISK_MESH)
     add_laplacian_arguments(p)
     p.add_argument(
         "--free-boundary",

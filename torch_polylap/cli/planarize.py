@@ -31,18 +31,19 @@ if TYPE_CHECKING:
     from ..apps.planarize import PlanarizeResult
 
 
+SUMMARY = "planarize the faces (Gauss-Newton on the face-plane residuals, or L-BFGS on E_plan)"
+DESCRIPTION = (
+    "Make every face planar (AW11 sec. 5.3) until the largest face "
+    "non-planarity (corner distance from the face plane over the face diameter) is below "
+    "--tol: Gauss-Newton on the per-face plane residuals (default), or the paper's L-BFGS "
+    "descent of E_plan = 1/2 sum_c X_c^T Lplan X_c (--method lbfgs). Stops at --max-iter or "
+    "--time-limit and says so. Writes <mesh>_planar.<ext> and a before/after figure colored "
+    "by non-planarity."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(
-        sub,
-        "planarize",
-        "planarize the faces (Gauss-Newton on the face-plane residuals, or L-BFGS on E_plan)",
-        "Make every face planar (AW11 sec. 5.3) until the largest face "
-        "non-planarity (corner distance from the face plane over the face diameter) is below "
-        "--tol: Gauss-Newton on the per-face plane residuals (default), or the paper's L-BFGS "
-        "descent of E_plan = 1/2 sum_c X_c^T Lplan X_c (--method lbfgs). Stops at --max-iter or "
-        "--time-limit and says so. Writes <mesh>_planar.<ext> and a before/after figure colored "
-        "by non-planarity.",
-    )
+    p = command_parser(sub, "planarize", SUMMARY, DESCRIPTION)
     p.add_argument("--lam", type=positive_float, default=2.0, help="lambda (default 2, as AW11)")
     p.add_argument(
         "--tol", type=positive_float, default=1e-4, help="target largest non-planarity (1e-4)"

@@ -44,19 +44,20 @@ if TYPE_CHECKING:
 MAX_HALVINGS = 6
 
 
+SUMMARY = "implicit mean-curvature flow"
+DESCRIPTION = (
+    "Smooth a polygon mesh with implicit mean-curvature flow "
+    "(M0 + dt L) X' = M0 X (AW11 sec. 5.1), L and M0 rebuilt every step unless --frozen. "
+    "Writes <mesh>_smooth.<ext> and a before/after figure colored by the scale-free mean "
+    "curvature |H| sqrt(A / 4 pi) (1 on any round sphere). Mean-curvature flow pinches thin "
+    "parts in finite time: a step that would raise the largest curvature above "
+    f"{SINGULARITY_FACTOR:g} x its initial value is refused (retried with half the default "
+    f"step, up to {MAX_HALVINGS} times), and the command says where it stopped."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(
-        sub,
-        "smooth",
-        "implicit mean-curvature flow",
-        "Smooth a polygon mesh with implicit mean-curvature flow "
-        "(M0 + dt L) X' = M0 X (AW11 sec. 5.1), L and M0 rebuilt every step unless --frozen. "
-        "Writes <mesh>_smooth.<ext> and a before/after figure colored by the scale-free mean "
-        "curvature |H| sqrt(A / 4 pi) (1 on any round sphere). Mean-curvature flow pinches thin "
-        "parts in finite time: a step that would raise the largest curvature above "
-        f"{SINGULARITY_FACTOR:g} x its initial value is refused (retried with half the default "
-        f"step, up to {MAX_HALVINGS} times), and the command says where it stopped.",
-    )
+    p = command_parser(sub, "smooth", SUMMARY, DESCRIPTION)
     p.add_argument(
         "--dt",
         type=positive_float,

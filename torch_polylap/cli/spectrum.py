@@ -31,15 +31,16 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 
+SUMMARY = "the smallest Laplace eigenvalues and eigenfunctions"
+DESCRIPTION = (
+    "Compute the k smallest eigenpairs of the generalized problem "
+    "L phi = mu M0 phi (AW11 Laplacian and lumped mass, or those of --method), print the "
+    "eigenvalues with their residuals, and draw a few eigenfunctions and the eigenvalue curve."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(
-        sub,
-        "spectrum",
-        "the smallest Laplace eigenvalues and eigenfunctions",
-        "Compute the k smallest eigenpairs of the generalized problem "
-        "L phi = mu M0 phi (AW11 Laplacian and lumped mass, or those of --method), print the "
-        "eigenvalues with their residuals, and draw a few eigenfunctions and the eigenvalue curve.",
-    )
+    p = command_parser(sub, "spectrum", SUMMARY, DESCRIPTION)
     p.add_argument("-k", type=positive_int, default=20, help="number of eigenpairs (default 20)")
     add_laplacian_arguments(p)
     p.add_argument(
