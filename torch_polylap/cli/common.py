@@ -19,6 +19,7 @@ from ..atomic import atomic_write
 from ..data import DEFAULT_MESH
 from ..faces import PolygonFaces
 from ..io import read_mesh, write_mesh
+from ..topology import Topology, get_topology
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -295,6 +296,14 @@ def load_mesh(
     verts, faces = read_mesh(path, dtype, device)
     label = path.name + ("" if args.mesh else " (embedded default mesh)")
     return verts, faces, path, label
+
+
+def load_mesh_topology(
+    args: argparse.Namespace,
+) -> tuple[torch.Tensor, PolygonFaces, Topology, Path, str]:
+    """``(verts, faces, topo, path, label)``: :func:`load_mesh` and the mesh's topology."""
+    verts, faces, path, label = load_mesh(args)
+    return verts, faces, get_topology(faces, verts.shape[0]), path, label
 
 
 def plot_outputs(

@@ -13,14 +13,14 @@ import torch
 from ..data import DISK_MESH
 from ..faces import PolygonFaces
 from ..measures import vector_area
-from ..topology import Topology, get_topology
+from ..topology import Topology
 from .common import (
     Result,
     add_laplacian_arguments,
     command_parser,
     execute,
     finish_command,
-    load_mesh,
+    load_mesh_topology,
     mesh_output,
     method_label,
     plot_outputs,
@@ -61,8 +61,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def compute(args: argparse.Namespace) -> Result:
     from ..apps.conformal import angle_distortion, conformal_energy, conformal_parameterization
 
-    verts, faces, path, label = load_mesh(args)
-    topo = get_topology(faces, verts.shape[0])
+    verts, faces, topo, path, label = load_mesh_topology(args)
     if args.pins is not None and args.free_boundary:
         raise ValueError("--pins and --free-boundary exclude each other; pass one of them.")
     start = time.perf_counter()

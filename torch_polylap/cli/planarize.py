@@ -10,13 +10,13 @@ import torch
 
 from ..faces import PolygonFaces
 from ..measures import face_nonplanarity
-from ..topology import Topology, get_topology
+from ..topology import Topology
 from .common import (
     Result,
     command_parser,
     execute,
     finish_command,
-    load_mesh,
+    load_mesh_topology,
     mesh_output,
     plot_outputs,
     positive_float,
@@ -79,8 +79,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def compute(args: argparse.Namespace) -> Result:
     from ..apps.planarize import PlanarizeOptions, planarize
 
-    verts, faces, path, label = load_mesh(args)
-    topo = get_topology(faces, verts.shape[0])
+    verts, faces, topo, path, label = load_mesh_topology(args)
     options = PlanarizeOptions(
         closeness=args.closeness,
         time_limit=args.time_limit,

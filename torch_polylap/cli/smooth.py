@@ -17,7 +17,6 @@ from ..apps.flow import (
 )
 from ..measures import face_areas, mean_edge_length
 from ..plot import PlotOptions
-from ..topology import get_topology
 from .common import (
     Result,
     add_laplacian_arguments,
@@ -25,7 +24,7 @@ from .common import (
     execute,
     figure_output,
     finish_command,
-    load_mesh,
+    load_mesh_topology,
     mesh_output,
     method_label,
     positive_float,
@@ -83,8 +82,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def compute(args: argparse.Namespace) -> Result:
-    verts, faces, path, label = load_mesh(args)
-    topo = get_topology(faces, verts.shape[0])
+    verts, faces, topo, path, label = load_mesh_topology(args)
     default_dt = args.dt is None
     dt = 0.1 * float(mean_edge_length(verts, topo)) ** 2 if default_dt else args.dt
     start = time.perf_counter()
