@@ -61,6 +61,20 @@ def ours(verts: torch.Tensor, faces: torch.Tensor | tp.PolygonFaces, repeat: int
     return {"first": first, "cached": cached}
 
 
+def timing_row(label: str, peer_s: float, mine: dict, diff: float) -> list[str]:
+    """A table row: the peer's time, ours (:func:`ours`), the speedups and the operators'
+    relative difference."""
+    return [
+        label,
+        fmt_time(peer_s),
+        fmt_time(mine["first"]),
+        fmt_time(mine["cached"]),
+        f"{peer_s / mine['first']:.2f}x",
+        f"{peer_s / mine['cached']:.2f}x",
+        f"{diff:.1e}",
+    ]
+
+
 def triangle_row(n: int, repeat: int) -> tuple[list[str], dict]:
     import igl
 
@@ -78,16 +92,8 @@ def triangle_row(n: int, repeat: int) -> tuple[list[str], dict]:
     nf = F.shape[0]
     order = (3 * np.arange(nf)[None, :] + np.arange(3)[:, None]).reshape(-1)
     diff = abs(G[order] - G_igl).max() / abs(G_igl).max()
-    row = [
-        f"{n} x {n} grid: {nf:,} triangles ({len(V):,} v)",
-        fmt_time(igl_s),
-        fmt_time(mine["first"]),
-        fmt_time(mine["cached"]),
-        f"{igl_s / mine['first']:.2f}x",
-        f"{igl_s / mine['cached']:.2f}x",
-        f"{diff:.1e}",
-        f"{fmt_time(mine_quads['first'])} / {fmt_time(mine_quads['cached'])}",
-    ]
+    row = timing_row(f"{n} x {n} grid: {nf:,} triangles ({len(V):,} v)", igl_s, mine, diff)
+    row.append(f"{fmt_time(mine_quads['first'])} / {fmt_time(mine_quads['cached'])}")
     data = {"faces": nf, "igl": igl_s, "ours": mine, "ours_quads": mine_quads, "rel_diff": diff}
     return row, data
 
@@ -117,15 +123,7 @@ def lagrange_row(path: Path, repeat: int) -> tuple[list[str], dict]:
     G_peer = sp.csr_matrix(peer())
     scale = abs(G_peer).max()
     diff = abs(G - G_peer).max() / scale if G.shape == G_peer.shape else float("nan")
-    row = [
-        f"{path.name} ({faces.num_faces:,} f)",
-        fmt_time(peer_s),
-        fmt_time(mine["first"]),
-        fmt_time(mine["cached"]),
-        f"{peer_s / mine['first']:.2f}x",
-        f"{peer_s / mine['cached']:.2f}x",
-        f"{diff:.1e}",
-    ]
+    row = timing_row(f"{path.name} ({faces.num_faces:,} f)", peer_s, mine, diff)
     return row, {"faces": faces.num_faces, "lagrange": peer_s, "ours": mine, "rel_diff": diff}
 
 

@@ -48,6 +48,7 @@ import numpy as np
 import scipy
 import torch
 from common import (
+    add_switch,
     bench_grid,
     cpu_model,
     markdown_table,
@@ -601,12 +602,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="grid resolutions n (n x n quads = n^2 faces); "
         "default: %(default)s; pass none to skip the grids",
     )
-    parser.add_argument(
-        "--real",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="also benchmark the meshes in --real-dir (default: on)",
-    )
+    add_switch(parser, "--real", "also benchmark the meshes in --real-dir (default: on)")
     parser.add_argument(
         "--real-dir",
         type=Path,
@@ -630,11 +626,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default="cpu",
         help="torch device for torch_polylap, e.g. cpu or cuda (default: cpu)",
     )
-    parser.add_argument(
-        "--memory",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="measure peak fwd+bwd memory per grid in a fresh process (default: on)",
+    add_switch(
+        parser, "--memory", "measure peak fwd+bwd memory per grid in a fresh process (default: on)"
     )
     parser.add_argument(
         "--compiled",

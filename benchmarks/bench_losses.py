@@ -49,6 +49,7 @@ import numpy as np
 import torch
 from common import (
     RESULTS,
+    add_switch,
     markdown_table,
     peak_rss_growth,
     pinned_threads,
@@ -380,12 +381,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--noise", type=float, default=0.01, help="radial noise (default 0.01)")
     p.add_argument("--repeat", type=int, default=3, help="timed samples (default 3)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    p.add_argument(
-        "--memory",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="peak memory per step in fresh processes (default on)",
-    )
+    add_switch(p, "--memory", "peak memory per step in fresh processes (default on)")
     p.add_argument("--threads", type=int, default=0, help="torch threads; 0 keeps torch's default")
     p.add_argument("--json", type=Path, help=f"default {RESULTS / 'losses.json'}")
     return p.parse_args(argv)

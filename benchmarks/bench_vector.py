@@ -59,6 +59,26 @@ def timed(fn: Callable[[], object]) -> tuple[float, object]:
     return time.perf_counter() - t0, out
 
 
+def median_rows(
+    section: str, size: str, times: dict[tuple[str, str], list[float]], loads: tuple[str, str]
+) -> list[Row]:
+    """One row per ``(method, quantity)`` of ``times``: the median of its rounds, with the load
+    averages ``loads`` before and after the rounds."""
+    return [
+        {
+            "section": section,
+            "mesh": size,
+            "method": name,
+            "quantity": what,
+            "seconds": statistics.median(values),
+            "rounds": len(values),
+            "load before": loads[0],
+            "load after": loads[1],
+        }
+        for (name, what), values in times.items()
+    ]
+
+
 def operator_rows(n: int, repeat: int, backward_max: int) -> list[Row]:
     """Build and re-assembly of ``L`` and of the connection Laplacian, interleaved."""
     verts, faces = tp.shapes.quad_sphere(n)
@@ -91,21 +111,7 @@ def operator_rows(n: int, repeat: int, backward_max: int) -> list[Row]:
                 elapsed, _ = timed(step)
                 times.setdefault((name, "re-assembly fwd+bwd"), []).append(elapsed)
             del fresh
-    load_after = loadavg()
-    rows = []
-    for (name, what), values in times.items():
-        rows.append(
-            {
-                "section": "operator",
-                "mesh": size,
-                "method": name,
-                "quantity": what,
-                "seconds": statistics.median(values),
-                "rounds": len(values),
-                "load before": load_before,
-                "load after": load_after,
-            }
-        )
+    rows = median_rows("operator", size, times, (load_before, loadavg()))
     for what in ("build", "re-assembly", "re-assembly fwd+bwd"):
         pair = [r for r in rows if r["quantity"] == what]
         if len(pair) == 2:
@@ -170,22 +176,10 @@ def query_rows(n: int, repeat: int) -> list[Row]:
                 elapsed, _ = timed(lambda r=run, s=solver: r["log map"](s))
                 times.setdefault((name, "log map per query"), []).append(elapsed)
             del solver
-    load_after = loadavg()
-    rows: list[Row] = []
-    for (name, what), values in times.items():
-        row: Row = {
-            "section": "vector heat",
-            "mesh": size,
-            "method": name,
-            "quantity": what,
-            "seconds": statistics.median(values),
-            "rounds": len(values),
-            "load before": load_before,
-            "load after": load_after,
-        }
-        if what == "transport per query":
-            row["mean angle error (rad)"] = f"{errors[name]:.2g}"
-        rows.append(row)
+    rows = median_rows("vector heat", size, times, (load_before, loadavg()))
+    for row in rows:
+        if row["quantity"] == "transport per query":
+            row["mean angle error (rad)"] = f"{errors[str(row['method'])]:.2g}"
     return rows
 
 
@@ -227,6 +221,7 @@ def main() -> None:
     print(text)
     tables = {"vector": table_from_markdown(text)}
     write_results("vector", {"rows": rows, "tables": tables}, meta=meta, path=args.json)
+
 
 if __name__ == "__main__":
     main()

@@ -14,6 +14,7 @@ renders the tables of ``benchmarks/README.md`` from it. Its layout::
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import datetime
 import gc
@@ -45,6 +46,7 @@ from torch_polylap.timing import (
 
 __all__ = [
     "RESULTS",
+    "add_switch",
     "bench_grid",
     "cpu_model",
     "run_meta",
@@ -121,9 +123,7 @@ def bench_grid(
     """
     from torch_polylap.shapes import quad_grid
 
-    verts, faces = quad_grid(
-        n, m, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y)
-    )
+    verts, faces = quad_grid(n, m, height=lambda x, y: 0.05 * torch.sin(7 * x) * torch.cos(5 * y))
     if noise:
         g = torch.Generator().manual_seed(seed)
         verts = verts + noise * torch.randn(verts.shape, generator=g, dtype=verts.dtype)
@@ -178,6 +178,11 @@ def run_meta(argv: Sequence[str] | None = None, threads: int | None = None) -> d
         "environment": {k: _env(k) for k in ENVIRONMENT if k in os.environ},
         "load_before": _load(),
     }
+
+
+def add_switch(parser: argparse.ArgumentParser, flag: str, help: str) -> None:
+    """``flag`` and ``--no-<flag>``, on by default: the parts of a run that can be skipped."""
+    parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=True, help=help)
 
 
 def table_data(columns: Sequence[object], rows: Sequence[Sequence[object]]) -> dict:

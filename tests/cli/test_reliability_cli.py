@@ -26,6 +26,7 @@ from conftest import DATA, ROOT
 
 from torch_polylap import atomic, timing
 from torch_polylap.cli import COMMANDS, build_parser, main
+from torch_polylap.cli import common as cli_common
 from torch_polylap.cli import timing as cli_timing
 from torch_polylap.cli.common import Output
 
@@ -382,7 +383,8 @@ def two_threads():
 def _spy_threads(monkeypatch) -> list[int]:
     """The torch thread count at every mesh load of every command (demo: of its parts)."""
     seen: list[int] = []
-    for module in COMMANDS:
+    # the commands that need the topology load through common.load_mesh_topology
+    for module in (*COMMANDS, cli_common):
         if hasattr(module, "load_mesh"):
             real = module.load_mesh
 

@@ -30,10 +30,10 @@ from ..topology import build_topology
 from ..triangulate import triangulate_faces
 from .common import (
     Result,
-    add_mesh_argument,
-    add_method_argument,
-    add_output_arguments,
+    add_laplacian_arguments,
+    command_parser,
     execute,
+    finish_command,
     json_output,
     load_mesh,
     method_label,
@@ -47,26 +47,25 @@ from .common import (
 REFERENCE_SHIFT = -1e-6
 
 
+SUMMARY = "quick timings against scipy (and libigl when installed)"
+DESCRIPTION = (
+    "Time topology, assembly, re-assembly, forward+backward, spmm, solve and "
+    "eigs on one mesh, side by side with scipy (and libigl's cotmatrix on the triangulated "
+    "mesh when libigl is installed); ratio = torch_polylap / reference. torch runs on one "
+    "thread unless --threads N says otherwise: on a busy machine tiny multi-threaded "
+    "kernels wait for descheduled threads."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "bench",
-        help="quick timings against scipy (and libigl when installed)",
-        description="Time topology, assembly, re-assembly, forward+backward, spmm, solve and "
-        "eigs on one mesh, side by side with scipy (and libigl's cotmatrix on the triangulated "
-        "mesh when libigl is installed); ratio = torch_polylap / reference. torch runs on one "
-        "thread unless --threads N says otherwise: on a busy machine tiny multi-threaded "
-        "kernels wait for descheduled threads.",
-    )
-    add_mesh_argument(p)
-    p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
-    add_method_argument(p)
+    p = command_parser(sub, "bench", SUMMARY, DESCRIPTION)
+    add_laplacian_arguments(p)
     p.add_argument("--repeat", type=positive_int, default=5, help="samples per timing (default 5)")
     p.add_argument("-k", type=positive_int, default=16, help="eigenpairs for eigs (default 16)")
     p.add_argument(
         "--h", type=positive_float, default=1e-2, help="time step in M0 + h L (default 0.01)"
     )
-    add_output_arguments(p, plot=False, report="bench")
-    p.set_defaults(func=run, compute=compute)
+    finish_command(p, run, compute, plot=False, report="bench")
 
 
 Case = tuple[str, Callable[[], object], str | None, Callable[[], object] | None]

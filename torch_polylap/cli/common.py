@@ -19,6 +19,7 @@ from ..atomic import atomic_write
 from ..data import DEFAULT_MESH
 from ..faces import PolygonFaces
 from ..io import read_mesh, write_mesh
+from ..topology import Topology, get_topology
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -145,6 +146,49 @@ def json_output(name: str, data: dict[str, Any]) -> Output:
     return text_output(name, lambda: json.dumps(data, indent=2) + "\n")
 
 
+def command_parser(
+    sub: argparse._SubParsersAction,
+    name: str,
+    summary: str,
+    description: str,
+    mesh: Path | None = DEFAULT_MESH,
+) -> argparse.ArgumentParser:
+    """The subparser of the command ``name`` (``summary``: its line in ``polylap --help``) with
+    the optional mesh argument falling back to ``mesh`` (no mesh argument for ``None``)."""
+    parser: argparse.ArgumentParser = sub.add_parser(name, help=summary, description=description)
+    if mesh is not None:
+        add_mesh_argument(parser, default=mesh)
+    return parser
+
+
+def finish_command(
+    parser: argparse.ArgumentParser,
+    run: Callable[[argparse.Namespace], int],
+    compute: Callable[[argparse.Namespace], Result],
+    **output: Any,
+) -> None:
+    """The options every command ends with (:func:`add_output_arguments`, given ``output``) and
+    the protocol defaults ``func=run``, ``compute=compute``."""
+    add_output_arguments(parser, **output)
+    parser.set_defaults(func=run, compute=compute)
+
+
+def add_laplacian_arguments(
+    parser: argparse.ArgumentParser,
+    lam_type: Callable[[str], float] | None = None,
+    lam_help: str = "stabilizer weight (default 1)",
+) -> None:
+    """``--lam`` (default 1; ``lam_type`` checks it, positive by default) and ``--method``: the
+    Laplacian the command builds."""
+    parser.add_argument(
+        "--lam",
+        type=lam_type if lam_type is not None else positive_float,
+        default=1.0,
+        help=lam_help,
+    )
+    add_method_argument(parser)
+
+
 def add_mesh_argument(parser: argparse.ArgumentParser, default: Path = DEFAULT_MESH) -> None:
     parser.add_argument(
         "mesh",
@@ -252,6 +296,29 @@ def load_mesh(
     verts, faces = read_mesh(path, dtype, device)
     label = path.name + ("" if args.mesh else " (embedded default mesh)")
     return verts, faces, path, label
+
+
+def load_mesh_topology(
+    args: argparse.Namespace,
+) -> tuple[torch.Tensor, PolygonFaces, Topology, Path, str]:
+    """``(verts, faces, topo, path, label)``: :func:`load_mesh` and the mesh's topology."""
+    verts, faces, path, label = load_mesh(args)
+    return verts, faces, get_topology(faces, verts.shape[0]), path, label
+
+
+def plot_outputs(
+    args: argparse.Namespace,
+    verts: torch.Tensor,
+    path: Path,
+    suffix: str,
+    draw: Callable[[str], Figure],
+) -> list[Output]:
+    """The figure ``<mesh>_<suffix>.png`` that ``draw(up)`` returns (``up``:
+    :func:`up_axis` of ``verts``), or none under ``--no-plot``."""
+    if args.no_plot:
+        return []
+    up = up_axis(args, verts)
+    return [figure_output(result_name(path, suffix, ".png"), lambda: draw(up))]
 
 
 def output_dir(args: argparse.Namespace) -> Path:

@@ -27,6 +27,7 @@ from .common import (
     DEFAULT_OUTPUT,
     Result,
     add_method_argument,
+    command_parser,
     execute,
     figure_output,
     mesh_output,
@@ -53,14 +54,16 @@ PROGRESS = ("smooth", "planarize")
 WITH_METHOD = ("smooth", "param")
 
 
+SUMMARY = "run all applications on embedded meshes and write a Markdown report"
+DESCRIPTION = (
+    "Run mean-curvature flow, conformal parameterization, planarization and "
+    "thin-plate bending (AW11 sec. 5.1-5.4) on small embedded meshes; write the result "
+    "meshes, figures and report.md into -o DIR."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "demo",
-        help="run all applications on embedded meshes and write a Markdown report",
-        description="Run mean-curvature flow, conformal parameterization, planarization and "
-        "thin-plate bending (AW11 sec. 5.1-5.4) on small embedded meshes; write the result "
-        "meshes, figures and report.md into -o DIR.",
-    )
+    p = command_parser(sub, "demo", SUMMARY, DESCRIPTION, mesh=None)
     p.add_argument(
         "-o",
         "--output",

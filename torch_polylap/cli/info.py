@@ -24,10 +24,10 @@ from ..topology import Topology
 from .common import (
     Result,
     Rows,
-    add_mesh_argument,
-    add_method_argument,
-    add_output_arguments,
+    add_laplacian_arguments,
+    command_parser,
     execute,
+    finish_command,
     json_output,
     load_mesh,
     method_label,
@@ -38,23 +38,22 @@ from .timing import FIRST_ASSEMBLY, first_assembly
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
+SUMMARY = "mesh statistics, operator properties and timings"
+DESCRIPTION = (
+    "Print mesh statistics, properties of L and M0 (with the smallest "
+    "eigenvalues of L phi = mu M0 phi from torch_polylap.eigs), and assembly timings "
+    "(torch pinned to --threads N, default 1). With -o DIR or --json also write the report "
+    "as <mesh>_info.json."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "info",
-        help="mesh statistics, operator properties and timings",
-        description="Print mesh statistics, properties of L and M0 (with the smallest "
-        "eigenvalues of L phi = mu M0 phi from torch_polylap.eigs), and assembly timings "
-        "(torch pinned to --threads N, default 1). With -o DIR or --json also write the report "
-        "as <mesh>_info.json.",
-    )
-    add_mesh_argument(p)
-    p.add_argument("--lam", type=float, default=1.0, help="stabilizer weight lambda (default 1)")
-    add_method_argument(p)
+    p = command_parser(sub, "info", SUMMARY, DESCRIPTION)
+    add_laplacian_arguments(p, float, "stabilizer weight lambda (default 1)")
     p.add_argument("--dtype", choices=tuple(DTYPES), default="float64")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--eigs", type=int, default=6, help="how many smallest eigenvalues to show")
-    add_output_arguments(p, plot=False, progress=False, report="info")
-    p.set_defaults(func=run, compute=compute)
+    finish_command(p, run, compute, plot=False, progress=False, report="info")
 
 
 def smallest_eigenvalues(

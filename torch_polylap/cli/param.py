@@ -13,38 +13,36 @@ import torch
 from ..data import DISK_MESH
 from ..faces import PolygonFaces
 from ..measures import vector_area
-from ..topology import Topology, get_topology
+from ..topology import Topology
 from .common import (
     Result,
-    add_mesh_argument,
-    add_method_argument,
-    add_output_arguments,
+    add_laplacian_arguments,
+    command_parser,
     execute,
-    figure_output,
-    load_mesh,
+    finish_command,
+    load_mesh_topology,
     mesh_output,
     method_label,
-    positive_float,
+    plot_outputs,
     result_name,
-    up_axis,
 )
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 
+SUMMARY = "conformal (LSCM-type) parameterization of a mesh with boundary"
+DESCRIPTION = (
+    "Flatten a polygon mesh with boundary by minimizing the conformal energy "
+    "E_C = E_D - A (AW11 sec. 5.2): two pinned boundary vertices (default, eq. 12) or a free "
+    "boundary (--free-boundary, eq. 13-15). Writes <mesh>_param.obj (the flat mesh, z = 0) "
+    "and a figure of the mesh and its image colored by the angle distortion."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "param",
-        help="conformal (LSCM-type) parameterization of a mesh with boundary",
-        description="Flatten a polygon mesh with boundary by minimizing the conformal energy "
-        "E_C = E_D - A (AW11 sec. 5.2): two pinned boundary vertices (default, eq. 12) or a free "
-        "boundary (--free-boundary, eq. 13-15). Writes <mesh>_param.obj (the flat mesh, z = 0) "
-        "and a figure of the mesh and its image colored by the angle distortion.",
-    )
-    add_mesh_argument(p, default=DISK_MESH)
-    p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
-    add_method_argument(p)
+    p = command_parser(sub, "param", SUMMARY, DESCRIPTION, DISK_MESH)
+    add_laplacian_arguments(p)
     p.add_argument(
         "--free-boundary",
         action="store_true",
@@ -57,15 +55,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar=("I", "J"),
         help="the two pinned boundary vertices (default: two far-apart ones)",
     )
-    add_output_arguments(p, progress=False)
-    p.set_defaults(func=run, compute=compute)
+    finish_command(p, run, compute, progress=False)
 
 
 def compute(args: argparse.Namespace) -> Result:
     from ..apps.conformal import angle_distortion, conformal_energy, conformal_parameterization
 
-    verts, faces, path, label = load_mesh(args)
-    topo = get_topology(faces, verts.shape[0])
+    verts, faces, topo, path, label = load_mesh_topology(args)
     if args.pins is not None and args.free_boundary:
         raise ValueError("--pins and --free-boundary exclude each other; pass one of them.")
     start = time.perf_counter()
@@ -107,14 +103,9 @@ def compute(args: argparse.Namespace) -> Result:
         ("flipped faces", str(flipped)),
     ]
     outputs = [mesh_output(result_name(path, "param", ".obj"), flat, faces)]
-    if not args.no_plot:
-        up = up_axis(args, verts)
-        outputs.append(
-            figure_output(
-                result_name(path, "param", ".png"),
-                lambda: _figure(verts, uv, faces, face_err_deg, up),
-            )
-        )
+    outputs += plot_outputs(
+        args, verts, path, "param", lambda up: _figure(verts, uv, faces, face_err_deg, up)
+    )
     return Result(f"polylap param: {label}", rows, outputs=outputs)
 
 

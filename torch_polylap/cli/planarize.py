@@ -10,19 +10,18 @@ import torch
 
 from ..faces import PolygonFaces
 from ..measures import face_nonplanarity
-from ..topology import Topology, get_topology
+from ..topology import Topology
 from .common import (
     Result,
-    add_mesh_argument,
-    add_output_arguments,
+    command_parser,
     execute,
-    figure_output,
-    load_mesh,
+    finish_command,
+    load_mesh_topology,
     mesh_output,
+    plot_outputs,
     positive_float,
     positive_int,
     result_name,
-    up_axis,
 )
 
 if TYPE_CHECKING:
@@ -32,18 +31,19 @@ if TYPE_CHECKING:
     from ..apps.planarize import PlanarizeResult
 
 
+SUMMARY = "planarize the faces (Gauss-Newton on the face-plane residuals, or L-BFGS on E_plan)"
+DESCRIPTION = (
+    "Make every face planar (AW11 sec. 5.3) until the largest face "
+    "non-planarity (corner distance from the face plane over the face diameter) is below "
+    "--tol: Gauss-Newton on the per-face plane residuals (default), or the paper's L-BFGS "
+    "descent of E_plan = 1/2 sum_c X_c^T Lplan X_c (--method lbfgs). Stops at --max-iter or "
+    "--time-limit and says so. Writes <mesh>_planar.<ext> and a before/after figure colored "
+    "by non-planarity."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "planarize",
-        help="planarize the faces (Gauss-Newton on the face-plane residuals, or L-BFGS on E_plan)",
-        description="Make every face planar (AW11 sec. 5.3) until the largest face "
-        "non-planarity (corner distance from the face plane over the face diameter) is below "
-        "--tol: Gauss-Newton on the per-face plane residuals (default), or the paper's L-BFGS "
-        "descent of E_plan = 1/2 sum_c X_c^T Lplan X_c (--method lbfgs). Stops at --max-iter or "
-        "--time-limit and says so. Writes <mesh>_planar.<ext> and a before/after figure colored "
-        "by non-planarity.",
-    )
-    add_mesh_argument(p)
+    p = command_parser(sub, "planarize", SUMMARY, DESCRIPTION)
     p.add_argument("--lam", type=positive_float, default=2.0, help="lambda (default 2, as AW11)")
     p.add_argument(
         "--tol", type=positive_float, default=1e-4, help="target largest non-planarity (1e-4)"
@@ -73,15 +73,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="weight pulling vertices towards the input, in units of the mean edge length "
         "(default 0: only the step damping keeps the result close)",
     )
-    add_output_arguments(p)
-    p.set_defaults(func=run, compute=compute)
+    finish_command(p, run, compute)
 
 
 def compute(args: argparse.Namespace) -> Result:
     from ..apps.planarize import PlanarizeOptions, planarize
 
-    verts, faces, path, label = load_mesh(args)
-    topo = get_topology(faces, verts.shape[0])
+    verts, faces, topo, path, label = load_mesh_topology(args)
     options = PlanarizeOptions(
         closeness=args.closeness,
         time_limit=args.time_limit,
@@ -116,13 +114,9 @@ def compute(args: argparse.Namespace) -> Result:
         ("converged", "yes" if res.converged else f"no: {res.message}"),
     ]
     outputs = [mesh_output(result_name(path, "planar"), res.verts, faces)]
-    if not args.no_plot:
-        up = up_axis(args, verts)
-        outputs.append(
-            figure_output(
-                result_name(path, "planar", ".png"), lambda: _figure(verts, faces, topo, res, up)
-            )
-        )
+    outputs += plot_outputs(
+        args, verts, path, "planar", lambda up: _figure(verts, faces, topo, res, up)
+    )
     return Result(
         f"polylap planarize: {label}",
         rows,

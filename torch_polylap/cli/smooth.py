@@ -17,15 +17,14 @@ from ..apps.flow import (
 )
 from ..measures import face_areas, mean_edge_length
 from ..plot import PlotOptions
-from ..topology import get_topology
 from .common import (
     Result,
-    add_mesh_argument,
-    add_method_argument,
-    add_output_arguments,
+    add_laplacian_arguments,
+    command_parser,
     execute,
     figure_output,
-    load_mesh,
+    finish_command,
+    load_mesh_topology,
     mesh_output,
     method_label,
     positive_float,
@@ -44,19 +43,20 @@ if TYPE_CHECKING:
 MAX_HALVINGS = 6
 
 
+SUMMARY = "implicit mean-curvature flow"
+DESCRIPTION = (
+    "Smooth a polygon mesh with implicit mean-curvature flow "
+    "(M0 + dt L) X' = M0 X (AW11 sec. 5.1), L and M0 rebuilt every step unless --frozen. "
+    "Writes <mesh>_smooth.<ext> and a before/after figure colored by the scale-free mean "
+    "curvature |H| sqrt(A / 4 pi) (1 on any round sphere). Mean-curvature flow pinches thin "
+    "parts in finite time: a step that would raise the largest curvature above "
+    f"{SINGULARITY_FACTOR:g} x its initial value is refused (retried with half the default "
+    f"step, up to {MAX_HALVINGS} times), and the command says where it stopped."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "smooth",
-        help="implicit mean-curvature flow",
-        description="Smooth a polygon mesh with implicit mean-curvature flow "
-        "(M0 + dt L) X' = M0 X (AW11 sec. 5.1), L and M0 rebuilt every step unless --frozen. "
-        "Writes <mesh>_smooth.<ext> and a before/after figure colored by the scale-free mean "
-        "curvature |H| sqrt(A / 4 pi) (1 on any round sphere). Mean-curvature flow pinches thin "
-        "parts in finite time: a step that would raise the largest curvature above "
-        f"{SINGULARITY_FACTOR:g} x its initial value is refused (retried with half the default "
-        f"step, up to {MAX_HALVINGS} times), and the command says where it stopped.",
-    )
-    add_mesh_argument(p)
+    p = command_parser(sub, "smooth", SUMMARY, DESCRIPTION)
     p.add_argument(
         "--dt",
         type=positive_float,
@@ -65,8 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "halved where a step would pinch)",
     )
     p.add_argument("--steps", type=positive_int, default=10, help="implicit steps (default 10)")
-    p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
-    add_method_argument(p)
+    add_laplacian_arguments(p)
     p.add_argument(
         "--frozen",
         action="store_true",
@@ -79,13 +78,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="rescale after each step to keep the total area or enclosed volume (default none; "
         "volume needs a closed, consistently oriented mesh)",
     )
-    add_output_arguments(p)
-    p.set_defaults(func=run, compute=compute)
+    finish_command(p, run, compute)
 
 
 def compute(args: argparse.Namespace) -> Result:
-    verts, faces, path, label = load_mesh(args)
-    topo = get_topology(faces, verts.shape[0])
+    verts, faces, topo, path, label = load_mesh_topology(args)
     default_dt = args.dt is None
     dt = 0.1 * float(mean_edge_length(verts, topo)) ** 2 if default_dt else args.dt
     start = time.perf_counter()

@@ -15,17 +15,15 @@ from ..timing import timed
 from .common import (
     Output,
     Result,
-    add_mesh_argument,
-    add_method_argument,
-    add_output_arguments,
+    add_laplacian_arguments,
+    command_parser,
     execute,
-    figure_output,
+    finish_command,
     load_mesh,
     method_label,
-    positive_float,
+    plot_outputs,
     positive_int,
     result_name,
-    up_axis,
 )
 from .timing import FIRST_ASSEMBLY, first_assembly
 
@@ -33,18 +31,18 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 
+SUMMARY = "the smallest Laplace eigenvalues and eigenfunctions"
+DESCRIPTION = (
+    "Compute the k smallest eigenpairs of the generalized problem "
+    "L phi = mu M0 phi (AW11 Laplacian and lumped mass, or those of --method), print the "
+    "eigenvalues with their residuals, and draw a few eigenfunctions and the eigenvalue curve."
+)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "spectrum",
-        help="the smallest Laplace eigenvalues and eigenfunctions",
-        description="Compute the k smallest eigenpairs of the generalized problem "
-        "L phi = mu M0 phi (AW11 Laplacian and lumped mass, or those of --method), print the "
-        "eigenvalues with their residuals, and draw a few eigenfunctions and the eigenvalue curve.",
-    )
-    add_mesh_argument(p)
+    p = command_parser(sub, "spectrum", SUMMARY, DESCRIPTION)
     p.add_argument("-k", type=positive_int, default=20, help="number of eigenpairs (default 20)")
-    p.add_argument("--lam", type=positive_float, default=1.0, help="stabilizer weight (default 1)")
-    add_method_argument(p)
+    add_laplacian_arguments(p)
     p.add_argument(
         "--show", type=positive_int, default=4, help="eigenfunctions in the figure (default 4)"
     )
@@ -53,8 +51,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="also write eigenvalues, eigenvectors (columns) and masses to <mesh>_spectrum.npz",
     )
-    add_output_arguments(p, progress=False)
-    p.set_defaults(func=run, compute=compute)
+    finish_command(p, run, compute, progress=False)
 
 
 def compute(args: argparse.Namespace) -> Result:
@@ -113,14 +110,9 @@ def compute(args: argparse.Namespace) -> Result:
             )
 
         result.outputs.append(Output(result_name(path, "spectrum", ".npz"), fill=write_npz))
-    if not args.no_plot:
-        up = up_axis(args, verts)
-        result.outputs.append(
-            figure_output(
-                result_name(path, "spectrum", ".png"),
-                lambda: _figure(verts, faces, evals, evecs, args.show, up),
-            )
-        )
+    result.outputs += plot_outputs(
+        args, verts, path, "spectrum", lambda up: _figure(verts, faces, evals, evecs, args.show, up)
+    )
     return result
 
 
