@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
+from conftest import assert_second_order_derivative
 
 import torch_polylap as tp
 import torch_polylap.vector as tv
@@ -41,22 +42,6 @@ def bent_grid(n: int = 6, angle: float = 0.7) -> tuple[torch.Tensor, torch.Tenso
 
 def _direction(shape: torch.Size, seed: int = 3) -> torch.Tensor:
     return torch.randn(shape, **D64, generator=torch.Generator().manual_seed(seed))
-
-
-def _assert_central_differences(f, X: torch.Tensor) -> None:
-    """Central differences along a random direction converge to autograd's derivative at
-    second order in the step (an error shrinking 100-fold per 10-fold smaller step, down to
-    1e-7 relative) instead of jumping between eigenvectors as the step shrinks."""
-    Xg = X.clone().requires_grad_(True)
-    (grad,) = torch.autograd.grad(f(Xg), Xg)
-    d = torch.randn(X.shape, **D64, generator=torch.Generator().manual_seed(3))
-    exact = float((grad * d).sum())
-    size = max(1.0, abs(exact))
-    steps = (1e-3, 1e-4, 1e-5)
-    errors = [abs(float((f(X + h * d) - f(X - h * d)) / (2 * h)) - exact) for h in steps]
-    assert errors[0] < 0.1 * size, (errors, exact)
-    for h, error in zip(steps[1:], errors[1:], strict=True):
-        assert error <= 2 * errors[0] * (h / steps[0]) ** 2 + 1e-7 * size, (errors, exact)
 
 
 def test_spectral_scale_is_below_the_spectral_radius(one_thread):
@@ -110,7 +95,7 @@ def test_zero_eigenvalue_of_two_components_cluster(one_thread):
     (got,) = torch.autograd.grad(through_eigs(X), X)
     (want,) = torch.autograd.grad(direct(X), X)
     torch.testing.assert_close(got, want, rtol=1e-8, atol=1e-10)
-    _assert_central_differences(lambda X: tp.eigs(*tp.laplacian(X, F), 3)[1][:, 2] @ u, V)
+    assert_second_order_derivative(lambda X: tp.eigs(*tp.laplacian(X, F), 3)[1][:, 2] @ u, V)
 
 
 def test_constant_eigenvector_of_a_connected_mesh_keeps_its_gradient(one_thread):
@@ -142,7 +127,7 @@ def test_parallel_field_of_a_developable_surface(one_thread):
 
     with pytest.raises(RuntimeError, match=r"evecs\[:, 0\].*not computed"):
         magnitude(V.clone().requires_grad_(True), 1).backward()
-    _assert_central_differences(lambda X: magnitude(X, 2), V)
+    assert_second_order_derivative(lambda X: magnitude(X, 2), V)
 
 
 @pytest.mark.parametrize("k", [2, 3])
@@ -165,4 +150,4 @@ def test_exactly_repeated_eigenvalue_of_a_cube_sphere(one_thread, k):
         C = tp.eigs(L, M0, 4)[1][:, 1:]
         return (C.T @ (M0 @ u)).square().sum()
 
-    _assert_central_differences(projector, V)
+    assert_second_order_derivative(projector, V)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import assert_second_order_derivative
 
 import torch_polylap.vector as tv
 from torch_polylap.shapes import quad_grid, quad_sphere
@@ -45,22 +46,6 @@ def _angles(X: torch.Tensor, F: torch.Tensor, n: int) -> torch.Tensor:
     return n * torch.atan2(e_y, e_x)
 
 
-def _assert_central_differences(f, X: torch.Tensor) -> None:
-    """Central differences along a random direction converge to autograd's derivative at
-    second order in the step (an error shrinking 100-fold per 10-fold smaller step, down to
-    1e-7 relative) instead of jumping between eigenvectors as the step shrinks."""
-    Xg = X.clone().requires_grad_(True)
-    (grad,) = torch.autograd.grad(f(Xg), Xg)
-    d = torch.randn(X.shape, **D64, generator=torch.Generator().manual_seed(3))
-    exact = float((grad * d).sum())
-    size = max(1.0, abs(exact))
-    steps = (1e-3, 1e-4, 1e-5)
-    errors = [abs(float((f(X + h * d) - f(X - h * d)) / (2 * h)) - exact) for h in steps]
-    assert errors[0] < 0.1 * size, (errors, exact)
-    for h, error in zip(steps[1:], errors[1:], strict=True):
-        assert error <= 2 * errors[0] * (h / steps[0]) ** 2 + 1e-7 * size, (errors, exact)
-
-
 @pytest.mark.parametrize("mesh", sorted(MESHES))
 @pytest.mark.parametrize("n", [1, 2, 4])
 def test_directions_depend_on_the_phase_and_refuse(one_thread, mesh, n):
@@ -90,9 +75,9 @@ def test_phase_invariant_losses_match_central_differences(one_thread, mesh, n):
         angles = _angles(X, F, n)
         return torch.cos(angles - angles[0]) @ w
 
-    _assert_central_differences(magnitude, V)
-    _assert_central_differences(relative_angles, V)
-    _assert_central_differences(lambda X: tv.smoothest_field(X, F, n)[2], V)
+    assert_second_order_derivative(magnitude, V)
+    assert_second_order_derivative(relative_angles, V)
+    assert_second_order_derivative(lambda X: tv.smoothest_field(X, F, n)[2], V)
 
 
 def test_energy_of_a_developable_surface_is_stationary(one_thread):
