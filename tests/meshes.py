@@ -136,3 +136,18 @@ def dumbbell(rings: int = 24, sides: int = 16) -> tuple[torch.Tensor, list[list[
     ]
     faces += [[top, int(ids[-1, j]), int(ids[-1, (j + 1) % sides])] for j in range(sides)]
     return torch.from_numpy(verts), faces
+
+
+def bent_grid(n: int = 6, angle: float = 0.7) -> tuple[torch.Tensor, torch.Tensor]:
+    """A regular grid folded along its middle grid line ``x = 1/2``: every quad stays planar,
+    so the surface is developable, has parallel tangent fields (connection eigenvalue 0) and
+    smoothest fields of energy ~1e-14."""
+    from torch_polylap.shapes import quad_grid
+
+    V, F = quad_grid(n)
+    V = V.clone()
+    x = V[:, 0] - 0.5
+    fold = x > 0
+    V[fold, 0] = 0.5 + x[fold] * np.cos(angle)
+    V[fold, 2] = x[fold] * np.sin(angle)
+    return V, F

@@ -10,6 +10,7 @@ import pytest
 import scipy.linalg
 import torch
 from conftest import assert_second_order_derivative
+from meshes import bent_grid
 
 import torch_polylap as tp
 import torch_polylap.vector as tv
@@ -26,18 +27,6 @@ def two_grids() -> tuple[torch.Tensor, torch.Tensor, int]:
     V2, F2 = quad_grid(4, bump=0.2, seed=5)
     V2 = V2 + torch.tensor([3.0, 0.0, 0.0], **D64)
     return torch.cat([V1, V2]), torch.cat([F1, F2 + V1.shape[0]]), V1.shape[0]
-
-
-def bent_grid(n: int = 6, angle: float = 0.7) -> tuple[torch.Tensor, torch.Tensor]:
-    """A regular grid folded along its middle grid line ``x = 1/2``: every quad stays planar,
-    so the surface is developable and has parallel tangent fields (connection eigenvalue 0)."""
-    V, F = quad_grid(n)
-    V = V.clone()
-    x = V[:, 0] - 0.5
-    fold = x > 0
-    V[fold, 0] = 0.5 + x[fold] * np.cos(angle)
-    V[fold, 2] = x[fold] * np.sin(angle)
-    return V, F
 
 
 def _direction(shape: torch.Size, seed: int = 3) -> torch.Tensor:

@@ -4,27 +4,15 @@ against central differences at several steps) and the others raise a clear error
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 from conftest import assert_second_order_derivative
+from meshes import bent_grid
 
 import torch_polylap.vector as tv
-from torch_polylap.shapes import quad_grid, quad_sphere
+from torch_polylap.shapes import quad_sphere
 
 D64 = {"dtype": torch.float64}
-
-
-def bent_grid(n: int = 6, angle: float = 0.7) -> tuple[torch.Tensor, torch.Tensor]:
-    """A regular grid folded along its middle grid line ``x = 1/2``: every quad stays planar,
-    the surface is developable, and its smoothest fields are parallel (energy ~1e-14)."""
-    V, F = quad_grid(n)
-    V = V.clone()
-    x = V[:, 0] - 0.5
-    fold = x > 0
-    V[fold, 0] = 0.5 + x[fold] * np.cos(angle)
-    V[fold, 2] = x[fold] * np.sin(angle)
-    return V, F
 
 
 MESHES = {
