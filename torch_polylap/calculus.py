@@ -34,6 +34,7 @@ from .sparse import SparseOperator
 from .sparse.operator import operator_on
 from .sparse.pattern import SparsityPattern
 from .topology import DegreeGroup, Topology, get_topology
+from .tracing import outside_transforms
 
 __all__ = [
     "face_gradient",
@@ -176,18 +177,19 @@ def gradient_layout(
     key = ("gradient_operator", torch.device(device))
     cached = topo.derived.get(key)
     if cached is None:
-        empty = torch.zeros(0, dtype=torch.int64, device=device)
-        rows, cols = [empty], [empty]
-        for grp in groups:
-            shape = (3, grp.k, grp.face_ids.numel())
-            comp = torch.arange(3, device=device)[:, None, None]
-            rows.append((3 * grp.face_ids[None, None, :] + comp).expand(shape).reshape(-1))
-            cols.append(grp.corners_t[None].expand(shape).reshape(-1))
-        row, col = torch.cat(rows), torch.cat(cols)
-        # a simple polygon visits each vertex once: the (row, col) keys are distinct
-        order = torch.argsort(row * max(topo.num_verts, 1) + col)
-        shape2 = (3 * topo.num_faces, topo.num_verts)
-        cached = (SparsityPattern.from_rows(row[order], col[order], shape2), order)
+        with outside_transforms():
+            empty = torch.zeros(0, dtype=torch.int64, device=device)
+            rows, cols = [empty], [empty]
+            for grp in groups:
+                shape = (3, grp.k, grp.face_ids.numel())
+                comp = torch.arange(3, device=device)[:, None, None]
+                rows.append((3 * grp.face_ids[None, None, :] + comp).expand(shape).reshape(-1))
+                cols.append(grp.corners_t[None].expand(shape).reshape(-1))
+            row, col = torch.cat(rows), torch.cat(cols)
+            # a simple polygon visits each vertex once: the (row, col) keys are distinct
+            order = torch.argsort(row * max(topo.num_verts, 1) + col)
+            shape2 = (3 * topo.num_faces, topo.num_verts)
+            cached = (SparsityPattern.from_rows(row[order], col[order], shape2), order)
         topo.derived[key] = cached
     return cached
 

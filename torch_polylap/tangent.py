@@ -32,6 +32,7 @@ from .measures import vector_area
 from .sparse import SparseOperator, operator_from_parts, sparse_values
 from .sparse.construct import pattern_of
 from .topology import Topology, get_topology
+from .tracing import outside_transforms
 
 __all__ = [
     "TangentFrames",
@@ -130,20 +131,21 @@ def reference_neighbours(topo: Topology, device: torch.device) -> tuple[torch.Te
     key = ("tangent_reference_neighbours", torch.device(device))
     cached = topo.derived.get(key)
     if cached is None:
-        faces = topo.faces
-        idx = faces.indices
-        count, num_verts = idx.numel(), topo.num_verts
-        own = torch.arange(num_verts)
-        first = torch.full((num_verts,), count, dtype=torch.int64)
-        first = first.scatter_reduce(0, idx, torch.arange(count), "amin")
-        used = first < count
-        corner = torch.where(used, first, 0)
-        if count:
-            ahead = torch.where(used, idx[faces.next_corner[corner]], own)
-            behind = torch.where(used, idx[faces.prev_corner[corner]], own)
-        else:
-            ahead = behind = own
-        cached = (ahead.to(device), behind.to(device))
+        with outside_transforms():
+            faces = topo.faces
+            idx = faces.indices
+            count, num_verts = idx.numel(), topo.num_verts
+            own = torch.arange(num_verts)
+            first = torch.full((num_verts,), count, dtype=torch.int64)
+            first = first.scatter_reduce(0, idx, torch.arange(count), "amin")
+            used = first < count
+            corner = torch.where(used, first, 0)
+            if count:
+                ahead = torch.where(used, idx[faces.next_corner[corner]], own)
+                behind = torch.where(used, idx[faces.prev_corner[corner]], own)
+            else:
+                ahead = behind = own
+            cached = (ahead.to(device), behind.to(device))
         topo.derived[key] = cached
     return cached
 

@@ -13,14 +13,29 @@ from __future__ import annotations
 import itertools
 import sys
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any, TypeVar
 
 import torch
 
-from ._torch_compat import assert_async, functorch_active, mark_constant_result, vmap_active
+from ._torch_compat import (
+    assert_async,
+    disable_functorch,
+    functorch_active,
+    mark_constant_result,
+    vmap_active,
+)
 
-__all__ = ["tracing", "in_functorch", "in_vmap", "functional", "require", "run_eagerly"]
+__all__ = [
+    "tracing",
+    "in_functorch",
+    "in_vmap",
+    "functional",
+    "require",
+    "run_eagerly",
+    "outside_transforms",
+]
 
 T = TypeVar("T")
 
@@ -75,7 +90,8 @@ def run_eagerly(fn: Callable[..., T], *args: Any) -> T:
     call to call without changing the objects passed to it.
     """
     if not tracing():
-        return fn(*args)
+        with outside_transforms():
+            return fn(*args)
     result: T = getattr(_this_module, _pin(fn, *args))
     return result
 
@@ -85,6 +101,22 @@ def in_functorch() -> bool:
     (eagerly: torch.compile traces transforms itself and lets the code below see plain
     tensors)."""
     return not tracing() and functorch_active()
+
+
+@contextmanager
+def outside_transforms() -> Iterator[None]:
+    """A context for building connectivity that is cached (patterns, views, plans, layouts).
+
+    Inside an eager torch.func transform every tensor created, even by ``torch.arange``, is
+    wrapped at the transform's level. Kept in a cache, such a wrapper outlives its transform
+    without storage and breaks every later host read (``data_ptr``, numpy, scipy). The context
+    pauses the transforms, so what is built is plain; connectivity is never differentiated.
+    """
+    if in_functorch():
+        with disable_functorch():
+            yield
+    else:
+        yield
 
 
 def in_vmap() -> bool:

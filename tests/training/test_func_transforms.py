@@ -168,3 +168,60 @@ def test_jacfwd_and_vjp_equal_jacrev(device):
     v = torch.randn(out.shape, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
     (got,) = pullback(v.to(device))
     torch.testing.assert_close(got, torch.einsum("i,ijk->jk", v, want), rtol=1e-10, atol=1e-12)
+
+
+def _tensors_in(obj, seen=None):
+    """Every tensor reachable from ``obj`` through containers and object attributes."""
+    seen = set() if seen is None else seen
+    if id(obj) in seen or isinstance(obj, (str, bytes, int, float, bool, type(None))):
+        return
+    seen.add(id(obj))
+    if isinstance(obj, torch.Tensor):
+        yield obj
+    elif isinstance(obj, dict):
+        for value in obj.values():
+            yield from _tensors_in(value, seen)
+    elif isinstance(obj, (list, tuple, set)):
+        for value in obj:
+            yield from _tensors_in(value, seen)
+    elif hasattr(obj, "__dict__") and type(obj).__module__.startswith("torch_polylap"):
+        yield from _tensors_in(vars(obj), seen)
+
+
+TRANSFORMS = {
+    "grad": lambda f, X: grad(f)(X),
+    "jvp": lambda f, X: jvp(f, (X,), (torch.ones_like(X),)),
+    "vmap": lambda f, X: vmap(f)(torch.stack((X, 1.01 * X))),
+    "jacrev": lambda f, X: jacrev(f)(X),
+}
+
+
+@pytest.mark.parametrize("transform", sorted(TRANSFORMS))
+def test_structure_built_inside_a_transform_is_cached_plain(transform, device):
+    """Connectivity first built inside a transform (patterns, their unions and transposes, the
+    device view, gradient and connection layouts, frame references) is cached as plain tensors:
+    a transform's wrapper has no storage once it exits, and later host reads would fail."""
+    verts, faces = tp.shapes.quad_grid(4, 5)  # fresh faces: a topology the cache has not seen
+    X = _perturbed(verts, 2).to(device)
+
+    def f(X: torch.Tensor) -> torch.Tensor:
+        L, M0 = tp.laplacian(X, faces)
+        G = tp.calculus.gradient_operator(X, faces)
+        frames = tp.tangent.vertex_tangent_frames(X, faces)
+        out = ((M0 + 0.3 * L) @ X).sum() + (L.T @ X).sum() + (G @ X[:, 0]).sum()
+        if transform != "vmap":  # the connection Laplacian checks for folds on the data
+            A = tp.vector.connection_laplacian(X, faces)[0]
+            out = out + (A @ torch.ones(2 * X.shape[0], dtype=X.dtype, device=X.device)).sum()
+        return out + frames.e_x.sum()
+
+    TRANSFORMS[transform](f, X)
+    topo = tp.topology.get_topology(faces, X.shape[0])
+    L, M0 = tp.laplacian(X, faces)
+    wrapped = [
+        tuple(t.shape)
+        for t in _tensors_in((topo, L, M0, (M0 + L).pattern, L.T.pattern))
+        if torch._C._functorch.is_functorch_wrapped_tensor(t)
+    ]
+    assert not wrapped, f"functorch wrappers left in the caches: {wrapped}"
+    host = tp.sparse.to_scipy(M0 + 0.3 * L) if device.type == "cpu" else None
+    assert host is None or host.nnz == (M0 + 0.3 * L)._nnz()

@@ -12,6 +12,7 @@ import torch
 from ..kernels import BlockKernel
 from ..kernels.aw11 import row_sums
 from ..topology import Topology, TopologyView
+from ..tracing import outside_transforms
 from .checks import FLOAT32_TOLERANCE, FlaggedAssembly, any_degenerate, input_ok, output_ok
 from .gather_plan import GatherPlan, gather_plan
 from .scaling import normalizer, unscaled
@@ -25,16 +26,17 @@ def gather_plan_of(topo: Topology, view: TopologyView) -> GatherPlan:
     key = ("gather_plan", view.col.device)
     plan = topo.derived.get(key)
     if plan is None:
-        wholes = [view.whole(i) for i in range(len(view.groups))]
-        shapes = [(g.pair_i.numel(), g.face_ids.numel()) for g in view.groups]
-        cpu = gather_plan(
-            [w.pos_upper.cpu().numpy().reshape(s) for w, s in zip(wholes, shapes, strict=True)],
-            [w.pos_lower.cpu().numpy().reshape(s) for w, s in zip(wholes, shapes, strict=True)],
-            [g.corners_t.cpu().numpy() for g in view.groups],
-            view.pattern.diagonal_positions().cpu().numpy(),
-            topo.nnz,
-        )
-        plan = cpu.to(view.col.device)
+        with outside_transforms():
+            wholes = [view.whole(i) for i in range(len(view.groups))]
+            shapes = [(g.pair_i.numel(), g.face_ids.numel()) for g in view.groups]
+            cpu = gather_plan(
+                [w.pos_upper.cpu().numpy().reshape(s) for w, s in zip(wholes, shapes, strict=True)],
+                [w.pos_lower.cpu().numpy().reshape(s) for w, s in zip(wholes, shapes, strict=True)],
+                [g.corners_t.cpu().numpy() for g in view.groups],
+                view.pattern.diagonal_positions().cpu().numpy(),
+                topo.nnz,
+            )
+            plan = cpu.to(view.col.device)
         topo.derived[key] = plan
     assert isinstance(plan, GatherPlan)
     return plan

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..tracing import run_eagerly, tracing
+from ..tracing import outside_transforms, run_eagerly, tracing
 
 __all__ = ["SparsityPattern", "block_diagonal_indices"]
 
@@ -138,9 +138,12 @@ class SparsityPattern:
         """``(nnz,)`` row index of every stored entry."""
         if self._row is not None:
             return self._row
-        row = torch.repeat_interleave(
-            torch.arange(self.shape[0], device=self.device), self.crow.diff(), output_size=self.nnz
-        )
+        with outside_transforms():
+            row = torch.repeat_interleave(
+                torch.arange(self.shape[0], device=self.device),
+                self.crow.diff(),
+                output_size=self.nnz,
+            )
         if not tracing():
             self._row = row
         return row
@@ -155,9 +158,9 @@ class SparsityPattern:
                 return run_eagerly(SparsityPattern.to, self, device)
             return SparsityPattern(self.crow.to(device), self.col.to(device), self.shape)
         if device not in self._devices:
-            self._devices[device] = SparsityPattern(
-                self.crow.to(device), self.col.to(device), self.shape
-            )
+            with outside_transforms():
+                copy = SparsityPattern(self.crow.to(device), self.col.to(device), self.shape)
+            self._devices[device] = copy
         return self._devices[device]
 
     def transpose(self) -> tuple[SparsityPattern, torch.Tensor]:
@@ -170,8 +173,9 @@ class SparsityPattern:
             )
         if self._transpose is None:
             n = self.shape[0]
-            transposed, perm = _transposed(self, _stable_argsort(self.col * n + self.row))
-            transposed._transpose = (self, torch.argsort(perm))
+            with outside_transforms():
+                transposed, perm = _transposed(self, _stable_argsort(self.col * n + self.row))
+                transposed._transpose = (self, torch.argsort(perm))
             self._transpose = (transposed, perm)
         return self._transpose
 
@@ -183,10 +187,12 @@ class SparsityPattern:
             return run_eagerly(SparsityPattern.diagonal_positions, self)
         # the largest position on the diagonal of each row (the only one): a scatter of fixed
         # size rather than a nonzero(), so that it traces
-        on_diag = torch.where(self.row == self.col, torch.arange(self.nnz, device=self.device), -1)
-        k = min(self.shape)
-        pos = torch.full((k,), -1, dtype=torch.int64, device=self.device)
-        pos = pos.scatter_reduce(0, self.row.clamp_max(max(k - 1, 0)), on_diag, "amax")
+        with outside_transforms():
+            arange = torch.arange(self.nnz, device=self.device)
+            on_diag = torch.where(self.row == self.col, arange, -1)
+            k = min(self.shape)
+            pos = torch.full((k,), -1, dtype=torch.int64, device=self.device)
+            pos = pos.scatter_reduce(0, self.row.clamp_max(max(k - 1, 0)), on_diag, "amax")
         if not tracing():
             self._diag_pos = pos
         return pos
@@ -214,7 +220,8 @@ class SparsityPattern:
                 )
             union, at_self, at_other = run_eagerly(_cache_union, self, other)
         else:
-            union, at_self, at_other = _cache_union(self, other)
+            with outside_transforms():
+                union, at_self, at_other = _cache_union(self, other)
         return (other if union is None else union), at_self, at_other
 
     def _is_diagonal(self) -> bool:

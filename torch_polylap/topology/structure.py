@@ -13,7 +13,7 @@ from scipy.sparse.csgraph import connected_components, depth_first_order
 from ..faces import PolygonFaces
 from ..sparse.construct import diagonal_pattern
 from ..sparse.pattern import SparsityPattern
-from ..tracing import run_eagerly, tracing
+from ..tracing import outside_transforms, run_eagerly, tracing
 from .analysis import _twins, half_edge_vertices
 from .groups import DegreeGroup, GroupChunk, whole_group
 from .report import TopologyReport, _first
@@ -265,7 +265,10 @@ class Topology:
         if tracing():
             return run_eagerly(_make_view, self, device)
         view = self._views.get(device)
-        return _make_view(self, device) if view is None else view
+        if view is None:
+            with outside_transforms():
+                view = _make_view(self, device)
+        return view
 
     def __getstate__(self) -> dict[str, Any]:
         # device views and derived layouts are caches, rebuilt on first use after unpickling

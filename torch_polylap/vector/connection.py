@@ -51,6 +51,7 @@ from ..sparse.construct import csr_indices
 from ..sparse.operator import operator_on
 from ..sparse.pattern import SparsityPattern
 from ..topology import Topology, build_topology, get_topology
+from ..tracing import outside_transforms
 from .transport import TangentFrames, corner_transport, tangent_frames
 
 __all__ = ["connection_laplacian", "vector_mass"]
@@ -62,9 +63,10 @@ def _exploded(topo: Topology) -> Topology:
     key = ("vector.exploded", torch.device("cpu"))
     cached = topo.derived.get(key)
     if cached is None:
-        faces = topo.faces
-        n = faces.num_corners
-        cached = build_topology(PolygonFaces(torch.arange(n), faces.sizes), n, warn=False)
+        with outside_transforms():
+            faces = topo.faces
+            n = faces.num_corners
+            cached = build_topology(PolygonFaces(torch.arange(n), faces.sizes), n, warn=False)
         topo.derived[key] = cached
     return cached
 
@@ -80,21 +82,22 @@ def _block_layout(
     key = ("vector.connection", torch.device(device))
     cached = topo.derived.get(key)
     if cached is None:
-        crow_x, col_x = csr_indices(blocks)
-        row_x = torch.repeat_interleave(
-            torch.arange(crow_x.numel() - 1, device=device), crow_x.diff()
-        )
-        idx = topo.faces.indices.to(device)
-        vi, vj = 2 * idx[row_x], 2 * idx[col_x]
-        rows = torch.stack((vi, vi, vi + 1, vi + 1), 1).reshape(-1)
-        cols = torch.stack((vj, vj + 1, vj, vj + 1), 1).reshape(-1)
-        size = 2 * topo.num_verts
-        unique, inverse = torch.unique(rows * size + cols, sorted=True, return_inverse=True)
-        urow = torch.div(unique, size, rounding_mode="floor")
-        crow = torch.zeros(size + 1, dtype=torch.int64, device=device)
-        crow[1:] = torch.cumsum(torch.bincount(urow, minlength=size), 0)
-        pattern = SparsityPattern(crow, unique - urow * size, (size, size))
-        cached = (row_x, col_x, pattern, inverse)
+        with outside_transforms():
+            crow_x, col_x = csr_indices(blocks)
+            row_x = torch.repeat_interleave(
+                torch.arange(crow_x.numel() - 1, device=device), crow_x.diff()
+            )
+            idx = topo.faces.indices.to(device)
+            vi, vj = 2 * idx[row_x], 2 * idx[col_x]
+            rows = torch.stack((vi, vi, vi + 1, vi + 1), 1).reshape(-1)
+            cols = torch.stack((vj, vj + 1, vj, vj + 1), 1).reshape(-1)
+            size = 2 * topo.num_verts
+            unique, inverse = torch.unique(rows * size + cols, sorted=True, return_inverse=True)
+            urow = torch.div(unique, size, rounding_mode="floor")
+            crow = torch.zeros(size + 1, dtype=torch.int64, device=device)
+            crow[1:] = torch.cumsum(torch.bincount(urow, minlength=size), 0)
+            pattern = SparsityPattern(crow, unique - urow * size, (size, size))
+            cached = (row_x, col_x, pattern, inverse)
         topo.derived[key] = cached
     return cached
 

@@ -52,7 +52,7 @@ from ..checks import check_verts
 from ..kernels.frames import component_norm, stable_norm
 from ..measures import vector_area
 from ..topology import Topology, get_topology
-from ..tracing import run_eagerly, tracing
+from ..tracing import outside_transforms, run_eagerly, tracing
 from .transport import TangentFrames, minimal_rotation, tangent_frames
 
 __all__ = ["face_shape_operator", "fitted_frames", "shape_operator", "principal_curvatures"]
@@ -76,7 +76,8 @@ def _ring_pairs(topo: Topology) -> tuple[torch.Tensor, torch.Tensor]:
         return cached
     if tracing():
         return run_eagerly(_compute_ring_pairs, topo)
-    cached = topo.derived[key] = _compute_ring_pairs(topo)
+    with outside_transforms():
+        cached = topo.derived[key] = _compute_ring_pairs(topo)
     return cached
 
 

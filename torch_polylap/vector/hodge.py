@@ -65,6 +65,7 @@ from ..operators import laplacian
 from ..sparse import SparseOperator, from_coo
 from ..topology import Topology, build_topology, get_topology
 from ..topology.analysis import half_edge_vertices
+from ..tracing import outside_transforms
 
 __all__ = ["HodgeDecomposition", "HodgeParts", "virtual_refinement"]
 
@@ -96,32 +97,33 @@ def _refinement(topo: Topology) -> _Refinement:
     key = ("vector.refinement", torch.device("cpu"))
     cached = topo.derived.get(key)
     if cached is None:
-        faces = topo.faces
-        topo.require_manifold("hodge decomposition", vertices=False)
-        topo.require_oriented("hodge decomposition")
-        src, dst = half_edge_vertices(faces)
-        face = faces.corner_face
-        n = topo.num_verts + faces.num_faces
-        triangles = torch.stack((src, dst, topo.num_verts + face), 1)
-        refined = build_topology(triangles, n, warn=False)
-        # corner p of triangle t starts half-edge 3 t + p; the edge opposite p is the next one
-        he = torch.arange(3 * triangles.shape[0]).reshape(-1, 3).roll(-1, dims=1)
-        opposite = refined.half_edge_edge[he]
-        count, labels = refined.connected_components()
-        first = torch.full((count,), n, dtype=torch.int64).scatter_reduce(
-            0, labels, torch.arange(n), reduce="amin"
-        )
-        edge_label = labels[refined.edges[:, 0]]
-        on_boundary = refined.edge_faces == 1
-        open_component = torch.zeros(count, dtype=torch.bool)
-        open_component[edge_label[on_boundary]] = True
-        num_edges = refined.num_edges
-        first_edge = torch.full((count,), num_edges, dtype=torch.int64).scatter_reduce(
-            0, edge_label, torch.arange(num_edges), reduce="amin"
-        )
-        closed = (~open_component) & (first_edge < num_edges)
-        pin_v = torch.unique(torch.cat((torch.nonzero(on_boundary)[:, 0], first_edge[closed])))
-        cached = _Refinement(triangles, face, refined, opposite, first, pin_v)
+        with outside_transforms():
+            faces = topo.faces
+            topo.require_manifold("hodge decomposition", vertices=False)
+            topo.require_oriented("hodge decomposition")
+            src, dst = half_edge_vertices(faces)
+            face = faces.corner_face
+            n = topo.num_verts + faces.num_faces
+            triangles = torch.stack((src, dst, topo.num_verts + face), 1)
+            refined = build_topology(triangles, n, warn=False)
+            # corner p of triangle t starts half-edge 3 t + p; the edge opposite p is the next one
+            he = torch.arange(3 * triangles.shape[0]).reshape(-1, 3).roll(-1, dims=1)
+            opposite = refined.half_edge_edge[he]
+            count, labels = refined.connected_components()
+            first = torch.full((count,), n, dtype=torch.int64).scatter_reduce(
+                0, labels, torch.arange(n), reduce="amin"
+            )
+            edge_label = labels[refined.edges[:, 0]]
+            on_boundary = refined.edge_faces == 1
+            open_component = torch.zeros(count, dtype=torch.bool)
+            open_component[edge_label[on_boundary]] = True
+            num_edges = refined.num_edges
+            first_edge = torch.full((count,), num_edges, dtype=torch.int64).scatter_reduce(
+                0, edge_label, torch.arange(num_edges), reduce="amin"
+            )
+            closed = (~open_component) & (first_edge < num_edges)
+            pin_v = torch.unique(torch.cat((torch.nonzero(on_boundary)[:, 0], first_edge[closed])))
+            cached = _Refinement(triangles, face, refined, opposite, first, pin_v)
         topo.derived[key] = cached
     return cached
 
