@@ -104,7 +104,9 @@ def tangent_frames(verts: torch.Tensor, topo: Topology) -> TangentFrames:
     normal = torch.where(degenerate, fallback, summed / torch.where(degenerate, 1.0, norm))
     # the last resort: the coordinate axis least aligned with the normal (|n . ref| <=
     # 1/sqrt(3), so its tangent part is never short)
-    axis = torch.nn.functional.one_hot(normal.detach().abs().argmin(1), 3).to(verts.dtype)
+    # (a comparison, not one_hot, which reads its indices on the host and so refuses vmap)
+    least = normal.detach().abs().argmin(1, keepdim=True)
+    axis = (torch.arange(3, device=verts.device) == least).to(verts.dtype)
     tangent = _tangent_part(axis, normal)
     # the references in reverse order of preference: each where() keeps the later one wherever
     # it is usable, and the gradient flows only into the one taken

@@ -208,11 +208,10 @@ def test_structure_built_inside_a_transform_is_cached_plain(transform, device):
         L, M0 = tp.laplacian(X, faces)
         G = tp.calculus.gradient_operator(X, faces)
         frames = tp.tangent.vertex_tangent_frames(X, faces)
+        A = tp.vector.connection_laplacian(X, faces)[0]
+        Y = torch.ones(2 * X.shape[0], dtype=X.dtype, device=X.device)
         out = ((M0 + 0.3 * L) @ X).sum() + (L.T @ X).sum() + (G @ X[:, 0]).sum()
-        if transform != "vmap":  # the connection Laplacian checks for folds on the data
-            A = tp.vector.connection_laplacian(X, faces)[0]
-            out = out + (A @ torch.ones(2 * X.shape[0], dtype=X.dtype, device=X.device)).sum()
-        return out + frames.e_x.sum()
+        return out + (A @ Y).sum() + frames.e_x.sum()
 
     TRANSFORMS[transform](f, X)
     topo = tp.topology.get_topology(faces, X.shape[0])
@@ -225,3 +224,16 @@ def test_structure_built_inside_a_transform_is_cached_plain(transform, device):
     assert not wrapped, f"functorch wrappers left in the caches: {wrapped}"
     host = tp.sparse.to_scipy(M0 + 0.3 * L) if device.type == "cpu" else None
     assert host is None or host.nnz == (M0 + 0.3 * L)._nnz()
+
+
+def test_vmap_of_the_connection_laplacian_equals_a_loop(device):
+    """The fold check of the vector calculus is a batch-wide check under vmap, not a branch."""
+    verts, faces = tp.shapes.quad_grid(4, 5)
+    Xs = torch.stack([_perturbed(verts, seed) for seed in (3, 4)]).to(device)
+    Y = torch.linspace(-1, 1, 2 * verts.shape[0], dtype=torch.float64, device=device)
+
+    def f(X: torch.Tensor) -> torch.Tensor:
+        return (Y * (tp.vector.connection_laplacian(X, faces)[0] @ Y)).sum()
+
+    torch.testing.assert_close(vmap(f)(Xs), torch.stack([f(X) for X in Xs]))
+    torch.testing.assert_close(vmap(grad(f))(Xs), torch.stack([grad(f)(X) for X in Xs]))

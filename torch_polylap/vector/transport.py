@@ -30,6 +30,7 @@ from ..kernels.frames import stable_norm
 from ..measures import vector_area
 from ..tangent import TangentFrames, tangent_frames
 from ..topology import Topology
+from ..tracing import require
 
 __all__ = [
     "TangentFrames",
@@ -88,7 +89,8 @@ def corner_transport(
     n_v, n_c = frames.normal[idx], n_f[face]
     cos = (n_v * n_c).sum(1)
     folded = cos <= -1 + 1e-6
-    if bool(folded.any()):
+    fold = "a vertex normal points against its face's normal: the mesh folds over; repair it first."
+    if not require(~folded, fold):
         c = int(torch.nonzero(folded)[0, 0])
         raise ValueError(
             f"face {int(face[c])}: the normal at its vertex {int(idx[c])} points against the "
