@@ -26,19 +26,10 @@ import os
 import warnings
 from pathlib import Path
 
+import common
 import numpy as np
 import scipy.sparse as sp
 import torch
-from common import (
-    bench_grid,
-    fmt_time,
-    markdown_table,
-    median_time,
-    pinned_threads,
-    run_meta,
-    table_data,
-    write_results,
-)
 
 import torch_polylap as tp
 
@@ -55,9 +46,9 @@ def ours(verts: torch.Tensor, faces: torch.Tensor | tp.PolygonFaces, repeat: int
             copy = tp.PolygonFaces(copy.indices.clone(), offsets=copy.offsets.clone())
         return tp.gradient_operator(verts, copy)
 
-    first = median_time(fresh, repeat)
+    first = common.median_time(fresh, repeat)
     topo = tp.get_topology(faces, verts.shape[0])
-    cached = median_time(lambda: tp.gradient_operator(verts, topo), repeat)
+    cached = common.median_time(lambda: tp.gradient_operator(verts, topo), repeat)
     return {"first": first, "cached": cached}
 
 
@@ -66,9 +57,9 @@ def timing_row(label: str, peer_s: float, mine: dict, diff: float) -> list[str]:
     relative difference."""
     return [
         label,
-        fmt_time(peer_s),
-        fmt_time(mine["first"]),
-        fmt_time(mine["cached"]),
+        common.fmt_time(peer_s),
+        common.fmt_time(mine["first"]),
+        common.fmt_time(mine["cached"]),
         f"{peer_s / mine['first']:.2f}x",
         f"{peer_s / mine['cached']:.2f}x",
         f"{diff:.1e}",
@@ -78,12 +69,12 @@ def timing_row(label: str, peer_s: float, mine: dict, diff: float) -> list[str]:
 def triangle_row(n: int, repeat: int) -> tuple[list[str], dict]:
     import igl
 
-    verts, quads = bench_grid(n)
+    verts, quads = common.bench_grid(n)
     q = quads.numpy()
     tris = np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
     tris_t = torch.from_numpy(tris)
     V, F = verts.numpy(), tris.astype(np.int64)
-    igl_s = median_time(lambda: igl.grad(V, F), repeat)
+    igl_s = common.median_time(lambda: igl.grad(V, F), repeat)
     mine = ours(verts, tris_t, repeat)
     mine_quads = ours(verts, quads, repeat)
     # the same matrix up to row order: libigl's rows are (component, face), ours (face, component)
@@ -93,7 +84,7 @@ def triangle_row(n: int, repeat: int) -> tuple[list[str], dict]:
     order = (3 * np.arange(nf)[None, :] + np.arange(3)[:, None]).reshape(-1)
     diff = abs(G[order] - G_igl).max() / abs(G_igl).max()
     row = timing_row(f"{n} x {n} grid: {nf:,} triangles ({len(V):,} v)", igl_s, mine, diff)
-    row.append(f"{fmt_time(mine_quads['first'])} / {fmt_time(mine_quads['cached'])}")
+    row.append(f"{common.fmt_time(mine_quads['first'])} / {common.fmt_time(mine_quads['cached'])}")
     data = {"faces": nf, "igl": igl_s, "ours": mine, "ours_quads": mine_quads, "rel_diff": diff}
     return row, data
 
@@ -115,7 +106,7 @@ def lagrange_row(path: Path, repeat: int) -> tuple[list[str], dict]:
         mesh.add_hybrid(sizes, indices)
         return polyddg.DifferentialOperators(mesh).gradient()
 
-    peer_s = median_time(peer, repeat)
+    peer_s = common.median_time(peer, repeat)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # non-manifold or isolated vertices: one warning each
         mine = ours(verts, faces, repeat)
@@ -133,15 +124,15 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--json", type=Path, help="default benchmarks/results/gradient.json")
     args = parser.parse_args()
-    meta = run_meta(threads=1)
+    meta = common.run_meta(threads=1)
     report: dict = {"repeat": args.repeat, "real": {}, "tables": {}}
     print(f"torch {torch.__version__}, float64, 1 thread\n")
-    with pinned_threads(1):
+    with common.pinned_threads(1):
         row, report["grid"] = triangle_row(args.grid, args.repeat)
         header = ["mesh", "igl.grad", "ours first", "ours cached", "igl / first"]
         header += ["igl / cached", "max rel diff", "ours on the quads (first / cached)"]
-        print(markdown_table(header, [row]), "\n")
-        report["tables"]["triangles"] = table_data(header, [row])
+        print(common.markdown_table(header, [row]), "\n")
+        report["tables"]["triangles"] = common.table_data(header, [row])
         real = SHARED / "real"
         rows = []
         if real.is_dir():
@@ -151,11 +142,11 @@ def main() -> None:
                     rows.append(row)
             header = ["mesh", "lagrange", "ours first", "ours cached", "lagrange / first"]
             header += ["lagrange / cached", "max rel diff"]
-            print(markdown_table(header, rows))
-            report["tables"]["polygons"] = table_data(header, rows)
+            print(common.markdown_table(header, rows))
+            report["tables"]["polygons"] = common.table_data(header, rows)
         else:
             print(f"(no real meshes at {real}: set POLYLAP_SHARED_MESHES)")
-    write_results("gradient", report, meta=meta, path=args.json)
+    common.write_results("gradient", report, meta=meta, path=args.json)
 
 
 if __name__ == "__main__":

@@ -352,43 +352,28 @@ def fmt_mb(num_bytes: int | None) -> str:
     return "–" if num_bytes is None else f"{num_bytes / 2**20:,.0f}"
 
 
+# the timing table's millisecond columns: header -> key of a result's "seconds"
+TIMING_COLUMNS = {
+    "topology": "topology",
+    "first": "first",
+    "re-asm": "reassembly",
+    "fwd+bwd": "fwd_bwd",
+    "spmm": "spmm",
+    "L@X": "torch_matmul",
+    "scipy L@X": "scipy_matmul",
+    "igl tri": "igl_tri",
+    "igl poly": "igl_poly",
+}
+
+
 def timing_table(results: list[dict]) -> dict:
-    header = [
-        "mesh",
-        "F",
-        "V",
-        "nnz(L)",
-        "topology",
-        "first",
-        "re-asm",
-        "fwd+bwd",
-        "spmm",
-        "L@X",
-        "scipy L@X",
-        "igl tri",
-        "igl poly",
-        "fwd+bwd Δ MB",
-        "process MB",
-    ]
+    header = ["mesh", "F", "V", "nnz(L)", *TIMING_COLUMNS, "fwd+bwd Δ MB", "process MB"]
     rows = []
     for r in results:
         s, mem = r["seconds"], r.get("memory") or {}
         rows.append(
             [r["name"], f"{r['faces']:,}", f"{r['verts']:,}", f"{r['nnz']:,}"]
-            + [
-                fmt_ms(s[key])
-                for key in (
-                    "topology",
-                    "first",
-                    "reassembly",
-                    "fwd_bwd",
-                    "spmm",
-                    "torch_matmul",
-                    "scipy_matmul",
-                    "igl_tri",
-                    "igl_poly",
-                )
-            ]
+            + [fmt_ms(s[key]) for key in TIMING_COLUMNS.values()]
             + [
                 fmt_mb(mem.get("cuda_delta_bytes", mem.get("rss_delta_bytes"))),
                 fmt_mb(mem.get("rss_peak_bytes")),

@@ -47,16 +47,6 @@ from pathlib import Path
 import common
 import numpy as np
 import torch
-from common import (
-    RESULTS,
-    add_switch,
-    markdown_table,
-    peak_rss_growth,
-    pinned_threads,
-    run_meta,
-    table_data,
-    write_results,
-)
 
 from torch_polylap.batch import PolygonMeshes, per_mesh_mean
 from torch_polylap.losses import laplacian_smoothing
@@ -243,7 +233,7 @@ def memory_child(
         step()
     out = {}
     for name, step in steps.items():
-        growth = peak_rss_growth(step)
+        growth = common.peak_rss_growth(step)
         out[name] = {"method": growth["method"], "delta_bytes": growth["rss_delta_bytes"]}
     return out
 
@@ -353,9 +343,9 @@ def report(env: dict, data: dict) -> str:
                 [step, f"{seconds * 1e3:.1f}", f"{seconds / case['seconds'][base]:.2f}", mb]
             )
         header = ["fwd+bwd", "ms", f"/ {base}", "peak MB"]
-        out.append(markdown_table(header, rows))
+        out.append(common.markdown_table(header, rows))
         key = "batch" if case["name"].startswith("batch") else "big"
-        data["tables"][key] = table_data(header, rows)
+        data["tables"][key] = common.table_data(header, rows)
         if case["check"]:
             c = case["check"]
             out.append(
@@ -381,26 +371,26 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--noise", type=float, default=0.01, help="radial noise (default 0.01)")
     p.add_argument("--repeat", type=int, default=3, help="timed samples (default 3)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    add_switch(p, "--memory", "peak memory per step in fresh processes (default on)")
+    common.add_switch(p, "--memory", "peak memory per step in fresh processes (default on)")
     p.add_argument("--threads", type=int, default=0, help="torch threads; 0 keeps torch's default")
-    p.add_argument("--json", type=Path, help=f"default {RESULTS / 'losses.json'}")
+    p.add_argument("--json", type=Path, help=f"default {common.RESULTS / 'losses.json'}")
     return p.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    with pinned_threads(args.threads or torch.get_num_threads()):
+    with common.pinned_threads(args.threads or torch.get_num_threads()):
         return _main(args)
 
 
 def _main(args: argparse.Namespace) -> int:
-    meta = run_meta()
+    meta = common.run_meta()
     env = {"threads": torch.get_num_threads(), "dtype": args.dtype, "repeat": args.repeat}
     start = time.perf_counter()
     data = run(args)
     env["total_seconds"] = time.perf_counter() - start
     print(report(env, data))
-    write_results("losses", {"environment": env, **data}, meta=meta, path=args.json)
+    common.write_results("losses", {"environment": env, **data}, meta=meta, path=args.json)
     return 0
 
 

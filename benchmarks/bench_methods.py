@@ -24,17 +24,9 @@ import sys
 import warnings
 from pathlib import Path
 
+import common
 import numpy as np
 import torch
-from common import (
-    bench_grid,
-    markdown_table,
-    median_time,
-    pinned_threads,
-    run_meta,
-    table_data,
-    write_results,
-)
 
 import torch_polylap as tp
 
@@ -56,11 +48,11 @@ def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
     )
     row = {"mesh": name, "verts": int(verts.shape[0]), "faces": int(packed.sizes.numel())}
     for method in METHODS:
-        row[f"{method}_first"] = median_time(
+        row[f"{method}_first"] = common.median_time(
             lambda m=method: tp.laplacian(verts, _fresh(packed), method=m), repeat
         )
         topo = tp.get_topology(packed, verts.shape[0])
-        row[f"{method}_cached"] = median_time(
+        row[f"{method}_cached"] = common.median_time(
             lambda m=method, t=topo: tp.laplacian(verts, t, method=m), repeat
         )
     try:
@@ -69,7 +61,7 @@ def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
         idx = packed.indices.numpy().astype(np.int64)
         off = packed.offsets.numpy().astype(np.int64)
         vn = verts.numpy()
-        row["igl_plms"] = median_time(lambda: igl.cotmatrix(vn, idx, off), repeat)
+        row["igl_plms"] = common.median_time(lambda: igl.cotmatrix(vn, idx, off), repeat)
     except ImportError:
         row["igl_plms"] = None
     return row
@@ -109,19 +101,19 @@ def main() -> None:
     parser.add_argument("--real-dir", type=Path, default=ROOT.parent / "shared/data/meshes/real")
     parser.add_argument("--json", type=Path, help="default benchmarks/results/methods.json")
     args = parser.parse_args()
-    meta = run_meta(threads=1)
-    with pinned_threads(1):
+    meta = common.run_meta(threads=1)
+    with common.pinned_threads(1):
         rows = run(args)
     header, body = table(rows)
     print(f"torch {torch.__version__}, 1 thread, median of {args.repeat}\n")
-    print(markdown_table(header, body))
-    sections = {"repeat": args.repeat, "tables": {"methods": table_data(header, body)}}
-    write_results("methods", {**sections, "rows": rows}, meta=meta, path=args.json)
+    print(common.markdown_table(header, body))
+    sections = {"repeat": args.repeat, "tables": {"methods": common.table_data(header, body)}}
+    common.write_results("methods", {**sections, "rows": rows}, meta=meta, path=args.json)
 
 
 def run(args: argparse.Namespace) -> list[dict]:
     rows = []
-    verts, faces = bench_grid(args.grid)
+    verts, faces = common.bench_grid(args.grid)
     print(f"grid {args.grid}x{args.grid}", file=sys.stderr)
     rows.append(bench_mesh(f"quad grid {args.grid}^2", verts, faces, args.repeat))
     if args.real_dir.exists():

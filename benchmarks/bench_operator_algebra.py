@@ -33,16 +33,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import common
 import torch
-from common import (
-    bench_grid,
-    markdown_table,
-    peak_rss_growth,
-    pinned_threads,
-    run_meta,
-    table_data,
-    write_results,
-)
 
 import torch_polylap as tp
 from torch_polylap.sparse import operator_from_parts, sparse_values
@@ -135,7 +127,7 @@ def native_attempt(verts: torch.Tensor, topo) -> str:
 
 
 def run_grid(n: int, repeat: int) -> dict:
-    verts, faces = bench_grid(n)
+    verts, faces = common.bench_grid(n)
     topo = tp.build_topology(faces, verts.shape[0])
     rows = []
     for name, ours, by_hand in EXPRESSIONS:
@@ -146,7 +138,9 @@ def run_grid(n: int, repeat: int) -> dict:
         for _ in range(repeat):
             for key, step in steps.items():
                 times[key].append(timed(step))
-        memory = {key: peak_rss_growth(step)["rss_delta_bytes"] for key, step in steps.items()}
+        memory = {
+            key: common.peak_rss_growth(step)["rss_delta_bytes"] for key, step in steps.items()
+        }
         row = {
             "expression": name,
             "ours_ms": statistics.median(times["ours"]) * 1e3,
@@ -186,11 +180,13 @@ def tables(results: list[dict]) -> dict:
             ]
             for r in grid["rows"]
         ]
-        out[f"n{grid['n']}"] = table_data(header, body)
+        out[f"n{grid['n']}"] = common.table_data(header, body)
     native = [
         [f"{g['quads']:,}", f"{g['vertices']:,}", f"{g['nnz']:,}", g["native"]] for g in results
     ]
-    out["native"] = table_data(["quads", "vertices", "nnz(L)", "torch native backward"], native)
+    out["native"] = common.table_data(
+        ["quads", "vertices", "nnz(L)", "torch native backward"], native
+    )
     return out
 
 
@@ -205,15 +201,16 @@ def main() -> None:
         "--json", type=Path, help="default benchmarks/results/operator_algebra.json"
     )
     args = parser.parse_args()
-    meta = run_meta(threads=args.threads)
-    with pinned_threads(args.threads):
+    meta = common.run_meta(threads=args.threads)
+    with common.pinned_threads(args.threads):
         results = [run_grid(n, args.repeat) for n in args.grids]
     rendered = tables(results)
     print(f"{args.threads} thread(s), torch {torch.__version__}, float64, median of {args.repeat}")
     for key, t in rendered.items():
-        print(f"\n### {key}\n\n{markdown_table(t['columns'], t['rows'])}")
+        print(f"\n### {key}\n\n{common.markdown_table(t['columns'], t['rows'])}")
     sections = {"repeat": args.repeat, "grids": results, "tables": rendered}
-    write_results("operator_algebra", sections, meta=meta, path=args.json)
+    common.write_results("operator_algebra", sections, meta=meta, path=args.json)
+
 
 if __name__ == "__main__":
     main()

@@ -23,16 +23,8 @@ import statistics
 import time
 from pathlib import Path
 
+import common
 import torch
-from common import (
-    bench_grid,
-    markdown_table,
-    peak_rss_growth,
-    pinned_threads,
-    run_meta,
-    table_data,
-    write_results,
-)
 
 import torch_polylap as tp
 
@@ -41,7 +33,7 @@ DEVICE = torch.device("cpu")
 
 def _grid(faces: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     n = max(2, round(math.sqrt(faces)))
-    return bench_grid(n, noise=0.02 / n, seed=seed, device=DEVICE)
+    return common.bench_grid(n, noise=0.02 / n, seed=seed, device=DEVICE)
 
 
 def _step_fn(lap: tp.PolygonLaplacian, X: torch.Tensor, faces: torch.Tensor):
@@ -82,8 +74,8 @@ def eager_vs_compiled(faces: int, repeats: int) -> dict:
         times_c.append(_clock(compiled))
     X_e.grad = X_c.grad = None
     le, lc = eager(), compiled()
-    mem_e = peak_rss_growth(eager)["rss_delta_bytes"]
-    mem_c = peak_rss_growth(compiled)["rss_delta_bytes"]
+    mem_e = common.peak_rss_growth(eager)["rss_delta_bytes"]
+    mem_c = common.peak_rss_growth(compiled)["rss_delta_bytes"]
     te, tc = statistics.median(times_e), statistics.median(times_c)
     return {
         "faces": quads.shape[0],
@@ -165,7 +157,7 @@ def tables(steps: list[dict], batches: list[dict]) -> dict:
         ]
         for b in batches
     ]
-    return {"compile": table_data(header, body), "batch": table_data(bheader, bbody)}
+    return {"compile": common.table_data(header, body), "batch": common.table_data(bheader, bbody)}
 
 
 def main() -> None:
@@ -181,15 +173,16 @@ def main() -> None:
     global DEVICE
     DEVICE = torch.device(args.device)
     torch._dynamo.config.trace_autograd_ops = True  # backward() inside the compiled graph
-    meta = run_meta(threads=args.threads)
-    with pinned_threads(args.threads):
+    meta = common.run_meta(threads=args.threads)
+    with common.pinned_threads(args.threads):
         steps = [eager_vs_compiled(n, args.repeats) for n in args.sizes]
         batches = [batch_vs_loop(n, args.batch, args.repeats) for n in args.batch_sizes]
     result = {"eager_vs_compiled": steps, "batch_vs_loop": batches}
     result["tables"] = tables(steps, batches)
     for t in result["tables"].values():
-        print(markdown_table(t["columns"], t["rows"]), "\n")
-    write_results("training_step", result, meta=meta, path=args.json)
+        print(common.markdown_table(t["columns"], t["rows"]), "\n")
+    common.write_results("training_step", result, meta=meta, path=args.json)
+
 
 if __name__ == "__main__":
     main()

@@ -328,15 +328,24 @@ def _shifted_solution(L: torch.Tensor, M0: torch.Tensor, shift: float, b: np.nda
     return constant + np.linalg.solve(fixed, b - along)
 
 
-@pytest.mark.parametrize("backend", ["splu", "cholesky", "ldl"])
+# the direct solvers, each skipped where its optional package is missing
+DIRECT_BACKENDS = [
+    "splu",
+    pytest.param(
+        "cholesky",
+        marks=pytest.mark.skipif(not linalg.cholespy_available(), reason="needs cholespy"),
+    ),
+    pytest.param(
+        "ldl", marks=pytest.mark.skipif(not linalg.qdldl_available(), reason="needs qdldl")
+    ),
+]
+
+
+@pytest.mark.parametrize("backend", DIRECT_BACKENDS)
 def test_ill_conditioned_positive_definite_solve_warns_and_solves(backend):
     """``L + 1e-12 M0`` is positive definite with condition number about 8e12 on spot: it was
     refused as singular by its solution growth alone. Solved now, to the digits the warning
     promises, against a reference that needs no ill-conditioned solve."""
-    if backend == "ldl" and not linalg.qdldl_available():
-        pytest.skip("needs qdldl")
-    if backend == "cholesky" and not linalg.cholespy_available():
-        pytest.skip("needs cholespy")
     V, F = _spot()
     L, M0 = tp.laplacian(V, F)
     b = np.random.default_rng(3).standard_normal(V.shape[0])
@@ -354,14 +363,10 @@ def test_ill_conditioned_positive_definite_solve_warns_and_solves(backend):
     assert np.abs(x - reference).max() <= 1e-4 * np.abs(reference).max()
 
 
-@pytest.mark.parametrize("backend", ["splu", "cholesky", "ldl"])
+@pytest.mark.parametrize("backend", DIRECT_BACKENDS)
 def test_laplacian_alone_stays_singular(backend):
     """``L`` of a closed mesh with a right-hand side outside its range (``M0 1``): no
     refinement converges, so the error names the singular matrix and the remedy."""
-    if backend == "ldl" and not linalg.qdldl_available():
-        pytest.skip("needs qdldl")
-    if backend == "cholesky" and not linalg.cholespy_available():
-        pytest.skip("needs cholespy")
     V, F = _spot()
     L, M0 = tp.laplacian(V, F)
     with pytest.raises(ValueError, match=r"is singular .*M0 \+ h L"):

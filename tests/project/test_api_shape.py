@@ -16,6 +16,8 @@ import pkgutil
 from collections.abc import Callable, Iterator
 from types import ModuleType
 
+import pytest
+
 import torch_polylap
 
 MAX_PARAMETERS = 10
@@ -105,22 +107,21 @@ def test_the_walk_finds_the_api():
     assert "torch_polylap.sparse.operator.SparseOperator.with_values" in found
 
 
-def test_at_most_ten_parameters():
+@pytest.mark.parametrize(
+    ("measure", "limit", "what"),
+    [
+        (_parameter_count, MAX_PARAMETERS, "more than {} parameters"),
+        (_line_count, MAX_LINES, "longer than {} lines"),
+    ],
+    ids=["at_most_ten_parameters", "at_most_a_hundred_lines"],
+)
+def test_public_function_size(measure, limit, what):
     offenders = {
         name: count
         for name, function in _callables().items()
-        if (count := _parameter_count(function)) > MAX_PARAMETERS
+        if (count := measure(function)) > limit
     }
-    assert not offenders, f"more than {MAX_PARAMETERS} parameters: {offenders}"
-
-
-def test_at_most_a_hundred_lines():
-    offenders = {
-        name: count
-        for name, function in _callables().items()
-        if (count := _line_count(function)) > MAX_LINES
-    }
-    assert not offenders, f"longer than {MAX_LINES} lines: {offenders}"
+    assert not offenders, f"{what.format(limit)}: {offenders}"
 
 
 def test_the_top_level_exports_at_most_sixty_names():

@@ -134,22 +134,26 @@ def assert_valid(V: torch.Tensor, faces) -> None:
 sizes = st.tuples(st.integers(1, 5), st.integers(1, 5), st.integers(0, 2**32 - 1))
 
 
+def fuzzed_grid(nms: tuple[int, int, int], case: str) -> tuple:
+    """``(rng, verts, faces)``: the mixed-degree grid of the drawn ``(n, m, seed)`` and the
+    generator that goes on drawing from the same seed; counts one example of ``case``."""
+    n, m, seed = nms
+    COUNTS[case] += 1
+    rng = np.random.default_rng(seed)
+    return (rng, *polygon_grid(rng, n, m))
+
+
 @FUZZ
 @given(sizes)
 def test_mixed_degree_grids(nms):
-    n, m, seed = nms
-    COUNTS["mixed-degree grid"] += 1
-    verts, faces = polygon_grid(np.random.default_rng(seed), n, m)
+    _, verts, faces = fuzzed_grid(nms, "mixed-degree grid")
     assert_valid(torch.from_numpy(verts), faces)
 
 
 @FUZZ
 @given(sizes, st.floats(0.05, 0.9))
 def test_random_flips(nms, p):
-    n, m, seed = nms
-    COUNTS["random flips"] += 1
-    rng = np.random.default_rng(seed)
-    verts, faces = polygon_grid(rng, n, m)
+    rng, verts, faces = fuzzed_grid(nms, "random flips")
     flipped = flip_some(rng, faces, p)
     V = torch.from_numpy(verts)
     assert_valid(V, flipped)
@@ -162,10 +166,7 @@ def test_random_flips(nms, p):
 @FUZZ
 @given(sizes, st.integers(1, 4))
 def test_random_duplicates(nms, count):
-    n, m, seed = nms
-    COUNTS["random duplicates"] += 1
-    rng = np.random.default_rng(seed)
-    verts, faces = polygon_grid(rng, n, m)
+    rng, verts, faces = fuzzed_grid(nms, "random duplicates")
     dup = duplicate_some(rng, faces, count)
     assert_valid(torch.from_numpy(verts), dup)
     _, cleaned, rep = repair.remove_duplicate_faces(verts, dup)
@@ -175,10 +176,7 @@ def test_random_duplicates(nms, count):
 @FUZZ
 @given(sizes, st.integers(1, 3), st.floats(0.0, 0.5))
 def test_random_nonmanifold_gluing(nms, fins, p):
-    n, m, seed = nms
-    COUNTS["non-manifold gluing"] += 1
-    rng = np.random.default_rng(seed)
-    verts, faces = polygon_grid(rng, n, m)
+    rng, verts, faces = fuzzed_grid(nms, "non-manifold gluing")
     verts, faces = add_fins(rng, verts, flip_some(rng, faces, p), fins)
     assert_valid(torch.from_numpy(verts), faces)
 

@@ -274,25 +274,31 @@ def test_from_pyg_duck_typed_data():
         tp.from_pyg(SimpleNamespace(pos=v2, face=tri))
 
 
-def test_from_pyg_real_data():
-    tg = pytest.importorskip(
-        "torch_geometric",
-        reason="torch_geometric not installed (optional adapter; not a dependency)",
+def optional_adapter(module: str):
+    """The optional package ``module`` that an adapter converts from; skips the test without it."""
+    package = module.split(".")[0]
+    return pytest.importorskip(
+        module, reason=f"{package} not installed (optional adapter; not a dependency)"
     )
+
+
+def triangulated_grid() -> tuple[torch.Tensor, torch.Tensor]:
+    """The 2 x 2 quad grid's vertices and its ``(8, 3)`` triangles (each quad split at 0-2)."""
     v, f = quad_grid(2)
-    tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
+    return v, torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
+
+
+def test_from_pyg_real_data():
+    tg = optional_adapter("torch_geometric")
+    v, tris = triangulated_grid()
     data = tg.data.Data(pos=v, face=tris.t().contiguous())
     m = tp.from_pyg(tg.data.Batch.from_data_list([data, data]))
     assert len(m) == 2 and m[1][1].tolist() == tris.tolist()
 
 
 def test_from_pytorch3d():
-    structures = pytest.importorskip(
-        "pytorch3d.structures",
-        reason="pytorch3d not installed (optional adapter; not a dependency)",
-    )
-    v, f = quad_grid(2)
-    tris = torch.cat([f[:, [0, 1, 2]], f[:, [0, 2, 3]]])
+    structures = optional_adapter("pytorch3d.structures")
+    v, tris = triangulated_grid()
     meshes = structures.Meshes([v.float(), v.float() * 2], [tris, tris])
     m = tp.from_pytorch3d(meshes)
     assert torch.equal(m.verts_packed(), meshes.verts_packed())

@@ -120,16 +120,33 @@ def test_change_of_frames_conjugates_the_operator(device):
     np.testing.assert_allclose(to_scipy(B).toarray(), R.T @ to_scipy(A).toarray() @ R, atol=1e-12)
 
 
-@pytest.mark.parametrize("n", [1, 2, 4])
-def test_equals_adobe_lagrange_on_triangles(n, device):
-    """On triangles every polygon method is the cotangent Laplacian and our connection
-    Laplacian is de Goes et al. 2020's vertex-based one: the spectra of adobe-lagrange's
-    ``connection_laplacian_nrosy`` and ours agree to rounding (measured 6e-13 relative)."""
+def lagrange_modules() -> tuple:
+    """adobe-lagrange and its ``polyddg`` module; skips the test where it is not installed."""
     lagrange = pytest.importorskip(
         "lagrange", reason="adobe-lagrange not installed: pip install adobe-lagrange"
     )
     from lagrange import polyddg
 
+    return lagrange, polyddg
+
+
+def lagrange_curvatures(verts: torch.Tensor, faces: torch.Tensor) -> tuple:
+    """``(kmin, kmax)``, each ``(V,)``, of the quad mesh by adobe-lagrange's
+    ``compute_principal_curvatures`` (de Goes et al. 2020's adjoint shape operator)."""
+    lagrange, polyddg = lagrange_modules()
+    mesh = lagrange.SurfaceMesh()
+    mesh.add_vertices(verts.numpy())
+    mesh.add_quads(faces.numpy().astype(np.uint32))
+    ids = polyddg.compute_principal_curvatures(mesh)
+    return tuple(torch.from_numpy(mesh.attribute(i).data.copy()) for i in ids[:2])
+
+
+@pytest.mark.parametrize("n", [1, 2, 4])
+def test_equals_adobe_lagrange_on_triangles(n, device):
+    """On triangles every polygon method is the cotangent Laplacian and our connection
+    Laplacian is de Goes et al. 2020's vertex-based one: the spectra of adobe-lagrange's
+    ``connection_laplacian_nrosy`` and ours agree to rounding (measured 6e-13 relative)."""
+    lagrange, polyddg = lagrange_modules()
     verts, quads = tp.shapes.quad_sphere(4, noise=0.02, seed=1)
     faces = triangulated(verts, quads)
     mesh = lagrange.SurfaceMesh()
@@ -409,17 +426,8 @@ def test_principal_curvatures_close_to_lagrange_on_torus(device):
     operator) on the same torus: both within 2x of each other's error (measured 0.048 ours,
     0.027 lagrange at 48 x 24), and the curvatures agree to 0.05 on average (measured 0.012
     and 0.027)."""
-    lagrange = pytest.importorskip(
-        "lagrange", reason="adobe-lagrange not installed: pip install adobe-lagrange"
-    )
-    from lagrange import polyddg
-
     verts, faces = tp.shapes.torus(48, 24, major=1.0, minor=0.4)
-    mesh = lagrange.SurfaceMesh()
-    mesh.add_vertices(verts.numpy())
-    mesh.add_quads(faces.numpy().astype(np.uint32))
-    ids = polyddg.compute_principal_curvatures(mesh)
-    lmin, lmax = (torch.from_numpy(mesh.attribute(i).data.copy()) for i in ids[:2])
+    lmin, lmax = lagrange_curvatures(verts, faces)
     kmin, kmax, _, _ = (c.cpu() for c in tv.principal_curvatures(verts.to(device), faces))
     emin, emax = torus_curvatures(verts, 1.0, 0.4)
     ours = max(float((kmin - emin).abs().max()), float((kmax - emax).abs().max()))
@@ -472,17 +480,8 @@ def test_principal_curvatures_beside_lagrange_on_an_irregular_torus(device):
     """adobe-lagrange's polygon shape operator uses first-order vertex normals too and does not
     converge on irregular quads (mean error measured 0.096 at 32 x 16 and 0.095 at 64 x 32);
     ours is below a third of it at 64 x 32 (measured 0.017)."""
-    lagrange = pytest.importorskip(
-        "lagrange", reason="adobe-lagrange not installed: pip install adobe-lagrange"
-    )
-    from lagrange import polyddg
-
     verts, faces = jittered_torus(64)
-    mesh = lagrange.SurfaceMesh()
-    mesh.add_vertices(verts.numpy())
-    mesh.add_quads(faces.numpy().astype(np.uint32))
-    ids = polyddg.compute_principal_curvatures(mesh)
-    lmin, lmax = (torch.from_numpy(mesh.attribute(i).data.copy()) for i in ids[:2])
+    lmin, lmax = lagrange_curvatures(verts, faces)
     kmin, kmax, _, _ = (c.cpu() for c in tv.principal_curvatures(verts.to(device), faces))
     ours = float(torus_error(kmin, kmax, verts).mean())
     assert ours < float(torus_error(lmin, lmax, verts).mean()) / 3
