@@ -286,7 +286,7 @@ def _collect(
     report: PrecomputeReport,
 ) -> None:
     """Submit one task per item and tally the outcomes as they complete."""
-    from tqdm.auto import tqdm
+    from tqdm import tqdm
 
     labels = [_label(item, i) for i, item in enumerate(items)]
     futures: dict[Future[_Outcome], str] = {}
