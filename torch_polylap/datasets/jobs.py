@@ -35,7 +35,15 @@ from ..spectral import (
     load_cached_eigs,
 )
 
-__all__ = ["precompute", "PrecomputeReport", "PrecomputeFailure", "normalize_mesh", "read_item"]
+__all__ = [
+    "precompute",
+    "PrecomputeReport",
+    "PrecomputeFailure",
+    "InlineExecutor",
+    "local_executor",
+    "normalize_mesh",
+    "read_item",
+]
 
 MeshItem = str | os.PathLike | tuple[torch.Tensor, FacesLike]
 
