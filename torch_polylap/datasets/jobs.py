@@ -300,7 +300,8 @@ def _collect(
     futures: dict[Future[_Outcome], str] = {}
     try:
         for item, label in zip(items, labels, strict=True):
-            futures[pool.submit(_fill_one, item, label, os.fspath(cache), *options)] = label
+            task = (_on_cpu(item), label, os.fspath(cache), *options)
+            futures[pool.submit(_fill_one, *task)] = label
         with tqdm(total=len(items), unit="mesh", desc="precompute", disable=not progress) as bar:
             for future in as_completed(futures):
                 _tally(report, future, futures[future])
@@ -309,6 +310,17 @@ def _collect(
         for future in futures:
             future.cancel()
         raise
+
+
+def _on_cpu(item: MeshItem) -> MeshItem:
+    """The item with its tensors on the CPU: CUDA tensors do not cross into forked workers or
+    other machines, and the entry is the same (its key hashes float64 CPU copies)."""
+    if isinstance(item, str | os.PathLike):
+        return item
+    verts, faces = item
+    if isinstance(faces, torch.Tensor | PolygonFaces):
+        faces = faces.to("cpu")
+    return verts.detach().cpu(), faces
 
 
 def _tally(report: PrecomputeReport, future: Future[_Outcome], label: str) -> None:
