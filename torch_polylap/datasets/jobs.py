@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import secrets
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -165,8 +166,13 @@ def _fill_one(
     method: str,
     lam: float,
     normalize: bool,
+    run: str,
 ) -> _Outcome:
     """The task of one mesh, run where the executor runs it: read, then reuse or compute.
+
+    ``run`` is unused here: a token unique to each :func:`precompute` call, so that executors
+    that take a task's arguments for its identity (Dask's ``pure`` tasks) never answer a
+    later call with the outcome of an earlier one (the outcome depends on the cache's state).
 
     Never raises for a bad mesh: the error comes back as a ``"failed"`` outcome, so it cannot
     stop the other tasks, and exceptions that do not pickle never cross processes. Warnings
@@ -297,10 +303,11 @@ def _collect(
     from tqdm import tqdm
 
     labels = [_label(item, i) for i, item in enumerate(items)]
+    run = secrets.token_hex(8)
     futures: dict[Future[_Outcome], str] = {}
     try:
         for item, label in zip(items, labels, strict=True):
-            task = (_on_cpu(item), label, os.fspath(cache), *options)
+            task = (_on_cpu(item), label, os.fspath(cache), *options, run)
             futures[pool.submit(_fill_one, *task)] = label
         with tqdm(total=len(items), unit="mesh", desc="precompute", disable=not progress) as bar:
             for future in as_completed(futures):
