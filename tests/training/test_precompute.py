@@ -87,3 +87,20 @@ def test_an_altered_entry_is_recomputed(tmp_path, device):
     assert (report.computed, report.replaced, report.failed) == (1, 1, 0)
     cached = PolygonMeshDataset([(verts, faces)], k=K, cache_dir=tmp_path, dtype=torch.float64)
     assert torch.allclose(cached[0]["evals"].cpu(), reference_evals(verts, faces), atol=1e-8)
+
+
+def test_an_unwritable_cache_fails_every_mesh_it_concerns(tmp_path, monkeypatch, device):
+    """The cache warns once per folder and process; every mesh still reports its failure."""
+    from torch_polylap import spectral
+
+    def refuse(path, write):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(spectral, "_UNWRITABLE_REPORTED", set())
+    monkeypatch.setattr(spectral, "atomic_write", refuse)
+    report = precompute(grids(device), tmp_path, k=K, executor=InlineExecutor(), progress=False)
+    assert (report.computed, report.failed) == (0, 3)
+    assert [f.item for f in report.failures] == ["item 0", "item 1", "item 2"]  # input order
+    reasons = [f.reason for f in report.failures]
+    assert sum("cannot be written (PermissionError" in r for r in reasons) == 1  # one warning
+    assert all("cannot be written" in r for r in reasons)  # and the same verdict for all

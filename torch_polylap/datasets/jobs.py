@@ -195,9 +195,13 @@ def _fill_one(
         reason = f"{type(err).__name__}: {' '.join(str(err).split())}"
         return _Outcome(label, "failed", time.perf_counter() - start, size, reason)
     seconds = time.perf_counter() - start
-    for w in caught:
-        if issubclass(w.category, CacheWriteWarning):
-            return _Outcome(label, "failed", seconds, size, " ".join(str(w.message).split()))
+    if not reused and not path.is_file():
+        # the cache warns once per folder and process: a later task here sees no warning
+        unwritable = [w for w in caught if issubclass(w.category, CacheWriteWarning)]
+        reason = f"the entry {path} was not written: the cache folder cannot be written"
+        if unwritable:
+            reason = " ".join(str(unwritable[0].message).split())
+        return _Outcome(label, "failed", seconds, size, reason)
     replaced = any("recomputing and replacing it" in str(w.message) for w in caught)
     return _Outcome(label, "reused" if reused else "computed", seconds, size, replaced=replaced)
 
@@ -313,6 +317,8 @@ def _collect(
             for future in as_completed(futures):
                 _tally(report, future, futures[future])
                 bar.update(1)
+        position = {label: i for i, label in enumerate(labels)}
+        report.failures.sort(key=lambda failure: position.get(failure.item, len(labels)))
     except BaseException:
         for future in futures:
             future.cancel()
