@@ -43,8 +43,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "inputs", nargs="*", type=Path, metavar="INPUT", help="mesh files and folders of meshes"
     )
+    # -o/--output: the option every command writes its files to; here the files are entries
     p.add_argument(
-        "--cache", type=Path, metavar="DIR", help="the cache folder (required; created if needed)"
+        "--cache",
+        "-o",
+        "--output",
+        dest="output",
+        metavar="DIR",
+        help="the cache folder (required; created if needed)",
     )
     p.add_argument(
         "-k", "--k", type=positive_int, default=32, help="eigenpairs per mesh (default 32)"
@@ -113,13 +119,14 @@ def _executor(args: argparse.Namespace) -> Iterator[Executor]:
 
 
 def compute(args: argparse.Namespace) -> Result:
-    if args.cache is None:
+    if args.output is None:
         raise ValueError("give the cache folder with --cache DIR.")
+    cache = Path(args.output)
     files = mesh_files(list(args.inputs))
     with _executor(args) as pool:
         report = precompute(
             files,
-            args.cache,
+            cache,
             k=args.k,
             method=args.method,
             lam=args.lam,
@@ -131,7 +138,7 @@ def compute(args: argparse.Namespace) -> Result:
         ("meshes", str(len(files))),
         ("computed / reused / failed", f"{report.computed} / {report.reused} / {report.failed}"),
         ("damaged entries replaced", str(report.replaced)),
-        ("cache", str(args.cache)),
+        ("cache", str(cache)),
         ("k / Laplacian", f"{args.k} / {args.method}, lambda = {args.lam}"),
         ("workers", where),
         ("seconds", f"{report.seconds:.1f}"),
