@@ -66,6 +66,7 @@ def test_bad_meshes_fail_alone_with_their_file_and_reason(tmp_path, device):
     assert set(reasons) == {str(garbage), "item 2"}
     assert "ValueError" in reasons[str(garbage)]
     assert "too few for k = 6" in reasons["item 2"]
+    assert not any(f.unwritable for f in report.failures)
     assert report.to_dict()["failed"] == 2
     with pytest.raises(ValueError, match=r"1 of 2 meshes were not cached: .*garbage\.obj"):
         PolygonMeshDataset([good, garbage], k=K, cache_dir=cache).precompute(num_workers=0)
@@ -104,3 +105,8 @@ def test_an_unwritable_cache_fails_every_mesh_it_concerns(tmp_path, monkeypatch,
     reasons = [f.reason for f in report.failures]
     assert sum("cannot be written (PermissionError" in r for r in reasons) == 1  # one warning
     assert all("cannot be written" in r for r in reasons)  # and the same verdict for all
+    assert all(f.unwritable for f in report.failures)
+    # the dataset keeps cached_eigs's rule: nothing is lost (items recompute), so it warns
+    data = PolygonMeshDataset(grids(device), k=K, cache_dir=tmp_path)
+    with pytest.warns(spectral.CacheWriteWarning, match="cannot be written"):
+        assert data.precompute().failed == 3

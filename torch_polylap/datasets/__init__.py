@@ -17,6 +17,7 @@ block-diagonal ``L`` and ``M0`` (concatenated, not re-assembled) and the labels.
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +32,7 @@ from ..kernels import check_method
 from ..nn.spectrum import Spectrum
 from ..operators import laplacian
 from ..sparse import SparseOperator, block_diag, diag
-from ..spectral import cached_eigs, check_cache_dir
+from ..spectral import CacheWriteWarning, cached_eigs, check_cache_dir
 from ..tangent import vertex_gradient_operators
 from .jobs import (
     InlineExecutor,
@@ -145,8 +146,10 @@ class PolygonMeshDataset(Dataset):
             The :class:`PrecomputeReport`.
 
         Raises:
-            ValueError: some meshes could not be cached (after all the others were); the
-                message names each one and its reason.
+            ValueError: some meshes could not be read or solved (after all the others were
+                cached); the message names each one and its reason. A cache folder that cannot
+                be written is a :class:`~torch_polylap.spectral.CacheWriteWarning` instead, as
+                with :func:`~torch_polylap.cached_eigs`: the items are computed on access.
         """
         executor = local_executor(num_workers) if num_workers > 0 else InlineExecutor()
         with executor:
@@ -160,9 +163,13 @@ class PolygonMeshDataset(Dataset):
                 progress=False,
                 normalize=self.normalize,
             )
+        bad = [f for f in report.failures if not f.unwritable]
+        if bad:
+            listed = "; ".join(f"{f.item}: {f.reason}" for f in bad)
+            raise ValueError(f"{len(bad)} of {len(self)} meshes were not cached: {listed}")
         if report.failures:
-            listed = "; ".join(f"{f.item}: {f.reason}" for f in report.failures)
-            raise ValueError(f"{report.failed} of {len(self)} meshes were not cached: {listed}")
+            # as cached_eigs: an unwritable cache loses no data (items recompute), so it warns
+            warnings.warn(report.failures[0].reason, CacheWriteWarning, stacklevel=2)
         return report
 
 

@@ -89,10 +89,12 @@ def read_item(
 @dataclass(frozen=True)
 class PrecomputeFailure:
     """A mesh whose eigenpairs could not be cached: ``item`` (its file, or ``"item i"`` for a
-    ``(verts, faces)`` pair) and ``reason`` (the error, in one line)."""
+    ``(verts, faces)`` pair), ``reason`` (the error, in one line) and ``unwritable``: the
+    eigenpairs were computed but the cache folder could not take them (the mesh is fine)."""
 
     item: str
     reason: str
+    unwritable: bool = False
 
 
 @dataclass
@@ -150,6 +152,7 @@ class _Outcome:
     size: tuple[int, int] = (0, 0)
     reason: str = ""
     replaced: bool = False
+    unwritable: bool = False
 
 
 def _label(item: MeshItem, index: int | None) -> str:
@@ -201,7 +204,7 @@ def _fill_one(
         reason = f"the entry {path} was not written: the cache folder cannot be written"
         if unwritable:
             reason = " ".join(str(unwritable[0].message).split())
-        return _Outcome(label, "failed", seconds, size, reason)
+        return _Outcome(label, "failed", seconds, size, reason, unwritable=True)
     replaced = any("recomputing and replacing it" in str(w.message) for w in caught)
     return _Outcome(label, "reused" if reused else "computed", seconds, size, replaced=replaced)
 
@@ -344,7 +347,8 @@ def _tally(report: PrecomputeReport, future: Future[_Outcome], label: str) -> No
         report.failures.append(PrecomputeFailure(label, reason))
         return
     if outcome.status == "failed":
-        report.failures.append(PrecomputeFailure(outcome.item, outcome.reason))
+        failure = PrecomputeFailure(outcome.item, outcome.reason, outcome.unwritable)
+        report.failures.append(failure)
     elif outcome.status == "reused":
         report.reused += 1
     else:
