@@ -63,6 +63,11 @@ setup(
         # docs/griffe_roles.py uses); CI builds it with --strict
         "docs": ["mkdocs>=1.6", "mkdocstrings-python>=2.0"],
         "plot": ["matplotlib>=3.5"],
+        # dask's distributed: the dataset precompute on a cluster (polylap precompute
+        # --scheduler); optional, as it pulls tornado, msgpack and a dozen more packages that a
+        # single-machine user never needs. The cache itself is numpy's .npz (allow_pickle=False,
+        # a SHA-256 per entry): numpy is a dependency already, so no format package is needed
+        "distributed": ["dask[distributed]>=2024.1"],
         # potpourri3d: the polygon heat-method peer of benchmarks/bench_geodesics.py
         "bench": [
             "libigl>=2.5",

@@ -168,6 +168,14 @@ def eigs_cache_key(
     return digest.hexdigest()[:32]
 
 
+def eigs_cache_path(
+    cache: Path, verts: torch.Tensor, faces: MeshFaces, k: int, lam: float, method: str
+) -> Path:
+    """The cache entry of these eigenpairs: ``cache / "eigs-<key>.npz"``
+    (:func:`eigs_cache_key`)."""
+    return cache / f"eigs-{eigs_cache_key(verts, faces, k, lam, method)}.npz"
+
+
 def cached_eigs(
     verts: torch.Tensor,
     faces: MeshFaces,
@@ -185,8 +193,9 @@ def cached_eigs(
     Returned tensors have ``verts``' dtype and device and carry no gradient (precomputation for
     datasets; use :func:`eigs` directly for differentiable eigenvalues).
 
-    A cache file that cannot be used (truncated, corrupted, or holding arrays of the wrong shape
-    for ``k`` and this mesh) counts as a miss: the eigenpairs are recomputed, the file replaced,
+    A cache file that cannot be used (truncated, corrupted, altered so that its ``sha256`` no
+    longer matches, or holding arrays of the wrong shape for ``k`` and this mesh) counts as a
+    miss: the eigenpairs are recomputed, the file replaced,
     and one warning names it.  Files are written to a unique temporary and moved into place
     (:func:`~torch_polylap.atomic.atomic_write`), so concurrent processes computing the same
     key never see or leave half a file.
@@ -217,7 +226,7 @@ def eigs_through_cache(
     """:func:`cached_eigs` for callers that have checked ``method`` and ``cache`` (the one
     place that reads and writes the eigenpair cache); ``operators``: the mesh's ``(L, M0)``
     when the caller has built them already, used on a miss instead of building them again."""
-    path = cache / f"eigs-{eigs_cache_key(verts, faces, k, lam, method)}.npz"
+    path = eigs_cache_path(cache, verts, faces, k, lam, method)
     # is_file: False also where the path cannot be reached (a symbolic link loop, say)
     cached = load_cached_eigs(path, k, verts.shape[0]) if path.is_file() else None
     if cached is None:
@@ -247,7 +256,8 @@ def _store_eigs(path: Path, evals: np.ndarray, evecs: np.ndarray) -> None:
     folder = path.parent
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, lambda f: np.savez(f, evals=evals, evecs=evecs))
+        digest = eigs_checksum(evals, evecs)
+        atomic_write(path, lambda f: np.savez(f, evals=evals, evecs=evecs, sha256=digest))
     except OSError as err:
         key = os.path.abspath(folder)
         if key in _UNWRITABLE_REPORTED:
@@ -292,13 +302,28 @@ def check_cache_dir(cache_dir: Path) -> None:
 _UNREADABLE = (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile, zlib.error)
 
 
+def eigs_checksum(evals: np.ndarray, evecs: np.ndarray) -> np.ndarray:
+    """``(32,)`` uint8: SHA-256 of ``evals`` then ``evecs`` as little-endian float64, C order.
+
+    Stored as the ``sha256`` member of every cache entry this version writes; a reader
+    recomputes it, so flipped bits that still parse as arrays are caught (the zip CRC of an
+    ``.npz`` member is not checked on every read path)."""
+    digest = hashlib.sha256()
+    for array in (evals, evecs):
+        digest.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
+    return np.frombuffer(digest.digest(), dtype=np.uint8).copy()
+
+
 def load_cached_eigs(path: Path, k: int, num_verts: int) -> tuple[np.ndarray, np.ndarray] | None:
     """``(evals (k,), evecs (V, k))`` from a cache file, or None (with a warning naming the
-    file) when it is unreadable or does not hold eigenpairs of this shape."""
+    file) when it is unreadable, does not hold eigenpairs of this shape, or its ``sha256``
+    member does not match them.  Entries of earlier versions have no ``sha256``: they are
+    checked for shape, dtype and finiteness only, so existing caches stay valid."""
     try:
         # our own handle: np.load leaks the one it opens when the archive is unreadable
         with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
             evals, evecs = data["evals"], data["evecs"]
+            stored = data["sha256"] if "sha256" in data.files else None
         problem = None
         if evals.shape != (k,) or evecs.shape != (num_verts, k):
             problem = (
@@ -309,6 +334,8 @@ def load_cached_eigs(path: Path, k: int, num_verts: int) -> tuple[np.ndarray, np
             problem = f"it holds {evals.dtype} and {evecs.dtype} arrays, not floating point"
         elif not (np.isfinite(evals).all() and np.isfinite(evecs).all()):
             problem = "it holds non-finite values"
+        elif stored is not None and not np.array_equal(stored, eigs_checksum(evals, evecs)):
+            problem = "its sha256 member does not match its arrays (the file was altered)"
     except _UNREADABLE as e:
         problem = f"it cannot be read ({type(e).__name__}: {e})"
     if problem is None:

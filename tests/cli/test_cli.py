@@ -484,7 +484,16 @@ def subcommands() -> list[str]:
 
 
 def test_every_command_has_help(capsys):
-    assert subcommands() == ["info", "smooth", "param", "planarize", "spectrum", "bench", "demo"]
+    assert subcommands() == [
+        "info",
+        "smooth",
+        "param",
+        "planarize",
+        "spectrum",
+        "precompute",
+        "bench",
+        "demo",
+    ]
     for command in subcommands():
         with pytest.raises(SystemExit) as exit_info:
             main([command, "--help"])

@@ -2,16 +2,18 @@
 
 ``info`` (mesh and operator statistics), ``smooth`` (mean-curvature flow), ``param`` (conformal
 parameterization), ``planarize`` (face planarization), ``spectrum`` (Laplace eigenpairs),
-``bench`` (timings against scipy) and ``demo`` (all applications, with a Markdown report).
-Every command takes an optional mesh path (OBJ, OFF or PLY) and falls back to an embedded mesh,
-and takes ``-o DIR``: ``smooth``, ``param``, ``planarize``, ``spectrum`` and ``demo`` write
-there (default ``./polylap_out``), ``info`` and ``bench`` write their report as JSON there
-when given ``-o DIR`` (or ``--json``, to ``./polylap_out``). Bad files and arguments end the
-command with one ``polylap: error: ...`` line on stderr and exit status 2; set
-``POLYLAP_DEBUG=1`` to see the traceback of an unexpected error instead. Ctrl-C ends it with
-``polylap: interrupted`` and status 130, SIGTERM and SIGHUP with ``polylap: terminated
-(SIGTERM)`` and ``128 + signal`` (:mod:`.interrupts`); every file is written atomically
-(:class:`.common.Output`), so an interrupted command leaves the previous file and no temporary.
+``precompute`` (a dataset's eigenpair cache, from folders of meshes, locally or on a Dask
+cluster), ``bench`` (timings against scipy) and ``demo`` (all applications, with a Markdown
+report). Every command but ``precompute`` takes an optional mesh path (OBJ, OFF or PLY) and
+falls back to an embedded mesh, and takes ``-o DIR``: ``smooth``, ``param``, ``planarize``,
+``spectrum`` and ``demo`` write there (default ``./polylap_out``), ``info`` and ``bench`` write
+their report as JSON there when given ``-o DIR`` (or ``--json``, to ``./polylap_out``). Bad
+files and arguments end the command with one ``polylap: error: ...`` line on stderr and exit
+status 2; set ``POLYLAP_DEBUG=1`` to see the traceback of an unexpected error instead. Ctrl-C
+ends it with ``polylap: interrupted`` and status 130, SIGTERM and SIGHUP with ``polylap:
+terminated (SIGTERM)`` and ``128 + signal`` (:mod:`.interrupts`); every file is written
+atomically (:class:`.common.Output`), so an interrupted command leaves the previous file and no
+temporary.
 
 Every command runs with torch pinned to ``--threads N`` intra-op threads, 1 by default (``0``:
 torch's own default, see :func:`torch_polylap.timing.pinned_threads`).
@@ -38,13 +40,13 @@ from typing import NoReturn
 
 from .. import __version__
 from ..timing import DEFAULT_THREADS, pinned_threads
-from . import bench, demo, info, param, planarize, smooth, spectrum
+from . import bench, demo, info, param, planarize, precompute, smooth, spectrum
 from .common import DEFAULT_MESH
 from .interrupts import Terminated, ignore_signals, signals_as_exceptions
 
 __all__ = ["main", "build_parser", "DEFAULT_MESH"]
 
-COMMANDS = (info, smooth, param, planarize, spectrum, bench, demo)
+COMMANDS = (info, smooth, param, planarize, spectrum, precompute, bench, demo)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -121,6 +123,8 @@ OPTIONAL_EXTRAS = {
     "mpl_toolkits": "plot",
     "cholespy": "cholmod",
     "igl": "bench",
+    "distributed": "distributed",
+    "dask": "distributed",
 }
 
 

@@ -5,8 +5,9 @@ Each item carries what the layers of :mod:`torch_polylap.nn` need: the mesh, its
 Eigenpairs are the expensive part; they go through :func:`torch_polylap.cached_eigs`, an
 on-disk cache keyed by the (normalized) geometry, so they are computed once per mesh across
 epochs, runs and processes.  Fill the cache up front in parallel with
-:meth:`PolygonMeshDataset.precompute`, or let ``DataLoader(num_workers=n)`` workers fill it on
-first access (writes are atomic, so concurrent workers never read half a file).
+:meth:`PolygonMeshDataset.precompute`, on any :class:`concurrent.futures.Executor` (a Dask
+cluster's, say) with :func:`precompute`, or let ``DataLoader(num_workers=n)`` workers fill it
+on first access (writes are atomic, so concurrent workers never read half a file).
 
 :func:`collate_meshes` packs a list of items into a :class:`MeshBatch`: a
 :class:`~torch_polylap.batch.PolygonMeshes`, the packed :class:`~torch_polylap.nn.Spectrum`,
@@ -15,8 +16,8 @@ block-diagonal ``L`` and ``M0`` (concatenated, not re-assembled) and the labels.
 
 from __future__ import annotations
 
-import multiprocessing
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,31 +26,34 @@ from typing import Any, cast
 import torch
 from torch.utils.data import Dataset
 
-from .batch import PolygonMeshes, to_arguments
-from .faces import FacesLike, PolygonFaces, as_faces
-from .io import read_mesh
-from .kernels import check_method
-from .measures import mass
-from .nn.spectrum import Spectrum
-from .operators import laplacian
-from .sparse import SparseOperator, block_diag, diag
-from .spectral import cached_eigs, check_cache_dir
-from .tangent import vertex_gradient_operators
+from ..batch import PolygonMeshes, to_arguments
+from ..faces import PolygonFaces
+from ..kernels import check_method
+from ..nn.spectrum import Spectrum
+from ..operators import laplacian
+from ..sparse import SparseOperator, block_diag, diag
+from ..spectral import CacheWriteWarning, cached_eigs, check_cache_dir
+from ..tangent import vertex_gradient_operators
+from .jobs import (
+    InlineExecutor,
+    MeshItem,
+    PrecomputeFailure,
+    PrecomputeReport,
+    local_executor,
+    normalize_mesh,
+    precompute,
+    read_item,
+)
 
-__all__ = ["PolygonMeshDataset", "MeshBatch", "collate_meshes"]
-
-MeshItem = str | os.PathLike | tuple[torch.Tensor, FacesLike]
-
-
-def normalize_mesh(verts: torch.Tensor, faces: PolygonFaces) -> torch.Tensor:
-    """Translate the area-weighted centroid to the origin and scale to unit total area.
-
-    Diffusion times and spectra then mean the same on meshes of any size (``mu`` scales as
-    ``1 / area``).
-    """
-    m = mass(verts, faces)
-    centered = verts - (m[:, None] * verts).sum(0) / m.sum()
-    return centered / m.sum().sqrt()
+__all__ = [
+    "PolygonMeshDataset",
+    "MeshBatch",
+    "collate_meshes",
+    "precompute",
+    "PrecomputeReport",
+    "PrecomputeFailure",
+    "normalize_mesh",
+]
 
 
 class PolygonMeshDataset(Dataset):
@@ -108,17 +112,7 @@ class PolygonMeshDataset(Dataset):
 
     def mesh(self, i: int) -> tuple[torch.Tensor, PolygonFaces]:
         """``(verts, faces)`` of item ``i`` in float64, normalized if requested."""
-        item = self.items[i]
-        if isinstance(item, str | os.PathLike):
-            verts, faces = read_mesh(item, dtype=torch.float64)
-        else:
-            verts, faces = item[0].detach().to(torch.float64), as_faces(item[1])
-        if verts.shape[0] <= self.k:
-            raise ValueError(
-                f"mesh {i} has {verts.shape[0]} vertices, too few for k = {self.k} eigenpairs; "
-                "use a smaller k or a finer mesh."
-            )
-        return (normalize_mesh(verts, faces) if self.normalize else verts), faces
+        return read_item(self.items[i], self.k, self.normalize, f"mesh {i}")
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         verts, faces = self.mesh(i)
@@ -140,26 +134,43 @@ class PolygonMeshDataset(Dataset):
             item["grad_x"], item["grad_y"] = grad_x.to(self.dtype), grad_y.to(self.dtype)
         return item
 
-    def _fill_cache(self, i: int) -> None:
-        verts, faces = self.mesh(i)
-        cached_eigs(verts, faces, self.k, self.cache_dir, lam=self.lam, method=self.method)
-
-    def precompute(self, num_workers: int = 0) -> None:
+    def precompute(self, num_workers: int = 0) -> PrecomputeReport:
         """Fill the eigenpair cache for every item, in ``num_workers`` processes (0: here).
 
-        Uses ``fork`` where available (no re-import of torch per worker) with one torch thread
-        per worker, so ``num_workers`` processes use about ``num_workers`` cores.
+        A call of :func:`precompute` with this dataset's ``k``, ``method``, ``lam`` and
+        ``normalize``, on a local process pool (:func:`~torch_polylap.datasets.jobs.
+        local_executor`: ``fork`` where available, one torch thread per worker), without a
+        progress bar. For a cluster, call :func:`precompute` with its executor.
+
+        Returns:
+            The :class:`PrecomputeReport`.
+
+        Raises:
+            ValueError: some meshes could not be read or solved (after all the others were
+                cached); the message names each one and its reason. A cache folder that cannot
+                be written is a :class:`~torch_polylap.spectral.CacheWriteWarning` instead, as
+                with :func:`~torch_polylap.cached_eigs`: the items are computed on access.
         """
-        if num_workers <= 0:
-            for i in range(len(self)):
-                self._fill_cache(i)
-            return
-        methods = multiprocessing.get_all_start_methods()
-        context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-        with context.Pool(num_workers, initializer=torch.set_num_threads, initargs=(1,)) as pool:
-            pool.map(
-                self._fill_cache, range(len(self)), chunksize=max(1, len(self) // (4 * num_workers))
+        executor = local_executor(num_workers) if num_workers > 0 else InlineExecutor()
+        with executor:
+            report = precompute(
+                self.items,
+                self.cache_dir,
+                k=self.k,
+                method=self.method,
+                lam=self.lam,
+                executor=executor,
+                progress=False,
+                normalize=self.normalize,
             )
+        bad = [f for f in report.failures if not f.unwritable]
+        if bad:
+            listed = "; ".join(f"{f.item}: {f.reason}" for f in bad)
+            raise ValueError(f"{len(bad)} of {len(self)} meshes were not cached: {listed}")
+        if report.failures:
+            # as cached_eigs: an unwritable cache loses no data (items recompute), so it warns
+            warnings.warn(report.failures[0].reason, CacheWriteWarning, stacklevel=2)
+        return report
 
 
 @dataclass
