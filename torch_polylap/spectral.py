@@ -148,23 +148,26 @@ def implicit_heat_diffusion(
     return torch.stack(columns, 1)
 
 
+# The layout of the entries (members, their meaning, the checksum): part of every key, so a
+# new layout misses the entries of an older one instead of misreading them.
+CACHE_FORMAT = 2
+
+
 def eigs_cache_key(
     verts: torch.Tensor, faces: MeshFaces, k: int, lam: float, method: str = "aw11"
 ) -> str:
-    """Hash of everything the eigenpairs depend on: positions, faces, ``k``, ``method`` and
-    ``lam`` (except for ``"plms"``, which does not use it, so every ``lam`` shares one entry).
-
-    AW11 keys are those of earlier versions (no method field), so existing caches stay valid.
-    """
+    """Content address of the eigenpairs: a hash of everything they depend on, the positions,
+    faces, their dtype, ``k``, ``method`` and ``lam`` (except for ``"plms"``, which does not
+    use it, so every ``lam`` shares one entry), and the entries' format version
+    (``CACHE_FORMAT``)."""
     topo = get_topology(faces, verts.shape[0])
     digest = hashlib.sha256()
     digest.update(verts.detach().cpu().to(torch.float64).numpy().tobytes())
     digest.update(topo.faces.indices.numpy().tobytes())
     digest.update(topo.faces.sizes.numpy().tobytes())
-    if method == "aw11":
-        digest.update(f"k={k};lam={lam!r}".encode())
-    else:
-        digest.update(f"k={k};lam={None if method == 'plms' else lam!r};method={method}".encode())
+    lam_used = None if method == "plms" else lam
+    fields = f"format={CACHE_FORMAT};dtype={str(verts.dtype).removeprefix('torch.')}"
+    digest.update(f"{fields};k={k};lam={lam_used!r};method={method}".encode())
     return digest.hexdigest()[:32]
 
 
@@ -317,15 +320,16 @@ def eigs_checksum(evals: np.ndarray, evecs: np.ndarray) -> np.ndarray:
 def load_cached_eigs(path: Path, k: int, num_verts: int) -> tuple[np.ndarray, np.ndarray] | None:
     """``(evals (k,), evecs (V, k))`` from a cache file, or None (with a warning naming the
     file) when it is unreadable, does not hold eigenpairs of this shape, or its ``sha256``
-    member does not match them.  Entries of earlier versions have no ``sha256``: they are
-    checked for shape, dtype and finiteness only, so existing caches stay valid."""
+    member is missing or does not match them."""
     try:
         # our own handle: np.load leaks the one it opens when the archive is unreadable
         with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
             evals, evecs = data["evals"], data["evecs"]
             stored = data["sha256"] if "sha256" in data.files else None
         problem = None
-        if evals.shape != (k,) or evecs.shape != (num_verts, k):
+        if stored is None:
+            problem = "it has no sha256 member (another format, or not written by this package)"
+        elif evals.shape != (k,) or evecs.shape != (num_verts, k):
             problem = (
                 f"it holds evals {evals.shape} and evecs {evecs.shape}, expected ({k},) and "
                 f"({num_verts}, {k})"
@@ -334,7 +338,7 @@ def load_cached_eigs(path: Path, k: int, num_verts: int) -> tuple[np.ndarray, np
             problem = f"it holds {evals.dtype} and {evecs.dtype} arrays, not floating point"
         elif not (np.isfinite(evals).all() and np.isfinite(evecs).all()):
             problem = "it holds non-finite values"
-        elif stored is not None and not np.array_equal(stored, eigs_checksum(evals, evecs)):
+        elif not np.array_equal(stored, eigs_checksum(evals, evecs)):
             problem = "its sha256 member does not match its arrays (the file was altered)"
     except _UNREADABLE as e:
         problem = f"it cannot be read ({type(e).__name__}: {e})"

@@ -227,8 +227,9 @@ def test_cache_keys_differ_by_method(pair, tmp_path, device):
     verts = verts.to(device)
     keys = {m: eigs_cache_key(verts, faces, K, LAM, m) for m in METHODS}
     assert len(set(keys.values())) == 3
-    # AW11 keeps the key of earlier versions (no method field), so existing caches stay valid.
-    assert keys["aw11"] == eigs_cache_key(verts, faces, K, LAM)
+    assert keys["aw11"] == eigs_cache_key(verts, faces, K, LAM)  # the default method
+    # the dtype is part of the key: float32 eigenpairs never serve a float64 request
+    assert eigs_cache_key(verts.float(), faces, K, LAM) != keys["aw11"]
     # lam is part of the key where the method uses it, not for PLMS.
     assert eigs_cache_key(verts, faces, K, 0.5, "plms") == keys["plms"]
     assert eigs_cache_key(verts, faces, K, 0.5, "degoes") != keys["degoes"]

@@ -82,6 +82,10 @@ def test_an_altered_entry_is_recomputed(tmp_path, device):
     np.savez(path, evals=evals * 1.5, evecs=evecs, sha256=digest)
     with pytest.warns(UserWarning, match="sha256 member does not match"):
         tp.cached_eigs(normalize_mesh(verts.cpu(), tp.as_faces(faces)), faces, K, tmp_path)
+    # an archive without the checksum (another tool's, or a format without it) is not trusted
+    np.savez(path, evals=evals, evecs=evecs)
+    with pytest.warns(UserWarning, match="no sha256 member"):
+        tp.cached_eigs(normalize_mesh(verts.cpu(), tp.as_faces(faces)), faces, K, tmp_path)
     np.savez(path, evals=evals * 1.5, evecs=evecs, sha256=digest)
     with ThreadPoolExecutor(1) as pool:
         report = precompute([(verts, faces)], tmp_path, k=K, executor=pool, progress=False)
