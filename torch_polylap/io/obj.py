@@ -263,8 +263,7 @@ class _ObjReader:
         self.corners += len(corners)
 
     def _resolve(self, refs: _Refs, written: np.ndarray, before: np.ndarray) -> None:
-        """0-based rows of 1-based references (negative: counting back from ``before``; 0:
-        none, -1)."""
+        """0-based rows of 1-based references (negative: back from ``before``; 0: none, -1)."""
         rows = written - 1
         negative = written < 0
         if negative.any():

@@ -337,8 +337,7 @@ def binary_element(
 def _length_reader(
     data: bytes, order: str, prop: PlyProperty
 ) -> tuple[int, Callable[[int], int] | None]:
-    """Size and reader (byte offset -> value) of a list property's length; (0, None) for a
-    scalar."""
+    """Size and reader (byte offset -> value) of a list's length; (0, None) for a scalar."""
     if prop.count_dtype is None:
         return 0, None
     if prop.count_dtype == "u1":
@@ -593,6 +592,5 @@ _Layout = dict[PlyProperty, tuple[np.ndarray, np.ndarray | None]]
 
 
 def _kind(prop: PlyProperty) -> type:
-    """How a property's ASCII values are read: list items of an integer type as ints, all
-    else as floats."""
+    """How ASCII values are read: list items of an integer type as ints, all else as floats."""
     return int if prop.count_dtype is not None and prop.dtype[0] != "f" else float

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 import re
 from collections.abc import Iterator
 from typing import Any
@@ -64,7 +65,7 @@ class Chunk:
         self.source = (text, begin)
         self.line0 = line0
         # below the space, text holds only whitespace and ESC (see check_text), which is none
-        blank = _SPACE.take(ext) if 27 in ext else ext <= 32
+        blank = _SPACE.take(ext) if text.find(b"\x1b", begin, stop) >= 0 else ext <= 32
         # tokens start and end where blank and non-blank bytes meet: one pass finds both
         edge = np.flatnonzero(blank[1:] != blank[:-1]) + 1 - lead
         if not lead and len(blank) and not blank[0]:  # a token at the text's start
@@ -96,10 +97,8 @@ class Chunk:
     def lines(self) -> Iterator[Chunk]:
         """The chunk's lines, each a chunk of its own (to find the first of several errors)."""
         text, begin = self.source
-        ends = np.flatnonzero(self.buf == 10) + 1
-        for i, (a, b) in enumerate(
-            zip([0, *ends.tolist()], [*ends.tolist(), len(self.buf)], strict=True)
-        ):
+        cuts = [0, *(np.flatnonzero(self.buf == 10) + 1).tolist(), len(self.buf)]
+        for i, (a, b) in enumerate(itertools.pairwise(cuts)):
             if b > a:
                 yield Chunk(text, begin + a, begin + b, self.line0 + i)
 
@@ -172,10 +171,14 @@ class Chunk:
                     cut = np.flatnonzero(y > x)
                     piece[runs(x.take(cut) - lo, y.take(cut) - x.take(cut))] = 32
             data = piece.tobytes()
-            # Python's turn for "nan(...)" (no float for it) and "-nan" (numpy drops the sign)
-            odd = b"(" in data or (b"n" in data or b"N" in data) and re.search(b"-[nN]", data)
-            out = None if kind is float and odd else _arrow_numbers(piece, a - lo, dtype)
-            if out is None and not (kind is float and odd):
+            # Python's turn for "nan(...)" (no float for it) and "-nan" (numpy drops the sign);
+            # numpy's for integers with an x (pyarrow reads "0x1" as 1, which Python refuses)
+            odd = kind is float and bool(
+                b"(" in data or (b"n" in data or b"N" in data) and re.search(b"-[nN]", data)
+            )
+            hexa = kind is int and (b"x" in data or b"X" in data)
+            out = None if odd or hexa else _arrow_numbers(piece, a - lo, dtype)
+            if out is None and not odd:
                 with contextlib.suppress(ValueError):  # numpy refuses a token (and stops there)
                     out = np.fromstring(data, dtype=dtype, sep=" ")
             if out is not None and len(out) == n:  # one value per token: each read whole
@@ -214,8 +217,7 @@ def _arrow_numbers(piece: np.ndarray, at: np.ndarray, dtype: type) -> np.ndarray
 
 
 def chunks(text: bytes, begin: int = 0, line0: int = 0) -> Iterator[Chunk]:
-    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks, its first line being line
-    ``line0 + 1`` of the file."""
+    """:class:`Chunk` s of ``text[begin:]``, cut after line breaks, from line ``line0 + 1``."""
     pos = begin
     size = len(text)
     while pos < size:
