@@ -198,10 +198,9 @@ def _arrow() -> Any:
 
 
 def _arrow_numbers(piece: np.ndarray, at: np.ndarray, dtype: type) -> np.ndarray | None:
-    """float64 or int64 ``dtype`` of the tokens of ``piece`` (``(B,)`` uint8) starting at
-    ``at`` (``(n,)``, each running to the next whitespace) by pyarrow's cast of strings (floats
-    correctly rounded, as by Python's ``float``, in a tenth of numpy's time; integers in half);
-    None without pyarrow or when it refuses a token ("+1", "1_0": Python's own rules)."""
+    """float64 or int64 ``dtype`` of the tokens of ``piece`` (``(B,)`` uint8) starting at ``at``
+    (``(n,)``, each up to the next whitespace) by pyarrow's cast of strings (floats correctly
+    rounded, as by ``float``); None without pyarrow or when it refuses a token ("+1", "1_0")."""
     pa = _arrow()
     if pa is None:
         return None
