@@ -34,6 +34,7 @@ __all__ = ["CHUNK_BYTES", "Chunk", "chunks", "runs"]
 CHUNK_BYTES = 1 << 20
 _SPACE = np.zeros(256, dtype=bool)
 _SPACE[[9, 10, 11, 12, 13, 32]] = True
+_NEGATIVE_NAN = re.compile(rb"-[nN]")
 _LONGEST_INT = 18  # digits strtoll reads without clamping to the int64 range
 
 
@@ -170,17 +171,20 @@ class Chunk:
                 for x, y in blank:
                     cut = np.flatnonzero(y > x)
                     piece[runs(x.take(cut) - lo, y.take(cut) - x.take(cut))] = 32
-            data = piece.tobytes()
             # Python's turn for "nan(...)" (no float for it) and "-nan" (numpy drops the sign);
-            # numpy's for integers with an x (pyarrow reads "0x1" as 1, which Python refuses)
-            odd = kind is float and bool(
-                b"(" in data or (b"n" in data or b"N" in data) and re.search(b"-[nN]", data)
+            # numpy's for integers with an x (pyarrow reads "0x1" as 1, which Python refuses).
+            # Looked for in the text (blanked tokens too, which only sends more to Python)
+            text, p, q = self.source[0], self.source[1] + lo, self.source[1] + hi
+            odd = kind is float and (
+                text.find(b"(", p, q) >= 0
+                or (text.find(b"n", p, q) >= 0 or text.find(b"N", p, q) >= 0)
+                and _NEGATIVE_NAN.search(text, p, q) is not None
             )
-            hexa = kind is int and (b"x" in data or b"X" in data)
+            hexa = kind is int and (text.find(b"x", p, q) >= 0 or text.find(b"X", p, q) >= 0)
             out = None if odd or hexa else _arrow_numbers(piece, a - lo, dtype)
             if out is None and not odd:
                 with contextlib.suppress(ValueError):  # numpy refuses a token (and stops there)
-                    out = np.fromstring(data, dtype=dtype, sep=" ")
+                    out = np.fromstring(piece.tobytes(), dtype=dtype, sep=" ")
             if out is not None and len(out) == n:  # one value per token: each read whole
                 return out
         texts = [self.text(x, y) for x, y in zip(a.tolist(), b.tolist(), strict=True)]
