@@ -73,6 +73,7 @@ from common import (
 import torch_polylap as tp
 from torch_polylap.faces import PolygonFaces
 from torch_polylap.io import SkippedContentWarning
+from torch_polylap.io import text as text_module
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL_DIR = ROOT.parent / "shared" / "data" / "meshes" / "real"
@@ -111,6 +112,16 @@ def flat_lists(lists) -> tuple[np.ndarray, np.ndarray]:
 def ours_read(path: Path) -> Mesh:
     verts, faces = tp.read_mesh(path)
     return verts.numpy(), faces.indices.numpy(), faces.sizes.numpy()
+
+
+def numpy_read(path: Path) -> Mesh:
+    """``ours_read`` with numpy's number parser alone, as without the ``fast-text`` extra."""
+    saved = text_module._arrow
+    text_module._arrow = lambda: None
+    try:
+        return ours_read(path)
+    finally:
+        text_module._arrow = saved
 
 
 def plyfile_raw(path: Path):
@@ -699,10 +710,14 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
     that load from other processes hits both alike: median wall and CPU (process) seconds of
     each read (OBJ, OFF, ASCII PLY, as ``write_mesh`` writes them) and write (OBJ, ASCII PLY:
     lagrange writes no OFF), the ratios ours / lagrange, and the peak memory of one more call
-    of ours (tracemalloc) over the file's size."""
+    of ours (tracemalloc) over the file's size.  With pyarrow installed (the ``fast-text``
+    extra), ours reads through it, and ours with numpy's parser alone ("numpy") is a third
+    side of each read, in the same rounds; its peak is the one tracemalloc sees whole (it does
+    not see pyarrow's buffers, which take the place of numpy arrays of the same size)."""
     import time
 
     grid = quad_grid(n)
+    arrow = text_module._arrow() is not None
     rows = []
     for fmt in ("obj", "off", "ply"):
         path = folder / f"grid{FORMAT_EXT[fmt]}"
@@ -710,6 +725,7 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
         cases = [
             ("read", fmt, lambda path=path: ours_read(path), lambda path=path: lagrange_raw(path))
         ]
+        numpy_only = (lambda path=path: numpy_read(path)) if arrow else None
         if fmt in ("obj", "ply"):
             out = folder / f"lagrange{FORMAT_EXT[fmt]}"
             cases.append(
@@ -721,18 +737,26 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
                 )
             )
         for what, fmt_, ours, theirs in cases:
-            samples: dict[str, list[tuple[float, float]]] = {"ours": [], "lagrange": []}
-            quietly(ours), quietly(theirs)  # warm-up
+            sides = [("ours", ours), ("lagrange", theirs)]
+            if what == "read" and numpy_only is not None:
+                sides.append(("numpy", numpy_only))
+            samples: dict[str, list[tuple[float, float]]] = {name: [] for name, _ in sides}
+            for _, fn in sides:  # warm-up
+                quietly(fn)
             for _ in range(repeat):
-                for name, fn in (("ours", ours), ("lagrange", theirs)):
+                for name, fn in sides:
                     wall, cpu = time.perf_counter(), time.process_time()
                     quietly(fn)
                     samples[name].append((time.perf_counter() - wall, time.process_time() - cpu))
             med = {k: np.median(np.array(v), axis=0) for k, v in samples.items()}
-            tracemalloc.start()  # numpy's arrays are traced too; the read's own peak
-            quietly(ours)
-            peak = tracemalloc.get_traced_memory()[1]
-            tracemalloc.stop()
+            peaks = {}
+            for name, fn in sides:
+                if name == "lagrange":
+                    continue
+                tracemalloc.start()  # numpy's arrays are traced too; the read's own peak
+                quietly(fn)
+                peaks[name] = tracemalloc.get_traced_memory()[1]
+                tracemalloc.stop()
             rows.append(
                 {
                     "op": what,
@@ -742,7 +766,16 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
                     "ours_cpu_s": float(med["ours"][1]),
                     "lagrange_wall_s": float(med["lagrange"][0]),
                     "lagrange_cpu_s": float(med["lagrange"][1]),
-                    "ours_peak_bytes": peak,
+                    "ours_peak_bytes": peaks["ours"],
+                    **(
+                        {
+                            "numpy_wall_s": float(med["numpy"][0]),
+                            "numpy_cpu_s": float(med["numpy"][1]),
+                            "numpy_peak_bytes": peaks["numpy"],
+                        }
+                        if "numpy" in med
+                        else {}
+                    ),
                 }
             )
         if fmt != "obj":
@@ -751,18 +784,27 @@ def interleaved_grid(n: int, repeat: int, folder: Path) -> list[dict]:
 
 
 def interleaved_table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of the interleaved comparison (ratios ours / lagrange)."""
+    """Header and rows of the interleaved comparison (ratios ours / lagrange); with the numpy
+    side, its CPU time, ratio to lagrange and peak too ("–" for writes)."""
     head = ["op", "format", "ours wall", "lagrange wall", "ours/lagrange wall", "ours CPU",
             "lagrange CPU", "ours/lagrange CPU", "ours peak/file"]  # fmt: skip
-    table = [
-        [
+    numpy_side = any("numpy_cpu_s" in r for r in rows)
+    if numpy_side:
+        head += ["numpy CPU", "numpy/lagrange CPU", "numpy peak/file"]
+    table = []
+    for r in rows:
+        row = [
             r["op"], r["format"], fmt_time(r["ours_wall_s"]), fmt_time(r["lagrange_wall_s"]),
             f"{r['ours_wall_s'] / r['lagrange_wall_s']:.2f}", fmt_time(r["ours_cpu_s"]),
             fmt_time(r["lagrange_cpu_s"]), f"{r['ours_cpu_s'] / r['lagrange_cpu_s']:.2f}",
             f"{r['ours_peak_bytes'] / r['bytes']:.2f}",
-        ]
-        for r in rows
-    ]  # fmt: skip
+        ]  # fmt: skip
+        if numpy_side and "numpy_cpu_s" in r:
+            row += [fmt_time(r["numpy_cpu_s"]), f"{r['numpy_cpu_s'] / r['lagrange_cpu_s']:.2f}",
+                    f"{r['numpy_peak_bytes'] / r['bytes']:.2f}"]  # fmt: skip
+        elif numpy_side:
+            row += ["–", "–", "–"]
+        table.append(row)
     return head, table
 
 

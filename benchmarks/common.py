@@ -83,6 +83,7 @@ PEERS = {
     "openmesh": "openmesh",
     "pytorch3d": "pytorch3d",
     "sksparse": "scikit-sparse",
+    "pyarrow": "pyarrow",  # the readers' number conversion, when installed (fast-text extra)
 }
 
 

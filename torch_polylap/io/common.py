@@ -264,8 +264,7 @@ class BadNumber(Exception):
 
 
 def numbers(tokens: list[str], kind: type) -> np.ndarray:
-    """Python's ``kind`` (float or int) of each token, as float64 or int64; on failure say which
-    token broke it."""
+    """Python's ``kind`` (float or int) of each token as float64 or int64, or which one broke."""
     out = np.zeros(len(tokens), dtype=np.float64 if kind is float else np.int64)
     for i, tok in enumerate(tokens):
         try:
@@ -281,8 +280,7 @@ def joined(pieces: list[np.ndarray], dtype: type) -> np.ndarray:
 
 
 def face_of(sizes: np.ndarray, corner: int) -> int:
-    """The face holding ``corner`` (an index into the faces' packed corners), of faces of
-    ``sizes`` corners each."""
+    """The face holding packed corner ``corner``, of faces of ``sizes`` corners each."""
     return int(np.searchsorted(np.cumsum(sizes), corner, side="right"))
 
 
@@ -320,11 +318,10 @@ def check_mesh(name: str, parsed: Parsed, where: Callable[[int], str]) -> None:
     if np.isfinite(parsed.verts).all():
         return
     finite = np.isfinite(parsed.verts).all(axis=1)
-    if not finite.all():
-        v = int(np.flatnonzero(~finite)[0])
-        warnings.warn(
-            f"{name}, {where(v)}: {int((~finite).sum())} vertices have non-finite coordinates "
-            f"(first: vertex {v}, {parsed.verts[v].tolist()}); fix them before building operators.",
-            UserWarning,
-            stacklevel=3,
-        )
+    v = int(np.flatnonzero(~finite)[0])
+    warnings.warn(
+        f"{name}, {where(v)}: {int((~finite).sum())} vertices have non-finite coordinates "
+        f"(first: vertex {v}, {parsed.verts[v].tolist()}); fix them before building operators.",
+        UserWarning,
+        stacklevel=3,
+    )

@@ -19,18 +19,11 @@ from .text import Chunk, chunks, runs
 from .writers import Pieces, face_pieces, float_pieces
 
 # Records that carry no polygon connectivity, as the skipped-content warning names them.
-_SKIPPED = {
-    "vt": "texture coordinates (vt)",
-    "vn": "normals (vn)",
-    "vp": "parameter-space vertices (vp)",
-    "g": "groups (g)",
-    "o": "objects (o)",
-    "s": "smoothing groups (s)",
-    "mtllib": "material libraries (mtllib)",
-    "usemtl": "materials (usemtl)",
-    "l": "polylines (l)",
-    "p": "points (p)",
-}
+_SKIPPED = {key: f"{what} ({key})" for key, what in (
+    ("vt", "texture coordinates"), ("vn", "normals"), ("vp", "parameter-space vertices"),
+    ("g", "groups"), ("o", "objects"), ("s", "smoothing groups"), ("l", "polylines"),
+    ("mtllib", "material libraries"), ("usemtl", "materials"), ("p", "points"),
+)}  # fmt: skip
 _FREE_FORM = {"cstype", "deg", "bmat", "step", "curv", "curv2", "surf", "parm", "trim", "hole"}
 _FREE_FORM |= {"scrv", "sp", "end", "con", "mg", "bevel", "c_interp", "d_interp", "lod"}
 _FREE_FORM |= {"shadow_obj", "trace_obj", "ctech", "stech", "call", "csh", "maplib", "usemap"}
@@ -263,8 +256,7 @@ class _ObjReader:
         self.corners += len(corners)
 
     def _resolve(self, refs: _Refs, written: np.ndarray, before: np.ndarray) -> None:
-        """0-based rows of 1-based references (negative: counting back from ``before``; 0:
-        none, -1)."""
+        """0-based rows of 1-based references (negative: back from ``before``; 0: none, -1)."""
         rows = written - 1
         negative = written < 0
         if negative.any():

@@ -28,15 +28,13 @@ from .text import Chunk, chunks, runs
 
 _OFF_KEYWORD = re.compile(r"(?:ST|C|N)*OFF")
 _FIRST_LINE = re.compile(rb"([^\r\n]*)(\r\n|\r|\n|$)")
+_LINE = re.compile(rb"[^\n]*\n?")
 
 
 def _vertex_extras(keyword: str) -> str:
     """What the values after ``x y z`` of a vertex record are, by the header keyword."""
-    kinds = [
-        kind
-        for flag, kind in (("ST", "texture coordinates"), ("N", "normals"), ("C", "colours"))
-        if flag in keyword
-    ]
+    flags = (("ST", "texture coordinates"), ("N", "normals"), ("C", "colours"))
+    kinds = [kind for flag, kind in flags if flag in keyword]
     return "vertex " + " and ".join(kinds) if kinds else "extra vertex values (colours?)"
 
 
@@ -62,34 +60,23 @@ def read_off(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     return reader.finish(skipped, keyword)
 
 
-def _next_tokens(text: bytes, pos: int, line: int) -> tuple[list[str], int, int] | None:
-    """The tokens of the first non-blank line from ``pos`` (line number ``line``), the offset
-    after it and its line number (None at the end of the text)."""
-    toks: list[str] = []
-    while not toks:
-        if pos >= len(text):
-            return None
-        end = text.find(b"\n", pos)
-        end = len(text) if end < 0 else end + 1
-        toks, pos, line = text[pos:end].decode("latin-1").split(), end, line + 1
-    return toks, pos, line
-
-
 def _header(text: bytes, name: str) -> tuple[str, int, int, int, int]:
-    """``(keyword, vertices, faces, byte offset of the body, line of the counts)`` of
-    prepared ASCII OFF text."""
-    found = _next_tokens(text, 0, 0)
-    if found is None:
+    """``(keyword, vertices, faces, body's byte offset, counts' line)`` of ASCII OFF text."""
+    found = (
+        (m.end(), no, toks)
+        for no, m in enumerate(_LINE.finditer(text), 1)
+        if (toks := m.group().decode("latin-1").split())
+    )
+    pos, no, toks = next(found, (0, 0, []))
+    if not toks:
         raise ValueError(f"{name}: the file holds only comments, no OFF header.")
-    toks, pos, no = found
     keyword = toks[0]
     if _OFF_KEYWORD.fullmatch(keyword):
         toks = toks[1:]
         if not toks:
-            found = _next_tokens(text, pos, no)
-            if found is None:
+            pos, no, toks = next(found, (0, 0, []))
+            if not toks:
                 raise ValueError(f"{name}: the file ends after the {keyword!r} header.")
-            toks, pos, no = found
     elif keyword.endswith("OFF"):
         raise ValueError(
             f"{name}, line {no}: unsupported OFF variant {keyword!r} "
@@ -166,8 +153,7 @@ class _OffReader:
     def _faces(
         self, chunk: Chunk, first: np.ndarray, count: np.ndarray, line_no: np.ndarray
     ) -> None:
-        """Face lines: one record each when they are (``k i1 .. ik [colour]``), in bulk; else
-        followed token by token."""
+        """Face lines: in bulk when each is one record ``k i1 .. ik [colour]``, else token-wise."""
         found = None if self.need else _one_per_line(chunk, first, count)
         if found is not None and self.faces + len(first) <= self.num_faces:
             sizes, corners, coloured, values = found

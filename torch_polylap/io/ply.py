@@ -96,8 +96,14 @@ def read_ply(data: bytes, name: str, skipped: Skipped, want_attributes: bool) ->
     if fmt == "ascii":
         check_text(data[body:], name, "ASCII PLY", header_lines + 1)
         columns = _read_ply_ascii(data, body, header_lines, elements, wanted, name, record_line)
-    else:
-        columns = _read_ply_binary(data, body, _PLY_FORMATS[fmt], elements, wanted, name)
+    else:  # each element's records, up to the first of each wanted name
+        columns, pos = {}, body
+        last = max(next(i for i, e in enumerate(elements) if e.name == w) for w in wanted)
+        for el in elements[: last + 1]:
+            want = wanted.get(el.name, set())
+            cols, pos = binary_element(data, pos, _PLY_FORMATS[fmt], el, want, name)
+            if el.name in wanted:
+                columns[el.name] = cols
 
     def where(f: int) -> str:
         line = record_line.get("face")
@@ -253,25 +259,6 @@ def list_column(column: _Column) -> tuple[np.ndarray, np.ndarray]:
     return column
 
 
-def _read_ply_binary(
-    data: bytes,
-    pos: int,
-    order: str,
-    elements: list[PlyElement],
-    wanted: dict[str, set[str]],
-    name: str,
-) -> _Columns:
-    """Per wanted element, each wanted property: an array (scalar) or (values, sizes) (list)."""
-    out: _Columns = {}
-    for el in elements:
-        if set(out) == set(wanted):
-            break  # later elements (edges, materials...) are not needed
-        cols, pos = binary_element(data, pos, order, el, wanted.get(el.name, set()), name)
-        if el.name in wanted:
-            out[el.name] = cols
-    return out
-
-
 def binary_element(
     data: bytes, pos: int, order: str, el: PlyElement, want: set[str], name: str
 ) -> tuple[dict[str, _Column], int]:
@@ -337,8 +324,7 @@ def binary_element(
 def _length_reader(
     data: bytes, order: str, prop: PlyProperty
 ) -> tuple[int, Callable[[int], int] | None]:
-    """Size and reader (byte offset -> value) of a list property's length; (0, None) for a
-    scalar."""
+    """Size and reader (byte offset -> value) of a list's length; (0, None) for a scalar."""
     if prop.count_dtype is None:
         return 0, None
     if prop.count_dtype == "u1":
@@ -593,6 +579,5 @@ _Layout = dict[PlyProperty, tuple[np.ndarray, np.ndarray | None]]
 
 
 def _kind(prop: PlyProperty) -> type:
-    """How a property's ASCII values are read: list items of an integer type as ints, all
-    else as floats."""
+    """How ASCII values are read: list items of an integer type as ints, all else as floats."""
     return int if prop.count_dtype is not None and prop.dtype[0] != "f" else float
