@@ -34,6 +34,7 @@ from .assembly import (
 )
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts, inverse_or_zero
 from .kernels import block_kernel, check_method
+from .kernels.diamond import diamond_laplacian
 from .sparse import SparseOperator
 from .sparse.operator import operator_on
 from .topology import Topology, TopologyView, topology_of
@@ -128,7 +129,8 @@ def laplacian(
             non-finite coordinates or zero-area faces, naming the vertex or face.
     """
     lam = _checked_lam(lam, validate=validate)
-    check_method(method)
+    if check_method(method) == "diamond":
+        return _diamond(verts, faces, validate=validate)
     if isinstance(verts, torch.Tensor) and verts.dim() == 3:
         return _laplacian_batch(verts, faces, lam, validate=validate, method=method)
     verts = check_verts(verts, finite=False)
@@ -139,6 +141,25 @@ def laplacian(
     )
     assert masses is not None
     return _operator(view, values), _mass(view, masses)
+
+
+def _diamond(
+    verts: torch.Tensor, faces: MeshFaces, *, validate: bool
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``L``, ``M0`` of ``method="diamond"`` (one mesh or a fixed-topology batch), both on the
+    Diamond pattern; ``M0`` is its non-diagonal mass (see :mod:`torch_polylap.kernels.diamond`)."""
+    if isinstance(verts, torch.Tensor) and verts.dim() == 3:
+        if verts.shape[-1] != 3:
+            raise ValueError(
+                f"verts must have shape (V, 3) or (B, V, 3), got {tuple(verts.shape)}."
+            )
+        first = check_verts(verts[0], finite=False)
+        verts = verts.to(first.dtype)
+    else:
+        verts = check_verts(verts, finite=False)
+    topo = topology_of(faces, verts)
+    pattern, L, M = diamond_laplacian(verts, topo, validate=validate)
+    return operator_on(pattern, L, symmetric=True), operator_on(pattern, M, symmetric=True)
 
 
 def _laplacian_batch(

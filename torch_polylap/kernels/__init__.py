@@ -9,7 +9,11 @@ the off-diagonal entries and the diagonal is minus their row sums.
 - ``"plms"``: Bunge, Herholz, Kazhdan and Botsch 2020, "Polygon Laplacian Made Simple"
   (:mod:`.plms`); ``lam`` is ignored (the method has no stabilizer);
 - ``"degoes"``: de Goes, Butts and Desbrun 2020, "Discrete Differential Operators on Polygonal
-  Meshes" (:mod:`.degoes`); ``lam`` weights their projection term.
+  Meshes" (:mod:`.degoes`); ``lam`` weights their projection term;
+- ``"diamond"``: Bunge, Botsch and Alexa 2021, "The Diamond Laplace for Polygonal and
+  Polyhedral Meshes" (:mod:`.diamond`); ``lam`` is ignored. Its stencil couples the two faces
+  of every edge, so it has no per-face blocks: :func:`.diamond.diamond_laplacian` assembles
+  it on its own pattern (and its ``M0`` is not diagonal), and :func:`block_kernel` refuses it.
 
 :mod:`.frames` holds the per-face geometry they share (gathers, vector area, plane basis).
 """
@@ -27,6 +31,7 @@ from .plms import plms_entries
 
 __all__ = [
     "METHODS",
+    "BLOCK_METHODS",
     "BlockEntries",
     "FaceEntries",
     "BlockKernel",
@@ -35,7 +40,10 @@ __all__ = [
     "thin_error",
 ]
 
-METHODS = ("aw11", "plms", "degoes")
+METHODS = ("aw11", "plms", "degoes", "diamond")
+
+#: The methods that are sums of per-face blocks (all but ``"diamond"``).
+BLOCK_METHODS = ("aw11", "plms", "degoes")
 
 
 def check_method(method: object) -> str:
@@ -95,6 +103,11 @@ def block_kernel(method: str, lam: float | torch.Tensor, *, geometric: bool = Tr
     operator's blocks (AW11 sec. 5.3).
     """
     check_method(method)
+    if method not in BLOCK_METHODS:
+        raise ValueError(
+            f"method={method!r} is not a sum of per-face blocks; this operation supports "
+            f"{', '.join(map(repr, BLOCK_METHODS))}."
+        )
     if not geometric and method != "aw11":
         raise ValueError("only method='aw11' has a planarity (stabilizer-only) operator.")
     return BlockKernel(method, lam, geometric=geometric)
