@@ -236,7 +236,7 @@ def bending_energy(
     _check_reduction(reduction)
     m = _as_meshes(meshes)
     f = m.verts_packed() if u is None else _packed_signal(m, u, "u")
-    L, M0 = m.laplacian(lam, method=check_method(method))
+    L, M0 = m.laplacian(lam, method=check_method(method, diagonal_mass="bending_energy"))
     Lu = L @ f.to(L.dtype)
     per_vertex = 0.5 * (Lu * Lu).sum(1) * inverse_or_zero(M0.diagonal())
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))

@@ -35,7 +35,8 @@ from .assembly import (
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts, inverse_or_zero
 from .kernels import block_kernel, check_method
 from .kernels.diamond import diamond_laplacian
-from .sparse import SparseOperator
+from .linalg import solve
+from .sparse import SparseOperator, as_operator, diag
 from .sparse.operator import operator_on
 from .topology import Topology, TopologyView, topology_of
 from .tracing import functional, require
@@ -232,10 +233,14 @@ def planarity_laplacian(
 def strong_laplacian(L: torch.Tensor, M0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """``M0^{-1} L u`` (AW11 eq. 3, the pointwise Laplacian), ``u`` of shape ``(V,)`` or ``(V, c)``.
 
-    Rows of isolated vertices (zero mass) are set to zero rather than divided by zero.
+    Rows of isolated vertices (zero mass) are set to zero rather than divided by zero. A
+    non-diagonal ``M0`` (``method="diamond"``) is solved with (:func:`torch_polylap.solve`,
+    differentiable), its isolated vertices' rows made the identity.
     """
     m = M0.diagonal()
     Lu = L @ u
+    if as_operator(M0).pattern.nnz != m.numel():
+        return solve(M0 + diag((m == 0).to(m.dtype)), Lu)
     inv = inverse_or_zero(m)
     return Lu * (inv if u.dim() == 1 else inv[:, None])
 

@@ -29,7 +29,7 @@ import torch
 
 from ._typing import MeshFaces
 from .atomic import atomic_write
-from .kernels import check_method
+from .kernels import LAM_FREE_METHODS, check_method
 from .linalg import eigs, solve
 from .operators import laplacian
 from .topology import get_topology
@@ -152,7 +152,8 @@ def eigs_cache_key(
     verts: torch.Tensor, faces: MeshFaces, k: int, lam: float, method: str = "aw11"
 ) -> str:
     """Hash of everything the eigenpairs depend on: positions, faces, ``k``, ``method`` and
-    ``lam`` (except for ``"plms"``, which does not use it, so every ``lam`` shares one entry).
+    ``lam`` (except for ``"plms"`` and ``"diamond"``, which do not use it, so every ``lam``
+    shares one entry).
 
     AW11 keys are those of earlier versions (no method field), so existing caches stay valid.
     """
@@ -164,7 +165,9 @@ def eigs_cache_key(
     if method == "aw11":
         digest.update(f"k={k};lam={lam!r}".encode())
     else:
-        digest.update(f"k={k};lam={None if method == 'plms' else lam!r};method={method}".encode())
+        digest.update(
+            f"k={k};lam={None if method in LAM_FREE_METHODS else lam!r};method={method}".encode()
+        )
     return digest.hexdigest()[:32]
 
 

@@ -32,6 +32,7 @@ from .plms import plms_entries
 __all__ = [
     "METHODS",
     "BLOCK_METHODS",
+    "LAM_FREE_METHODS",
     "BlockEntries",
     "FaceEntries",
     "BlockKernel",
@@ -45,11 +46,23 @@ METHODS = ("aw11", "plms", "degoes", "diamond")
 #: The methods that are sums of per-face blocks (all but ``"diamond"``).
 BLOCK_METHODS = ("aw11", "plms", "degoes")
 
+#: The methods without a stabilizer, which ignore ``lam``.
+LAM_FREE_METHODS = ("plms", "diamond")
 
-def check_method(method: object) -> str:
-    """``method`` must name one of :data:`METHODS`."""
+
+def check_method(method: object, *, diagonal_mass: str = "") -> str:
+    """``method`` must name one of :data:`METHODS`.
+
+    ``diagonal_mass`` names the caller when it needs a diagonal ``M0`` (lumped masses per
+    vertex): then ``"diamond"``, whose mass couples the corners of each face, is refused.
+    """
     if not isinstance(method, str) or method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(map(repr, METHODS))}, got {method!r}.")
+    if diagonal_mass and method not in BLOCK_METHODS:
+        raise ValueError(
+            f"{diagonal_mass} needs a diagonal mass M0, and method={method!r} has none (its M0 "
+            f"couples the corners of each face); use one of {', '.join(map(repr, BLOCK_METHODS))}."
+        )
     return method
 
 
