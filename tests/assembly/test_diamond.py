@@ -234,3 +234,25 @@ def test_clear_errors():
         tp.laplacian(folded, [[0, 1, 2], [1, 0, 3]], method="diamond")
     with pytest.raises(ValueError, match="not a sum of per-face blocks"):
         block_kernel("diamond", 1.0)
+
+
+@pytest.mark.slow  # compiles twice (about 35 s on one loaded core)
+def test_compiled(device):
+    verts, faces = mixed_mesh()
+    verts = verts.to(device, torch.float64)
+    lap = tp.CompiledLaplacian(faces, method="diamond", options={"backend": "aot_eager"})
+    X = verts.clone().requires_grad_(True)
+    L, M = lap(X)
+    L_ref, M_ref = tp.laplacian(verts, faces, method="diamond")
+    torch.testing.assert_close(L.to_dense(), L_ref.to_dense(), rtol=1e-13, atol=1e-13)
+    torch.testing.assert_close(M.to_dense(), M_ref.to_dense(), rtol=1e-13, atol=1e-13)
+    (grad,) = torch.autograd.grad((L @ X).square().sum() + (M @ X).sum(), X)
+    Y = verts.clone().requires_grad_(True)
+    L2, M2 = tp.laplacian(Y, faces, method="diamond")
+    (ref,) = torch.autograd.grad((L2 @ Y).square().sum() + (M2 @ Y).sum(), Y)
+    torch.testing.assert_close(grad, ref, rtol=1e-11, atol=1e-11)
+    # a failed check is answered by the eager function, which names the element
+    bad = verts.clone()
+    bad[2, 0] = float("nan")
+    with pytest.raises(ValueError, match="vertex 2 has a non-finite coordinate"):
+        lap(bad)

@@ -52,11 +52,17 @@ import torch
 from ..assembly.scaling import normalizer
 from ..sparse.pattern import SparsityPattern
 from ..topology import Topology
-from ..tracing import run_eagerly, tracing
+from ..tracing import require, run_eagerly, tracing
 from .frames import component_norm
 from .plms import virtual_vertices
 
-__all__ = ["DiamondPlan", "diamond_plan", "diamond_values", "diamond_laplacian"]
+__all__ = [
+    "DiamondPlan",
+    "diamond_plan",
+    "diamond_values",
+    "diamond_flagged",
+    "diamond_laplacian",
+]
 
 
 @dataclass(frozen=True)
@@ -350,6 +356,19 @@ def diamond_laplacian(
         the pattern, and the values of ``L`` and ``M0`` on it, ``(nnz,)`` or ``(B, nnz)``.
     """
     plan = diamond_plan(topo, verts.device)
+    L, M, ok, c = diamond_flagged(verts, plan)
+    # traced: an in-graph assertion with the general message
+    if validate and not require(ok, _INVALID):
+        _raise_invalid(verts, plan, c)
+    return plan.pattern, L, M
+
+
+def diamond_flagged(
+    verts: torch.Tensor, plan: DiamondPlan
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`diamond_values` of ``verts`` ``(V, 3)`` or ``(B, V, 3)`` in the caller's units,
+    without raising: ``L``, ``M0``, ``ok`` (0-dim bool: every check of
+    :func:`diamond_laplacian` passed) and the diamonds' ``c``; what compiled code runs."""
     norm = normalizer(verts)
     scaled = verts * norm.scale
     with torch.autocast(verts.device.type, enabled=False):
@@ -357,11 +376,8 @@ def diamond_laplacian(
             L, M, c = torch.func.vmap(lambda v: diamond_values(v, plan))(scaled)
         else:
             L, M, c = diamond_values(scaled, plan)
-    if validate:
-        ok = norm.finite & (c > 0).all() & torch.isfinite(L).all() & torch.isfinite(M).all()
-        if not bool(ok):
-            _raise_invalid(verts, plan, c)
-    return plan.pattern, L, M * norm.unscale * norm.unscale
+    ok = norm.finite & (c > 0).all() & torch.isfinite(L).all() & torch.isfinite(M).all()
+    return L, M * norm.unscale * norm.unscale, ok, c
 
 
 def _raise_invalid(verts: torch.Tensor, plan: DiamondPlan, c: torch.Tensor) -> None:
@@ -380,7 +396,11 @@ def _raise_invalid(verts: torch.Tensor, plan: DiamondPlan, c: torch.Tensor) -> N
             "fold), where the Diamond Laplacian is undefined. Repair that region, or use "
             "another method."
         )
-    raise ValueError(
-        "method='diamond': the Laplacian or mass has non-finite values; the mesh has a "
-        "degenerate face or edge, or coordinates near the dtype's range."
-    )
+    raise ValueError(_INVALID)
+
+
+_INVALID = (
+    "torch_polylap: method='diamond' needs finite coordinates and diamonds of positive area "
+    "(no degenerate edge or face, no fold); the Laplacian or mass is not finite or a diamond "
+    "is folded. Repair the mesh there, or use another method."
+)
