@@ -13,9 +13,10 @@ the packed batch (block diagonal) and multiplied as ``L @ X`` (a sparse operator
 cost O(nnz).  Each function has a thin ``nn.Module`` wrapper holding its options.
 
 Every loss that builds ``L`` takes ``method=``: ``"aw11"`` (default, Alexa and Wardetzky 2011),
-``"plms"`` (Bunge et al. 2020; ``lam`` unused) or ``"degoes"`` (de Goes et al. 2020), as in
-:func:`torch_polylap.laplacian`; :func:`laplacian_smoothing`, whose ``method`` is pytorch3d's
-``"uniform"`` / ``"cot"`` switch, accepts the three names there as well.
+``"plms"`` (Bunge et al. 2020; ``lam`` unused), ``"degoes"`` (de Goes et al. 2020) or
+``"diamond"`` (Bunge et al. 2021; ``lam`` unused; not :func:`bending_energy`, which needs a
+diagonal mass), as in :func:`torch_polylap.laplacian`; :func:`laplacian_smoothing`, whose
+``method`` is pytorch3d's ``"uniform"`` / ``"cot"`` switch, accepts these names there as well.
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ def _vertex_norm(v: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(v, dim=1)
 
 
-SmoothingMethod = Literal["uniform", "polygon", "cot", "aw11", "plms", "degoes"]
+SmoothingMethod = Literal["uniform", "polygon", "cot", "aw11", "plms", "degoes", "diamond"]
 
 
 def laplacian_smoothing(

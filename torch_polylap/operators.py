@@ -104,9 +104,13 @@ def laplacian(
             huge but finite entries instead of an error. Under torch.compile the checks are an
             in-graph assertion and there is no float64 re-evaluation.
         method: ``"aw11"`` (default, this docstring), ``"plms"`` (Bunge et al. 2020, "Polygon
-            Laplacian Made Simple": a virtual vertex per face, ``lam`` ignored) or ``"degoes"``
-            (de Goes et al. 2020, with ``lam`` their ``beta``); see :mod:`torch_polylap.kernels`.
-            All three share the topology, pattern, sign and dtype/device rules.
+            Laplacian Made Simple": a virtual vertex per face, ``lam`` ignored), ``"degoes"``
+            (de Goes et al. 2020, with ``lam`` their ``beta``) or ``"diamond"`` (Bunge, Botsch
+            and Alexa 2021, ``lam`` ignored; :mod:`torch_polylap.kernels.diamond`); see
+            :mod:`torch_polylap.kernels`. All share the topology, sign and dtype/device rules;
+            the first three the pattern. ``"diamond"`` has a wider pattern and a mass ``M0``
+            that is **not diagonal** (the one its published errors need): ``M0^{-1}`` is a
+            solve, and callers that need lumped masses refuse the method.
 
     Returns:
         ``L``: ``(V, V)`` :class:`~torch_polylap.sparse.SparseOperator`, symmetric positive
@@ -265,7 +269,8 @@ class PolygonLaplacian(nn.Module):
         lam: stabilizer weight (see :func:`laplacian`).
         learn_lam: make ``lam`` a learnable ``nn.Parameter``.
         validate: see :func:`laplacian`.
-        method: ``"aw11"`` (default), ``"plms"`` or ``"degoes"`` (see :func:`laplacian`).
+        method: ``"aw11"`` (default), ``"plms"``, ``"degoes"`` or ``"diamond"`` (see
+            :func:`laplacian`).
 
     The topology is rebuilt only when the faces change (a different object, or a tensor
     modified in place), so a training loop with fixed connectivity only recomputes values.

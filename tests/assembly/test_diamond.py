@@ -296,3 +296,34 @@ def test_gradients_run_under_a_4gb_cap_at_62k_vertices():
         [sys.executable, "-c", _MEMORY_SCRIPT], capture_output=True, text=True, timeout=600
     )
     assert result.returncode == 0 and "ok" in result.stdout, result.stdout + result.stderr
+
+
+def test_entry_points_needing_a_diagonal_mass_or_face_blocks_refuse_it(tmp_path):
+    verts, faces = hex_pent_mesh()
+    verts = verts.double()
+    calls = {
+        "to_diffusionnet": lambda: tp.interop.to_diffusionnet(verts, faces, 4, method="diamond"),
+        "PolygonMeshDataset": lambda: tp.datasets.PolygonMeshDataset(
+            [(verts, faces)], k=4, cache_dir=tmp_path, method="diamond"
+        ),
+        "plate_bending": lambda: tp.apps.plate_bending(verts, faces, method="diamond"),
+        "bending_energy": lambda: tp.losses.bending_energy((verts, faces), method="diamond"),
+        "HeatGeodesicSolver": lambda: tp.HeatGeodesicSolver(verts, faces, method="diamond"),
+        "VectorHeatSolver": lambda: tp.vector.VectorHeatSolver(verts, faces, method="diamond"),
+        "connection_laplacian": lambda: tp.vector.connection_laplacian(
+            verts, faces, method="diamond"
+        ),
+    }
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=f"{name} needs a"):
+            call()
+
+
+def test_strong_laplacian_solves_with_the_diamond_mass(device):
+    verts, faces = mixed_mesh()
+    verts = verts.to(device, torch.float64)
+    L, M = tp.laplacian(verts, faces, method="diamond")
+    H = tp.strong_laplacian(L, M, verts)
+    ref = spla.spsolve(_scipy(M).tocsc(), _scipy(L) @ verts.cpu().numpy())
+    np.testing.assert_allclose(H.cpu().numpy(), ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+    torch.testing.assert_close(tp.mean_curvature_normal(verts, faces, method="diamond"), H)

@@ -50,18 +50,27 @@ BLOCK_METHODS = ("aw11", "plms", "degoes")
 LAM_FREE_METHODS = ("plms", "diamond")
 
 
-def check_method(method: object, *, diagonal_mass: str = "") -> str:
+def check_method(method: object, *, diagonal_mass: str = "", face_blocks: str = "") -> str:
     """``method`` must name one of :data:`METHODS`.
 
     ``diagonal_mass`` names the caller when it needs a diagonal ``M0`` (lumped masses per
-    vertex): then ``"diamond"``, whose mass couples the corners of each face, is refused.
+    vertex), ``face_blocks`` when it needs ``L`` as a sum of per-face blocks: either refuses
+    ``"diamond"``, whose mass couples the corners of each face and whose stencil couples the
+    two faces beside each edge.
     """
     if not isinstance(method, str) or method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(map(repr, METHODS))}, got {method!r}.")
+    others = ", ".join(map(repr, BLOCK_METHODS))
     if diagonal_mass and method not in BLOCK_METHODS:
         raise ValueError(
             f"{diagonal_mass} needs a diagonal mass M0, and method={method!r} has none (its M0 "
-            f"couples the corners of each face); use one of {', '.join(map(repr, BLOCK_METHODS))}."
+            f"couples the corners of each face); use one of {others}."
+        )
+    if face_blocks and method not in BLOCK_METHODS:
+        raise ValueError(
+            f"{face_blocks} needs a Laplacian that is a sum of per-face blocks, and "
+            f"method={method!r} is not (its stencil couples the faces beside each edge); use "
+            f"one of {others}."
         )
     return method
 
