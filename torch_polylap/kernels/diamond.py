@@ -311,9 +311,11 @@ def diamond_values(
         w = virtual_vertices(x)
         weights.append(w.t().reshape(-1))
         points.append((x * w).sum(1))
-    w_all = torch.cat(weights)
-    # face points in the groups' order, and a dummy row for the boundary's missing face
-    xf = torch.cat([torch.cat(points, 1).t(), verts.new_zeros(1, 3)])
+    # face points in the groups' order, and a dummy row for the boundary's missing face (a
+    # mesh without faces has no groups)
+    w_all = torch.cat(weights) if weights else verts.new_zeros(0)
+    points.append(verts.new_zeros(3, 1))
+    xf = torch.cat(points, 1).t()
     factors = torch.cat([w_all, w_all.new_tensor([1.0, 0.5, -1.0, -0.5]), -w_all])
 
     xi, xj = verts[plan.edge_i], verts[plan.edge_j]
