@@ -20,9 +20,10 @@ import torch
 
 from ._typing import MeshFaces
 from .assembly import FlaggedAssembly, assemble_gathered, gather_plan_of
+from .assembly.diamond import diamond_flagged
 from .checks import Lam, check_lam, check_verts
 from .kernels import block_kernel, check_method
-from .kernels.diamond import DiamondPlan, diamond_flagged, diamond_plan
+from .kernels.diamond import DiamondPlan, diamond_plan
 from .operators import laplacian
 from .sparse.operator import operator_on
 from .topology import Topology, TopologyView, topology_of

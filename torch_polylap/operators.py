@@ -32,9 +32,9 @@ from .assembly import (
     assemble,
     assemble_flagged,
 )
+from .assembly.diamond import diamond_laplacian
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts, inverse_or_zero
 from .kernels import block_kernel, check_method
-from .kernels.diamond import diamond_laplacian
 from .linalg import solve
 from .sparse import SparseOperator, as_operator, diag
 from .sparse.operator import operator_on

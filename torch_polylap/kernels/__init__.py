@@ -12,8 +12,9 @@ the off-diagonal entries and the diagonal is minus their row sums.
   Meshes" (:mod:`.degoes`); ``lam`` weights their projection term;
 - ``"diamond"``: Bunge, Botsch and Alexa 2021, "The Diamond Laplace for Polygonal and
   Polyhedral Meshes" (:mod:`.diamond`); ``lam`` is ignored. Its stencil couples the two faces
-  of every edge, so it has no per-face blocks: :func:`.diamond.diamond_laplacian` assembles
-  it on its own pattern (and its ``M0`` is not diagonal), and :func:`block_kernel` refuses it.
+  of every edge, so it has no per-face blocks:
+  :func:`torch_polylap.assembly.diamond.diamond_laplacian` assembles it on its own pattern
+  (and its ``M0`` is not diagonal), and :func:`block_kernel` refuses it.
 
 :mod:`.frames` holds the per-face geometry they share (gathers, vector area, plane basis).
 """
