@@ -63,39 +63,54 @@ __all__ = ["DiamondPlan", "diamond_plan", "diamond_values"]
 class DiamondPlan:
     """The index plan of the Diamond ``L`` and ``M0`` of one topology on one device.
 
+    ``u^T L u`` is regrouped (see :func:`diamond_values`) into a block per face, a cross term
+    per interior edge between the corners of its two faces, and terms on each edge's two
+    endpoints; every term lands at a position of the upper triangle (or the diagonal), which
+    is mirrored at the end so that ``L`` is exactly symmetric.
+
     Attributes:
         pattern: the ``V x V`` symmetric pattern of ``L`` (and ``M0``, a subset).
-        groups: per degree group, ``(corners_t (k, F_k), face_ids (F_k,))``.
-        face_slot: ``(F,)`` each face's column in the concatenation of the groups.
+        groups: per degree group, ``(corners_t (k, F_k), face_ids (F_k,))``; corners and faces
+            are numbered in the concatenation of the groups (``N`` corners, ``F`` faces).
+        corner_face: ``(N + 1,)`` each corner's face (and ``F`` for a dummy corner).
         edge_i, edge_j, edge_g, edge_f: ``(E,)`` each diamond's edge ``i -> j`` (in face ``g``'s
             orientation), its first face ``g`` and other face ``f`` (``F``, a dummy, on the
-            boundary); faces as columns of the concatenated groups, except ``edge_f``'s dummy.
+            boundary).
         boundary: ``(E,)`` bool, edges with one face.
-        node_index: ``(4 E,)`` the mass nodes of the diamonds' points (``V + F``: the dummy).
-        s_coef, s_p, s_q, s_pos: the stiffness terms: coefficient (index into the stacked
-            ``(3 E,)`` edge coefficients), the two factors (indices into the corner weights
-            ``w`` concatenated with ``[1, 1/2, -1, -1/2]`` and ``-w``), the value position.
-        m_node, m_p, m_q, m_pos: the mass terms (node mass, two weight factors, position).
+        edge_corners: ``(4 E,)`` the corners of ``i`` and ``j`` in ``g``, then in ``f`` (``N``,
+            a dummy, on the boundary).
+        node_index: ``(4 E,)`` the mass nodes of the diamonds' points: vertices ``i``, ``j``,
+            then ``V +`` face ``g``, ``f`` (``V + F``, a dummy, on the boundary).
+        face_a, face_b: the face blocks' terms: two corners of a face.
+        cross_coef, cross_a, cross_b: the edges' cross terms: coefficient (index into
+            ``[-c_bb, -2 c_bb]`` of the edges), a corner of ``g``, one of ``f``.
+        stiffness_pos: the positions of the face terms, the cross terms, and the edges'
+            ``(i, i)``, ``(j, j)`` and ``(i, j)`` terms, in that order.
+        m_node, m_a, m_b, m_pos: the mass terms: node mass, two corners (``N``: the factor 1
+            of a vertex's own mass), position.
         mirror: ``(nnz,)`` each position's transposed position.
         off_diagonal: ``(nnz,)`` bool.
     """
 
     pattern: SparsityPattern
     groups: tuple[tuple[torch.Tensor, torch.Tensor], ...]
-    face_slot: torch.Tensor
+    corner_face: torch.Tensor
     edge_i: torch.Tensor
     edge_j: torch.Tensor
     edge_g: torch.Tensor
     edge_f: torch.Tensor
     boundary: torch.Tensor
+    edge_corners: torch.Tensor
     node_index: torch.Tensor
-    s_coef: torch.Tensor
-    s_p: torch.Tensor
-    s_q: torch.Tensor
-    s_pos: torch.Tensor
+    face_a: torch.Tensor
+    face_b: torch.Tensor
+    cross_coef: torch.Tensor
+    cross_a: torch.Tensor
+    cross_b: torch.Tensor
+    stiffness_pos: torch.Tensor
     m_node: torch.Tensor
-    m_p: torch.Tensor
-    m_q: torch.Tensor
+    m_a: torch.Tensor
+    m_b: torch.Tensor
     m_pos: torch.Tensor
     mirror: torch.Tensor
     off_diagonal: torch.Tensor
@@ -139,8 +154,9 @@ def _ranges(starts: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def _edges(topo: Topology) -> tuple[np.ndarray, ...]:
-    """``i, j, g, f, boundary``: each edge, from its first half-edge (in the packed face
-    order); ``f = -1`` on the boundary. Raises on edges used by more than two faces."""
+    """``i, j, g, f, boundary`` and the packed corners of ``i`` and ``j`` in ``g`` and in ``f``:
+    each edge, from its first half-edge (in the packed face order); ``f`` and its corners
+    ``-1`` on the boundary. Raises on edges used by more than two faces."""
     idx = topo.faces.indices.numpy().astype(np.int64)
     offsets = topo.faces.offsets.numpy().astype(np.int64)
     sizes = np.diff(offsets)
@@ -160,8 +176,13 @@ def _edges(topo: Topology) -> tuple[np.ndarray, ...]:
         )
     h0 = order[first]
     second = np.where(counts == 2, order[np.minimum(first + 1, order.size - 1)], -1)
-    other = np.where(second >= 0, face[np.maximum(second, 0)], -1)
-    return src[h0], dst[h0], face[h0], other, second < 0
+    h1 = np.maximum(second, 0)
+    other = np.where(second >= 0, face[h1], -1)
+    # the corners of i and j in f: h1 runs j -> i on an oriented mesh, i -> j otherwise
+    forward = src[h1] == src[h0]
+    fi = np.where(second >= 0, np.where(forward, h1, nxt[h1]), -1)
+    fj = np.where(second >= 0, np.where(forward, nxt[h1], h1), -1)
+    return src[h0], dst[h0], face[h0], other, second < 0, h0, nxt[h0], fi, fj
 
 
 def _unique_inverse(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -183,106 +204,104 @@ def _build_plan(topo: Topology) -> DiamondPlan:
     offsets = topo.faces.offsets.numpy().astype(np.int64)
     idx = topo.faces.indices.numpy().astype(np.int64)
     F = offsets.size - 1
-    # corner weights live in the concatenation of the groups' (F_k, k) weight arrays
-    packed_to_weight = np.empty(idx.size, np.int64)
+    sizes = np.diff(offsets)
+    # corners and faces are numbered in the concatenation of the groups' (F_k, k) arrays
+    corner_of = np.empty(idx.size, np.int64)
     face_slot = np.empty(F, np.int64)
+    corner_face = np.empty(idx.size, np.int64)
     base = fbase = 0
     groups = []
     for grp in topo.groups:
         fids = grp.face_ids.numpy().astype(np.int64)
         k = grp.k
         packed = offsets[fids][:, None] + np.arange(k)[None, :]
-        packed_to_weight[packed.ravel()] = base + np.arange(fids.size * k)
+        corner_of[packed.ravel()] = base + np.arange(fids.size * k)
         face_slot[fids] = fbase + np.arange(fids.size)
+        corner_face[base : base + fids.size * k] = np.repeat(fbase + np.arange(fids.size), k)
         base += fids.size * k
         fbase += fids.size
         groups.append((grp.corners_t, grp.face_ids))
-    # factors: the corner weights, the constants 1, 1/2, -1, -1/2, the negated weights
-    ONE, M_ONE, M_HALF = base, base + 2, base + 3
-    NEG = base + 4
+    N = base
+    vertex_of = np.empty(N, np.int64)
+    vertex_of[corner_of] = idx
 
-    ei, ej, eg, ef, bnd = _edges(topo)
+    ei, ej, eg, ef, bnd, gi, gj, fi, fj = _edges(topo)
     E = ei.size
-    sizes = np.diff(offsets)
-    # legs: (edge, vertex, weight factor, kind 0: alpha, 1: beta)
-    a_edge = np.repeat(np.arange(E), 2)
-    a_vert = np.stack([ej, ei], 1).ravel()
-    a_src = np.tile([ONE, M_ONE], E)
-    g_edge, g_pos = _ranges(offsets[eg], sizes[eg])
-    inner = np.flatnonzero(~bnd)
-    f_owner, f_pos = _ranges(offsets[ef[inner]], sizes[ef[inner]])
-    f_edge = inner[f_owner]
-    b = np.flatnonzero(bnd)
-    leg_edge = np.concatenate([a_edge, g_edge, f_edge, b, b])
-    leg_vert = np.concatenate([a_vert, idx[g_pos], idx[f_pos], ei[b], ej[b]])
-    # each leg's factor, sign included: u_g - u_f puts -w on the corners of f
-    leg_src = np.concatenate(
-        [a_src, packed_to_weight[g_pos], NEG + packed_to_weight[f_pos], np.full(2 * b.size, M_HALF)]
-    )
-    leg_kind = (np.arange(leg_edge.size) >= a_edge.size).astype(np.int64)
-    order = np.argsort(leg_edge, kind="stable")
-    leg_edge, leg_vert, leg_src, leg_kind = (
-        a[order] for a in (leg_edge, leg_vert, leg_src, leg_kind)
-    )
-    # every ordered pair of legs of one edge; the upper triangle and diagonal are kept and
-    # mirrored at the end, so that L is exactly symmetric
-    per_edge = np.bincount(leg_edge, minlength=E)
-    start = np.cumsum(per_edge) - per_edge
-    p, q = _ranges(np.zeros(leg_edge.size, np.int64), per_edge[leg_edge])
-    q = start[leg_edge[p]] + q
-    keep = leg_vert[p] <= leg_vert[q]
-    p, q = p[keep], q[keep]
-    s_coef = (leg_kind[p] + leg_kind[q]) * E + leg_edge[p]
-    s_p, s_q = leg_src[p], leg_src[q]
-    s_rows, s_cols = leg_vert[p], leg_vert[q]
+    inner = ~bnd
+    # face blocks: every pair of corners of a face, the lower vertex first, and each corner
+    face, pair = _ranges(np.zeros(F, np.int64), sizes * sizes)
+    a = offsets[face] + pair // sizes[face]
+    b = offsets[face] + pair % sizes[face]
+    keep = idx[a] <= idx[b]
+    face_a, face_b = corner_of[a[keep]], corner_of[b[keep]]
+    # cross terms of interior edges: every corner of g with every corner of f
+    e_in = np.flatnonzero(inner)
+    owner, pair = _ranges(np.zeros(e_in.size, np.int64), sizes[eg[e_in]] * sizes[ef[e_in]])
+    e = e_in[owner]
+    kf = sizes[ef[e]]
+    cross_a = corner_of[offsets[eg[e]] + pair // kf]
+    cross_b = corner_of[offsets[ef[e]] + pair % kf]
+    same = vertex_of[cross_a] == vertex_of[cross_b]
+    cross_coef = e + E * same
 
-    # mass: diag(m_V) + sum_f m_f w_f w_f^T
-    mf, mp = _ranges(np.zeros(F, np.int64), sizes * sizes)
-    ca = offsets[mf] + mp // sizes[mf]
-    cb = offsets[mf] + mp % sizes[mf]
-    keep = idx[ca] <= idx[cb]
-    mf, ca, cb = mf[keep], ca[keep], cb[keep]
-    m_rows = np.concatenate([idx[ca], np.arange(V)])
-    m_cols = np.concatenate([idx[cb], np.arange(V)])
-    m_node = np.concatenate([V + mf, np.arange(V)])
-    m_p = np.concatenate([packed_to_weight[ca], np.full(V, ONE)])
-    m_q = np.concatenate([packed_to_weight[cb], np.full(V, ONE)])
+    def upper(r: np.ndarray, c: np.ndarray) -> np.ndarray:
+        return np.minimum(r, c) * V + np.maximum(r, c)
 
-    keys = np.concatenate([s_rows * V + s_cols, m_rows * V + m_cols])
-    upper, inverse = _unique_inverse(keys)
-    rows, cols = upper // V, upper % V
-    full = _unique_inverse(np.concatenate([upper, cols * V + rows]))[0]
+    keys = [
+        upper(vertex_of[face_a], vertex_of[face_b]),
+        upper(vertex_of[cross_a], vertex_of[cross_b]),
+        upper(ei, ei),
+        upper(ej, ej),
+        upper(ei, ej),
+        upper(np.arange(V), np.arange(V)),
+    ]
+    distinct, inverse = _unique_inverse(np.concatenate(keys))
+    rows, cols = distinct // V, distinct % V
+    full = _unique_inverse(np.concatenate([distinct, cols * V + rows]))[0]
     frow, fcol = full // V, full % V
     crow = np.concatenate([[0], np.cumsum(np.bincount(frow, minlength=V))])
     mirror = np.searchsorted(full, fcol * V + frow)
     pattern = SparsityPattern(torch.from_numpy(crow), torch.from_numpy(fcol), (V, V))
-    pos = np.searchsorted(full, upper)[inverse]
-    s_pos, m_pos = pos[: s_rows.size], pos[s_rows.size :]
+    pos = np.split(np.searchsorted(full, distinct)[inverse], np.cumsum([k.size for k in keys])[:-1])
+    # mass: the vertices' own masses, and every face block prolonged (the same pairs)
+    m_node = np.concatenate([V + corner_face[face_a], np.arange(V)])
+    m_a = np.concatenate([face_a, np.full(V, N)])
+    m_b = np.concatenate([face_b, np.full(V, N)])
+    m_pos = np.concatenate([pos[0], pos[5]])
 
-    ef_slot = np.where(bnd, F, face_slot[np.maximum(ef, 0)])
-    node_f = np.where(bnd, V + F, V + np.maximum(ef, 0))
-    node_index = np.concatenate([ei, ej, V + eg, node_f])
+    def t(x: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(x, dtype=np.int64))
 
-    def t(a: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.int64))
-
+    slot_f = np.where(bnd, F, face_slot[np.maximum(ef, 0)])
     return DiamondPlan(
         pattern=pattern,
         groups=tuple(groups),
-        face_slot=t(face_slot),
+        corner_face=t(np.append(corner_face, F)),
         edge_i=t(ei),
         edge_j=t(ej),
         edge_g=t(face_slot[eg]),
-        edge_f=t(ef_slot),
+        edge_f=t(slot_f),
         boundary=torch.from_numpy(bnd),
-        node_index=t(node_index),
-        s_coef=t(s_coef),
-        s_p=t(s_p),
-        s_q=t(s_q),
-        s_pos=t(s_pos),
+        edge_corners=t(
+            np.concatenate(
+                [
+                    corner_of[gi],
+                    corner_of[gj],
+                    np.where(bnd, N, corner_of[fi]),
+                    np.where(bnd, N, corner_of[fj]),
+                ]
+            )  # fmt: skip
+        ),
+        node_index=t(np.concatenate([ei, ej, V + face_slot[eg], V + slot_f])),
+        face_a=t(face_a),
+        face_b=t(face_b),
+        cross_coef=t(cross_coef),
+        cross_a=t(cross_a),
+        cross_b=t(cross_b),
+        stiffness_pos=t(np.concatenate(pos[:5])),
         m_node=t(m_node),
-        m_p=t(m_p),
-        m_q=t(m_q),
+        m_a=t(m_a),
+        m_b=t(m_b),
         m_pos=t(m_pos),
         mirror=t(mirror),
         off_diagonal=torch.from_numpy(frow != fcol),
@@ -293,6 +312,13 @@ def diamond_values(
     verts: torch.Tensor, plan: DiamondPlan
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The values of ``L`` and ``M0`` on ``plan.pattern`` for ``verts`` ``(V, 3)``.
+
+    With ``alpha = u_j - u_i`` and ``beta = w_g . u - w_f . u`` (``w_f . u`` the mean
+    ``(u_i + u_j) / 2`` on the boundary), a diamond's energy
+    ``c_aa alpha^2 + 2 c_ab alpha beta + c_bb beta^2`` is regrouped: ``(w_f . u)^2`` terms
+    summed per face (``C_f``), ``alpha (w_f . u)`` terms likewise (the corner vector
+    ``rho_f``), so each face has the block ``C_f w w^T + w rho^T + rho w^T``; the interior
+    edges keep ``-2 c_bb (w_g . u)(w_f . u)``, and the rest falls on ``i`` and ``j``.
 
     Returns:
         ``L`` ``(nnz,)``, ``M0`` ``(nnz,)`` and ``(E,)`` twice each diamond's signed flattened
@@ -306,15 +332,15 @@ def diamond_values(
         weights.append(w.t().reshape(-1))
         points.append((x * w).sum(1))
     # face points in the groups' order, and a dummy row for the boundary's missing face (a
-    # mesh without faces has no groups)
-    w_all = torch.cat(weights) if weights else verts.new_zeros(0)
+    # mesh without faces has no groups); the weights with a dummy 1 for the vertex masses
+    weights.append(verts.new_ones(1))
+    w_all = torch.cat(weights)
     points.append(verts.new_zeros(3, 1))
     xf = torch.cat(points, 1).t()
-    factors = torch.cat([w_all, w_all.new_tensor([1.0, 0.5, -1.0, -0.5]), -w_all])
 
-    xi, xj = verts[plan.edge_i], verts[plan.edge_j]
-    xg = xf[plan.edge_g]
-    xother = torch.where(plan.boundary[:, None], 0.5 * (xi + xj), xf[plan.edge_f])
+    xi, xj = verts.index_select(0, plan.edge_i), verts.index_select(0, plan.edge_j)
+    xg = xf.index_select(0, plan.edge_g)
+    xother = torch.where(plan.boundary[:, None], 0.5 * (xi + xj), xf.index_select(0, plan.edge_f))
     e, a, d = xj - xi, xg - xi, xg - xother
     ee = (e * e).sum(1)
     a_perp = a - ((a * e).sum(1) / ee)[:, None] * e
@@ -322,19 +348,40 @@ def diamond_values(
     d_ap, d_e = (d * a_perp).sum(1), (d * e).sum(1)
     c = torch.sqrt(ee / ap2) * d_ap
     half_inv = 0.5 / c
-    coef = torch.cat(
-        [(d_ap * d_ap / ap2 + d_e * d_e / ee) * half_inv, -d_e * half_inv, ee * half_inv]
+    c_aa = (d_ap * d_ap / ap2 + d_e * d_e / ee) * half_inv
+    c_ab = -d_e * half_inv
+    c_bb = ee * half_inv
+    bnd = plan.boundary.to(c.dtype)
+
+    n_faces = xf.shape[0]
+    C = c.new_zeros(n_faces).index_add(0, plan.edge_g, c_bb).index_add(0, plan.edge_f, c_bb)
+    # rho: alpha's coefficients on the corners of g (+c_ab) and f (-c_ab); at a boundary
+    # edge, -2 c_bb (w_g . u) (u_i + u_j) / 2 adds -c_bb / 2 at i and j in g
+    half_b = 0.5 * c_bb * bnd
+    rho_terms = torch.cat([-c_ab - half_b, c_ab - half_b, c_ab, -c_ab])
+    rho = c.new_zeros(w_all.shape[0]).index_add(0, plan.edge_corners, rho_terms)
+    r = rho + 0.5 * C.index_select(0, plan.corner_face) * w_all
+    wa, wb = w_all.index_select(0, plan.face_a), w_all.index_select(0, plan.face_b)
+    face_terms = r.index_select(0, plan.face_a) * wb + wa * r.index_select(0, plan.face_b)
+    cross_terms = torch.cat([-c_bb, -2.0 * c_bb]).index_select(0, plan.cross_coef) * (
+        w_all.index_select(0, plan.cross_a) * w_all.index_select(0, plan.cross_b)
     )
-    L = _symmetric_values(
-        coef[plan.s_coef] * factors[plan.s_p] * factors[plan.s_q], plan.s_pos, plan
+    # on i and j: c_aa alpha^2, and at a boundary edge -2 c_ab alpha m + c_bb m^2 (m the mean)
+    quarter_b = 0.25 * c_bb * bnd
+    vertex_terms = torch.cat(
+        [c_aa + bnd * c_ab + quarter_b, c_aa - bnd * c_ab + quarter_b, quarter_b - c_aa]
     )
+    terms = torch.cat([face_terms, cross_terms, vertex_terms])
+    L = _symmetric_values(terms, plan.stiffness_pos, plan)
 
     area_g = 0.5 * component_norm(*_cross(e, a).unbind(1))
     area_f = 0.5 * component_norm(*_cross(e, xother - xi).unbind(1))
     share = torch.where(plan.boundary, area_g / 3.0, 0.25 * (area_g + area_f))
-    nodes = verts.shape[0] + plan.face_slot.shape[0] + 1
+    nodes = verts.shape[0] + n_faces
     node_mass = verts.new_zeros(nodes).index_add(0, plan.node_index, share.repeat(4))
-    m_terms = node_mass[plan.m_node] * factors[plan.m_p] * factors[plan.m_q]
+    m_terms = node_mass.index_select(0, plan.m_node) * (
+        w_all.index_select(0, plan.m_a) * w_all.index_select(0, plan.m_b)
+    )
     return L, _symmetric_values(m_terms, plan.m_pos, plan), c.detach()
 
 
