@@ -2,7 +2,7 @@
 
 "The Diamond Laplace for Polygonal and Polyhedral Meshes" (Comput. Graph. Forum 40(5)), 2-D
 case. Unlike the other methods it is not a sum of per-face blocks: its stencil couples the two
-faces at every edge, so it has its own pattern and assembly here.
+faces at every edge, so it has its own pattern and index plan here.
 
 The construction, in this module's words:
 
