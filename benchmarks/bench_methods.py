@@ -1,17 +1,19 @@
-"""Benchmark the three polygon Laplacians of ``tp.laplacian(method=...)`` against libigl.
+"""Benchmark the four polygon Laplacians of ``tp.laplacian(method=...)`` against libigl.
 
 For a non-planar ``n x n`` quad grid (``--grid n``, default 1000: 1M quads) and every real mesh in
 ``--real-dir``, on one thread:
 
-- first assembly of ``(L, M0)`` (topology built from fresh faces) for ``aw11``, ``plms`` and
-  ``degoes``;
+- first assembly of ``(L, M0)`` (topology built from fresh faces; for ``diamond`` also its
+  index plan) for ``aw11``, ``plms``, ``degoes`` and ``diamond``;
 - cached re-assembly (the same faces, so the topology and pattern are reused);
 - libigl's polygon ``cotmatrix(V, I, C)`` (PLMS, Bunge et al. 2020), which has no cache.
 
-Ratios are libigl's time over ours for PLMS, and each method's re-assembly over AW11's. Times are
-the median of ``--repeat`` samples after a warm-up (first assembly: one sample per repeat, each
-on a new faces tensor). Prints a Markdown table; writes ``benchmarks/results/methods.json``
-(or ``--json PATH``).
+Ratios are libigl's time over ours for PLMS, and each method's re-assembly over AW11's. Our times
+are medians of ``--repeat`` interleaved rounds after a warm-up round (each round runs every
+method's first and cached assembly in turn, so that load from other jobs hits them alike; the
+first assembly on a new faces tensor each time); libigl's the median of ``--repeat`` samples.
+Meshes where the Diamond Laplacian is undefined (a folded diamond) get "-" for it. Prints a
+Markdown table; writes ``benchmarks/results/methods.json`` (or ``--json PATH``).
 
     python benchmarks/bench_methods.py                  # 1M-quad grid + real meshes
     python benchmarks/bench_methods.py --grid 300 --repeat 3
@@ -20,8 +22,11 @@ on a new faces tensor). Prints a Markdown table; writes ``benchmarks/results/met
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
+import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import common
@@ -30,8 +35,8 @@ import torch
 
 import torch_polylap as tp
 
-METHODS = ("aw11", "plms", "degoes")
-TITLES = {"aw11": "AW11", "plms": "PLMS", "degoes": "dGBD20"}
+METHODS = ("aw11", "plms", "degoes", "diamond")
+TITLES = {"aw11": "AW11", "plms": "PLMS", "degoes": "dGBD20", "diamond": "Diamond"}
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -47,14 +52,18 @@ def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
         else tp.PolygonFaces(faces.reshape(-1), sizes=torch.full((faces.shape[0],), faces.shape[1]))
     )
     row = {"mesh": name, "verts": int(verts.shape[0]), "faces": int(packed.sizes.numel())}
-    for method in METHODS:
-        row[f"{method}_first"] = common.median_time(
-            lambda m=method: tp.laplacian(verts, _fresh(packed), method=m), repeat
+    topo = tp.get_topology(packed, verts.shape[0])
+    methods = [m for m in METHODS if _defined(verts, topo, m)]
+    contenders: dict[str, Callable[[], object]] = {}
+    for method in methods:
+        contenders[f"{method}_first"] = lambda m=method: tp.laplacian(
+            verts, _fresh(packed), method=m
         )
-        topo = tp.get_topology(packed, verts.shape[0])
-        row[f"{method}_cached"] = common.median_time(
-            lambda m=method, t=topo: tp.laplacian(verts, t, method=m), repeat
-        )
+        contenders[f"{method}_cached"] = lambda m=method: tp.laplacian(verts, topo, method=m)
+    interleaved(contenders, 1)  # warm-up
+    row.update(interleaved(contenders, repeat))
+    for method in set(METHODS) - set(methods):
+        row[f"{method}_first"] = row[f"{method}_cached"] = None
     try:
         import igl
 
@@ -67,6 +76,35 @@ def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
     return row
 
 
+def _defined(verts: torch.Tensor, topo: tp.Topology, method: str) -> bool:
+    """Whether ``method`` assembles on this mesh (the Diamond Laplacian refuses folds)."""
+    try:
+        tp.laplacian(verts, topo, method=method)
+    except ValueError:
+        return False
+    return True
+
+
+def interleaved(contenders: dict[str, Callable[[], object]], repeat: int) -> dict[str, float]:
+    """Median seconds per contender over ``repeat`` rounds, each round calling every contender
+    once in turn (A B C A B C ...)."""
+    times: dict[str, list[float]] = {name: [] for name in contenders}
+    for _ in range(repeat):
+        for name, fn in contenders.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
+def _pair(first: float | None, cached: float | None) -> str:
+    return "-" if first is None or cached is None else f"{first:.4g} / {cached:.4g} s"
+
+
+def _ratio(num: float | None, den: float) -> str:
+    return "-" if num is None else f"{num / den:.2f}"
+
+
 def table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
     header = [
         "mesh",
@@ -76,6 +114,7 @@ def table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
         "libigl / our PLMS first",
         "PLMS / AW11 cached",
         "dGBD20 / AW11 cached",
+        "Diamond / AW11 cached",
     ]
     body = []
     for r in rows:
@@ -84,11 +123,12 @@ def table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
             [
                 r["mesh"],
                 f"{r['faces']:,}",
-                *(f"{r[f'{m}_first']:.4g} / {r[f'{m}_cached']:.4g} s" for m in METHODS),
+                *(_pair(r[f"{m}_first"], r[f"{m}_cached"]) for m in METHODS),
                 f"{igl_t:.4g} s" if igl_t else "-",
                 f"{igl_t / r['plms_first']:.1f}x" if igl_t else "-",
                 f"{r['plms_cached'] / r['aw11_cached']:.2f}",
                 f"{r['degoes_cached'] / r['aw11_cached']:.2f}",
+                _ratio(r["diamond_cached"], r["aw11_cached"]),
             ]
         )
     return header, body

@@ -628,7 +628,8 @@ class PolygonMeshes:
 
         One assembly over the packed faces; block ``i`` equals
         ``laplacian(verts_i, faces_i, lam, method=method)``. ``method``: ``"aw11"`` (default),
-        ``"plms"`` (``lam`` unused) or ``"degoes"``, as in :func:`~torch_polylap.laplacian`.
+        ``"plms"`` (``lam`` unused), ``"degoes"`` or ``"diamond"`` (``lam`` unused; its ``M0``
+        is not diagonal), as in :func:`~torch_polylap.laplacian`.
         Differentiable in the vertices with O(nnz) gradients (``L @ X``, ``L.diagonal()``).
         """
         return laplacian(

@@ -20,13 +20,17 @@ import torch
 
 from ._typing import MeshFaces
 from .assembly import FlaggedAssembly, assemble_gathered, gather_plan_of
+from .assembly.diamond import diamond_flagged
 from .checks import Lam, check_lam, check_verts
 from .kernels import block_kernel, check_method
+from .kernels.diamond import DiamondPlan, diamond_plan
 from .operators import laplacian
 from .sparse.operator import operator_on
 from .topology import Topology, TopologyView, topology_of
 
 __all__ = ["CompiledLaplacian"]
+
+DiamondFlagged = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 class CompiledLaplacian:
@@ -41,7 +45,8 @@ class CompiledLaplacian:
             :class:`~torch_polylap.topology.Topology` included).
         lam: the stabilizer weight, a number (a tensor ``lam`` that requires grad: use
             :func:`~torch_polylap.laplacian`).
-        method: ``"aw11"``, ``"plms"`` or ``"degoes"``, as for :func:`~torch_polylap.laplacian`.
+        method: ``"aw11"``, ``"plms"``, ``"degoes"`` or ``"diamond"``, as for
+            :func:`~torch_polylap.laplacian`.
         validate: the eager function's checks, computed inside the compiled code and read with
             one sync; when one fails (non-finite or degenerate input, or a float32 face too
             thin for float32) the call is answered by the eager function, which names the
@@ -77,11 +82,15 @@ class CompiledLaplacian:
         self.options: dict[str, object] = {"dynamic": False} if options is None else options
         self._compiled: tuple[TopologyView, Callable[[torch.Tensor], FlaggedAssembly]] | None
         self._compiled = None
+        self._compiled_diamond: tuple[DiamondPlan, Callable[[torch.Tensor], DiamondFlagged]] | None
+        self._compiled_diamond = None
 
     def __call__(self, verts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(L, M0)`` for ``verts`` ``(V, 3)``, as :func:`~torch_polylap.laplacian`."""
         verts = check_verts(verts, finite=False)
         topo = topology_of(self.faces, verts)
+        if self.method == "diamond":
+            return self._diamond(topo, verts)
         view = topo.on(verts.device)
         values, masses, ok, accurate = self._assembly(topo, view)(verts)
         if self.validate and not bool(torch.stack((ok, accurate)).all()):
@@ -89,6 +98,21 @@ class CompiledLaplacian:
         assert masses is not None
         L = operator_on(view.pattern, values, symmetric=True)
         return L, operator_on(view.diagonal, masses, symmetric=True)
+
+    def _diamond(self, topo: Topology, verts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(L, M0)`` of ``method="diamond"`` by its compiled assembly (no per-face blocks)."""
+        plan = diamond_plan(topo, verts.device)  # eagerly: its index tensors enter as constants
+        if self._compiled_diamond is None or self._compiled_diamond[0] is not plan:
+            fn = torch.compile(  # type: ignore[call-overload]
+                lambda v: diamond_flagged(v, plan), fullgraph=True, **self.options
+            )
+            self._compiled_diamond = (plan, fn)
+        L, M, ok, _ = self._compiled_diamond[1](verts)
+        if self.validate and not bool(ok):
+            return laplacian(verts, topo, self.lam, method=self.method)
+        return operator_on(plan.pattern, L, symmetric=True), operator_on(
+            plan.pattern, M, symmetric=True
+        )
 
     def _assembly(
         self, topo: Topology, view: TopologyView

@@ -19,6 +19,7 @@ import torch
 from ._typing import MeshFaces
 from .calculus import gradient_layout, grouped_corner_gradients
 from .checks import Lam, check_index_or_mask, check_verts
+from .kernels import check_method
 from .kernels.frames import component_norm
 from .linalg import (
     LDLFactorization,
@@ -187,6 +188,7 @@ class HeatGeodesicSolver:
         method: str = "aw11",
     ) -> None:
         check_verts(verts)
+        check_method(method, diagonal_mass="HeatGeodesicSolver")
         self.topology = get_topology(faces, verts.shape[0])
         self.verts = verts
         self.backend = _geodesic_backend(backend, verts.device, self.topology.num_verts)

@@ -564,7 +564,7 @@ def _check_diffusionnet_args(
     """Check :func:`to_diffusionnet`'s arguments before any work: ``k_eig`` as an int, and the
     cache folder or None."""
     check_verts(verts)
-    check_method(method)
+    check_method(method, diagonal_mass="to_diffusionnet")
     k_eig = check_int(k_eig, "k_eig", least=0)
     n = verts.shape[0]
     if not 0 <= k_eig < n:

@@ -13,9 +13,10 @@ the packed batch (block diagonal) and multiplied as ``L @ X`` (a sparse operator
 cost O(nnz).  Each function has a thin ``nn.Module`` wrapper holding its options.
 
 Every loss that builds ``L`` takes ``method=``: ``"aw11"`` (default, Alexa and Wardetzky 2011),
-``"plms"`` (Bunge et al. 2020; ``lam`` unused) or ``"degoes"`` (de Goes et al. 2020), as in
-:func:`torch_polylap.laplacian`; :func:`laplacian_smoothing`, whose ``method`` is pytorch3d's
-``"uniform"`` / ``"cot"`` switch, accepts the three names there as well.
+``"plms"`` (Bunge et al. 2020; ``lam`` unused), ``"degoes"`` (de Goes et al. 2020) or
+``"diamond"`` (Bunge et al. 2021; ``lam`` unused; not :func:`bending_energy`, which needs a
+diagonal mass), as in :func:`torch_polylap.laplacian`; :func:`laplacian_smoothing`, whose
+``method`` is pytorch3d's ``"uniform"`` / ``"cot"`` switch, accepts these names there as well.
 """
 
 from __future__ import annotations
@@ -87,7 +88,7 @@ def _vertex_norm(v: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(v, dim=1)
 
 
-SmoothingMethod = Literal["uniform", "polygon", "cot", "aw11", "plms", "degoes"]
+SmoothingMethod = Literal["uniform", "polygon", "cot", "aw11", "plms", "degoes", "diamond"]
 
 
 def laplacian_smoothing(
@@ -236,7 +237,7 @@ def bending_energy(
     _check_reduction(reduction)
     m = _as_meshes(meshes)
     f = m.verts_packed() if u is None else _packed_signal(m, u, "u")
-    L, M0 = m.laplacian(lam, method=check_method(method))
+    L, M0 = m.laplacian(lam, method=check_method(method, diagonal_mass="bending_energy"))
     Lu = L @ f.to(L.dtype)
     per_vertex = 0.5 * (Lu * Lu).sum(1) * inverse_or_zero(M0.diagonal())
     per_mesh = per_mesh_sum(per_vertex, m.verts_packed_to_mesh_idx(), len(m))

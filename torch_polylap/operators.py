@@ -32,9 +32,11 @@ from .assembly import (
     assemble,
     assemble_flagged,
 )
+from .assembly.diamond import diamond_laplacian
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts, inverse_or_zero
 from .kernels import block_kernel, check_method
-from .sparse import SparseOperator
+from .linalg import solve
+from .sparse import SparseOperator, as_operator, diag
 from .sparse.operator import operator_on
 from .topology import Topology, TopologyView, topology_of
 from .tracing import functional, require
@@ -102,9 +104,13 @@ def laplacian(
             huge but finite entries instead of an error. Under torch.compile the checks are an
             in-graph assertion and there is no float64 re-evaluation.
         method: ``"aw11"`` (default, this docstring), ``"plms"`` (Bunge et al. 2020, "Polygon
-            Laplacian Made Simple": a virtual vertex per face, ``lam`` ignored) or ``"degoes"``
-            (de Goes et al. 2020, with ``lam`` their ``beta``); see :mod:`torch_polylap.kernels`.
-            All three share the topology, pattern, sign and dtype/device rules.
+            Laplacian Made Simple": a virtual vertex per face, ``lam`` ignored), ``"degoes"``
+            (de Goes et al. 2020, with ``lam`` their ``beta``) or ``"diamond"`` (Bunge, Botsch
+            and Alexa 2021, ``lam`` ignored; :mod:`torch_polylap.kernels.diamond`); see
+            :mod:`torch_polylap.kernels`. All share the topology, sign and dtype/device rules;
+            the first three the pattern. ``"diamond"`` has a wider pattern and a mass ``M0``
+            that is **not diagonal** (the one its published errors need): ``M0^{-1}`` is a
+            solve, and callers that need lumped masses refuse the method.
 
     Returns:
         ``L``: ``(V, V)`` :class:`~torch_polylap.sparse.SparseOperator`, symmetric positive
@@ -128,7 +134,8 @@ def laplacian(
             non-finite coordinates or zero-area faces, naming the vertex or face.
     """
     lam = _checked_lam(lam, validate=validate)
-    check_method(method)
+    if check_method(method) == "diamond":
+        return _diamond(verts, faces, validate=validate)
     if isinstance(verts, torch.Tensor) and verts.dim() == 3:
         return _laplacian_batch(verts, faces, lam, validate=validate, method=method)
     verts = check_verts(verts, finite=False)
@@ -139,6 +146,25 @@ def laplacian(
     )
     assert masses is not None
     return _operator(view, values), _mass(view, masses)
+
+
+def _diamond(
+    verts: torch.Tensor, faces: MeshFaces, *, validate: bool
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``L``, ``M0`` of ``method="diamond"`` (one mesh or a fixed-topology batch), both on the
+    Diamond pattern; ``M0`` is its non-diagonal mass (see :mod:`torch_polylap.kernels.diamond`)."""
+    if isinstance(verts, torch.Tensor) and verts.dim() == 3:
+        if verts.shape[-1] != 3:
+            raise ValueError(
+                f"verts must have shape (V, 3) or (B, V, 3), got {tuple(verts.shape)}."
+            )
+        first = check_verts(verts[0], finite=False)
+        verts = verts.to(first.dtype)
+    else:
+        verts = check_verts(verts, finite=False)
+    topo = topology_of(faces, verts)
+    pattern, L, M = diamond_laplacian(verts, topo, validate=validate)
+    return operator_on(pattern, L, symmetric=True), operator_on(pattern, M, symmetric=True)
 
 
 def _laplacian_batch(
@@ -211,10 +237,14 @@ def planarity_laplacian(
 def strong_laplacian(L: torch.Tensor, M0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """``M0^{-1} L u`` (AW11 eq. 3, the pointwise Laplacian), ``u`` of shape ``(V,)`` or ``(V, c)``.
 
-    Rows of isolated vertices (zero mass) are set to zero rather than divided by zero.
+    Rows of isolated vertices (zero mass) are set to zero rather than divided by zero. A
+    non-diagonal ``M0`` (``method="diamond"``) is solved with (:func:`torch_polylap.solve`,
+    differentiable), its isolated vertices' rows made the identity.
     """
     m = M0.diagonal()
     Lu = L @ u
+    if as_operator(M0).pattern.nnz != m.numel():
+        return solve(M0 + diag((m == 0).to(m.dtype)), Lu)
     inv = inverse_or_zero(m)
     return Lu * (inv if u.dim() == 1 else inv[:, None])
 
@@ -239,7 +269,8 @@ class PolygonLaplacian(nn.Module):
         lam: stabilizer weight (see :func:`laplacian`).
         learn_lam: make ``lam`` a learnable ``nn.Parameter``.
         validate: see :func:`laplacian`.
-        method: ``"aw11"`` (default), ``"plms"`` or ``"degoes"`` (see :func:`laplacian`).
+        method: ``"aw11"`` (default), ``"plms"``, ``"degoes"`` or ``"diamond"`` (see
+            :func:`laplacian`).
 
     The topology is rebuilt only when the faces change (a different object, or a tensor
     modified in place), so a training loop with fixed connectivity only recomputes values.

@@ -29,7 +29,7 @@ import torch
 
 from ._typing import MeshFaces
 from .atomic import atomic_write
-from .kernels import check_method
+from .kernels import LAM_FREE_METHODS, check_method
 from .linalg import eigs, solve
 from .operators import laplacian
 from .topology import get_topology
@@ -157,15 +157,15 @@ def eigs_cache_key(
     verts: torch.Tensor, faces: MeshFaces, k: int, lam: float, method: str = "aw11"
 ) -> str:
     """Content address of the eigenpairs: a hash of everything they depend on, the positions,
-    faces, their dtype, ``k``, ``method`` and ``lam`` (except for ``"plms"``, which does not
-    use it, so every ``lam`` shares one entry), and the entries' format version
-    (``CACHE_FORMAT``)."""
+    faces, their dtype, ``k``, ``method`` and ``lam`` (except for ``"plms"`` and
+    ``"diamond"``, which do not use it, so every ``lam`` shares one entry), and the entries'
+    format version (``CACHE_FORMAT``)."""
     topo = get_topology(faces, verts.shape[0])
     digest = hashlib.sha256()
     digest.update(verts.detach().cpu().to(torch.float64).numpy().tobytes())
     digest.update(topo.faces.indices.numpy().tobytes())
     digest.update(topo.faces.sizes.numpy().tobytes())
-    lam_used = None if method == "plms" else lam
+    lam_used = None if method in LAM_FREE_METHODS else lam
     fields = f"format={CACHE_FORMAT};dtype={str(verts.dtype).removeprefix('torch.')}"
     digest.update(f"{fields};k={k};lam={lam_used!r};method={method}".encode())
     return digest.hexdigest()[:32]

@@ -15,7 +15,7 @@ from conftest import hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
 from torch_polylap.assembly import assemble, assemble_gathered, gather_plan_of
-from torch_polylap.kernels import METHODS, block_kernel
+from torch_polylap.kernels import BLOCK_METHODS, block_kernel
 from torch_polylap.shapes import quad_grid
 from torch_polylap.sparse.autograd import csr_product
 
@@ -52,7 +52,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:the mesh .* is not a consistentl
 MESHES = {"mixed": mixed_mesh, "hexpent": hex_pent_mesh, "awkward": _awkward_mesh}
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", BLOCK_METHODS)
 @pytest.mark.parametrize("name", sorted(MESHES))
 def test_gathered_assembly_equals_the_scatter_assembly(name, method, device):
     verts, faces = MESHES[name]()

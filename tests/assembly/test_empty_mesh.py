@@ -13,7 +13,7 @@ import torch
 
 import torch_polylap as tp
 from torch_polylap.assembly import assemble_gathered, gather_plan_of
-from torch_polylap.kernels import METHODS, block_kernel
+from torch_polylap.kernels import BLOCK_METHODS, METHODS, block_kernel
 
 pytestmark = pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")
 
@@ -59,7 +59,7 @@ def test_planarity_laplacian_of_no_faces(num_verts):
     _assert_zero(tp.planarity_laplacian(verts, []), (num_verts, num_verts), torch.float64)
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", BLOCK_METHODS)
 @pytest.mark.parametrize("num_verts", [0, 3])
 def test_gathered_assembly_of_no_faces(method, num_verts):
     """The gather form (what torch.compile traces) on a topology without faces."""

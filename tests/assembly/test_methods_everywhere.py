@@ -2,13 +2,14 @@
 
 Each entry point (batches, losses and their modules, the spectrum and dataset precompute, the
 eigenpair cache, the applications and the command line) is compared with the same quantity built
-from ``tp.laplacian(verts, faces, lam, method=...)`` directly, for the three methods. The meshes
-have non-planar faces of degree 3 to 6, where the three Laplacians differ (checked below), so a
+from ``tp.laplacian(verts, faces, lam, method=...)`` directly, for every method. The meshes
+have non-planar faces of degree 3 to 6, where the Laplacians differ (checked below), so a
 ``method`` that is dropped on the way fails the comparison. Default arguments stay AW11.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -23,7 +24,7 @@ from torch_polylap import losses
 from torch_polylap.apps.conformal import conformal_matrix
 from torch_polylap.cli import main
 from torch_polylap.datasets import PolygonMeshDataset
-from torch_polylap.kernels import METHODS
+from torch_polylap.kernels import BLOCK_METHODS, METHODS
 from torch_polylap.nn import Spectrum
 from torch_polylap.spectral import eigs_cache_key
 
@@ -62,16 +63,16 @@ def packed_direct(pair, method, lam=LAM):
     return torch.block_diag(*map(dense, Ls)), torch.block_diag(*map(dense, Ms))
 
 
-def test_the_three_methods_differ_on_these_meshes(pair, device):
+def test_the_methods_differ_on_these_meshes(pair, device):
     # Otherwise every comparison below would pass with the method dropped.
     pair = [(v.to(device), f) for v, f in pair]
     for verts, faces in pair:
         ops = {m: direct(verts, faces, m) for m in METHODS}
-        for a, b in [("aw11", "plms"), ("aw11", "degoes"), ("plms", "degoes")]:
+        for a, b in itertools.combinations(METHODS, 2):
             assert (dense(ops[a][0]) - dense(ops[b][0])).abs().max() > 1e-3, (a, b)
     # PLMS ignores lam; AW11 and de Goes do not.
     verts, faces = pair[0]
-    for method, same in [("plms", True), ("aw11", False), ("degoes", False)]:
+    for method, same in [("plms", True), ("diamond", True), ("aw11", False), ("degoes", False)]:
         L1, L2 = direct(verts, faces, method, 1.0)[0], direct(verts, faces, method, 2.0)[0]
         assert torch.allclose(dense(L1), dense(L2)) == same, method
 
@@ -132,23 +133,28 @@ def test_losses(batch, pair, method, device):
         "dirichlet": torch.stack(
             [dirichlet(v, f, s) for (v, f), s in zip(pair, signals, strict=True)]
         ),
-        "bending": _per_mesh(pair, bending),
     }
     batch, signal = batch.to(device), signal.to(device)
+    if method in BLOCK_METHODS:
+        expected["bending"] = _per_mesh(pair, bending)
+    else:  # M0^-1 per vertex needs a diagonal mass
+        with pytest.raises(ValueError, match="needs a diagonal mass"):
+            losses.bending_energy(batch, None, LAM, "none", method=method)
     got = {
         "smoothing": losses.laplacian_smoothing(batch, method, LAM, reduction="none"),
         "mean_curvature": losses.mean_curvature_smoothing(
             batch, LAM, reduction="none", method=method
         ),
         "dirichlet": losses.dirichlet_energy(batch, signal, LAM, "none", method=method),
-        "bending": losses.bending_energy(batch, None, LAM, "none", method=method),
     }
     modules = {
         "smoothing": losses.LaplacianSmoothingLoss(method, LAM, reduction="none")(batch),
         "mean_curvature": losses.MeanCurvatureSmoothingLoss(LAM, "none", method=method)(batch),
         "dirichlet": losses.DirichletEnergy(LAM, "none", method=method)(batch, signal),
-        "bending": losses.BendingEnergy(LAM, "none", method=method)(batch),
     }
+    if method in BLOCK_METHODS:
+        got["bending"] = losses.bending_energy(batch, None, LAM, "none", method=method)
+        modules["bending"] = losses.BendingEnergy(LAM, "none", method=method)(batch)
     for name, ref in expected.items():
         assert got[name].device.type == modules[name].device.type == device.type
         torch.testing.assert_close(got[name].cpu(), ref, **TIGHT, msg=name)
@@ -196,6 +202,10 @@ K = 6
 
 @pytest.mark.parametrize("method", METHODS)
 def test_spectrum_from_polygon_meshes(batch, pair, method, tmp_path):
+    if method not in BLOCK_METHODS:  # the spectrum's masses are a diagonal M0's
+        with pytest.raises(ValueError, match="must be a diagonal matrix"):
+            Spectrum.from_polygon_meshes(batch, K, lam=LAM, method=method)
+        return
     for cache_dir in (None, tmp_path):
         spec = Spectrum.from_polygon_meshes(batch, K, lam=LAM, method=method, cache_dir=cache_dir)
         for b, (v, f) in enumerate(pair):
@@ -226,7 +236,7 @@ def test_cache_keys_differ_by_method(pair, tmp_path, device):
     verts, faces = pair[0]
     verts = verts.to(device)
     keys = {m: eigs_cache_key(verts, faces, K, LAM, m) for m in METHODS}
-    assert len(set(keys.values())) == 3
+    assert len(set(keys.values())) == len(METHODS)
     assert keys["aw11"] == eigs_cache_key(verts, faces, K, LAM)  # the default method
     # the dtype is part of the key: float32 eigenpairs never serve a float64 request
     assert eigs_cache_key(verts.float(), faces, K, LAM) != keys["aw11"]
@@ -236,7 +246,7 @@ def test_cache_keys_differ_by_method(pair, tmp_path, device):
     assert eigs_cache_key(verts, faces, K, 0.5, "aw11") != keys["aw11"]
     # one file per method in the same folder, each holding its own method's eigenvalues
     results = {m: tp.cached_eigs(verts, faces, K, tmp_path, lam=LAM, method=m)[0] for m in METHODS}
-    assert len(list(tmp_path.glob("eigs-*.npz"))) == 3
+    assert len(list(tmp_path.glob("eigs-*.npz"))) == len(METHODS)
     assert (results["plms"] - results["aw11"]).abs().max() > 1e-6
     assert (results["degoes"] - results["aw11"]).abs().max() > 1e-6
 
@@ -250,6 +260,10 @@ def test_cached_eigs_rejects_unknown_method(pair, tmp_path):
 
 @pytest.mark.parametrize("method", METHODS)
 def test_dataset(pair, method, tmp_path):
+    if method not in BLOCK_METHODS:  # its "mass" is a diagonal M0's
+        with pytest.raises(ValueError, match="needs a diagonal mass"):
+            PolygonMeshDataset(pair, k=K, cache_dir=tmp_path, method=method)
+        return
     ds = PolygonMeshDataset(
         pair, k=K, cache_dir=tmp_path, lam=LAM, method=method, dtype=torch.float64
     )
@@ -335,6 +349,10 @@ def test_conformal_defaults_and_method_matters(pair):
 @pytest.mark.parametrize("method", METHODS)
 def test_plate_bending(method, device):
     V, F = read_mesh(DATA / "grid" / "irr_poly_1.obj", dtype=torch.float64)
+    if method not in BLOCK_METHODS:  # the mixed formulation lumps M0 per vertex
+        with pytest.raises(ValueError, match="needs a diagonal mass"):
+            tp.apps.plate_bending(V.to(device), F, load=1.0, lam=LAM, method=method)
+        return
     V = V + torch.tensor([0.5, 0.5, 0.0], dtype=V.dtype)
     V[:, 2] = 0.05 * torch.sin(3 * V[:, 0]) * torch.cos(2 * V[:, 1])  # non-planar faces too
     u = tp.apps.plate_bending(V.to(device), F, load=1.0, lam=LAM, method=method)
@@ -440,4 +458,4 @@ def test_every_laplacian_command_has_the_option(capsys):
     for command in ("info", "smooth", "param", "spectrum", "bench", "demo"):
         with pytest.raises(SystemExit):
             main([command, "--help"])
-        assert "--method {aw11,plms,degoes}" in capsys.readouterr().out, command
+        assert "--method {aw11,plms,degoes,diamond}" in capsys.readouterr().out, command

@@ -18,6 +18,7 @@ import torch
 from conftest import mixed_mesh
 
 import torch_polylap as tp
+from torch_polylap.kernels import METHODS
 from torch_polylap.sparse.autograd import sampled_op, spmm_op, spmm_t_op
 from torch_polylap.sparse.index_ops import diagonal_indices, transpose_indices, union_indices
 
@@ -124,7 +125,7 @@ def test_compiled_validation_refuses_non_finite_vertices(device):
         compiled(bad)
 
 
-@pytest.mark.parametrize("method", ["aw11", "plms", "degoes"])
+@pytest.mark.parametrize("method", METHODS)
 def test_methods_compile(method, device):
     verts, faces = mixed_mesh()
     verts, faces = verts.to(device), tp.as_faces(faces)

@@ -30,7 +30,7 @@ from ..linalg import solve
 from ..measures import face_areas
 from ..operators import laplacian, strong_laplacian
 from ..shapes import schwarz_lantern  # re-exported: the lantern of AW11 Fig. 2
-from ..sparse.construct import eliminate
+from ..sparse.construct import as_operator, eliminate
 from ..topology import Topology, get_topology, half_edge_vertices
 
 __all__ = [
@@ -267,6 +267,9 @@ class _StepSystem:
 
     def __init__(self, L: torch.Tensor, M0: torch.Tensor, dt: float, fixed: torch.Tensor):
         self.mass = M0.diagonal()
+        # a non-diagonal mass (method="diamond") multiplies as a matrix; the fixed rows keep
+        # its diagonal, which only scales their identity equations
+        self.M0 = None if as_operator(M0).pattern.nnz == self.mass.numel() else M0
         self.fixed = fixed
         self.any_fixed = bool(fixed.any())
         self.A = M0 + dt * L
@@ -274,7 +277,7 @@ class _StepSystem:
             self.A, self.coupling = eliminate(self.A, fixed, self.mass)
 
     def step(self, X: torch.Tensor) -> torch.Tensor:
-        rhs = self.mass[:, None] * X
+        rhs = self.mass[:, None] * X if self.M0 is None else self.M0 @ X
         if self.any_fixed:
             X_fixed = torch.where(self.fixed[:, None], X, torch.zeros_like(X))
             rhs = torch.where(self.fixed[:, None], rhs, rhs - self.coupling @ X_fixed)

@@ -81,7 +81,7 @@ def plate_bending(
     Raises:
         ValueError: no supported vertex, a singular system, or bad mesh input.
     """
-    check_method(method)
+    check_method(method, diagonal_mass="plate_bending")
     topo = get_topology(faces, verts.shape[0])
     support = _boundary_mask(boundary, verts.shape[0], topo.boundary_vertices, verts.device)
     if not bool(support.any()):

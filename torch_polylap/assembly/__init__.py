@@ -11,6 +11,7 @@ The forms, one module each: :mod:`.scatter` (eager, chunked, in place), :mod:`.f
 (out of place, for traced and transformed code), :mod:`.gathered` (gathers instead of scatters,
 what torch.compile runs) with its :mod:`.gather_plan`; :mod:`.checks` holds their validation,
 :mod:`.scaling` the exact rescaling they start from and :mod:`.corners` the corner gathers.
+:mod:`.diamond` assembles ``method="diamond"``, which has no per-face blocks, in the same frame.
 """
 
 from __future__ import annotations

@@ -254,7 +254,7 @@ def writes_files(args: argparse.Namespace) -> bool:
 
 
 def add_method_argument(parser: argparse.ArgumentParser) -> None:
-    """``--method {aw11,plms,degoes}``: which polygon Laplacian the command builds."""
+    """``--method {aw11,plms,degoes,diamond}``: which polygon Laplacian the command builds."""
     from ..kernels import METHODS
 
     parser.add_argument(
@@ -262,14 +262,19 @@ def add_method_argument(parser: argparse.ArgumentParser) -> None:
         choices=METHODS,
         default="aw11",
         help="polygon Laplacian: aw11 (Alexa & Wardetzky 2011, default), plms (Bunge et al. "
-        "2020, ignores --lam) or degoes (de Goes et al. 2020)",
+        "2020, ignores --lam), degoes (de Goes et al. 2020) or diamond (Bunge et al. 2021, "
+        "ignores --lam; its mass is not diagonal, so commands that need lumped masses refuse it)",
     )
 
 
 def method_label(args: argparse.Namespace) -> str:
     """The Laplacian of ``args.method`` with its ``lambda`` (none for PLMS), for result tables."""
     method = getattr(args, "method", "aw11")
-    return f"{method} (lambda unused)" if method == "plms" else f"{method}, lambda = {args.lam}"
+    from ..kernels import LAM_FREE_METHODS
+
+    if method in LAM_FREE_METHODS:
+        return f"{method} (lambda unused)"
+    return f"{method}, lambda = {args.lam}"
 
 
 def positive_float(text: str) -> float:

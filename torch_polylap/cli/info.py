@@ -15,6 +15,7 @@ import torch
 
 from .. import __version__
 from ..faces import PolygonFaces
+from ..kernels import LAM_FREE_METHODS
 from ..linalg import eigs
 from ..measures import face_areas, face_nonplanarity
 from ..operators import laplacian
@@ -114,7 +115,7 @@ def compute(args: argparse.Namespace) -> Result:
     threads = timings.threads
     operators = (
         f"operators ({'' if method == 'aw11' else method + ', '}"
-        f"{'lambda unused' if method == 'plms' else f'lambda = {lam}'}, "
+        f"{'lambda unused' if method in LAM_FREE_METHODS else f'lambda = {lam}'}, "
         f"{args.dtype}, {verts.device})"
     )
     sections = [

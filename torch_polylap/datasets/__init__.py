@@ -102,7 +102,7 @@ class PolygonMeshDataset(Dataset):
             raise ValueError(f"got {len(items)} meshes but {len(labels)} labels.")
         self.items, self.labels = list(items), None if labels is None else list(labels)
         self.k, self.cache_dir, self.lam = k, Path(cache_dir), lam
-        self.method = check_method(method)
+        self.method = check_method(method, diagonal_mass="PolygonMeshDataset")
         check_cache_dir(self.cache_dir)  # before any mesh is read or eigenpair computed
         self.normalize, self.dtype = normalize, dtype
         self.gradient_operators = gradient_operators

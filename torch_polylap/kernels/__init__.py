@@ -9,7 +9,12 @@ the off-diagonal entries and the diagonal is minus their row sums.
 - ``"plms"``: Bunge, Herholz, Kazhdan and Botsch 2020, "Polygon Laplacian Made Simple"
   (:mod:`.plms`); ``lam`` is ignored (the method has no stabilizer);
 - ``"degoes"``: de Goes, Butts and Desbrun 2020, "Discrete Differential Operators on Polygonal
-  Meshes" (:mod:`.degoes`); ``lam`` weights their projection term.
+  Meshes" (:mod:`.degoes`); ``lam`` weights their projection term;
+- ``"diamond"``: Bunge, Botsch and Alexa 2021, "The Diamond Laplace for Polygonal and
+  Polyhedral Meshes" (:mod:`.diamond`); ``lam`` is ignored. Its stencil couples the two faces
+  of every edge, so it has no per-face blocks:
+  :func:`torch_polylap.assembly.diamond.diamond_laplacian` assembles it on its own pattern
+  (and its ``M0`` is not diagonal), and :func:`block_kernel` refuses it.
 
 :mod:`.frames` holds the per-face geometry they share (gathers, vector area, plane basis).
 """
@@ -27,6 +32,8 @@ from .plms import plms_entries
 
 __all__ = [
     "METHODS",
+    "BLOCK_METHODS",
+    "LAM_FREE_METHODS",
     "BlockEntries",
     "FaceEntries",
     "BlockKernel",
@@ -35,13 +42,37 @@ __all__ = [
     "thin_error",
 ]
 
-METHODS = ("aw11", "plms", "degoes")
+METHODS = ("aw11", "plms", "degoes", "diamond")
+
+#: The methods that are sums of per-face blocks (all but ``"diamond"``).
+BLOCK_METHODS = ("aw11", "plms", "degoes")
+
+#: The methods without a stabilizer, which ignore ``lam``.
+LAM_FREE_METHODS = ("plms", "diamond")
 
 
-def check_method(method: object) -> str:
-    """``method`` must name one of :data:`METHODS`."""
+def check_method(method: object, *, diagonal_mass: str = "", face_blocks: str = "") -> str:
+    """``method`` must name one of :data:`METHODS`.
+
+    ``diagonal_mass`` names the caller when it needs a diagonal ``M0`` (lumped masses per
+    vertex), ``face_blocks`` when it needs ``L`` as a sum of per-face blocks: either refuses
+    ``"diamond"``, whose mass couples the corners of each face and whose stencil couples the
+    two faces beside each edge.
+    """
     if not isinstance(method, str) or method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(map(repr, METHODS))}, got {method!r}.")
+    others = ", ".join(map(repr, BLOCK_METHODS))
+    if diagonal_mass and method not in BLOCK_METHODS:
+        raise ValueError(
+            f"{diagonal_mass} needs a diagonal mass M0, and method={method!r} has none (its M0 "
+            f"couples the corners of each face); use one of {others}."
+        )
+    if face_blocks and method not in BLOCK_METHODS:
+        raise ValueError(
+            f"{face_blocks} needs a Laplacian that is a sum of per-face blocks, and "
+            f"method={method!r} is not (its stencil couples the faces beside each edge); use "
+            f"one of {others}."
+        )
     return method
 
 
@@ -95,6 +126,11 @@ def block_kernel(method: str, lam: float | torch.Tensor, *, geometric: bool = Tr
     operator's blocks (AW11 sec. 5.3).
     """
     check_method(method)
+    if method not in BLOCK_METHODS:
+        raise ValueError(
+            f"method={method!r} is not a sum of per-face blocks; this operation supports "
+            f"{', '.join(map(repr, BLOCK_METHODS))}."
+        )
     if not geometric and method != "aw11":
         raise ValueError("only method='aw11' has a planarity (stabilizer-only) operator.")
     return BlockKernel(method, lam, geometric=geometric)

@@ -27,12 +27,14 @@ call, and derivatives everywhere except where a face becomes exactly planar.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
 from .entries import BlockEntries
 from .frames import face_frame
 
-__all__ = ["virtual_vertex_weights", "plms_entries", "error_factor"]
+__all__ = ["virtual_vertex_weights", "virtual_vertices", "plms_entries", "error_factor"]
 
 
 # A vector field over corners or faces as its three coordinate rows: ``(k, F)`` or ``(F,)``
@@ -158,6 +160,55 @@ def _weights_and_heights(Y: Vec, z: Vec, n: Vec) -> tuple[torch.Tensor, torch.Te
     return torch.addcmul(v + 1.0 / k, factor, h_out), height2
 
 
+class _VirtualVertex(NamedTuple):
+    """The face's virtual vertex and what its frame computed on the way (see
+    :func:`_virtual_vertex`)."""
+
+    size2: torch.Tensor
+    Y: Vec
+    Q: Vec
+    E: Vec
+    z: Vec
+    w: torch.Tensor
+    height2: torch.Tensor
+    area_scaled: torch.Tensor
+
+
+def _virtual_vertex(x: torch.Tensor) -> _VirtualVertex:
+    """The virtual vertex of every face of ``x`` ``(3, k, F)`` in its centered, scaled frame.
+
+    Returns ``s^2`` ``(F,)``; the scaled corners ``Y``, their successors ``Q`` and the edges
+    ``E`` (coordinate rows ``(k, F)``); the virtual vertex ``z`` (rows ``(F,)``, scaled frame);
+    the affine weights ``w`` ``(k, F)``; the relative squared heights ``(F,)`` and ``|f| / s^2``.
+    """
+    tiny = torch.finfo(x.dtype).tiny
+    X = (x[0], x[1], x[2])
+    # s^2 = sum_i |g_i|^2 with g_i = (x_{i+1} - x_{i-1}) / 2
+    G = _sub(_next(X), _next(X, 1))
+    size2 = 0.25 * _dot(G, G).sum(0)
+    inv_s = torch.rsqrt(size2.clamp_min(tiny))
+    yx, yy, yz = ((c - c.mean(0)) * inv_s for c in X)
+    Y = (yx, yy, yz)
+    Q = _next(Y)
+    E = _sub(Q, Y)
+    C = _cross(Y, Q)
+    # vector area 1/2 sum_i y_i x y_{i+1} (AW11 eq. 8): exact enough on the centered, scaled
+    # corners (the fan from a corner is for faces far from the origin)
+    a = (0.5 * C[0].sum(0), 0.5 * C[1].sum(0), 0.5 * C[2].sum(0))
+    area_scaled = torch.sqrt(_dot(a, a).clamp_min(tiny))
+    z = _fan_point(Y, E, C)
+    w, height2 = _weights_and_heights(
+        Y, z, (a[0] / area_scaled, a[1] / area_scaled, a[2] / area_scaled)
+    )
+    return _VirtualVertex(size2, Y, Q, E, z, w, height2, area_scaled)
+
+
+def virtual_vertices(x: torch.Tensor) -> torch.Tensor:
+    """``(k, F)`` the affine weights of the virtual vertex of every face (PLMS sec. 3), the
+    minimizer of the sum of squared fan-triangle areas, for corners ``x`` ``(3, k, F)``."""
+    return _virtual_vertex(x).w
+
+
 def plms_entries(x: torch.Tensor, pair_i: torch.Tensor, pair_j: torch.Tensor) -> BlockEntries:
     """Off-diagonal entries of ``L_f = P^T L_fan P`` and the lumped corner masses (PLMS sec. 3).
 
@@ -180,24 +231,7 @@ def plms_entries(x: torch.Tensor, pair_i: torch.Tensor, pair_j: torch.Tensor) ->
     """
     k = x.shape[1]
     tiny = torch.finfo(x.dtype).tiny
-    X = (x[0], x[1], x[2])
-    # s^2 = sum_i |g_i|^2 with g_i = (x_{i+1} - x_{i-1}) / 2
-    G = _sub(_next(X), _next(X, 1))
-    size2 = 0.25 * _dot(G, G).sum(0)
-    inv_s = torch.rsqrt(size2.clamp_min(tiny))
-    yx, yy, yz = ((c - c.mean(0)) * inv_s for c in X)
-    Y = (yx, yy, yz)
-    Q = _next(Y)
-    E = _sub(Q, Y)
-    C = _cross(Y, Q)
-    # vector area 1/2 sum_i y_i x y_{i+1} (AW11 eq. 8): exact enough on the centered, scaled
-    # corners (the fan from a corner is for faces far from the origin)
-    a = (0.5 * C[0].sum(0), 0.5 * C[1].sum(0), 0.5 * C[2].sum(0))
-    area_scaled = torch.sqrt(_dot(a, a).clamp_min(tiny))
-    z = _fan_point(Y, E, C)
-    w, height2 = _weights_and_heights(
-        Y, z, (a[0] / area_scaled, a[1] / area_scaled, a[2] / area_scaled)
-    )
+    size2, Y, Q, E, z, w, height2, area_scaled = _virtual_vertex(x)
 
     # fan triangle i: p = y_i, q = y_{i+1}, z; cotangents by dot / |cross|
     zp, zq = _sub(Y, z), _sub(Q, z)

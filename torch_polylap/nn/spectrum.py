@@ -47,8 +47,9 @@ def masses_of(M0: torch.Tensor) -> torch.Tensor:
     d = M0.diagonal()
     if M0.pattern.nnz != d.numel() or M0.shape[0] != M0.shape[1]:
         raise ValueError(
-            "M0 must be a diagonal matrix (as torch_polylap.laplacian returns it); pass the (V,) "
-            "masses instead."
+            "M0 must be a diagonal matrix (as torch_polylap.laplacian returns it for every "
+            "method but 'diamond', whose mass couples the corners of each face); pass the (V,) "
+            "masses instead, or use another method."
         )
     return d
 

@@ -179,7 +179,7 @@ def connection_laplacian(
         [1.0, 1.0, 5.0, 5.0]
     """
     check_verts(verts)
-    check_method(method)
+    check_method(method, face_blocks="connection_laplacian")
     symmetry = check_int(symmetry, "symmetry")  # n of n-direction fields
     topo = get_topology(faces, verts.shape[0])
     frames = None if frames is None else _checked_frames(frames, topo.num_verts)

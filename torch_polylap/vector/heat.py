@@ -100,7 +100,7 @@ class VectorHeatSolver:
         poisson_lam: Lam = POISSON_LAM,
         method: str = "aw11",
     ) -> None:
-        check_method(method)
+        check_method(method, diagonal_mass="VectorHeatSolver")
         # the scalar solver checks verts (and lam, t) first
         self.geodesic = HeatGeodesicSolver(
             verts, faces, t, lam, poisson_lam=poisson_lam, method=method
