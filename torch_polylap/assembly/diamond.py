@@ -70,9 +70,10 @@ def _raise_invalid(verts: torch.Tensor, plan: DiamondPlan, c: torch.Tensor) -> N
         i, j = int(plan.edge_i[e]), int(plan.edge_j[e])
         raise ValueError(
             f"method='diamond': the diamond of edge ({i}, {j}) has no positive area: its face "
-            "points do not lie on either side of the edge (a degenerate edge or face, or a "
-            "fold), where the Diamond Laplacian is undefined. Repair that region, or use "
-            "another method."
+            "points do not lie on either side of the edge (a degenerate edge or face, a fold, "
+            "or a strongly non-convex face), so the Diamond Laplacian is not positive "
+            "semidefinite there. Repair that region, use another method, or pass "
+            "validate=False to get the indefinite operator."
         )
     raise ValueError(_INVALID)
 
