@@ -12,7 +12,13 @@ import torch
 from ..kernels import BlockKernel
 from ..kernels.aw11 import row_sums
 from ..topology import Topology, TopologyView
-from .checks import FLOAT32_TOLERANCE, FlaggedAssembly, any_degenerate, input_ok, output_ok
+from .checks import (
+    FLOAT32_TOLERANCE,
+    FlaggedAssembly,
+    any_degenerate,
+    input_ok,
+    output_ok,
+)
 from .gather_plan import GatherPlan, gather_plan
 from .scaling import normalizer, unscaled
 
@@ -56,7 +62,7 @@ def assemble_gathered(
     scale, unscale, finite = normalizer(verts)
     verts_t = verts.t() * scale
     eps = torch.finfo(verts.dtype).eps
-    offs, sums, corner_masses, degenerate, accurate = [], [], [], [], []
+    offs, sums, corner_masses, degenerate, accurate, stretch = [], [], [], [], [], []
     corners = plan.vertex.corners(verts_t)
     start = 0
     for grp in view.groups:
@@ -70,6 +76,8 @@ def assemble_gathered(
         degenerate.append(any_degenerate(area, size2, eps))
         if verts.dtype == torch.float32:
             accurate.append(error.amax() * eps <= FLOAT32_TOLERANCE)
+            if kernel.geometric:
+                stretch.append(kernel.stretch(area, size2, grp).amax())
     # an empty piece each, for a mesh without faces
     none = verts_t.new_zeros(0)
     diagonal = -plan.vertex.total(torch.cat([*sums, none]))
@@ -78,4 +86,5 @@ def assemble_gathered(
     masses = unscaled(masses_n, unscale)
     ok = input_ok(finite, degenerate) & output_ok(values, masses_n, masses)
     all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
-    return FlaggedAssembly(values, masses, ok, all_accurate)
+    top = torch.stack(stretch).amax() if stretch else torch.zeros_like(unscale)
+    return FlaggedAssembly(values, masses, ok, all_accurate, top)
