@@ -12,13 +12,7 @@ import torch
 from ..kernels import BlockKernel
 from ..kernels.aw11 import row_sums
 from ..topology import Topology, TopologyView
-from .checks import (
-    FLOAT32_TOLERANCE,
-    FlaggedAssembly,
-    any_degenerate,
-    input_ok,
-    output_ok,
-)
+from .checks import FLOAT32_TOLERANCE, FlaggedAssembly, any_degenerate, input_ok, output_ok
 from .gather_plan import GatherPlan, gather_plan
 from .scaling import normalizer, unscaled
 

@@ -102,9 +102,9 @@ def _scatter(
     with ``mixed``, the largest expected relative error of a block (in units of one) and the
     largest ``s^2 / |f|`` (``kernel.stretch``, zero for the planarity operator, whose blocks
     do not divide by the area). With ``verts_t64`` given, the faces whose expected relative
-    error exceeds :data:`FLOAT32_TOLERANCE`
-    are evaluated from it in float64 and cast back (their float32 blocks never enter the
-    values or the graph, so their gradients are the float64 ones).
+    error exceeds :data:`FLOAT32_TOLERANCE` are evaluated from it in float64 and cast back
+    (their float32 blocks never enter the values or the graph, so their gradients are the
+    float64 ones).
     """
     values = verts_t.new_zeros(topo.nnz)
     masses = verts_t.new_zeros(topo.num_verts) if want_mass else None
