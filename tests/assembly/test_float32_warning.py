@@ -83,9 +83,10 @@ def _gradient_error(P: torch.Tensor, faces: list[list[int]], method: str) -> flo
 @pytest.mark.parametrize("method", ("aw11", "degoes"))
 @pytest.mark.parametrize("t", [1e-4, 1e-5, 1e-6])
 def test_thin_concave_quads_warn_where_float32_gradients_fail(t, method, device):
-    """The darts' float32 gradients of ``|L X|^2`` are off by 0.5 to 1e5 relative: one warning
-    names the thinnest dart, with an expected error within a factor 30 of the one measured on
-    that dart alone (on the mesh the fat quad's larger gradient dilutes it)."""
+    """The darts' float32 gradients of ``|L X|^2`` are off by 1 to 13 relative on the mesh and
+    up to 2e4 on the thinner dart alone: one warning names that dart, with an expected error
+    within a factor 30 of the one measured on it alone (on the mesh the fat quad's larger
+    gradient dilutes it)."""
     P, faces = _darts(t, device)
     measured = _gradient_error(P, faces, method)
     assert measured > 0.5
@@ -99,7 +100,7 @@ def test_thin_concave_quads_warn_where_float32_gradients_fail(t, method, device)
     thinnest = max(range(len(faces)), key=lambda f: _stretch(P, faces[f]))
     assert face == thinnest
     assert stretch == pytest.approx(_stretch(P, faces[thinnest]), rel=1e-2)
-    assert expected == pytest.approx(EPS32 * stretch**2 / 2, rel=0.1)
+    assert expected == pytest.approx(EPS32 * stretch**2 / 2, rel=0.35)  # printed to 1 digit
     assert digits == pytest.approx(min(np.log10(expected / EPS32), -np.log10(EPS32)), abs=0.1)
     alone = _gradient_error(P[faces[thinnest]], [[0, 1, 2, 3]], method)
     assert alone / 30 <= expected <= alone * 30
