@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -272,12 +273,22 @@ def thin_mesh(dtype: torch.dtype, aspect: float):
     return v.to(dtype), [*f[1:].tolist(), *tris]
 
 
+# the losses built on the polygon Laplacian (the others use no per-face blocks)
+ASSEMBLE_L = {"polygon", "polygon_frozen", "mean_curvature", "dirichlet", "bending"}
+
+
 @pytest.mark.parametrize(("dtype", "aspect"), [(torch.float64, 1e6), (torch.float32, 1e3)])
 @pytest.mark.parametrize("name", sorted(ALL_LOSSES))
 def test_thin_faces_give_finite_values_and_gradients(name, dtype, aspect, device):
+    """Finite, and in float32 (aspect 1e3: products with L lose about 1e-1) with the warning
+    that says so wherever the loss assembles L."""
     v, f = thin_mesh(dtype, aspect)
     x = v.to(device, copy=True).requires_grad_(True)
-    out = ALL_LOSSES[name]((x, f))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", tp.checks.Float32PrecisionWarning)
+        out = ALL_LOSSES[name]((x, f))
+    warns = dtype == torch.float32 and name in ASSEMBLE_L
+    assert [w.category for w in caught] == ([tp.checks.Float32PrecisionWarning] if warns else [])
     (g,) = torch.autograd.grad(out, x)
     assert out.dtype == dtype and g.dtype == dtype
     assert torch.isfinite(out) and torch.isfinite(g).all()

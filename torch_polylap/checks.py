@@ -41,6 +41,7 @@ __all__ = [
     "check_finite_operand",
     "Lam",
     "warn_outside_package",
+    "Float32PrecisionWarning",
 ]
 
 # The stabilizer weight's type: a float, or a 0-dim tensor that may carry a gradient.
@@ -280,15 +281,26 @@ def inverse_or_zero(d: torch.Tensor) -> torch.Tensor:
     return torch.where(pos, 1.0 / torch.where(pos, d, torch.ones_like(d)), torch.zeros_like(d))
 
 
-def warn_outside_package(message: str) -> None:
-    """``warnings.warn`` attributed to the first caller outside torch_polylap."""
+class Float32PrecisionWarning(UserWarning):
+    """float32 operators whose products lose more than about ``1e-2`` relative accuracy.
+
+    Raised once per call by :func:`~torch_polylap.laplacian` (and the batched, module and
+    :class:`~torch_polylap.CompiledLaplacian` forms) when float32 vertices have a face so thin
+    that ``L @ X`` and the gradients through it are expected to lose that much: the message
+    names the worst face and the digits lost. Use float64 vertices for such meshes, or repair
+    the face (:mod:`torch_polylap.repair`). Never raised in float64.
+    """
+
+
+def warn_outside_package(message: str, category: type[Warning] = UserWarning) -> None:
+    """``warnings.warn`` of ``category`` attributed to the first caller outside torch_polylap."""
     package = os.path.dirname(os.path.abspath(__file__))
     level = 2  # the caller of this helper
     frame: types.FrameType | None = sys._getframe(1)
     while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
         level += 1
         frame = frame.f_back
-    warnings.warn(message, UserWarning, stacklevel=level)
+    warnings.warn(message, category, stacklevel=level)
 
 
 def check_finite_operand(A: torch.Tensor, name: str, caller: str) -> None:

@@ -19,7 +19,13 @@ from collections.abc import Callable
 import torch
 
 from ._typing import MeshFaces
-from .assembly import FlaggedAssembly, assemble_gathered, gather_plan_of
+from .assembly import (
+    FLOAT32_STRETCH_LIMIT,
+    FlaggedAssembly,
+    assemble_gathered,
+    gather_plan_of,
+    warn_float32_products,
+)
 from .assembly.diamond import diamond_flagged
 from .checks import Lam, check_lam, check_verts
 from .kernels import block_kernel, check_method
@@ -50,7 +56,10 @@ class CompiledLaplacian:
         validate: the eager function's checks, computed inside the compiled code and read with
             one sync; when one fails (non-finite or degenerate input, or a float32 face too
             thin for float32) the call is answered by the eager function, which names the
-            offending element or evaluates such faces in float64.
+            offending element or evaluates such faces in float64. A float32 face so thin
+            that products with ``L`` lose accuracy gives the eager function's
+            :class:`~torch_polylap.checks.Float32PrecisionWarning`, raised outside the
+            compiled code from a flag it returns.
         options: passed to ``torch.compile`` (default ``{"dynamic": False}``).
 
     Examples:
@@ -92,9 +101,14 @@ class CompiledLaplacian:
         if self.method == "diamond":
             return self._diamond(topo, verts)
         view = topo.on(verts.device)
-        values, masses, ok, accurate = self._assembly(topo, view)(verts)
-        if self.validate and not bool(torch.stack((ok, accurate)).all()):
-            return laplacian(verts, topo, self.lam, method=self.method)
+        values, masses, ok, accurate, stretch = self._assembly(topo, view)(verts)
+        if self.validate:
+            # one sync for every check; NaN stretch means a degenerate face, which ok flags
+            flags = torch.stack((ok, accurate, ~(stretch > FLOAT32_STRETCH_LIMIT))).tolist()
+            if not (flags[0] and flags[1]):
+                return laplacian(verts, topo, self.lam, method=self.method)
+            if not flags[2]:
+                warn_float32_products(verts, topo, block_kernel(self.method, self.lam))
         assert masses is not None
         L = operator_on(view.pattern, values, symmetric=True)
         return L, operator_on(view.diagonal, masses, symmetric=True)

@@ -28,9 +28,11 @@ from ._typing import MeshFaces
 from .assembly import (
     BAD_INPUT,
     FLOAT32_INACCURATE,
+    FLOAT32_STRETCH_LIMIT,
     FlaggedAssembly,
     assemble,
     assemble_flagged,
+    warn_float32_products,
 )
 from .assembly.diamond import diamond_laplacian
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts, inverse_or_zero
@@ -191,7 +193,7 @@ def _laplacian_batch(
         with torch.autocast(v.device.type, enabled=False):
             return assemble_flagged(v, view, topo, kernel, want_mass=True)
 
-    values, masses, ok, accurate = torch.func.vmap(one)(verts)
+    values, masses, ok, accurate, stretch = torch.func.vmap(one)(verts)
     if validate and not require(ok, BAD_INPUT):
         # name the mesh and the element: the one-mesh assembly's message
         bad = int(torch.nonzero(~ok)[0, 0])
@@ -204,10 +206,17 @@ def _laplacian_batch(
             raise ValueError(FLOAT32_INACCURATE)
         # eagerly, mesh by mesh: the one-mesh assembly evaluates such faces in float64
         pairs = [
-            assemble(v, view, topo, kernel, want_mass=True, validate=True) for v in verts.unbind(0)
+            assemble(v, view, topo, kernel, want_mass=True, validate=True, warn=False)
+            for v in verts.unbind(0)
         ]
         values = torch.stack([p[0] for p in pairs])
         masses = torch.stack([p[1] for p in pairs if p[1] is not None])
+    if validate and not functional() and verts.dtype == torch.float32 and stretch.numel():
+        # eagerly only (a warning cannot depend on traced or transformed values): once per
+        # call, naming the mesh with the thinnest face
+        thinnest, mesh = stretch.max(0)
+        if bool(thinnest > FLOAT32_STRETCH_LIMIT):
+            warn_float32_products(verts[int(mesh)], topo, kernel, mesh=int(mesh))
     assert masses is not None
     return _operator(view, values), _mass(view, masses)
 

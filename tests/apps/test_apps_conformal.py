@@ -7,7 +7,12 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import assert_directional_derivative, hex_pent_mesh, mixed_mesh
+from conftest import (
+    assert_directional_derivative,
+    assert_second_order_derivative,
+    hex_pent_mesh,
+    mixed_mesh,
+)
 
 import torch_polylap as tp
 from torch_polylap.apps.conformal import (
@@ -250,6 +255,26 @@ def test_free_boundary_is_differentiable_in_verts(device):
     assert torch.autograd.gradcheck(
         lambda X: conformal_parameterization(X, F, free_boundary=True), V.clone().requires_grad_()
     )
+
+
+def test_fixed_pins_are_differentiable_where_the_default_pins_tie():
+    """A heptagon fan symmetric about vertex 1: vertices 4 and 5 are equally far from it, so
+    the default pins switch under any perturbation (central differences of a loss on ``uv``
+    grow as 1 / h). With the pins passed, the map is smooth: autograd equals central
+    differences at second order."""
+    n = 7
+    angle = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+    ring = torch.stack([angle.cos(), angle.sin(), 0.1 * (2 * angle).cos()], 1)
+    V = torch.cat([torch.zeros(1, 3, dtype=torch.float64), ring])
+    F = [[0, 1 + i, 1 + (i + 1) % n] for i in range(n)]
+    far = torch.linalg.vector_norm(ring - ring[0], dim=1)
+    assert float(far[3]) == pytest.approx(float(far[4]), rel=1e-15)  # the tie
+    weights = torch.arange(1.0, n + 2, dtype=torch.float64)
+
+    def f(X):
+        return (conformal_parameterization(X, F, pins=[1, 4])[:, 0] * weights).sum()
+
+    assert_second_order_derivative(f, V)
 
 
 def test_top_eigenpair_gradient_with_a_repeated_lower_eigenvalue(device):

@@ -67,12 +67,12 @@ def test_gathered_assembly_of_no_faces(method, num_verts):
     view = topo.on("cpu")
     verts = torch.zeros(num_verts, 3, dtype=torch.float64)
     kernel = block_kernel(method, 1.0)
-    values, masses, ok, accurate = assemble_gathered(
+    values, masses, ok, accurate, stretch = assemble_gathered(
         verts, view, kernel, gather_plan_of(topo, view), want_mass=True
     )
     assert values.shape == (topo.nnz,) and not values.any()
     assert masses is not None and torch.equal(masses, torch.zeros(num_verts, dtype=torch.float64))
-    assert bool(ok) and bool(accurate)
+    assert bool(ok) and bool(accurate) and float(stretch) == 0.0
 
 
 @pytest.mark.parametrize("num_verts", [0, 3])

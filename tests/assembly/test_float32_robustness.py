@@ -40,11 +40,10 @@ hypothesis = pytest.importorskip(
 from hypothesis import HealthCheck, assume, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-# float32 on thin faces is this module's subject: the warning that the gradients lose
-# accuracy is expected (test_faces_too_thin_for_a_float32_gradient_warn asserts it)
-pytestmark = pytest.mark.filterwarnings(
-    "ignore:torch_polylap. a face is so thin that float32 gradients lose accuracy"
-)
+# float32 on thin faces is this module's subject: the warning that products with L and the
+# gradients lose accuracy is expected (test_faces_too_thin_for_a_float32_gradient_warn and
+# tests/assembly/test_float32_warning.py assert it)
+pytestmark = pytest.mark.filterwarnings("ignore::torch_polylap.checks.Float32PrecisionWarning")
 
 COUNTS: Counter = Counter()
 FUZZ = settings(
@@ -344,11 +343,11 @@ def test_faces_too_thin_for_a_float32_gradient_warn(device):
     keep: a warning says so (float64 input, or a fatter face, gives none)."""
     P, faces = _dart()  # thinness ~1e-6
     P = P.to(device)
-    with pytest.warns(UserWarning, match="float32 gradients lose accuracy"):
+    with pytest.warns(tp.checks.Float32PrecisionWarning, match="block in float64 would not help"):
         tp.laplacian(P, faces)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         tp.laplacian(P.double(), faces)
-        t = 1e-3
+        t = 1e-2  # s^2 / |f| = 50: products lose 1.5e-4 (at 1e-3, 500: 1.5e-2, which warns)
         fat = [[0, 0, 0], [2, t, 0], [0, 2 * t, 0], [1, 0.4 * t, 0]]
         tp.laplacian(torch.tensor(fat, dtype=torch.float32, device=device), faces)

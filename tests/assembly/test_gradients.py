@@ -140,7 +140,8 @@ def test_gradient_of_dirichlet_energy_matches_finite_differences(device):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("thinness", [1e-3, 1e-6])
 def test_thin_faces_have_finite_values_and_gradients(dtype, thinness, device):
-    """Valid but thin faces (aspect ratio up to 1e6) give finite L, M0 and gradients."""
+    """Valid but thin faces (aspect ratio up to 1e6) give finite L, M0 and gradients; in
+    float32 (aspect ratio 1e3: products with L lose about 6e-2) with a warning that says so."""
     if dtype == torch.float32 and thinness < 1e-5:
         thinness = 1e-3  # float32 resolves aspect ratios to about 1e-4
     verts = torch.tensor(
@@ -158,7 +159,11 @@ def test_thin_faces_have_finite_values_and_gradients(dtype, thinness, device):
     )
     faces = [[0, 1, 2, 3], [1, 4, 5, 2], [3, 2, 5, 6]]
     X = verts.clone().requires_grad_(True)
-    L, M0 = tp.laplacian(X, faces)
+    if dtype == torch.float32:
+        with pytest.warns(tp.checks.Float32PrecisionWarning, match="face 0 "):
+            L, M0 = tp.laplacian(X, faces)
+    else:
+        L, M0 = tp.laplacian(X, faces)
     assert torch.isfinite(sparse_values(L)).all() and torch.isfinite(sparse_values(M0)).all()
     loss = (tp.sparse.spmm(L, X) ** 2).sum() + tp.planarity_energy(X, faces)
     loss.backward()

@@ -352,7 +352,12 @@ def conformal_parameterization(
             them); ``free_boundary=True`` needs a topological disk (one loop, Euler
             characteristic 1).
         pins: two boundary vertex indices to prescribe (pinned mode). Default: two far-apart
-            boundary vertices (a deterministic double farthest-point sweep).
+            boundary vertices (a deterministic double farthest-point sweep). That choice is
+            read from the data: where two boundary vertices are equally far (a symmetric
+            boundary), moving the vertices by any amount switches it and the map jumps, so
+            gradients there do not describe the map (central differences grow as ``1 / h``).
+            For a loss through ``uv``, pass fixed ``pins``. ``free_boundary`` rotates its map
+            by the default pins: the same jump, unseen by losses invariant under rotation.
         pin_uv: ``(2, 2)`` their target positions. Default: ``(0, 0)`` and ``(d, 0)`` with
             ``d`` their distance in 3D.
         free_boundary: solve AW11 eq. 13-15 instead (no pins): minimize ``E_C`` subject to

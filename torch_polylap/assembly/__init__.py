@@ -24,9 +24,11 @@ from ..tracing import functional
 from .checks import (
     BAD_INPUT,
     FLOAT32_INACCURATE,
+    FLOAT32_STRETCH_LIMIT,
     FLOAT32_TOLERANCE,
     FlaggedAssembly,
     raise_bad_input,
+    warn_float32_products,
 )
 from .corners import face_groups
 from .flagged import assemble_flagged, assemble_functional
@@ -36,6 +38,7 @@ from .scatter import assemble_chunked
 __all__ = [
     "BAD_INPUT",
     "FLOAT32_INACCURATE",
+    "FLOAT32_STRETCH_LIMIT",
     "FLOAT32_TOLERANCE",
     "FlaggedAssembly",
     "assemble",
@@ -44,6 +47,7 @@ __all__ = [
     "face_groups",
     "gather_plan_of",
     "raise_bad_input",
+    "warn_float32_products",
 ]
 
 
@@ -55,6 +59,7 @@ def assemble(
     *,
     want_mass: bool,
     validate: bool,
+    warn: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """CSR values of ``sum_f P_f^T L_f P_f`` and, optionally, the lumped masses (AW11 eq. 10).
 
@@ -70,7 +75,11 @@ def assemble(
     that the dtype represents. For float32 input the same sync reads whether a face's kernel
     expects a relative error above :data:`FLOAT32_TOLERANCE` (thin or nearly degenerate
     faces; PLMS on nearly planar ones); if one does, the values are assembled again with
-    those faces evaluated in float64.
+    those faces evaluated in float64. A float32 face so thin that products with ``L`` lose
+    more than that (``s^2 / |f|`` above :data:`FLOAT32_STRETCH_LIMIT`) gives one
+    :class:`~torch_polylap.checks.Float32PrecisionWarning` naming it (``warn=False``: left to
+    the caller). Traced or under torch.func transforms there is no such warning: a Python
+    warning cannot depend on traced values.
 
     Autocast is off inside: the kernels form products of coordinates that half precision
     cannot hold, and some (dGBD20's einsum) would otherwise be cast to it.
@@ -83,4 +92,6 @@ def assemble(
             return assemble_functional(
                 verts, view, topo, kernel, want_mass=want_mass, validate=validate
             )
-        return assemble_chunked(verts, view, topo, kernel, want_mass=want_mass, validate=validate)
+        return assemble_chunked(
+            verts, view, topo, kernel, want_mass=want_mass, validate=validate, warn=warn
+        )

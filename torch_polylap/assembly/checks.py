@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import torch
 
+from ..checks import Float32PrecisionWarning, warn_outside_package
 from ..kernels import BlockKernel
 from ..kernels.aw11 import aw11_entries
 from ..topology import DegreeGroup, Topology
@@ -21,14 +22,15 @@ from .scaling import normalizer
 
 __all__ = [
     "FLOAT32_TOLERANCE",
-    "FLOAT32_HOPELESS",
     "FLOAT32_INACCURATE",
+    "FLOAT32_STRETCH_LIMIT",
     "BAD_INPUT",
     "FlaggedAssembly",
     "any_degenerate",
     "input_ok",
     "output_ok",
     "raise_bad_input",
+    "warn_float32_products",
 ]
 
 
@@ -37,9 +39,20 @@ __all__ = [
 FLOAT32_TOLERANCE = 1e-2
 
 
-# expected relative errors above which float64 blocks do not save a float32 gradient: faces of
-# thinness below about 1e-6 (AW11's bound 4 / t times float32's epsilon)
-FLOAT32_HOPELESS = 0.4
+# The expected relative error of float32 products with L (L @ X, and the gradients of losses
+# through them) on a face of stretch r = s^2 / |f| (2 for a square): PRODUCT_FACTOR * eps * r^2.
+# A block's entries grow as r while L_f X of a smooth X stays of the face's size, and the
+# diagonal, minus the row sum of entries r times larger, cancels to it: on a rectangle of
+# width t, L x of the long coordinate is t from entries 1 / t. Measured on 240 random faces
+# (thin to 1e-5, half concave, planar or bumpy), the float32 gradient of |L X|^2 against
+# float64 on the same coordinates is off by a median 0.4 to 0.5 eps r^2 (up to 4 eps r^2) for
+# AW11 and dGBD20 once r exceeds 100.
+PRODUCT_FACTOR = 0.5
+
+# the stretch above which float32 products lose more than FLOAT32_TOLERANCE (about 410)
+FLOAT32_STRETCH_LIMIT = math.sqrt(
+    FLOAT32_TOLERANCE / (PRODUCT_FACTOR * torch.finfo(torch.float32).eps)
+)
 
 
 FLOAT32_INACCURATE = (
@@ -59,7 +72,8 @@ BAD_INPUT = (
 
 
 class FlaggedAssembly(NamedTuple):
-    """What :func:`assemble_flagged` returns; unpacks as ``values, masses, ok, accurate``."""
+    """What :func:`assemble_flagged` returns; unpacks as ``values, masses, ok, accurate,
+    stretch``."""
 
     values: torch.Tensor
     """``(nnz,)`` the values on the view's pattern."""
@@ -70,6 +84,10 @@ class FlaggedAssembly(NamedTuple):
     accurate: torch.Tensor
     """0-dim bool: every face's expected relative error stays within
     :data:`FLOAT32_TOLERANCE` (always true in float64)."""
+    stretch: torch.Tensor
+    """0-dim: the largest ``s^2 / |f|`` of a face in float32 (``BlockKernel.stretch``), zero in
+    float64 and for the planarity operator; above :data:`FLOAT32_STRETCH_LIMIT` the caller
+    warns with :func:`warn_float32_products`."""
 
 
 def any_degenerate(area: torch.Tensor, size2: torch.Tensor, eps: float) -> torch.Tensor:
@@ -78,6 +96,41 @@ def any_degenerate(area: torch.Tensor, size2: torch.Tensor, eps: float) -> torch
     products would be subnormal)."""
     tiny = torch.finfo(area.dtype).tiny
     return (~(area > eps * size2)).any() | ~(size2.amin() >= tiny / eps)
+
+
+def warn_float32_products(
+    verts: torch.Tensor, topo: Topology, kernel: BlockKernel, *, mesh: int | None = None
+) -> None:
+    """Warn once (:class:`~torch_polylap.checks.Float32PrecisionWarning`) that float32 products
+    with ``L`` lose accuracy on ``verts`` ``(V, 3)``, naming the face of largest ``s^2 / |f|``
+    (``kernel.stretch``), its expected relative error and the digits lost; ``mesh``: the index
+    of ``verts`` in a batch. The rare path, after an assembly found such a face: one pass over
+    the faces, with host syncs."""
+    eps = torch.finfo(torch.float32).eps
+    verts_t = (verts.detach() * normalizer(verts.detach()).scale).t().contiguous()
+    worst, face = -1.0, 0
+    for grp in topo.on(verts.device).groups:
+        _, _, area, size2, _ = kernel(verts_t, grp, grp.corners_t)
+        value, local = kernel.stretch(area, size2, grp).max(0)
+        if float(value) > worst:
+            worst, face = float(value), int(grp.face_ids[int(local)])
+    error = PRODUCT_FACTOR * worst * worst * eps
+    digits = min(math.log10(error / eps), -math.log10(eps))
+    where = "" if mesh is None else f"mesh {mesh} of the batch: "
+    message = (
+        f"torch_polylap: {where}face {face} (vertices {topo.faces[face].tolist()}) is so thin "
+        f"(s^2 / |f| = {worst:.3g}, 2 for a square) that float32 products with L (L @ X, and "
+        f"gradients through them) are expected to lose about {digits:.1f} of float32's 7 "
+        f"digits (relative error {error:.1g} on this face)."
+    )
+    if error > 1:
+        # the cotangents of L's entries are summed in float32 before any kernel sees them
+        message += (
+            " Evaluating its block in float64 would not help: the product and the backward "
+            "pass round in float32."
+        )
+    message += " Use float64 vertices (verts.double()) for this mesh, or repair the face."
+    warn_outside_package(message, Float32PrecisionWarning)
 
 
 def _finite(t: torch.Tensor) -> torch.Tensor:

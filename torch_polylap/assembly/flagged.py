@@ -47,7 +47,7 @@ def assemble_functional(
         flagged = assemble_gathered(verts, view, kernel, plan, want_mass=want_mass)
     else:
         flagged = assemble_flagged(verts, view, topo, kernel, want_mass=want_mass)
-    values, masses, ok, accurate = flagged
+    values, masses, ok, accurate, _ = flagged
     if validate:
         if not require(ok, BAD_INPUT):
             raise_bad_input(verts, topo, kernel)
@@ -80,12 +80,14 @@ def assemble_flagged(
     values = verts.new_zeros(topo.nnz)
     masses = verts.new_zeros(topo.num_verts) if want_mass else None
     eps = torch.finfo(verts.dtype).eps
-    degenerate, accurate = [], []
+    degenerate, accurate, stretch = [], [], []
     for i, grp in enumerate(view.groups):
         whole = view.whole(i)
         off, corner_mass, area, size2, error = kernel(verts_t, grp, whole.corners_t)
         if verts.dtype == torch.float32:
             accurate.append(error.amax() * eps <= FLOAT32_TOLERANCE)
+            if kernel.geometric:
+                stretch.append(kernel.stretch(area, size2, grp).amax())
         flat = off.reshape(-1)
         positions = torch.cat((whole.pos_upper, whole.pos_lower, whole.pos_diag))
         entries = torch.cat((flat, flat, -row_sums(off, grp).reshape(-1)))
@@ -96,4 +98,5 @@ def assemble_flagged(
     masses_n, masses = masses, unscaled(masses, unscale)
     ok = input_ok(finite, degenerate) & output_ok(values, masses_n, masses)
     all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
-    return FlaggedAssembly(values, masses, ok, all_accurate)
+    top = torch.stack(stretch).amax() if stretch else torch.zeros_like(unscale)
+    return FlaggedAssembly(values, masses, ok, all_accurate, top)

@@ -58,7 +58,7 @@ def assemble_gathered(
     scale, unscale, finite = normalizer(verts)
     verts_t = verts.t() * scale
     eps = torch.finfo(verts.dtype).eps
-    offs, sums, corner_masses, degenerate, accurate = [], [], [], [], []
+    offs, sums, corner_masses, degenerate, accurate, stretch = [], [], [], [], [], []
     corners = plan.vertex.corners(verts_t)
     start = 0
     for grp in view.groups:
@@ -72,6 +72,8 @@ def assemble_gathered(
         degenerate.append(any_degenerate(area, size2, eps))
         if verts.dtype == torch.float32:
             accurate.append(error.amax() * eps <= FLOAT32_TOLERANCE)
+            if kernel.geometric:
+                stretch.append(kernel.stretch(area, size2, grp).amax())
     # an empty piece each, for a mesh without faces
     none = verts_t.new_zeros(0)
     diagonal = -plan.vertex.total(torch.cat([*sums, none]))
@@ -80,4 +82,5 @@ def assemble_gathered(
     masses = unscaled(masses_n, unscale)
     ok = input_ok(finite, degenerate) & output_ok(values, masses_n, masses)
     all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
-    return FlaggedAssembly(values, masses, ok, all_accurate)
+    top = torch.stack(stretch).amax() if stretch else torch.zeros_like(unscale)
+    return FlaggedAssembly(values, masses, ok, all_accurate, top)

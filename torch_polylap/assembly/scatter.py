@@ -5,24 +5,26 @@ value array and minus their row sums at the diagonal (``L_f 1 = 0``), at the pos
 :class:`~torch_polylap.topology.Topology` cached; chunks keep the kernels' temporaries small.
 With validation one device sync reads every check, and float32 faces whose kernel expects a
 relative error above :data:`~torch_polylap.assembly.checks.FLOAT32_TOLERANCE` are evaluated
-again in float64.
+again in float64; a face so thin that float32 products with ``L`` lose more than that
+(:data:`~torch_polylap.assembly.checks.FLOAT32_STRETCH_LIMIT`), read in the same sync, gives
+one :class:`~torch_polylap.checks.Float32PrecisionWarning`.
 """
 
 from __future__ import annotations
 
 import torch
 
-from ..checks import warn_outside_package
 from ..kernels import BlockKernel
 from ..kernels.aw11 import row_sums
 from ..topology import DegreeGroup, GroupChunk, Topology, TopologyView
 from .checks import (
-    FLOAT32_HOPELESS,
+    FLOAT32_STRETCH_LIMIT,
     FLOAT32_TOLERANCE,
     any_degenerate,
     input_ok,
     output_ok,
     raise_bad_input,
+    warn_float32_products,
 )
 from .corners import gather_chunks
 from .scaling import normalizer, unscaled
@@ -38,31 +40,29 @@ def assemble_chunked(
     *,
     want_mass: bool,
     validate: bool,
+    warn: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """:func:`assemble` eagerly: chunks whose temporaries stay small, in place."""
+    """:func:`assemble` eagerly: chunks whose temporaries stay small, in place; ``warn=False``
+    leaves the float32 warning to the caller."""
     scale, unscale, finite = normalizer(verts)
     verts_t = verts.t().contiguous() * scale
     mixed = validate and verts.dtype == torch.float32
     parts = _scatter(verts_t, view, topo, kernel, want_mass=want_mass, mixed=mixed, verts_t64=None)
-    values, masses_n, degenerate, ill = parts
+    values, masses_n, degenerate, ill, stretch = parts
     masses = unscaled(masses_n, unscale)
     if not validate:
         return values, masses
     flags = [input_ok(finite, degenerate), output_ok(values, masses_n, masses)]
     if ill:
-        flags.append(torch.stack(ill).amax())  # NaN propagates: counts as ill-conditioned
+        # NaN propagates: counts as ill-conditioned (and a NaN stretch as no warning: such a
+        # face is degenerate, which raises)
+        flags += [torch.stack(ill).amax(), torch.stack(stretch).amax()]
     read = torch.stack([f.to(verts.dtype) for f in flags]).tolist()
     checks = [bool(read[0]), bool(read[1])]
-    worst = read[2] if ill else 0.0
-    if checks[0] and worst > FLOAT32_HOPELESS:
-        warn_outside_package(
-            f"torch_polylap: a face is so thin that float32 gradients lose accuracy even with its "
-            f"blocks evaluated in float64 (expected relative error {worst:.1g}; the backward "
-            "pass itself rounds in float32): use float64 vertices for this mesh."
-        )
+    worst, thinnest = (read[2], read[3]) if ill else (0.0, 0.0)
     if not worst <= FLOAT32_TOLERANCE:
         # rare: faces too ill-conditioned for float32; assembled again, those in float64
-        values, masses_n, _, _ = _scatter(
+        values, masses_n = _scatter(
             verts_t,
             view,
             topo,
@@ -70,11 +70,13 @@ def assemble_chunked(
             want_mass=want_mass,
             mixed=mixed,
             verts_t64=verts_t.double(),
-        )
+        )[:2]
         masses = unscaled(masses_n, unscale)
         checks[1] = bool(output_ok(values, masses_n, masses))
     if not (checks[0] and checks[1]):
         raise_bad_input(verts, topo, kernel, (masses_n, masses), mixed=mixed)
+    if warn and thinnest > FLOAT32_STRETCH_LIMIT:
+        warn_float32_products(verts, topo, kernel)
     return values, masses
 
 
@@ -87,18 +89,27 @@ def _scatter(
     want_mass: bool,
     mixed: bool,
     verts_t64: torch.Tensor | None,
-) -> tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor], list[torch.Tensor]]:
+) -> tuple[
+    torch.Tensor,
+    torch.Tensor | None,
+    list[torch.Tensor],
+    list[torch.Tensor],
+    list[torch.Tensor],
+]:
     """The eager, chunked, in place assembly on normalized coordinates ``verts_t (3, V)``.
 
-    With ``mixed``, also returns per chunk the ``(F_c,)`` flags of faces whose expected
-    relative error exceeds :data:`FLOAT32_TOLERANCE`; with ``verts_t64`` given, those faces
-    are evaluated from it in float64 and cast back (their float32 blocks never enter the
-    values or the graph, so their gradients are the float64 ones).
+    Returns the values, the masses and per chunk 0-dim tensors: whether a face is degenerate;
+    with ``mixed``, the largest expected relative error of a block (in units of one) and the
+    largest ``s^2 / |f|`` (``kernel.stretch``, zero for the planarity operator, whose blocks
+    do not divide by the area). With ``verts_t64`` given, the faces whose expected relative
+    error exceeds :data:`FLOAT32_TOLERANCE` are evaluated from it in float64 and cast back
+    (their float32 blocks never enter the values or the graph, so their gradients are the
+    float64 ones).
     """
     values = verts_t.new_zeros(topo.nnz)
     masses = verts_t.new_zeros(topo.num_verts) if want_mass else None
     eps = torch.finfo(verts_t.dtype).eps
-    degenerate, ill = [], []
+    degenerate, ill, stretch = [], [], []
     # differentiated: every chunk's corners gathered by one autograd node, whose backward
     # forms one (3, V) gradient rather than one per chunk
     one_node = verts_t64 is None and torch.is_grad_enabled() and verts_t.requires_grad
@@ -119,7 +130,11 @@ def _scatter(
             if mixed:
                 # the chunk's worst expected relative error (amax propagates NaN)
                 ill.append(error.amax() * eps)
-    return values, masses, degenerate, ill
+                geometric = kernel.geometric  # the planarity operator does not divide by |f|
+                stretch.append(
+                    kernel.stretch(area, size2, grp).amax() if geometric else area.new_zeros(())
+                )
+    return values, masses, degenerate, ill, stretch
 
 
 def _scatter_blocks(

@@ -105,6 +105,14 @@ class BlockKernel:
             return plms_entries(x, grp.pair_i, grp.pair_j)
         return _with_masses(degoes_entries(x, grp.pair_i, grp.pair_j, self.lam), grp.k)
 
+    def stretch(self, area: torch.Tensor, size2: torch.Tensor, grp: DegreeGroup) -> torch.Tensor:
+        """``(F,)`` ``s^2 / |f|`` of faces of ``grp`` from their entries' ``area`` and ``size2``,
+        ``s^2`` the sum of the squared half-diagonals (2 for a square): the conditioning of
+        float32 products with their blocks (not differentiable)."""
+        ratio = size2.detach() / area.detach()
+        # AW11's closed form for quads takes the squared diagonals: twice that sum
+        return ratio * 0.5 if self.method == "aw11" and grp.k == 4 else ratio
+
     def _aw11(
         self,
         x: torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor],
