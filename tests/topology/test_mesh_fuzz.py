@@ -234,8 +234,10 @@ def test_corrupted_inputs_name_the_element(kind, nms, pick):
         expect = rf"vertex {vert}\b"
     else:  # every corner of face f onto one line; the first face so degenerate is named
         corners = faces[f]
-        t = np.linspace(0.0, 1.0, len(corners))[:, None]
-        verts[corners] = verts[corners[0]] + t * np.array([1.0, 0.5, 0.25])
+        # exactly collinear: a base on a 1/8 grid plus quarter steps along a dyadic direction,
+        # so no sum rounds (rounded corners would leave a sliver of area ~eps, a valid face)
+        t = 0.25 * np.arange(len(corners))[:, None]
+        verts[corners] = np.round(8 * verts[corners[0]]) / 8 + t * np.array([1.0, 0.5, 0.25])
         expect = r"face \d+ .*zero vector area"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
