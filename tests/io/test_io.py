@@ -443,21 +443,30 @@ def test_ply_without_vertex_indices(tmp_path):
         read_mesh(write_text(tmp_path / "q.ply", no_face))
 
 
-def test_ply_errors_name_element_and_record(tmp_path):
-    head = PLY_ASCII_HEAD + (
-        "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    path = write_text(tmp_path / "r.ply", head + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 10\n")
-    with pytest.raises(ValueError, match=r"element 'face' record 1: face 1 refers to vertex 10"):
-        read_mesh(path)
-    path = write_text(tmp_path / "s.ply", head + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n2 0 1\n")
-    with pytest.raises(ValueError, match=r"record 1: face 1 has 2 vertices"):
-        read_mesh(path)
-    path = write_text(tmp_path / "t.ply", head + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
-    with pytest.raises(ValueError, match=r"element 'face' declares 2 records but the file ends"):
-        read_mesh(path)
-    path = write_text(tmp_path / "u.ply", head + "0 0 0\n1 oops 0\n0 1 0\n3 0 1 2\n3 2 1 0\n")
-    with pytest.raises(ValueError, match=r"line 11: element 'vertex' record 1: cannot parse 'y'"):
+_PLY_TWO_FACES = PLY_ASCII_HEAD + (
+    "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+)
+
+
+@pytest.mark.parametrize(
+    ("body", "match"),
+    [
+        (
+            "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 10\n",
+            r"element 'face' record 1: face 1 refers to vertex 10",
+        ),
+        ("0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n2 0 1\n", r"record 1: face 1 has 2 vertices"),
+        ("0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", r"element 'face' declares 2 records but the file ends"),
+        (
+            "0 0 0\n1 oops 0\n0 1 0\n3 0 1 2\n3 2 1 0\n",
+            r"line 11: element 'vertex' record 1: cannot parse 'y'",
+        ),
+    ],
+    ids=["index-range", "two-vertices", "truncated", "bad-number"],
+)
+def test_ply_errors_name_element_and_record(tmp_path, body, match):
+    path = write_text(tmp_path / "r.ply", _PLY_TWO_FACES + body)
+    with pytest.raises(ValueError, match=match):
         read_mesh(path)
 
 
