@@ -121,11 +121,9 @@ def table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = common.script_parser(__doc__, "methods", repeat=3)
     parser.add_argument("--grid", type=int, default=1000, help="n of the n x n quad grid")
-    parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--real-dir", type=Path, default=ROOT.parent / "shared/data/meshes/real")
-    parser.add_argument("--json", type=Path, help="default benchmarks/results/methods.json")
     args = parser.parse_args()
     meta = common.run_meta(threads=1)
     with common.pinned_threads(1):

@@ -50,6 +50,7 @@ from torch_polylap.timing import (
 __all__ = [
     "RESULTS",
     "add_switch",
+    "script_parser",
     "bench_grid",
     "cpu_model",
     "run_meta",
@@ -183,6 +184,22 @@ def run_meta(argv: Sequence[str] | None = None, threads: int | None = None) -> d
         "environment": {k: _env(k) for k in ENVIRONMENT if k in os.environ},
         "load_before": _load(),
     }
+
+
+def script_parser(
+    doc: str | None, results: str, repeat: int | None = None
+) -> argparse.ArgumentParser:
+    """The argument parser of a benchmark script: described by the first paragraph of its module
+    ``doc``, with ``--json PATH`` (where the results file goes; the script's default is
+    ``benchmarks/results/<results>.json``) and, given ``repeat``, ``--repeat N`` (timed samples
+    per measurement, default ``repeat``)."""
+    parser = argparse.ArgumentParser(description=(doc or "").split("\n\n")[0])
+    if repeat is not None:
+        parser.add_argument(
+            "--repeat", type=int, default=repeat, help=f"timed samples (default {repeat})"
+        )
+    parser.add_argument("--json", type=Path, help=f"default benchmarks/results/{results}.json")
+    return parser
 
 
 def add_switch(parser: argparse.ArgumentParser, flag: str, help: str) -> None:

@@ -21,7 +21,6 @@ which passes a faster implementation would have to remove, whatever the machine'
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import pstats
 import sys
@@ -30,7 +29,15 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from common import bench_grid, markdown_table, pinned_threads, run_meta, table_data, write_results
+from common import (
+    bench_grid,
+    markdown_table,
+    pinned_threads,
+    run_meta,
+    script_parser,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp
 
@@ -112,16 +119,13 @@ def python_profile(fn: Callable[[], object], top: int) -> tuple[list[str], list[
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser = script_parser(__doc__, "profile_assembly")
     parser.add_argument("--n", type=int, default=1000, help="grid side (n x n quads)")
     parser.add_argument("--top", type=int, default=10, help="rows per profile")
     parser.add_argument(
         "--compiled",
         action="store_true",
         help="also profile tp.CompiledLaplacian (compiling it first takes tens of seconds)",
-    )
-    parser.add_argument(
-        "--json", type=Path, help="default benchmarks/results/profile_assembly.json"
     )
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     meta = run_meta(threads=1)
