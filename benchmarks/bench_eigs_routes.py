@@ -30,9 +30,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import statistics  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -43,6 +41,7 @@ import scipy.sparse.linalg as spla  # noqa: E402
 import torch  # noqa: E402
 from common import (  # noqa: E402
     bench_grid,
+    interleaved,
     markdown_table,
     pinned_threads,
     run_meta,
@@ -63,18 +62,6 @@ def grid_mesh(verts: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 def rounds(n: int, repeat: int) -> int:
     return repeat if n <= 10_000 else max(1, repeat - 1) if n <= 30_000 else 1
-
-
-def interleaved(contenders: dict[str, Callable[[], object]], repeat: int) -> dict[str, float]:
-    """Median seconds per contender over ``repeat`` rounds, each round calling every contender
-    once in turn (A B C A B C ...)."""
-    times: dict[str, list[float]] = {name: [] for name in contenders}
-    for _ in range(repeat):
-        for name, fn in contenders.items():
-            start = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - start)
-    return {name: statistics.median(t) for name, t in times.items()}
 
 
 def arpack_cholmod(Ls: sp.csr_matrix, Ms: sp.csr_matrix, k: int, shift: float):

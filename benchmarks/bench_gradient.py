@@ -21,7 +21,6 @@ warm-up, one thread. Prints Markdown tables with the ratios peer / ours; writes
 
 from __future__ import annotations
 
-import argparse
 import os
 import warnings
 from pathlib import Path
@@ -119,10 +118,8 @@ def lagrange_row(path: Path, repeat: int) -> tuple[list[str], dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = common.script_parser(__doc__, "gradient", repeat=3)
     parser.add_argument("--grid", type=int, default=707)
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--json", type=Path, help="default benchmarks/results/gradient.json")
     args = parser.parse_args()
     meta = common.run_meta(threads=1)
     report: dict = {"repeat": args.repeat, "real": {}, "tables": {}}

@@ -22,9 +22,7 @@ Markdown table; writes ``benchmarks/results/methods.json`` (or ``--json PATH``).
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -60,8 +58,8 @@ def bench_mesh(name: str, verts: torch.Tensor, faces, repeat: int) -> dict:
             verts, _fresh(packed), method=m
         )
         contenders[f"{method}_cached"] = lambda m=method: tp.laplacian(verts, topo, method=m)
-    interleaved(contenders, 1)  # warm-up
-    row.update(interleaved(contenders, repeat))
+    common.interleaved(contenders, 1)  # warm-up
+    row.update(common.interleaved(contenders, repeat))
     for method in set(METHODS) - set(methods):
         row[f"{method}_first"] = row[f"{method}_cached"] = None
     try:
@@ -83,18 +81,6 @@ def _defined(verts: torch.Tensor, topo: tp.Topology, method: str) -> bool:
     except ValueError:
         return False
     return True
-
-
-def interleaved(contenders: dict[str, Callable[[], object]], repeat: int) -> dict[str, float]:
-    """Median seconds per contender over ``repeat`` rounds, each round calling every contender
-    once in turn (A B C A B C ...)."""
-    times: dict[str, list[float]] = {name: [] for name in contenders}
-    for _ in range(repeat):
-        for name, fn in contenders.items():
-            start = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - start)
-    return {name: statistics.median(t) for name, t in times.items()}
 
 
 def _pair(first: float | None, cached: float | None) -> str:
@@ -135,11 +121,9 @@ def table(rows: list[dict]) -> tuple[list[str], list[list[str]]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = common.script_parser(__doc__, "methods", repeat=3)
     parser.add_argument("--grid", type=int, default=1000, help="n of the n x n quad grid")
-    parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--real-dir", type=Path, default=ROOT.parent / "shared/data/meshes/real")
-    parser.add_argument("--json", type=Path, help="default benchmarks/results/methods.json")
     args = parser.parse_args()
     meta = common.run_meta(threads=1)
     with common.pinned_threads(1):

@@ -43,6 +43,7 @@ from common import (
     markdown_table,
     pinned_threads,
     run_meta,
+    script_parser,
     table_data,
     timed,
     write_results,
@@ -150,7 +151,7 @@ def table(grids: list[dict]) -> tuple[list[str], list[list[str]]]:
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, "scaling", repeat=3)
     parser.add_argument(
         "--sizes",
         type=int,
@@ -158,8 +159,6 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         default=[100, 316, 1000],
         help="grid sides n (n x n quads); at least two (default 100 316 1000)",
     )
-    parser.add_argument("--repeat", type=int, default=3, help="samples per timing (default 3)")
-    parser.add_argument("--json", type=Path, help="default benchmarks/results/scaling.json")
     args = parser.parse_args(argv)
     if len(args.sizes) < 2:
         parser.error("an exponent needs at least two --sizes")

@@ -20,7 +20,6 @@ Prints a Markdown report and writes ``benchmarks/results/solve.json`` (or ``--js
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 from collections.abc import Callable
@@ -30,7 +29,15 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
-from common import bench_grid, markdown_table, median_time, run_meta, table_data, write_results
+from common import (
+    bench_grid,
+    markdown_table,
+    median_time,
+    run_meta,
+    script_parser,
+    table_data,
+    write_results,
+)
 
 import torch_polylap as tp
 from torch_polylap.sparse import operator_from_parts, sparse_values
@@ -145,15 +152,13 @@ def bench_precompute(k: int, repeat: int) -> dict | None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, "solve", repeat=3)
     parser.add_argument("--sizes", type=int, nargs="*", default=[100, 316, 1000])
     parser.add_argument("--eig-sizes", type=int, nargs="*", default=[100, 316])
     parser.add_argument("--k", type=int, default=64)
     parser.add_argument(
         "--precompute-k", type=int, default=128, help="0 skips the sword precompute"
     )
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--json", type=Path, help="default benchmarks/results/solve.json")
     args = parser.parse_args()
     meta = run_meta()
 
@@ -219,6 +224,7 @@ def main() -> None:
         tables["precompute"] = table_data(header, [row])
     print("\n".join(lines))
     write_results("solve", report, meta=meta, path=args.json)
+
 
 if __name__ == "__main__":
     main()

@@ -1,8 +1,9 @@
 """What the benchmark scripts share: the benchmark grid, the results file with its metadata
 header (:func:`run_meta`, :func:`write_results`), the CPU's name, the peak resident memory of one
-step (Linux ``/proc``; an upper bound from ``ru_maxrss`` elsewhere), and the timing and table
-helpers of the ``polylap`` command (median timing, thread pinning, Markdown tables), imported
-from the package rather than kept here as a second copy.
+step (Linux ``/proc``; an upper bound from ``ru_maxrss`` elsewhere), interleaved timing of rival
+callables (:func:`interleaved`), and the timing and table helpers of the ``polylap`` command
+(median timing, thread pinning, Markdown tables), imported from the package rather than kept here
+as a second copy.
 Imported by the ``bench_*.py`` scripts (run from this folder, or with it on ``sys.path``).
 
 A results file ``benchmarks/results/<name>.json`` is committed data: ``benchmarks/tables.py``
@@ -25,7 +26,9 @@ import platform
 import re
 import resource
 import shlex
+import statistics
 import sys
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -47,12 +50,14 @@ from torch_polylap.timing import (
 __all__ = [
     "RESULTS",
     "add_switch",
+    "script_parser",
     "bench_grid",
     "cpu_model",
     "run_meta",
     "table_data",
     "table_from_markdown",
     "write_results",
+    "interleaved",
     "rss_bytes",
     "reset_peak_rss",
     "trim_heap",
@@ -181,6 +186,22 @@ def run_meta(argv: Sequence[str] | None = None, threads: int | None = None) -> d
     }
 
 
+def script_parser(
+    doc: str | None, results: str, repeat: int | None = None
+) -> argparse.ArgumentParser:
+    """The argument parser of a benchmark script: described by the first paragraph of its module
+    ``doc``, with ``--json PATH`` (where the results file goes; the script's default is
+    ``benchmarks/results/<results>.json``) and, given ``repeat``, ``--repeat N`` (timed samples
+    per measurement, default ``repeat``)."""
+    parser = argparse.ArgumentParser(description=(doc or "").split("\n\n")[0])
+    if repeat is not None:
+        parser.add_argument(
+            "--repeat", type=int, default=repeat, help=f"timed samples (default {repeat})"
+        )
+    parser.add_argument("--json", type=Path, help=f"default benchmarks/results/{results}.json")
+    return parser
+
+
 def add_switch(parser: argparse.ArgumentParser, flag: str, help: str) -> None:
     """``flag`` and ``--no-<flag>``, on by default: the parts of a run that can be skipped."""
     parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=True, help=help)
@@ -238,6 +259,19 @@ def write_results(
     tmp.replace(target)
     print(f"wrote {target}", file=sys.stderr)
     return target
+
+
+def interleaved(contenders: dict[str, Callable[[], object]], repeat: int) -> dict[str, float]:
+    """Median seconds per contender over ``repeat`` rounds, each round calling every contender
+    once in turn (A B C A B C ...), so that a load change on a shared machine falls on all of
+    them alike."""
+    times: dict[str, list[float]] = {name: [] for name in contenders}
+    for _ in range(repeat):
+        for name, fn in contenders.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(t) for name, t in times.items()}
 
 
 def cpu_model() -> str:

@@ -12,10 +12,8 @@ around every timed CUDA step.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Callable
-from pathlib import Path
 
 import torch
 from common import (
@@ -23,6 +21,7 @@ from common import (
     markdown_table,
     median_time,
     run_meta,
+    script_parser,
     synchronizer,
     table_data,
     write_results,
@@ -63,12 +62,10 @@ def steps(verts: torch.Tensor, faces: torch.Tensor, k: int) -> dict[str, Callabl
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, "gpu_table", repeat=3)
     parser.add_argument("--grid", type=int, default=1000, help="n x n quads (default 1M)")
     parser.add_argument("--eigs-grid", type=int, default=300, help="grid for eigs (90k quads)")
     parser.add_argument("--k", type=int, default=16)
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--json", type=Path, help="default benchmarks/results/gpu_table.json")
     parser.add_argument(
         "--device", default="cuda", help="the accelerator (cpu only to try the script itself)"
     )

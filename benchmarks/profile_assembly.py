@@ -21,7 +21,6 @@ which passes a faster implementation would have to remove, whatever the machine'
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import pstats
 import sys
@@ -29,8 +28,8 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
+import common
 import torch
-from common import bench_grid, markdown_table, pinned_threads, run_meta, table_data, write_results
 
 import torch_polylap as tp
 
@@ -112,7 +111,7 @@ def python_profile(fn: Callable[[], object], top: int) -> tuple[list[str], list[
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser = common.script_parser(__doc__, "profile_assembly")
     parser.add_argument("--n", type=int, default=1000, help="grid side (n x n quads)")
     parser.add_argument("--top", type=int, default=10, help="rows per profile")
     parser.add_argument(
@@ -120,14 +119,11 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also profile tp.CompiledLaplacian (compiling it first takes tens of seconds)",
     )
-    parser.add_argument(
-        "--json", type=Path, help="default benchmarks/results/profile_assembly.json"
-    )
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
-    meta = run_meta(threads=1)
-    verts, faces = bench_grid(args.n)
+    meta = common.run_meta(threads=1)
+    verts, faces = common.bench_grid(args.n)
     tables = {}
-    with pinned_threads(1), warnings.catch_warnings():
+    with common.pinned_threads(1), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         topo = tp.build_topology(faces, verts.shape[0])
         profiles = {
@@ -151,9 +147,9 @@ def main(argv: list[str] | None = None) -> int:
             )
     for name, (header, rows) in profiles.items():
         print(f"\n{name}, {faces.shape[0]:,} quads\n")
-        print(markdown_table(header, rows))
-        tables[name] = table_data(header, rows)
-    write_results(
+        print(common.markdown_table(header, rows))
+        tables[name] = common.table_data(header, rows)
+    common.write_results(
         "profile_assembly",
         {"n": args.n, "faces": int(faces.shape[0]), "tables": tables},
         meta=meta,

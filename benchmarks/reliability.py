@@ -32,7 +32,6 @@ every CLI command sent SIGINT at each phase (``CLI_COMMANDS`` x ``CLI_PHASES``; 
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 import math
@@ -50,7 +49,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 import torch
-from common import bench_grid, markdown_table, run_meta, table_data, write_results
+from common import bench_grid, markdown_table, run_meta, script_parser, table_data, write_results
 
 import torch_polylap as tp
 from torch_polylap.triangulate import triangulate_faces
@@ -381,9 +380,9 @@ ENTRY_POINTS: dict[str, Callable[[torch.Tensor, object], object]] = {
     "apps.conformal_energy": lambda V, F: tp.apps.conformal_energy(V[:, :2], V, F),
     "apps.conformal_matrix": lambda V, F: tp.apps.conformal_matrix(V, F),
     "apps.angle_distortion": lambda V, F: tp.apps.angle_distortion(V[:, :2], V, F).per_corner,
-    "apps.planarize": lambda V, F: tp.apps.planarize(
-        V, F, max_iter=2, options=tp.apps.PlanarizeOptions(warn=False)
-    ).verts,
+    "apps.planarize": lambda V, F: (
+        tp.apps.planarize(V, F, max_iter=2, options=tp.apps.PlanarizeOptions(warn=False)).verts
+    ),
     # layers
     "nn.Spectrum.from_polygon_meshes": _spectrum,
     "nn.SpectralFeatures": lambda V, F: tp.nn.SpectralFeatures(num_features=4)(_spectrum(V, F)),
@@ -660,10 +659,9 @@ def _cli_table() -> tuple[dict, dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = script_parser(__doc__, "reliability")
     parser.add_argument("--cases", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", type=Path, help="default benchmarks/results/reliability.json")
     parser.add_argument(
         "--no-cli", action="store_true", help="skip the interrupted CLI commands (minutes)"
     )

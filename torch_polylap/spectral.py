@@ -57,13 +57,12 @@ def heat_kernel_signature(
     Examples:
         >>> import torch
         >>> import torch_polylap as tp
-        >>> verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0.5, 0.5]],
-        ...                      dtype=torch.float64)
-        >>> L, M0 = tp.laplacian(verts, [[0, 1, 2, 3], [1, 4, 2]])
-        >>> evals, evecs = tp.eigs(L, M0, k=3)
+        >>> verts, faces = tp.shapes.quad_sphere(2)  # a closed quad mesh, 26 vertices
+        >>> L, M0 = tp.laplacian(verts, faces)
+        >>> evals, evecs = tp.eigs(L, M0, k=4)
         >>> times = torch.tensor([0.1, 1.0, 10.0], dtype=torch.float64)
         >>> tp.heat_kernel_signature(evals, evecs, times).shape
-        torch.Size([5, 3])
+        torch.Size([26, 3])
     """
     decay = torch.exp(-evals[:, None] * times[None, :])  # (k, T)
     return (evecs * evecs) @ decay

@@ -12,15 +12,12 @@ is not diagonal: ``M0^-1`` is a solve).
 
 from __future__ import annotations
 
-import subprocess
-import sys
-import textwrap
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
+from capped import run_capped
 from conftest import hex_pent_mesh, mixed_mesh
 from meshes import bent_grid, load, shared_path
 from test_reference_values import _half_unit, sh_y32
@@ -262,23 +259,7 @@ def test_compiled(device):
         lap(bad)
 
 
-_MEMORY_SCRIPT = textwrap.dedent(
-    """
-    import resource
-    import numpy as np
-    import torch
-    import torch_polylap as tp
-
-    torch.set_num_threads(1)
-    n = 250  # 62,500 vertices: a dense V x V float64 matrix is 31 GB
-    xs, ys = np.meshgrid(np.arange(n) / n, np.arange(n) / n, indexing="ij")
-    verts = torch.tensor(np.stack([xs.ravel(), ys.ravel(), 0.05 * np.sin(7 * xs.ravel())], 1))
-    i, j = (a.ravel() for a in np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij"))
-    corners = [i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1]
-    faces = torch.tensor(np.stack(corners, 1))
-    topo = tp.build_topology(faces, verts.shape[0])
-    cap = 4 * 2**30
-    resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+_MEMORY_SCRIPT = """
     X = verts.clone().requires_grad_(True)
     L, M0 = tp.laplacian(X, topo, method="diamond")
     loss = (L @ X).square().sum() + tp.solve(M0 + 0.1 * L, X).square().sum()
@@ -286,15 +267,12 @@ _MEMORY_SCRIPT = textwrap.dedent(
     assert torch.isfinite(g).all() and bool(g.abs().max() > 0)
     print("ok")
     """
-)
 
 
 @pytest.mark.slow  # assembles, factors and differentiates at 62k vertices (about 30 s)
 def test_gradients_run_under_a_4gb_cap_at_62k_vertices():
     """O(nnz) memory: a dense V x V tensor (31 GB) would fail under the address-space cap."""
-    result = subprocess.run(
-        [sys.executable, "-c", _MEMORY_SCRIPT], capture_output=True, text=True, timeout=600
-    )
+    result = run_capped(_MEMORY_SCRIPT)
     assert result.returncode == 0 and "ok" in result.stdout, result.stdout + result.stderr
 
 

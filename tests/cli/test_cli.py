@@ -502,12 +502,14 @@ def test_every_command_has_help(capsys):
 
 
 def test_every_command_follows_the_protocol():
-    """add_parser / compute / run in every module; the parser dispatches to run and compute."""
+    """SUMMARY / DESCRIPTION / add_arguments / compute / run in every module; the parser
+    dispatches to run and compute."""
     parser = build_parser()
     names = subcommands()
     assert len(COMMANDS) == len(names)
     for module, name in zip(COMMANDS, names, strict=True):
-        assert all(callable(getattr(module, f, None)) for f in ("add_parser", "compute", "run"))
+        assert all(callable(getattr(module, f, None)) for f in ("add_arguments", "compute", "run"))
+        assert isinstance(module.SUMMARY, str) and isinstance(module.DESCRIPTION, str)
         args = parser.parse_args([name])
         assert args.func is module.run and args.compute is module.compute
 

@@ -83,11 +83,16 @@ def _start(meshes: Path, cache: Path) -> subprocess.Popen:
     )
 
 
-def _signal_mid_run(
-    meshes: Path, cache: Path, signum: int, total: int
-) -> tuple[subprocess.Popen, str, str]:
-    """Start the command, send ``signum`` to its group once a few entries exist; the process
-    (ended) and its stdout and stderr."""
+# the interrupted runs: TOTAL meshes of N x N faces, enough that a signal lands mid-run
+TOTAL, N = 30, 40
+
+
+def _signal_mid_run(tmp_path: Path, device, signum: int) -> tuple[subprocess.Popen, str, Path]:
+    """Write the meshes, start the command on them and send ``signum`` to its group once a few
+    entries exist; the process (ended), its stderr and the cache folder, checked to hold only
+    entries that read back whole."""
+    meshes, cache = tmp_path / "meshes", tmp_path / "cache"
+    write_meshes(meshes, TOTAL, N, device)
     process = _start(meshes, cache)
     deadline = time.monotonic() + 120
     while len(list(cache.glob("eigs-*.npz"))) < 3:
@@ -95,21 +100,18 @@ def _signal_mid_run(
         assert time.monotonic() < deadline, "no entry written in 120 s"
         time.sleep(0.02)
     os.killpg(process.pid, signum)
-    out, err = process.communicate(timeout=60)
+    _, err = process.communicate(timeout=60)
     done = len(list(cache.glob("eigs-*.npz")))
-    assert done < total, "the run ended before the signal: use more or larger meshes"
-    return process, out, err
+    assert done < TOTAL, "the run ended before the signal: use more or larger meshes"
+    assert valid_entries(cache, (N + 1) ** 2) == done  # no entry that reads as invalid
+    return process, err, cache
 
 
 @pytest.mark.slow  # two runs of the command on 30 meshes: about 10 s
 def test_a_run_killed_outright_resumes_computing_only_what_is_missing(tmp_path, device):
-    total, n = 30, 40
-    write_meshes(tmp_path / "meshes", total, n, device)
-    cache = tmp_path / "cache"
-    killed, _, _ = _signal_mid_run(tmp_path / "meshes", cache, signal.SIGKILL, total)
+    killed, _, cache = _signal_mid_run(tmp_path, device, signal.SIGKILL)
     assert killed.returncode == -signal.SIGKILL
-    complete = valid_entries(cache, (n + 1) ** 2)
-    assert complete == len(list(cache.glob("eigs-*.npz")))  # no entry that reads as invalid
+    complete = len(list(cache.glob("eigs-*.npz")))
 
     again = _start(tmp_path / "meshes", cache)
     out, err = again.communicate(timeout=300)
@@ -118,20 +120,16 @@ def test_a_run_killed_outright_resumes_computing_only_what_is_missing(tmp_path, 
     # every entry complete before the rerun is reused, never computed again
     assert (report["reused"], report["computed"], report["failed"]) == (
         complete,
-        total - complete,
+        TOTAL - complete,
         0,
     )
-    assert valid_entries(cache, (n + 1) ** 2) == total
+    assert valid_entries(cache, (N + 1) ** 2) == TOTAL
 
 
 @pytest.mark.slow  # one run of the command on 30 meshes: about 6 s
 def test_ctrl_c_ends_with_one_line_exit_130_and_only_whole_entries(tmp_path, device):
-    total, n = 30, 40
-    write_meshes(tmp_path / "meshes", total, n, device)
-    cache = tmp_path / "cache"
-    process, _, err = _signal_mid_run(tmp_path / "meshes", cache, signal.SIGINT, total)
+    process, err, cache = _signal_mid_run(tmp_path, device, signal.SIGINT)
     assert process.returncode == 130, err
     assert err.strip().splitlines()[-1] == "polylap: interrupted"
     assert "Traceback" not in err
-    assert valid_entries(cache, (n + 1) ** 2) == len(list(cache.glob("eigs-*.npz")))
     assert not [p for p in cache.iterdir() if p.name.endswith(".tmp")]  # temporaries removed

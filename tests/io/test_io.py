@@ -318,41 +318,6 @@ def test_ply_vertex_index_name_and_other_types(tmp_path):
 TRIANGLE_V = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
 
 
-def test_obj_index_out_of_range_names_face_and_line(tmp_path):
-    path = write_text(tmp_path / "e.obj", TRIANGLE_V + "f 1 2 3\n\nf 1 2 9\n")
-    with pytest.raises(
-        ValueError, match=r"e\.obj, line 6: face 1 refers to vertex 9, out of range"
-    ):
-        read_mesh(path)
-
-
-def test_obj_negative_index_out_of_range(tmp_path):
-    path = write_text(tmp_path / "e.obj", TRIANGLE_V + "f -1 -2 -4\n")
-    with pytest.raises(ValueError, match=r"line 4: face 0 refers to vertex -4"):
-        read_mesh(path)
-
-
-def test_obj_index_zero(tmp_path):
-    path = write_text(tmp_path / "e.obj", TRIANGLE_V + "f 0 1 2\n")
-    with pytest.raises(ValueError, match=r"line 4: face 0 refers to vertex 0.*start at 1"):
-        read_mesh(path)
-
-
-def test_obj_unparsable_numbers(tmp_path):
-    path = write_text(tmp_path / "e.obj", "v 0 0 0\nv 1 zero 0\nv 0 1 0\nf 1 2 3\n")
-    with pytest.raises(ValueError, match=r"line 2: cannot parse vertex coordinate 'zero'"):
-        read_mesh(path)
-    path = write_text(tmp_path / "e.obj", TRIANGLE_V + "f 1 2 3\nf 1 2.0 3\n")
-    with pytest.raises(ValueError, match=r"line 5: face 1 has an unparsable vertex index '2.0'"):
-        read_mesh(path)
-
-
-def test_obj_vertex_with_two_coordinates(tmp_path):
-    path = write_text(tmp_path / "e.obj", "v 0 0 0\nv 1 0\n")
-    with pytest.raises(ValueError, match=r"line 2: a vertex needs 3 coordinates"):
-        read_mesh(path)
-
-
 @pytest.mark.parametrize(
     ("name", "text", "line"),
     [
@@ -366,33 +331,71 @@ def test_face_with_two_vertices(tmp_path, name, text, line):
         read_mesh(path)
 
 
-def test_off_truncated(tmp_path):
-    verts_missing = write_text(tmp_path / "v.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\n")
-    with pytest.raises(ValueError, match=r"v\.off: the file ends after 3 of the 4 vertices"):
-        read_mesh(verts_missing)
-    faces_missing = write_text(tmp_path / "f.off", "OFF\n3 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
-    with pytest.raises(ValueError, match=r"ends after 1 of the 2 faces.*truncated"):
-        read_mesh(faces_missing)
-    face_cut = write_text(tmp_path / "c.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n4 0 1\n2\n")
-    with pytest.raises(ValueError, match=r"ends after 0 of the 1 faces"):
-        read_mesh(face_cut)
+_OFF_HEAD = "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n"  # three vertices, one face declared
 
 
-def test_off_extra_faces_are_not_dropped_silently(tmp_path):
-    path = write_text(tmp_path / "x.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 2 1 0\n")
-    with pytest.raises(ValueError, match=r"line 7: data after the 1 faces declared"):
-        read_mesh(path)
-
-
-def test_off_index_out_of_range_and_bad_number(tmp_path):
-    path = write_text(tmp_path / "r.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
-    with pytest.raises(ValueError, match=r"line 6: face 0 refers to vertex 7"):
-        read_mesh(path)
-    path = write_text(tmp_path / "n.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1e 0\n3 0 1 2\n")
-    with pytest.raises(ValueError, match=r"line 5: cannot parse vertex coordinate '1e'"):
-        read_mesh(path)
-    path = write_text(tmp_path / "h.off", "OFF\nthree 1 0\n")
-    with pytest.raises(ValueError, match=r"line 2: expected the counts"):
+@pytest.mark.parametrize(
+    ("name", "text", "match"),
+    [
+        (
+            "m.obj",
+            TRIANGLE_V + "f 1 2 3\n\nf 1 2 9\n",
+            r"m\.obj, line 6: face 1 refers to vertex 9, out of range",
+        ),
+        ("m.obj", TRIANGLE_V + "f -1 -2 -4\n", r"line 4: face 0 refers to vertex -4"),
+        ("m.obj", TRIANGLE_V + "f 0 1 2\n", r"line 4: face 0 refers to vertex 0.*start at 1"),
+        (
+            "m.obj",
+            "v 0 0 0\nv 1 zero 0\nv 0 1 0\nf 1 2 3\n",
+            r"line 2: cannot parse vertex coordinate 'zero'",
+        ),
+        (
+            "m.obj",
+            TRIANGLE_V + "f 1 2 3\nf 1 2.0 3\n",
+            r"line 5: face 1 has an unparsable vertex index '2.0'",
+        ),
+        ("m.obj", "v 0 0 0\nv 1 0\n", r"line 2: a vertex needs 3 coordinates"),
+        (
+            "m.off",
+            "OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\n",
+            r"m\.off: the file ends after 3 of the 4 vertices",
+        ),
+        (
+            "m.off",
+            "OFF\n3 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
+            r"ends after 1 of the 2 faces.*truncated",
+        ),
+        ("m.off", _OFF_HEAD + "4 0 1\n2\n", r"ends after 0 of the 1 faces"),
+        ("m.off", _OFF_HEAD + "3 0 1 2\n3 2 1 0\n", r"line 7: data after the 1 faces declared"),
+        ("m.off", _OFF_HEAD + "3 0 1 7\n", r"line 6: face 0 refers to vertex 7"),
+        (
+            "m.off",
+            "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1e 0\n3 0 1 2\n",
+            r"line 5: cannot parse vertex coordinate '1e'",
+        ),
+        ("m.off", "OFF\nthree 1 0\n", r"line 2: expected the counts"),
+    ],
+    ids=[
+        "obj-index-range",
+        "obj-negative-index-range",
+        "obj-index-zero",
+        "obj-bad-coordinate",
+        "obj-bad-index",
+        "obj-two-coordinates",
+        "off-verts-missing",
+        "off-faces-missing",
+        "off-face-cut",
+        "off-extra-face",
+        "off-index-range",
+        "off-bad-number",
+        "off-bad-counts",
+    ],
+)
+def test_malformed_text_mesh_is_refused_with_file_and_line(tmp_path, name, text, match):
+    """Truncated files, extra faces and bad entries are errors naming the file or line, never
+    silently dropped or padded."""
+    path = write_text(tmp_path / name, text)
+    with pytest.raises(ValueError, match=match):
         read_mesh(path)
 
 
@@ -440,21 +443,30 @@ def test_ply_without_vertex_indices(tmp_path):
         read_mesh(write_text(tmp_path / "q.ply", no_face))
 
 
-def test_ply_errors_name_element_and_record(tmp_path):
-    head = PLY_ASCII_HEAD + (
-        "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    path = write_text(tmp_path / "r.ply", head + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 10\n")
-    with pytest.raises(ValueError, match=r"element 'face' record 1: face 1 refers to vertex 10"):
-        read_mesh(path)
-    path = write_text(tmp_path / "s.ply", head + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n2 0 1\n")
-    with pytest.raises(ValueError, match=r"record 1: face 1 has 2 vertices"):
-        read_mesh(path)
-    path = write_text(tmp_path / "t.ply", head + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
-    with pytest.raises(ValueError, match=r"element 'face' declares 2 records but the file ends"):
-        read_mesh(path)
-    path = write_text(tmp_path / "u.ply", head + "0 0 0\n1 oops 0\n0 1 0\n3 0 1 2\n3 2 1 0\n")
-    with pytest.raises(ValueError, match=r"line 11: element 'vertex' record 1: cannot parse 'y'"):
+_PLY_TWO_FACES = PLY_ASCII_HEAD + (
+    "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+)
+
+
+@pytest.mark.parametrize(
+    ("body", "match"),
+    [
+        (
+            "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 10\n",
+            r"element 'face' record 1: face 1 refers to vertex 10",
+        ),
+        ("0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n2 0 1\n", r"record 1: face 1 has 2 vertices"),
+        ("0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", r"element 'face' declares 2 records but the file ends"),
+        (
+            "0 0 0\n1 oops 0\n0 1 0\n3 0 1 2\n3 2 1 0\n",
+            r"line 11: element 'vertex' record 1: cannot parse 'y'",
+        ),
+    ],
+    ids=["index-range", "two-vertices", "truncated", "bad-number"],
+)
+def test_ply_errors_name_element_and_record(tmp_path, body, match):
+    path = write_text(tmp_path / "r.ply", _PLY_TWO_FACES + body)
+    with pytest.raises(ValueError, match=match):
         read_mesh(path)
 
 

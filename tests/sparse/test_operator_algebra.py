@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import pickle
 import re
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import pytest
 import torch
+from capped import run_capped
 from conftest import hex_pent_mesh, mixed_mesh
 
 import torch_polylap as tp
@@ -322,23 +320,7 @@ def test_sum_with_the_mass_equals_the_dense_sum(device):
             assert A.pattern.nnz == other.pattern.nnz + (0 if same else n - 1)
 
 
-_MEMORY_SCRIPT = textwrap.dedent(
-    """
-    import resource, sys
-    import numpy as np
-    import torch
-    import torch_polylap as tp
-
-    torch.set_num_threads(1)
-    n = 250  # 62,500 vertices: a dense V x V float64 matrix is 31 GB
-    xs, ys = np.meshgrid(np.arange(n) / n, np.arange(n) / n, indexing="ij")
-    verts = torch.tensor(np.stack([xs.ravel(), ys.ravel(), 0.05 * np.sin(7 * xs.ravel())], 1))
-    i, j = (a.ravel() for a in np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij"))
-    corners = [i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1]
-    faces = torch.tensor(np.stack(corners, 1))
-    topo = tp.build_topology(faces, verts.shape[0])
-    cap = 4 * 2**30
-    resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+_MEMORY_SCRIPT = """
     expressions = {
         "L @ X": lambda L, M0, X: L @ X,
         "torch.mm": lambda L, M0, X: torch.mm(L, X),
@@ -372,15 +354,12 @@ _MEMORY_SCRIPT = textwrap.dedent(
     else:
         sys.exit("the address-space cap did not stop a dense V x V gradient")
     """
-)
 
 
 def test_every_expression_runs_under_a_4gb_cap_at_62k_vertices():
     """O(nnz) memory: any dense V x V tensor (31 GB) would fail under the 4 GB address-space cap,
     as torch's own sparse autograd does in the same process."""
-    result = subprocess.run(
-        [sys.executable, "-c", _MEMORY_SCRIPT], capture_output=True, text=True, timeout=600
-    )
+    result = run_capped(_MEMORY_SCRIPT)
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.stdout.count("ok ") == 12 and "native refused" in result.stdout
 

@@ -17,30 +17,20 @@ from collections import Counter
 import numpy as np
 import pytest
 import torch
+from fuzzing import fuzz_settings, tally_fixture
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import torch_polylap as tp
 from torch_polylap import repair
-
-hypothesis = pytest.importorskip(
-    "hypothesis", reason="hypothesis not installed: pip install .[test]"
-)
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
 
 # the fuzzed meshes are non-manifold and misoriented on purpose: the warning that says so is
 # expected (tests/topology/test_topology.py checks its text)
 pytestmark = pytest.mark.filterwarnings("ignore:the mesh .* is not a consistently oriented")
 
 COUNTS: Counter = Counter()
-FUZZ = settings(
-    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
-)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _print_counts():
-    yield
-    print("\nfuzz inputs per category:", dict(sorted(COUNTS.items())))
+FUZZ = fuzz_settings(60)
+_print_counts = tally_fixture(COUNTS, "fuzz inputs")
 
 
 def polygon_grid(rng: np.random.Generator, n: int, m: int) -> tuple[np.ndarray, list[list[int]]]:

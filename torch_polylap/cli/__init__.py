@@ -20,7 +20,10 @@ torch's own default, see :func:`torch_polylap.timing.pinned_threads`).
 
 The command protocol: every command module has
 
-- ``add_parser(sub)``: its subparser, with ``func=run`` and ``compute=compute`` as defaults;
+- ``SUMMARY``, ``DESCRIPTION`` and optionally ``MESH`` (the fallback mesh; ``None`` for no mesh
+  argument): how :func:`.common.add_command` registers it under the module's name;
+- ``add_arguments(parser)``: its options, with ``func=run`` and ``compute=compute`` as
+  defaults;
 - ``compute(args) -> Result``: the work; reads the mesh, writes no file and prints no result
   (a progress bar at most), returning the summary table, the machine-readable values and the
   files to write (:class:`.common.Result`, :class:`.common.Output`);
@@ -41,7 +44,7 @@ from typing import NoReturn
 from .. import __version__
 from ..timing import DEFAULT_THREADS, pinned_threads
 from . import bench, demo, info, param, planarize, precompute, smooth, spectrum
-from .common import DEFAULT_MESH
+from .common import DEFAULT_MESH, add_command
 from .interrupts import Terminated, ignore_signals, signals_as_exceptions
 
 __all__ = ["main", "build_parser", "DEFAULT_MESH"]
@@ -93,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=thread_count, metavar="N", help=threads_help)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in COMMANDS:
-        module.add_parser(sub)
+        add_command(sub, module)
     for _name, command in sub.choices.items():
         # SUPPRESS: given after the command it overrides the one before; absent it leaves it
         command.add_argument(

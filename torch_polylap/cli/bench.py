@@ -31,7 +31,6 @@ from ..triangulate import triangulate_faces
 from .common import (
     Result,
     add_laplacian_arguments,
-    command_parser,
     execute,
     finish_command,
     json_output,
@@ -57,8 +56,7 @@ DESCRIPTION = (
 )
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(sub, "bench", SUMMARY, DESCRIPTION)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     add_laplacian_arguments(p)
     p.add_argument("--repeat", type=positive_int, default=5, help="samples per timing (default 5)")
     p.add_argument("-k", type=positive_int, default=16, help="eigenpairs for eigs (default 16)")

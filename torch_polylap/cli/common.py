@@ -10,6 +10,7 @@ import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
@@ -146,18 +147,20 @@ def json_output(name: str, data: dict[str, Any]) -> Output:
     return text_output(name, lambda: json.dumps(data, indent=2) + "\n")
 
 
-def command_parser(
-    sub: argparse._SubParsersAction,
-    name: str,
-    summary: str,
-    description: str,
-    mesh: Path | None = DEFAULT_MESH,
-) -> argparse.ArgumentParser:
-    """The subparser of the command ``name`` (``summary``: its line in ``polylap --help``) with
-    the optional mesh argument falling back to ``mesh`` (no mesh argument for ``None``)."""
-    parser: argparse.ArgumentParser = sub.add_parser(name, help=summary, description=description)
+def add_command(sub: argparse._SubParsersAction, module: ModuleType) -> argparse.ArgumentParser:
+    """Register the command of ``module`` (one of this package, following the command protocol
+    of :mod:`torch_polylap.cli`) under the module's name: ``SUMMARY`` is its line in ``polylap
+    --help``, ``DESCRIPTION`` its help text, ``MESH`` (default :data:`DEFAULT_MESH`; ``None``:
+    no mesh argument) the mesh it falls back to, and ``add_arguments(parser)`` adds its own
+    options. Returns the subparser."""
+    name = module.__name__.rpartition(".")[2]
+    parser: argparse.ArgumentParser = sub.add_parser(
+        name, help=module.SUMMARY, description=module.DESCRIPTION
+    )
+    mesh = getattr(module, "MESH", DEFAULT_MESH)
     if mesh is not None:
         add_mesh_argument(parser, default=mesh)
+    module.add_arguments(parser)
     return parser
 
 

@@ -26,8 +26,8 @@ from . import param, planarize, smooth
 from .common import (
     DEFAULT_OUTPUT,
     Result,
+    add_command,
     add_method_argument,
-    command_parser,
     execute,
     figure_output,
     mesh_output,
@@ -55,6 +55,7 @@ WITH_METHOD = ("smooth", "param")
 
 
 SUMMARY = "run all applications on embedded meshes and write a Markdown report"
+MESH = None  # no mesh argument
 DESCRIPTION = (
     "Run mean-curvature flow, conformal parameterization, planarization and "
     "thin-plate bending (AW11 sec. 5.1-5.4) on small embedded meshes; write the result "
@@ -62,8 +63,7 @@ DESCRIPTION = (
 )
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(sub, "demo", SUMMARY, DESCRIPTION, mesh=None)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "-o",
         "--output",
@@ -121,13 +121,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _steps_parser() -> argparse.ArgumentParser:
-    """A parser of the commands that :data:`STEPS` runs, built by their own ``add_parser``
+    """A parser of the commands that :data:`STEPS` runs, built from their own options
     (the options and defaults of ``polylap``'s, without the package's parser, which holds this
     command too)."""
     parser = argparse.ArgumentParser(prog="polylap")
     sub = parser.add_subparsers(dest="command")
     for module in (smooth, param, planarize):
-        module.add_parser(sub)
+        add_command(sub, module)
     return parser
 
 

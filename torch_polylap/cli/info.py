@@ -26,7 +26,6 @@ from .common import (
     Result,
     Rows,
     add_laplacian_arguments,
-    command_parser,
     execute,
     finish_command,
     json_output,
@@ -48,8 +47,7 @@ DESCRIPTION = (
 )
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(sub, "info", SUMMARY, DESCRIPTION)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     add_laplacian_arguments(p, float, "stabilizer weight lambda (default 1)")
     p.add_argument("--dtype", choices=tuple(DTYPES), default="float64")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")

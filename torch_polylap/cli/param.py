@@ -17,7 +17,6 @@ from ..topology import Topology
 from .common import (
     Result,
     add_laplacian_arguments,
-    command_parser,
     execute,
     finish_command,
     load_mesh_topology,
@@ -32,6 +31,7 @@ if TYPE_CHECKING:
 
 
 SUMMARY = "conformal (LSCM-type) parameterization of a mesh with boundary"
+MESH = DISK_MESH  # a mesh with boundary: the command flattens disks
 DESCRIPTION = (
     "Flatten a polygon mesh with boundary by minimizing the conformal energy "
     "E_C = E_D - A (AW11 sec. 5.2): two pinned boundary vertices (default, eq. 12) or a free "
@@ -40,8 +40,7 @@ DESCRIPTION = (
 )
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(sub, "param", SUMMARY, DESCRIPTION, DISK_MESH)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     add_laplacian_arguments(p)
     p.add_argument(
         "--free-boundary",

@@ -13,7 +13,6 @@ from ..measures import face_nonplanarity
 from ..topology import Topology
 from .common import (
     Result,
-    command_parser,
     execute,
     finish_command,
     load_mesh_topology,
@@ -42,8 +41,7 @@ DESCRIPTION = (
 )
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(sub, "planarize", SUMMARY, DESCRIPTION)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lam", type=positive_float, default=2.0, help="lambda (default 2, as AW11)")
     p.add_argument(
         "--tol", type=positive_float, default=1e-4, help="target largest non-planarity (1e-4)"

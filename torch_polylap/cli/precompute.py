@@ -23,9 +23,10 @@ from pathlib import Path
 
 from ..datasets import precompute
 from ..datasets.jobs import local_executor
-from .common import Result, add_laplacian_arguments, command_parser, positive_int, print_table
+from .common import Result, add_laplacian_arguments, positive_int, print_table
 
 SUMMARY = "fill a dataset's eigenpair cache from mesh files, here or on a Dask cluster"
+MESH = None  # no mesh argument
 DESCRIPTION = (
     "Compute the k smallest eigenpairs of every mesh file given (folders are searched "
     "recursively for .obj, .off and .ply) into the cache folder that PolygonMeshDataset "
@@ -38,8 +39,7 @@ DESCRIPTION = (
 MESH_SUFFIXES = (".obj", ".off", ".ply")
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(sub, "precompute", SUMMARY, DESCRIPTION, mesh=None)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "inputs", nargs="*", type=Path, metavar="INPUT", help="mesh files and folders of meshes"
     )

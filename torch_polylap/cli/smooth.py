@@ -20,7 +20,6 @@ from ..plot import PlotOptions
 from .common import (
     Result,
     add_laplacian_arguments,
-    command_parser,
     execute,
     figure_output,
     finish_command,
@@ -55,8 +54,7 @@ DESCRIPTION = (
 )
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(sub, "smooth", SUMMARY, DESCRIPTION)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--dt",
         type=positive_float,

@@ -16,7 +16,6 @@ from .common import (
     Output,
     Result,
     add_laplacian_arguments,
-    command_parser,
     execute,
     finish_command,
     load_mesh,
@@ -39,8 +38,7 @@ DESCRIPTION = (
 )
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = command_parser(sub, "spectrum", SUMMARY, DESCRIPTION)
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-k", type=positive_int, default=20, help="number of eigenpairs (default 20)")
     add_laplacian_arguments(p)
     p.add_argument(
