@@ -64,7 +64,7 @@ class HermitianLDL:
             # P[q][:, q] = L U with q the inverse of perm_c, so A's ordering is order[q]
             inverse = np.empty(n, dtype=np.int64)
             inverse[lu.perm_c] = np.arange(n)
-            strict = sp.csc_matrix(sp.tril(lu.L, k=-1))
+            strict = _strictly_lower(lu.L)
             factors = (strict, d.real.astype(np.complex128), order[inverse])
             self._triangles = _checked_solves(lambda: factors, S, LDLTriangles)
         if self._triangles is None:
@@ -92,6 +92,20 @@ class HermitianLDL:
         if self._triangles is not None:
             return _finite_array(self._triangles.solve(b))
         return _finite_array(self._superlu_solve(b))
+
+
+def _strictly_lower(L: sp.csc_matrix) -> sp.csc_matrix:
+    """SuperLU's unit lower ``L`` without its diagonal: SuperLU stores the diagonal first in
+    each column, so dropping those entries is one mask (scipy's ``tril`` where not)."""
+    n = L.shape[0]
+    first = L.indptr[:-1]
+    if not np.array_equal(L.indices[first], np.arange(n)):
+        return sp.csc_matrix(sp.tril(L, k=-1))
+    keep = np.ones(L.nnz, dtype=bool)
+    keep[first] = False
+    return sp.csc_matrix(
+        (L.data[keep], L.indices[keep], L.indptr - np.arange(n + 1)), shape=L.shape
+    )
 
 
 def _message(n: int, detail: str) -> str:

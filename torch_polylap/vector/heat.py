@@ -315,11 +315,20 @@ def _complex_form(S: sp.spmatrix) -> sp.csr_matrix:
     """The complex ``(V, V)`` matrix whose real form is the ``(2V, 2V)`` ``S`` (entry
     ``a + i b`` as the block ``[[a, -b], [b, a]]`` at rows and columns ``2v, 2v + 1``): the
     even columns of ``S``, the even rows as real parts and the odd ones as imaginary parts."""
-    coo = sp.coo_matrix(S)
-    even = coo.col % 2 == 0
-    rows, cols, data = coo.row[even], coo.col[even] // 2, coo.data[even]
-    values = np.where(rows % 2 == 0, data, 1j * data)
+    S = sp.csr_matrix(S)
     n = S.shape[0] // 2
+    rows = np.repeat(np.arange(2 * n), np.diff(S.indptr))
+    even = S.indices % 2 == 0
+    real, imag = even & (rows % 2 == 0), even & (rows % 2 == 1)
+    cols = S.indices[real] // 2
+    if S.has_canonical_format and np.array_equal(cols, S.indices[imag] // 2):
+        # every block stored whole, as the operator's pattern has them: the two rows of a
+        # block row hold the same columns, in order
+        counts = np.bincount(rows[real] // 2, minlength=n)
+        indptr = np.concatenate(([0], np.cumsum(counts)))
+        return sp.csr_matrix((S.data[real] + 1j * S.data[imag], cols, indptr), shape=(n, n))
+    rows, cols, data = rows[even], S.indices[even] // 2, S.data[even]
+    values = np.where(rows % 2 == 0, data, 1j * data)
     return sp.csr_matrix((values, (rows // 2, cols)), shape=(n, n))
 
 
