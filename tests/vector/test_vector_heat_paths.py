@@ -114,6 +114,19 @@ def test_hermitian_ldl_solves_as_a_dense_solve(ordered):
     np.testing.assert_allclose(factor.solve(b), np.linalg.solve(A.toarray(), b), rtol=1e-10)
 
 
+def test_hermitian_ldl_solves_a_sparse_right_hand_side():
+    """Few nonzero rows (the forward pass over their tree paths, where it pays) and many (a
+    full solve): both as a dense solve."""
+    A = random_hermitian(80, 4)
+    factor = HermitianLDL(A, np.arange(80))
+    dense = A.toarray()
+    for rows in (np.array([3]), np.array([0, 41]), np.arange(0, 80, 2)):
+        values = (1.0 + 0.5j) * np.arange(1, rows.size + 1)
+        b = np.zeros(80, dtype=complex)
+        b[rows] = values
+        np.testing.assert_allclose(factor.solve_sparse(rows, values), np.linalg.solve(dense, b))
+
+
 def test_hermitian_ldl_refuses_an_indefinite_matrix():
     A = random_hermitian(40, 3)
     A = sp.csr_matrix(A - 2 * sp.diags(A.diagonal().real))

@@ -187,7 +187,7 @@ class EtreePathSolver(LDLTriangles):
             for (a, b), (s, _), start in zip(runs, spans, starts, strict=False)
         ]
         indptr = np.concatenate([*pieces, [starts[-1]]]).astype(np.intc)
-        rhs = np.zeros(size)
+        rhs = np.zeros(size, dtype=self.values.dtype)
         rhs[0] = value
         y = self._lower(size, values, rows, indptr, rhs)
         columns = np.concatenate([np.arange(a, b + 1) for a, b in runs])
@@ -197,7 +197,7 @@ class EtreePathSolver(LDLTriangles):
         """``(n, Q)`` ``A^{-1} B``, column ``q`` of ``B`` ``values[q]`` at ``rows[q]`` (original
         numbering, no repeats), zero elsewhere."""
         n = self.n
-        w = np.zeros((n, len(rows)), order="F")
+        w = np.zeros((n, len(rows)), dtype=self.values.dtype, order="F")
         for q, (idx, val) in enumerate(zip(rows, values, strict=True)):
             for row, value in zip(idx.tolist(), val.tolist(), strict=True):
                 if value != 0.0:

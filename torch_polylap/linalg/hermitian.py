@@ -7,7 +7,9 @@ operators hold it in real ``(2V, 2V)`` form, each entry ``a + i b`` a block
 real entries per complex one, and a solve reads 48 bytes per entry of the scalar factor's
 pattern instead of 20: on loki (27k vertices, one thread) the real form took 1.5 s to factor
 and 23 ms to solve, the complex one 0.37 s (SuperLU, the scalar factor's AMD ordering) and
-6 ms (two triangular passes through :class:`.LDLTriangles`).
+6 ms (two triangular passes through :class:`.LDLTriangles`; a right-hand side nonzero at a few
+sources has its forward pass over their elimination-tree paths only,
+:class:`.EtreePathSolver`).
 
 SuperLU factors ``P^T A P = L U`` without pivoting (symmetric mode, diagonal pivots): for a
 Hermitian positive definite matrix the factorization is unique, ``U = D L^H`` with ``D`` real
@@ -20,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .etree_solve import LDLTriangles
+from .etree_solve import EtreePathSolver, LDLTriangles
 from .factor import _checked_solves, _finite_array, _solution_problem
 
 
@@ -66,7 +68,11 @@ class HermitianLDL:
             inverse[lu.perm_c] = np.arange(n)
             strict = _strictly_lower(lu.L)
             factors = (strict, d.real.astype(np.complex128), order[inverse])
-            self._triangles = _checked_solves(lambda: factors, S, LDLTriangles)
+            # the path solver where the factor's structure allows it, else the plain copies
+            for kind in (EtreePathSolver, LDLTriangles):
+                self._triangles = _checked_solves(lambda: factors, S, kind)
+                if self._triangles is not None:
+                    break
         if self._triangles is None:
             # SuperLU's own solve: the same factor, through its supernodal storage
             self._order = order
@@ -81,6 +87,21 @@ class HermitianLDL:
         x = np.empty(b.shape, dtype=np.complex128)
         x[self._order] = self._lu.solve(np.ascontiguousarray(b[self._order], dtype=np.complex128))
         return x
+
+    def solve_sparse(self, rows: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """``(n,)`` ``A^{-1} b`` for the ``b`` that is ``values`` (complex ``(m,)``) at
+        ``rows`` (``(m,)``, no repeats) and zero elsewhere: the forward solve over the rows'
+        elimination-tree paths where that pays (:meth:`.EtreePathSolver.pays`).
+
+        Raises:
+            ValueError: the solution is not finite.
+        """
+        paths = self._triangles
+        if isinstance(paths, EtreePathSolver) and paths.pays(rows):
+            return _finite_array(paths.solve_sparse([rows], [values])[:, 0])
+        b = np.zeros(self.n, dtype=np.complex128)
+        b[rows] = values
+        return self.solve(b)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``A^{-1} b`` for a complex ``(n,)`` or ``(n, k)`` array.

@@ -232,7 +232,7 @@ class VectorHeatSolver:
         ``idx`` with the ``(S, 2)`` frame coordinates ``coords`` of their vectors and the
         ``(S,)`` ``length``: the same steps, the vector heat solve in complex form, the scalar
         ones over the sources' elimination-tree paths; ``(V, 3)``."""
-        n, tiny = self.topology.num_verts, np.finfo(np.float64).tiny
+        tiny = np.finfo(np.float64).tiny
         index = idx.numpy()
         lengths = length.detach().double().numpy()
         mass = self.geodesic.mass.detach().numpy()[index]
@@ -249,9 +249,9 @@ class VectorHeatSolver:
         with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
             ratio = u / np.maximum(phi, tiny)
         c = coords.detach().double().numpy()
-        initial = np.zeros((n, 1), dtype=np.complex128)
-        initial[index, 0] = c[:, 0] + 1j * c[:, 1]
-        Y = self._diffuse_array(initial, backend)[:, 0]
+        vm = self.vector_mass.detach().numpy()  # M Y_0, nonzero at the sources only
+        rhs = vm[2 * index] * c[:, 0] + 1j * (vm[2 * index + 1] * c[:, 1])
+        Y = self._hermitian(backend).solve_sparse(index, rhs)
         norm = np.abs(Y)
         with np.errstate(over="ignore", invalid="ignore"):
             X = Y * (ratio / np.maximum(norm, tiny))
