@@ -12,9 +12,9 @@
 2. Vector heat queries on the first size with ``tp.vector.VectorHeatSolver`` beside
    potpourri3d's ``PolygonMeshHeatSolver`` (when installed): solver build, then one parallel
    transport of one vector from one source (the first call, which factors; the second, in
-   which ours copies its scalar factor; then per query) and one log map per query, with the mean
-   angle error of the transport against the exact great-circle transport (vertices within
-   0.9 pi of the source). potpourri3d's polygon solver has no log map. ``--real FILE ...``
+   which ours copies its scalar factor; then per query, the median of 5 calls in each round)
+   and one log map per query (the same), with the mean angle error of the transport against
+   the exact great-circle transport (vertices within 0.9 pi of the source). potpourri3d's polygon solver has no log map. ``--real FILE ...``
    adds the same queries on real meshes (no reference there), with the ratios to potpourri3d.
 
 Everything on one thread (``torch.set_num_threads(1)``; potpourri3d is single-threaded). Each
@@ -60,6 +60,15 @@ def timed(fn: Callable[[], object]) -> tuple[float, object]:
     t0 = time.perf_counter()
     out = fn()
     return time.perf_counter() - t0, out
+
+
+# queries timed per round for the per-query rows
+QUERIES = 5
+
+
+def median_of(count: int, fn: Callable[[], object]) -> float:
+    """The median seconds of ``count`` calls of ``fn``."""
+    return statistics.median(timed(fn)[0] for _ in range(count))
 
 
 def median_rows(
@@ -207,11 +216,13 @@ def mesh_query_rows(
             # ours makes faster copies of its scalar factor in the second query
             elapsed, _ = timed(lambda r=run, s=solver: r["transport"](s))
             times.setdefault((name, "second transport"), []).append(elapsed)
-            elapsed, _ = timed(lambda r=run, s=solver: r["transport"](s))
+            # per query: the median of QUERIES calls in each round, as one call's time swings
+            # with a shared machine's load
+            elapsed = median_of(QUERIES, lambda r=run, s=solver: r["transport"](s))
             times.setdefault((name, "transport per query"), []).append(elapsed)
             if "log map" in run:
                 run["log map"](solver)  # the scalar geodesic systems' factorizations
-                elapsed, _ = timed(lambda r=run, s=solver: r["log map"](s))
+                elapsed = median_of(QUERIES, lambda r=run, s=solver: r["log map"](s))
                 times.setdefault((name, "log map per query"), []).append(elapsed)
             del solver
     rows = median_rows("vector heat", size, times, (load_before, loadavg()))
