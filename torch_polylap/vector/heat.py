@@ -71,7 +71,11 @@ class VectorHeatSolver:
     :func:`~torch_polylap.vector.connection_laplacian`) and the scalar ``M0 + t L`` (held by
     the :class:`~torch_polylap.HeatGeodesicSolver` in :attr:`geodesic`, which also gives the log
     map's radius), are built once; their factorizations are cached on them by
-    :func:`~torch_polylap.solve` and serve every query.  Every step runs in float64 (the heat
+    :func:`~torch_polylap.solve` and serve every query.  A query that needs no gradient solves
+    ``M + t A`` in complex form instead (``torch_polylap.linalg.HermitianLDL``: one
+    complex entry per four of the real form's factor), in the AMD ordering of the scalar
+    heat system's QDLDL factor; so on the CPU, with qdldl installed, :attr:`geodesic` factors
+    with QDLDL (``backend="ldl"``) at any size.  Every step runs in float64 (the heat
     decays like ``exp(-d^2 / 4 t)``, which leaves float32's range a few dozen edge lengths from
     the sources); results have ``verts``' dtype.  Differentiable with respect to ``verts``
     through the solves (O(nnz) backward), away from the cut locus (where ``|Y| -> 0``).
