@@ -14,8 +14,10 @@
    transport of one vector from one source (the first call, which factors; the second, in
    which ours copies its scalar factor; then per query, the median of 5 calls in each round)
    and one log map per query (the same), with the mean angle error of the transport against
-   the exact great-circle transport (vertices within 0.9 pi of the source). potpourri3d's polygon solver has no log map. ``--real FILE ...``
-   adds the same queries on real meshes (no reference there), with the ratios to potpourri3d.
+   the exact great-circle transport (vertices within 0.9 pi of the source). potpourri3d's
+   polygon solver has no log map. ``--real FILE ...`` adds the same queries on real meshes
+   (files of the shared meshes' ``real`` folder, as for ``bench_geodesics.py``, or paths; no
+   reference there), with the ratios to potpourri3d.
 
 Everything on one thread (``torch.set_num_threads(1)``; potpourri3d is single-threaded). Each
 quantity is the median of ``--repeat`` rounds that alternate the methods (builds run once per
@@ -27,6 +29,7 @@ The rows are kept in a dict (``--json`` writes it) and printed as a Markdown tab
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import time
@@ -152,8 +155,18 @@ def query_rows(n: int, repeat: int) -> list[Row]:
     return mesh_query_rows(verts, faces, f"{faces.shape[0]:,} quads", vector, repeat, error)
 
 
-def real_query_rows(path: Path, repeat: int) -> list[Row]:
-    """:func:`mesh_query_rows` on a real mesh (``--real``), from vertex 0; no reference."""
+# the shared meshes next to the repository (POLYLAP_SHARED_MESHES overrides), whose real/
+# folder holds the meshes --real names
+MESHES = Path(
+    os.environ.get("POLYLAP_SHARED_MESHES")
+    or Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+)
+
+
+def real_query_rows(name: str, repeat: int) -> list[Row]:
+    """:func:`mesh_query_rows` on a real mesh (``--real``: a file name in the shared meshes'
+    ``real`` folder, or a path), from vertex 0; no reference."""
+    path = Path(name) if Path(name).is_file() else MESHES / "real" / name
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # OBJ groups and materials the reader skips
         verts, faces = tp.read_mesh(path, dtype=torch.float64)
@@ -268,7 +281,8 @@ def main() -> None:
         nargs="*",
         default=[],
         metavar="FILE",
-        help="vector heat queries on these meshes too (e.g. ../shared/data/meshes/real/loki.obj)",
+        help="vector heat queries on these meshes too: files of the shared meshes' real/ folder "
+        "(e.g. loki.obj) or paths",
     )
     parser.add_argument("--json", type=Path, help="default benchmarks/results/vector.json")
     args = parser.parse_args()
@@ -280,7 +294,7 @@ def main() -> None:
         rows += operator_rows(n, args.repeat, args.backward_max)
     rows += query_rows(sizes[0], args.repeat)
     for path in args.real:
-        rows += real_query_rows(Path(path), args.repeat)
+        rows += real_query_rows(path, args.repeat)
     print(f"CPU: {cpu_model()} ({platform.machine()}), 1 thread; torch {torch.__version__}")
     print(f"medians of {args.repeat} interleaved rounds; load = /proc/loadavg (1, 5, 15 min)\n")
     text = markdown(rows)
