@@ -11,9 +11,13 @@
    to ``--backward-max`` faces.
 2. Vector heat queries on the first size with ``tp.vector.VectorHeatSolver`` beside
    potpourri3d's ``PolygonMeshHeatSolver`` (when installed): solver build, then one parallel
-   transport of one vector from one source and one log map, each per query, with the mean
-   angle error of the transport against the exact great-circle transport (vertices within
-   0.9 pi of the source). potpourri3d's polygon solver has no log map.
+   transport of one vector from one source (the first call, which factors; the second, in
+   which ours copies its scalar factor; then per query, the median of 5 calls in each round)
+   and one log map per query (the same), with the mean angle error of the transport against
+   the exact great-circle transport (vertices within 0.9 pi of the source). potpourri3d's
+   polygon solver has no log map. ``--real FILE ...`` adds the same queries on real meshes
+   (files of the shared meshes' ``real`` folder, as for ``bench_geodesics.py``, or paths; no
+   reference there), with the ratios to potpourri3d.
 
 Everything on one thread (``torch.set_num_threads(1)``; potpourri3d is single-threaded). Each
 quantity is the median of ``--repeat`` rounds that alternate the methods (builds run once per
@@ -25,9 +29,11 @@ The rows are kept in a dict (``--json`` writes it) and printed as a Markdown tab
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -57,6 +63,15 @@ def timed(fn: Callable[[], object]) -> tuple[float, object]:
     t0 = time.perf_counter()
     out = fn()
     return time.perf_counter() - t0, out
+
+
+# queries timed per round for the per-query rows
+QUERIES = 5
+
+
+def median_of(count: int, fn: Callable[[], object]) -> float:
+    """The median seconds of ``count`` calls of ``fn``."""
+    return statistics.median(timed(fn)[0] for _ in range(count))
 
 
 def median_rows(
@@ -121,9 +136,9 @@ def operator_rows(n: int, repeat: int, backward_max: int) -> list[Row]:
 
 
 def query_rows(n: int, repeat: int) -> list[Row]:
-    """Solver build, transport and log map per query, beside potpourri3d."""
+    """Solver build, transport and log map per query on the cube sphere, beside potpourri3d,
+    with the transport's mean angle error against the exact great-circle transport."""
     verts, faces = tp.shapes.quad_sphere(n)
-    size = f"{faces.shape[0]:,} quads"
     source = 0
     vector = torch.linalg.cross(verts[source], torch.tensor([0.3, 0.5, 0.8], dtype=verts.dtype))
     exact = tp.vector.minimal_rotation(
@@ -137,15 +152,56 @@ def query_rows(n: int, repeat: int) -> list[Row]:
         cos = (X * Y).sum(1) / (X.norm(dim=1) * Y.norm(dim=1))
         return float(torch.arccos(cos.clamp(-1, 1))[keep].mean())
 
+    return mesh_query_rows(verts, faces, f"{faces.shape[0]:,} quads", vector, repeat, error)
+
+
+# the shared meshes next to the repository (POLYLAP_SHARED_MESHES overrides), whose real/
+# folder holds the meshes --real names
+MESHES = Path(
+    os.environ.get("POLYLAP_SHARED_MESHES")
+    or Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+)
+
+
+def real_query_rows(name: str, repeat: int) -> list[Row]:
+    """:func:`mesh_query_rows` on a real mesh (``--real``: a file name in the shared meshes'
+    ``real`` folder, or a path), from vertex 0; no reference."""
+    path = Path(name) if Path(name).is_file() else MESHES / "real" / name
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # OBJ groups and materials the reader skips
+        verts, faces = tp.read_mesh(path, dtype=torch.float64)
+    vector = torch.linalg.cross(verts[0], torch.tensor([0.3, 0.5, 0.8], dtype=verts.dtype))
+    size = f"{path.name} ({verts.shape[0]:,} vertices)"
+    return mesh_query_rows(verts, faces, size, vector, repeat, None)
+
+
+def fresh(faces: torch.Tensor | tp.PolygonFaces) -> torch.Tensor | tp.PolygonFaces:
+    """A copy of ``faces`` in new tensors, so that the topology cache misses."""
+    if isinstance(faces, torch.Tensor):
+        return faces.clone()
+    return tp.PolygonFaces(faces.indices.clone(), sizes=faces.sizes.clone())
+
+
+def mesh_query_rows(
+    verts: torch.Tensor,
+    faces: torch.Tensor | tp.PolygonFaces,
+    size: str,
+    vector: torch.Tensor,
+    repeat: int,
+    error: Callable[[torch.Tensor], float] | None,
+) -> list[Row]:
+    """Solver build, first transport (the factorizations), transport per query and log map per
+    query from vertex 0, beside potpourri3d's ``PolygonMeshHeatSolver`` in alternate rounds."""
+    source = 0
     runs: dict[str, dict[str, Callable]] = {
         "tp.vector.VectorHeatSolver": {
-            "build": lambda: tp.vector.VectorHeatSolver(verts, faces.clone()),
+            "build": lambda: tp.vector.VectorHeatSolver(verts, fresh(faces)),
             "transport": lambda s: s.transport(source, vector),
             "log map": lambda s: s.log_map(source),
         }
     }
     if pp3d is not None:
-        V, F = verts.numpy(), faces.numpy()
+        V, F = verts.numpy(), faces.tolist()
 
         def pp_transport(s: object) -> torch.Tensor:
             bx, by, _ = s.get_tangent_frames()  # type: ignore[attr-defined]
@@ -168,18 +224,32 @@ def query_rows(n: int, repeat: int) -> list[Row]:
             # the first query pays the factorizations (cached on the operators)
             elapsed, X = timed(lambda r=run, s=solver: r["transport"](s))
             times.setdefault((name, "first transport (factors)"), []).append(elapsed)
-            errors[name] = error(X)
+            if error is not None:
+                errors[name] = error(X)
+            # ours makes faster copies of its scalar factor in the second query
             elapsed, _ = timed(lambda r=run, s=solver: r["transport"](s))
+            times.setdefault((name, "second transport"), []).append(elapsed)
+            # per query: the median of QUERIES calls in each round, as one call's time swings
+            # with a shared machine's load
+            elapsed = median_of(QUERIES, lambda r=run, s=solver: r["transport"](s))
             times.setdefault((name, "transport per query"), []).append(elapsed)
             if "log map" in run:
                 run["log map"](solver)  # the scalar geodesic systems' factorizations
-                elapsed, _ = timed(lambda r=run, s=solver: r["log map"](s))
+                elapsed = median_of(QUERIES, lambda r=run, s=solver: r["log map"](s))
                 times.setdefault((name, "log map per query"), []).append(elapsed)
             del solver
     rows = median_rows("vector heat", size, times, (load_before, loadavg()))
+    peer = {
+        str(r["quantity"]): float(r["seconds"])  # type: ignore[arg-type]
+        for r in rows
+        if r["method"] == "potpourri3d.PolygonMeshHeatSolver"
+    }
     for row in rows:
-        if row["quantity"] == "transport per query":
+        if row["quantity"] == "transport per query" and errors:
             row["mean angle error (rad)"] = f"{errors[str(row['method'])]:.2g}"
+        if row["method"] == "tp.vector.VectorHeatSolver" and row["quantity"] in peer:
+            ratio = float(row["seconds"]) / peer[str(row["quantity"])]  # type: ignore[arg-type]
+            row["vs potpourri3d"] = f"{ratio:.2f}x"
     return rows
 
 
@@ -206,6 +276,14 @@ def main() -> None:
     )
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--backward-max", type=int, default=200_000, help="faces")
+    parser.add_argument(
+        "--real",
+        nargs="*",
+        default=[],
+        metavar="FILE",
+        help="vector heat queries on these meshes too: files of the shared meshes' real/ folder "
+        "(e.g. loki.obj) or paths",
+    )
     parser.add_argument("--json", type=Path, help="default benchmarks/results/vector.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -215,6 +293,8 @@ def main() -> None:
     for n in sizes:
         rows += operator_rows(n, args.repeat, args.backward_max)
     rows += query_rows(sizes[0], args.repeat)
+    for path in args.real:
+        rows += real_query_rows(path, args.repeat)
     print(f"CPU: {cpu_model()} ({platform.machine()}), 1 thread; torch {torch.__version__}")
     print(f"medians of {args.repeat} interleaved rounds; load = /proc/loadavg (1, 5, 15 min)\n")
     text = markdown(rows)

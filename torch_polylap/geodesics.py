@@ -22,6 +22,7 @@ from .checks import Lam, check_index_or_mask, check_verts
 from .kernels import check_method
 from .kernels.frames import component_norm
 from .linalg import (
+    Factor,
     LDLFactorization,
     cached_factorization,
     cholespy_available,
@@ -369,6 +370,26 @@ class HeatGeodesicSolver:
             self._arrays = _QueryArrays(gradient, flux, mass, labels, self.num_components)
         return self._arrays
 
+    def _heat_array(
+        self, rows: list[np.ndarray], values: list[np.ndarray], backend: str
+    ) -> tuple[Factor, np.ndarray]:
+        """Step 1 outside autograd, for :meth:`_direct_backend`'s ``backend``: the heat
+        factorization and the ``(V, Q)`` float64 ``(M0 + t L)^{-1} B``, column ``q`` of ``B``
+        ``values[q]`` ``(m_q,)`` at the rows ``rows[q]`` (no repeats) and zero elsewhere.
+
+        With QDLDL's factor the forward solve runs over the rows' elimination-tree paths only,
+        from the second call on (the first solves with QDLDL: for one solve the copies of
+        the factor would cost more than they save)."""
+        heat = cached_factorization(as_operator(self.heat_operator), backend)
+        if isinstance(heat, LDLFactorization):
+            copy = self._queries > 0
+            self._queries += 1
+            return heat, heat.solve_sparse_array(rows, values, copy_factor=copy)
+        rhs = np.zeros((self.topology.num_verts, len(rows)))
+        for q, idx in enumerate(rows):
+            rhs[idx, q] = values[q]
+        return heat, heat.solve_array(rhs)
+
     def _distance_without_grad(self, sources: list[torch.Tensor], backend: str) -> torch.Tensor:
         """Steps 1-4 on float64 arrays, for each query's ``(m_q,)`` source indices: the two
         solves through the cached factorizations, ``grad u`` as one product with the
@@ -376,15 +397,11 @@ class HeatGeodesicSolver:
         instead of a pass of torch operations per degree group. The same steps as the
         differentiable path, in float64 whatever ``verts``' dtype; ``(V, Q)``."""
         arrays = self._query_arrays()
-        heat = cached_factorization(as_operator(self.heat_operator), backend)
         index = [idx.cpu().numpy() for idx in sources]
         mass = [arrays.mass[idx] for idx in index]  # M0 delta, nonzero at the sources
+        copy = self._queries > 0
+        heat, u = self._heat_array(index, mass, backend)
         if isinstance(heat, LDLFactorization):
-            # the forward heat solve runs over the sources' tree paths only (from the second
-            # query on: the first solves with QDLDL, the copies would cost more than they save)
-            copy = self._queries > 0
-            self._queries += 1
-            u = heat.solve_sparse_array(index, mass, copy_factor=copy)
             flux = arrays.flux @ _unit_rows(arrays.gradient @ u)
             # the Poisson system has the heat system's pattern: after the heat solve, QDLDL
             # refactors in place with the heat factor's ordering and elimination tree
@@ -396,10 +413,6 @@ class HeatGeodesicSolver:
             phi = pair.solve_array(flux, copy_factor=copy)
         else:
             poisson = cached_factorization(as_operator(self.poisson_operator), backend)
-            rhs = np.zeros((arrays.mass.size, len(sources)))
-            for q, idx in enumerate(index):
-                rhs[idx, q] = mass[q]
-            u = heat.solve_array(rhs)
             phi = poisson.solve_array(arrays.flux @ _unit_rows(arrays.gradient @ u))
         dist = np.empty_like(phi)
         for q, idx in enumerate(index):

@@ -48,9 +48,11 @@ class LDLTriangles:
     64-bit, these 32-bit).
 
     Built from ``(L, d, p)`` (``L`` strictly lower ``(n, n)`` CSC, ``d`` ``(n,)``, ``p``
-    ``(n,)`` with ``A[p][:, p] = (I + L) D (I + L)^T``). Holds ``L`` twice (the forward copy
-    with ``D`` on its diagonal, the reversed transpose for the backward solve): 24 bytes per
-    entry of ``L``.
+    ``(n,)`` with ``A[p][:, p] = (I + L) D (I + L)^H``). Holds ``L`` twice (the forward copy
+    with ``D`` on its diagonal, the reversed conjugate transpose for the backward solve): 24
+    bytes per entry of a real ``L``. A complex ``L`` (the ``L D L^H`` of a Hermitian matrix,
+    :class:`.HermitianLDL`) solves complex right-hand sides through ``gstrs``' complex
+    routine, 40 bytes per entry.
     """
 
     def __init__(self, L: sp.csc_matrix, d: np.ndarray, p: np.ndarray) -> None:
@@ -73,11 +75,12 @@ class LDLTriangles:
         self.values, self.rows = _with_diagonal(
             self.indptr, (d, L.data), (np.arange(n, dtype=np.intc), L.indices)
         )
-        # backward: J (I + L)^T J, a lower triangle. The forward copy read as CSR is
+        # backward: J (I + L)^H J, a lower triangle. The forward copy read as CSR is
         # D + L^T; its CSC has the rows of each column sorted, the diagonal last, and
         # reversed (J's two sides) first, where it is set to 1
         upper = sp.csr_matrix((self.values, self.rows, self._indptr), shape=(n, n)).tocsc()
-        self.back_values = upper.data[::-1].copy()
+        # conj makes the copy that the diagonal is written into (a no-op on real values)
+        self.back_values = np.conj(upper.data[::-1])
         self.back_indices = np.subtract(n - 1, upper.indices[::-1], dtype=np.intc)
         self.back_indptr = (upper.indptr[-1] - upper.indptr[::-1]).astype(np.intc)
         if not np.array_equal(self.back_indices[self.back_indptr[:-1]], np.arange(n)):
@@ -88,12 +91,19 @@ class LDLTriangles:
         self.inverse[self.perm] = np.arange(n)
         # x = P z with z = J r, r the reversed backward solve: x = r[n - 1 - p^{-1}]
         self._gather = (n - 1) - self.inverse
-        self._empty = (np.zeros(0), np.zeros(0, dtype=np.intc), np.zeros(n + 1, dtype=np.intc))
+        # gstrs' (unused) upper factor: its values' dtype picks the real or complex routine
+        self._empty = (
+            np.zeros(0, dtype=self.values.dtype),
+            np.zeros(0, dtype=np.intc),
+            np.zeros(n + 1, dtype=np.intc),
+        )
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """``A^{-1} b`` for a float64 ``(n,)`` or ``(n, k)`` ``b``."""
+        """``A^{-1} b`` for a float64 ``(n,)`` or ``(n, k)`` ``b`` (complex128 for a complex
+        factor)."""
         n = self.n
-        y = self._lower(n, self.values, self.rows, self._indptr, b[self.perm])
+        rhs = b[self.perm].astype(self.values.dtype, copy=False)
+        y = self._lower(n, self.values, self.rows, self._indptr, rhs)
         r = self._lower(n, self.back_values, self.back_indices, self.back_indptr, y[::-1])
         return r[self._gather]
 
@@ -177,7 +187,7 @@ class EtreePathSolver(LDLTriangles):
             for (a, b), (s, _), start in zip(runs, spans, starts, strict=False)
         ]
         indptr = np.concatenate([*pieces, [starts[-1]]]).astype(np.intc)
-        rhs = np.zeros(size)
+        rhs = np.zeros(size, dtype=self.values.dtype)
         rhs[0] = value
         y = self._lower(size, values, rows, indptr, rhs)
         columns = np.concatenate([np.arange(a, b + 1) for a, b in runs])
@@ -187,7 +197,7 @@ class EtreePathSolver(LDLTriangles):
         """``(n, Q)`` ``A^{-1} B``, column ``q`` of ``B`` ``values[q]`` at ``rows[q]`` (original
         numbering, no repeats), zero elsewhere."""
         n = self.n
-        w = np.zeros((n, len(rows)), order="F")
+        w = np.zeros((n, len(rows)), dtype=self.values.dtype, order="F")
         for q, (idx, val) in enumerate(zip(rows, values, strict=True)):
             for row, value in zip(idx.tolist(), val.tolist(), strict=True):
                 if value != 0.0:
@@ -219,7 +229,7 @@ def _with_diagonal(
     ``indptr`` that counts both."""
     below = np.ones(int(indptr[-1]), dtype=bool)
     below[indptr[:-1]] = False
-    data = np.empty(below.size)
+    data = np.empty(below.size, dtype=np.result_type(*values))
     data[indptr[:-1]] = values[0]
     data[below] = values[1]
     index = np.empty(below.size, dtype=np.intc)

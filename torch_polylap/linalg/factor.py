@@ -208,6 +208,7 @@ class LDLFactorization:
         self._keep = keep  # the entries of S in upper
         # (L, d, p) read out of QDLDL's solver before it was handed on (see refactored)
         self._read: tuple[sp.csc_matrix, np.ndarray, np.ndarray] | None = None
+        self._order: np.ndarray | None = None  # the AMD ordering, once read (ordering())
 
     def _check(self, A: torch.Tensor | sp.spmatrix) -> None:
         """Refuse a numerically singular or indefinite factorization (one random solve)."""
@@ -282,6 +283,18 @@ class LDLFactorization:
     def _factors(self) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
         """``(L, d, p)``: the factor read out before the solver was handed on, else QDLDL's."""
         return self._read if self._read is not None else self._qdldl().factors()  # type: ignore[attr-defined]
+
+    def ordering(self) -> np.ndarray:
+        """``(n,)`` the AMD fill-reducing permutation ``p`` of the factor
+        (``A[p][:, p] = (I + L) D (I + L)^T``): from the solve copies where they exist, else
+        read out of QDLDL (a copy of the factor, once)."""
+        if self._order is None:
+            solves = self._triangles or self._paths
+            if solves is not None:
+                self._order = solves.perm
+            else:
+                self._order = np.asarray(self._factors()[2], dtype=np.int64)
+        return self._order
 
     def solve(self, B: torch.Tensor, *, transpose: bool = False) -> torch.Tensor:
         # A^T = A: ``transpose`` changes nothing

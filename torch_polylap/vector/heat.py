@@ -37,13 +37,23 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 
+import numpy as np
+import scipy.sparse as sp
 import torch
 
 from .._typing import MeshFaces
 from ..checks import Lam, check_index_or_mask
 from ..geodesics import POISSON_LAM, HeatGeodesicSolver, with_unit_diagonal_at_isolated
 from ..kernels import check_method
-from ..linalg import solve
+from ..linalg import (
+    HermitianLDL,
+    LDLFactorization,
+    cached_factorization,
+    qdldl_available,
+    solve,
+)
+from ..sparse import as_operator, sparse_values, to_scipy
+from ..sparse.construct import solver_cache
 from ..tangent import vertex_gradient_operators
 from .connection import connection_laplacian_of
 from .transport import TangentFrames, to_ambient, to_tangent
@@ -61,7 +71,11 @@ class VectorHeatSolver:
     :func:`~torch_polylap.vector.connection_laplacian`) and the scalar ``M0 + t L`` (held by
     the :class:`~torch_polylap.HeatGeodesicSolver` in :attr:`geodesic`, which also gives the log
     map's radius), are built once; their factorizations are cached on them by
-    :func:`~torch_polylap.solve` and serve every query.  Every step runs in float64 (the heat
+    :func:`~torch_polylap.solve` and serve every query.  A query that needs no gradient solves
+    ``M + t A`` in complex form instead (``torch_polylap.linalg.HermitianLDL``: one
+    complex entry per four of the real form's factor), in the AMD ordering of the scalar
+    heat system's QDLDL factor; so on the CPU, with qdldl installed, :attr:`geodesic` factors
+    with QDLDL (``backend="ldl"``) at any size.  Every step runs in float64 (the heat
     decays like ``exp(-d^2 / 4 t)``, which leaves float32's range a few dozen edge lengths from
     the sources); results have ``verts``' dtype.  Differentiable with respect to ``verts``
     through the solves (O(nnz) backward), away from the cut locus (where ``|Y| -> 0``).
@@ -101,9 +115,19 @@ class VectorHeatSolver:
         method: str = "aw11",
     ) -> None:
         check_method(method, diagonal_mass="VectorHeatSolver")
-        # the scalar solver checks verts (and lam, t) first
+        # the scalar solver checks verts (and lam, t) first. QDLDL factors its systems at any
+        # size on the CPU: the AMD ordering it finds orders the complex vector system too
+        # (on bunny-dual, 72k vertices, 7.1 s to factor against 11 s in SuperLU's own
+        # ordering, which also fills more), where CHOLMOD's cannot be read
+        cpu = verts.device.type == "cpu"
         self.geodesic = HeatGeodesicSolver(
-            verts, faces, t, lam, poisson_lam=poisson_lam, method=method
+            verts,
+            faces,
+            t,
+            lam,
+            poisson_lam=poisson_lam,
+            method=method,
+            backend="ldl" if cpu and qdldl_available() else "auto",
         )
         self.topology = self.geodesic.topology
         self.verts = verts
@@ -113,6 +137,36 @@ class VectorHeatSolver:
         self.vector_operator = with_unit_diagonal_at_isolated(M + self.t * A).double()
         self.vector_mass = M.diagonal().double()
         self._grad: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def _direct_backend(self) -> str | None:
+        """The scalar factorization of a query outside autograd (see
+        :meth:`~torch_polylap.HeatGeodesicSolver._direct_backend`), or ``None`` where the
+        query takes the differentiable torch path."""
+        backend = self.geodesic._direct_backend()
+        values = sparse_values(self.vector_operator)
+        if backend is None or (torch.is_grad_enabled() and values.requires_grad):
+            return None
+        return backend
+
+    def _hermitian(self, backend: str) -> HermitianLDL:
+        """The ``L D L^H`` of ``M + t A`` in complex form (:class:`.HermitianLDL`), cached on
+        :attr:`vector_operator` (built by the first query outside autograd). It has the
+        scalar heat system's pattern: it is factored in the AMD ordering QDLDL computed for
+        that system where the scalar heat factor is QDLDL's."""
+
+        def build() -> HermitianLDL:
+            heat = cached_factorization(as_operator(self.geodesic.heat_operator), backend)
+            ordering = heat.ordering() if isinstance(heat, LDLFactorization) else None
+            return HermitianLDL(_complex_form(to_scipy(self.vector_operator)), ordering)
+
+        return solver_cache(as_operator(self.vector_operator), "hermitian", build)
+
+    def _diffuse_array(self, rhs: np.ndarray, backend: str) -> np.ndarray:
+        """``(V, Q)`` complex ``Y`` of ``(M + t A) Y = M Y_0`` for the complex ``(V, Q)``
+        ``Y_0`` ``rhs`` (frame coordinates ``x + i y``), outside autograd."""
+        mass = self.vector_mass.detach().numpy()
+        rhs = mass[0::2, None] * rhs.real + 1j * (mass[1::2, None] * rhs.imag)
+        return self._hermitian(backend).solve(rhs)
 
     def _sources(self, sources: SourceLike, name: str = "sources") -> torch.Tensor:
         n = self.topology.num_verts
@@ -127,6 +181,12 @@ class VectorHeatSolver:
         """``(V, Q, 2)`` float64 solution ``Y`` of ``(M + t A) Y = M Y_0`` (eq. (1)) for
         ``initial`` ``Y_0`` ``(V, Q, 2)`` in frame coordinates."""
         n, q = initial.shape[:2]
+        backend = None if initial.requires_grad else self._direct_backend()
+        if backend is not None:
+            # complex form: a quarter of the real form's factor entries (see HermitianLDL)
+            Y0 = initial.detach().double().numpy()
+            Y = self._diffuse_array(Y0[..., 0] + 1j * Y0[..., 1], backend)
+            return torch.from_numpy(np.stack((Y.real, Y.imag), -1))
         rhs = self.vector_mass[:, None] * initial.double().transpose(1, 2).reshape(2 * n, q)
         return solve(self.vector_operator, rhs).reshape(n, 2, q).transpose(1, 2)
 
@@ -167,6 +227,9 @@ class VectorHeatSolver:
                 f"transport: the vector {vectors[s].tolist()} at source vertex {int(idx[s])} "
                 "has no part tangent to the surface there (it is zero or normal to it)."
             )
+        backend = None if vectors.requires_grad else self._direct_backend()
+        if backend is not None:
+            return self._transport_array(idx, coords, length, backend)
         n = self.topology.num_verts
         initial = self.verts.new_zeros(n, 1, 2).index_put((idx,), coords[:, None])
         Y = self.diffuse(initial)[:, 0]  # (V, 2)
@@ -181,6 +244,45 @@ class VectorHeatSolver:
         X = Y * (ratio / norm.clamp_min(torch.finfo(Y.dtype).tiny))[:, None]
         X = torch.where(reached[:, None], X, torch.zeros_like(X))
         return to_ambient(X.to(self.verts.dtype), self.frames)
+
+    def _transport_array(
+        self, idx: torch.Tensor, coords: torch.Tensor, length: torch.Tensor, backend: str
+    ) -> torch.Tensor:
+        """:meth:`transport` outside autograd on float64 arrays, for the ``(S,)`` sources
+        ``idx`` with the ``(S, 2)`` frame coordinates ``coords`` of their vectors and the
+        ``(S,)`` ``length``: the same steps, the vector heat solve in complex form, the scalar
+        ones over the sources' elimination-tree paths; ``(V, 3)``."""
+        tiny = np.finfo(np.float64).tiny
+        index = idx.numpy()
+        lengths = length.detach().double().numpy()
+        mass = self.geodesic.mass.detach().numpy()[index]
+        # the scalar heat first: the complex factorization takes the scalar factor's ordering
+        if np.all(lengths == lengths[0]):
+            # u = |Y_0| phi: one solve (the same ratio u / phi to round-off)
+            _, phi = self.geodesic._heat_array([index], [mass], backend)
+            u = lengths[0] * phi[:, 0]
+            phi = phi[:, 0]
+        else:
+            _, u_phi = self.geodesic._heat_array([index, index], [lengths * mass, mass], backend)
+            u, phi = u_phi[:, 0], u_phi[:, 1]
+        # as the torch path: no warning where the far field underflowed (checked below)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            ratio = u / np.maximum(phi, tiny)
+        c = coords.detach().double().numpy()
+        vm = self.vector_mass.detach().numpy()  # M Y_0, nonzero at the sources only
+        rhs = vm[2 * index] * c[:, 0] + 1j * (vm[2 * index + 1] * c[:, 1])
+        Y = self._hermitian(backend).solve_sparse(index, rhs)
+        norm = np.abs(Y)
+        with np.errstate(over="ignore", invalid="ignore"):
+            X = Y * (ratio / np.maximum(norm, tiny))
+        if self.geodesic.num_components > 1:
+            reached = self._reached(idx).numpy()
+            X = np.where(reached, X, 0.0)
+            _warn_underflow(reached & (norm == 0), self.t)
+        else:
+            _warn_underflow(norm == 0, self.t)
+        planar = torch.from_numpy(np.stack((X.real, X.imag), 1)).to(self.verts.dtype)
+        return to_ambient(planar, self.frames)
 
     def _reached(self, idx: torch.Tensor) -> torch.Tensor:
         """``(V,)`` bool: the vertex lies on a connected component holding one of ``idx``."""
@@ -229,7 +331,28 @@ class VectorHeatSolver:
         return self._grad
 
 
-def _warn_underflow(lost: torch.Tensor, t: float | torch.Tensor) -> None:
+def _complex_form(S: sp.spmatrix) -> sp.csr_matrix:
+    """The complex ``(V, V)`` matrix whose real form is the ``(2V, 2V)`` ``S`` (entry
+    ``a + i b`` as the block ``[[a, -b], [b, a]]`` at rows and columns ``2v, 2v + 1``): the
+    even columns of ``S``, the even rows as real parts and the odd ones as imaginary parts."""
+    S = sp.csr_matrix(S)
+    n = S.shape[0] // 2
+    rows = np.repeat(np.arange(2 * n), np.diff(S.indptr))
+    even = S.indices % 2 == 0
+    real, imag = even & (rows % 2 == 0), even & (rows % 2 == 1)
+    cols = S.indices[real] // 2
+    if S.has_canonical_format and np.array_equal(cols, S.indices[imag] // 2):
+        # every block stored whole, as the operator's pattern has them: the two rows of a
+        # block row hold the same columns, in order
+        counts = np.bincount(rows[real] // 2, minlength=n)
+        indptr = np.concatenate(([0], np.cumsum(counts)))
+        return sp.csr_matrix((S.data[real] + 1j * S.data[imag], cols, indptr), shape=(n, n))
+    rows, cols, data = rows[even], S.indices[even] // 2, S.data[even]
+    values = np.where(rows % 2 == 0, data, 1j * data)
+    return sp.csr_matrix((values, (rows // 2, cols)), shape=(n, n))
+
+
+def _warn_underflow(lost: torch.Tensor | np.ndarray, t: float | torch.Tensor) -> None:
     """Warn when the diffused field underflowed to exactly zero at reachable vertices."""
     if bool(lost.any()):
         warnings.warn(
