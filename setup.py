@@ -31,7 +31,15 @@ setup(
     # operator type changed until 2.13: on 2.12 every compiled step fails, on 2.7 torch.func's
     # forward mode too. CI runs the tests on 2.13.0 and on the newest release it can install
     # (see docs/getting-started.md).
-    install_requires=["torch>=2.13", "numpy>=1.22", "scipy>=1.9", "trimesh>=3.20", "tqdm>=4.60"],
+    install_requires=[
+        "torch>=2.13",
+        "numpy>=1.22",
+        "scipy>=1.9",
+        "trimesh>=3.20",
+        "tqdm>=4.60",
+        # threadpoolctl: one BLAS/OpenMP thread in each precompute worker (pure Python)
+        "threadpoolctl>=3.1",
+    ],
     extras_require={
         # libigl: the independent cotan Laplacian the tests and benchmarks compare against
         # matplotlib: the figures the command line and the examples write

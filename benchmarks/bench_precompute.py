@@ -38,6 +38,7 @@ from pathlib import Path
 
 import torch
 from common import run_meta, table_data, write_results
+from threadpoolctl import threadpool_limits
 
 import torch_polylap as tp
 from torch_polylap.datasets import normalize_mesh, precompute
@@ -62,9 +63,11 @@ def _children_cpu() -> float:
 
 
 def _own_session() -> None:
-    """Worker initializer: a session of its own (so its own scheduling group), one thread."""
+    """Worker initializer: a session of its own (so its own scheduling group), one thread in
+    torch and in every BLAS/OpenMP pool, as the library's pool has."""
     os.setsid()
     torch.set_num_threads(1)
+    threadpool_limits(1)
 
 
 def pool_of(workers: int, own_sessions: bool) -> Executor:

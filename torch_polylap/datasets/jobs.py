@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, ParamSpec, TypeVar
 
 import torch
+from threadpoolctl import threadpool_limits
 
 from ..faces import FacesLike, PolygonFaces, as_faces
 from ..io import read_mesh
@@ -221,18 +222,26 @@ class InlineExecutor(Executor):
         return future
 
 
+def _single_threaded() -> None:
+    """Worker initializer: one torch thread, and one thread in every BLAS and OpenMP pool the
+    process has loaded (numpy's and scipy's BLAS behind the eigensolver among them).
+
+    A forked worker inherits the parent's pools, sized for every core: two workers on two
+    cores then ran four BLAS threads that spin while they wait, doubling the CPU time, and
+    were slower together than one worker alone."""
+    torch.set_num_threads(1)
+    threadpool_limits(1)
+
+
 def local_executor(workers: int | None = None) -> Executor:
     """A local process pool of ``workers`` processes (default: one per core), each with one
-    torch thread, so ``workers`` processes use about ``workers`` cores.
+    thread (:func:`_single_threaded`), so ``workers`` processes use about ``workers`` cores.
 
     Uses ``fork`` where available (no re-import of torch per worker), else ``spawn``."""
     methods = multiprocessing.get_all_start_methods()
     context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
     return ProcessPoolExecutor(
-        workers or os.cpu_count() or 1,
-        mp_context=context,
-        initializer=torch.set_num_threads,
-        initargs=(1,),
+        workers or os.cpu_count() or 1, mp_context=context, initializer=_single_threaded
     )
 
 
