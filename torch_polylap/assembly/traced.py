@@ -20,7 +20,7 @@ import torch
 from .._torch_compat import data_dependent_size
 from ..kernels import BlockKernel
 from ..sparse.operator import SparseOperator
-from ..topology.cache import _lookup
+from ..topology import get_topology
 from ..topology.groups import DegreeGroup
 from ..tracing import require
 from .checks import BAD_INPUT, FLOAT32_INACCURATE
@@ -45,7 +45,7 @@ def uniform_topology(
     package's cache (built on the first call for a faces tensor, with its errors naming the
     face); copies are returned, since a compiled graph may write into its buffers.
     """
-    topo = _lookup(faces, num_verts)
+    topo = get_topology(faces, num_verts)
     view = topo.on(device)
     plan = gather_plan_of(topo, view)
     vertex = plan.vertex

@@ -308,7 +308,7 @@ def _combine_traced(
         return A.with_values(A._vals + b_vals, symmetric)
     n, m = _shape2(A)
     unregistered = A._pattern_key < 0 or B._pattern_key < 0
-    if unregistered and {A.diagonal_class(), B.diagonal_class()} == {1, 2}:
+    if unregistered and {A._diagonal_class(), B._diagonal_class()} == {1, 2}:
         return _add_diagonal_traced(A, B, b_vals, symmetric)
     nesting = _nesting(A, B)
     if nesting == 1:
@@ -350,7 +350,7 @@ def _add_diagonal_traced(
     larger pattern, the diagonal's values added at the diagonal positions, which the graph
     checks are all stored (a mesh's L stores them, also at isolated vertices)."""
     a_vals = A._vals
-    if A.diagonal_class() == 2:
+    if A._diagonal_class() == 2:
         A, B, a_vals, b_vals = B, A, b_vals, a_vals
     pos = diagonal_indices(A._crow, A._col, _shape2(A)[0])
     require((pos >= 0).all(), _MISSING_DIAGONAL)

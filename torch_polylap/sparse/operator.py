@@ -223,13 +223,12 @@ class SparseOperator(torch.Tensor):
 
     # torch.compile traces code that builds and uses operators through __torch_function__; the
     # flatten protocol tells its tracer what an operator holds: the value array and the index
-    # tensors, with the flags as constant metadata.
-    # The metadata is what torch.compile guards on: the flags and how the pattern holds the
-    # diagonal, which every mesh's L (or M0) shares, not the pattern's registry number, which
-    # differs from mesh to mesh and would compile a graph for each. Traced code finds what
-    # it needs from the index tensors themselves (the index operators of .index_ops).
+    # tensors, with constant metadata that it guards on: the symmetry flag and how the pattern
+    # holds the diagonal, which every mesh's L (or M0) shares, not the pattern's registry
+    # number, which differs from mesh to mesh and would compile a graph for each. Traced code
+    # finds what it needs from the index tensors themselves (the operators of .index_ops).
     def __tensor_flatten__(self) -> tuple[list[str], tuple[Any, ...]]:
-        meta = (self.symmetric, self.diagonal_class())
+        meta = (self.symmetric, self._diagonal_class())
         return ["_vals", "_crow", "_col", "_row"], meta
 
     @staticmethod
@@ -241,10 +240,10 @@ class SparseOperator(torch.Tensor):
         parts = (inner["_crow"], inner["_col"], inner["_row"])
         return SparseOperator(inner["_vals"], *parts, shape, symmetric, -1, diag_class)
 
-    def diagonal_class(self) -> int:
+    def _diagonal_class(self) -> int:
         """How the pattern holds the diagonal: 2 exactly the diagonal (a mass matrix), 1 every
-        diagonal entry and others (a mesh's ``L`` without isolated vertices), 0 otherwise or
-        unknown (:meth:`SparsityPattern.diagonal_class`)."""
+        diagonal entry and others (a mesh's ``L``), 0 otherwise or unknown
+        (:meth:`SparsityPattern.diagonal_class`)."""
         if self._diag_class < 0:
             pattern = self._pattern_obj
             if pattern is None and self._pattern_key >= 0:
