@@ -9,6 +9,9 @@ compared with the same step run eagerly.
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 import torch
 
@@ -169,3 +172,38 @@ def test_precomputed_spectra_into_a_compiled_layer(device):
         spectrum = tp.nn.Spectrum.from_meshes([(evals, evecs, M0)])
         torch.testing.assert_close(compiled(verts, spectrum), step(verts, spectrum))
     assert graphs_compiled() <= 2
+
+
+_INDUCTOR_DATASET = """
+import torch, torch_polylap as tp
+from torch._dynamo.utils import counters
+torch._dynamo.config.trace_autograd_ops = True
+
+def step(X, faces):
+    L, M0 = tp.laplacian(X, faces)
+    loss = ((L @ X) * (M0 @ X)).sum() + ((M0 + 0.1 * L) @ X).square().sum()
+    (g,) = torch.autograd.grad(loss, X)
+    return loss.detach(), g
+
+compiled = torch.compile(step, fullgraph=True)
+for n in (3, 5, 6):
+    verts, faces = tp.shapes.quad_grid(n, n + 1)
+    g = torch.Generator().manual_seed(n)
+    X = (verts.double() + 0.03 * torch.randn(verts.shape, generator=g, dtype=torch.float64))
+    X = X.requires_grad_(True)
+    faces = torch.as_tensor(faces)
+    got, want = compiled(X, faces), step(X, faces)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+assert counters["stats"]["unique_graphs"] == 2, counters["stats"]
+print("OK")
+"""
+
+
+@pytest.mark.slow
+def test_inductor_compiles_twice_for_a_dataset_in_a_fresh_process():
+    """Inductor, torch's defaults, three grids of different sizes: two graphs, eager results."""
+    out = subprocess.run(
+        [sys.executable, "-c", _INDUCTOR_DATASET], capture_output=True, text=True, timeout=900
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip().endswith("OK")
