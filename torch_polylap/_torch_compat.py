@@ -18,6 +18,7 @@ import torch
 __all__ = [
     "assert_async",
     "capture_dynamic_output_shape_ops",
+    "data_dependent_size",
     "disable_current_modes",
     "disable_functorch",
     "disable_torch_function_subclass",
@@ -115,6 +116,25 @@ def capture_dynamic_output_shape_ops() -> bool:
     import torch._dynamo
 
     return bool(torch._dynamo.config.capture_dynamic_output_shape_ops)
+
+
+def data_dependent_size(ctx: Any) -> Any:
+    """A new size symbol for a custom operator's fake kernel (``ctx`` from
+    ``torch.library.get_ctx()``): ``ctx.new_dynamic_size()``, also without ``fullgraph=True``.
+
+    Why: ``new_dynamic_size`` refuses outside a full graph unless
+    ``capture_dynamic_output_shape_ops`` is set, and torch.compile then breaks the graph at
+    the operator: a step that builds the operators and calls ``torch.autograd.grad`` loses its
+    gradient path at that break. The mesh's topology operator has such sizes (stored entries),
+    which the rest of the graph handles as symbols; this allocates the symbol the way
+    ``new_dynamic_size`` does, without its check.
+    """
+    from torch._library.fake_impl import allocate_size
+
+    shape_env = ctx._shape_env
+    if shape_env is None:
+        return ctx.new_dynamic_size()  # raises torch's own error
+    return allocate_size(shape_env, 0)
 
 
 def disable_current_modes() -> AbstractContextManager[Any]:

@@ -152,7 +152,9 @@ def check_lam(lam: object, name: str = "lam") -> Lam:
         value = float(lam)
     else:
         raise TypeError(f"{name} must be a real number, got {type(lam).__name__} {lam!r}.")
-    if not math.isfinite(value) or value < 0:
+    # comparisons rather than math.isfinite: torch.compile with dynamic shapes may trace a
+    # number as a symbol, which math.isfinite cannot take (NaN fails both comparisons)
+    if not 0 <= value < math.inf:
         raise ValueError(
             f"{name} must be a finite number >= 0, got {value}; the stabilizer weight lambda of "
             "AW11 eq. 9 is usually between 1 and 3 (0 keeps only the geometric part)."

@@ -35,13 +35,14 @@ from .assembly import (
     warn_float32_products,
 )
 from .assembly.diamond import diamond_laplacian
+from .assembly.traced import traced_laplacian
 from .checks import Lam, check_lam, check_lam_tensor_shape, check_verts, inverse_or_zero
 from .kernels import block_kernel, check_method
 from .linalg import solve
 from .sparse import SparseOperator, as_operator, diag
 from .sparse.operator import operator_on
 from .topology import Topology, TopologyView, topology_of
-from .tracing import functional, require
+from .tracing import functional, require, tracing
 
 __all__ = [
     "laplacian",
@@ -141,6 +142,9 @@ def laplacian(
     if isinstance(verts, torch.Tensor) and verts.dim() == 3:
         return _laplacian_batch(verts, faces, lam, validate=validate, method=method)
     verts = check_verts(verts, finite=False)
+    if tracing() and isinstance(faces, torch.Tensor) and faces.dim() == 2:
+        # one graph for every mesh of this face degree (see assembly.traced)
+        return traced_laplacian(verts, faces, block_kernel(method, lam), validate=validate)
     topo = topology_of(faces, verts)
     view = topo.on(verts.device)
     values, masses = assemble(
@@ -333,8 +337,11 @@ class PolygonLaplacian(nn.Module):
         """
         if verts.dim() != 3:
             verts = check_verts(verts, finite=False)
-        topo = self._topology_for(faces, verts)
         lam = self.lam.to(verts.dtype) if isinstance(self.lam, torch.Tensor) else self.lam
+        if tracing() and verts.dim() == 2 and isinstance(faces, torch.Tensor) and faces.dim() == 2:
+            # traced for any mesh of this degree: no topology kept (it is the graph's input)
+            return laplacian(verts, faces, lam, validate=self.validate, method=self.method)
+        topo = self._topology_for(faces, verts)
         return laplacian(verts, topo, lam, validate=self.validate, method=self.method)
 
     def extra_repr(self) -> str:

@@ -78,7 +78,9 @@ def test_fullgraph_forward_backward_equals_eager(faces_kind, device):
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
-def test_compiled_step_checks_that_the_faces_are_unchanged(device):
+def test_compiled_step_follows_the_faces_tensor(device):
+    """An ``(F, k)`` faces tensor is an input of the graph (its topology looked up at every
+    call): other connectivity of the same shape gives its own operators, as eagerly."""
     verts, faces = _grid()
     verts = verts.to(device)
 
@@ -88,11 +90,28 @@ def test_compiled_step_checks_that_the_faces_are_unchanged(device):
 
     compiled = torch.compile(energy, backend="aot_eager", fullgraph=True)
     compiled(verts, faces)
-    # same content in a new tensor: the graph is reused and right
     torch.testing.assert_close(compiled(verts, faces.clone()), energy(verts, faces))
     other = faces.flip(1).contiguous()  # same shape, other connectivity
+    torch.testing.assert_close(compiled(verts, other), energy(verts, other))
+
+
+def test_compiled_step_checks_that_polygon_faces_are_unchanged(device):
+    """Mixed-degree faces (a PolygonFaces) still fix the graph's topology at trace time: the
+    graph checks at every call that it is given the same faces, with an error saying what to
+    do."""
+    verts, faces = mixed_mesh()
+    verts, faces = verts.to(device), tp.as_faces(faces)
+
+    def energy(X: torch.Tensor, faces: tp.PolygonFaces) -> torch.Tensor:
+        L, M0 = tp.laplacian(X, faces)
+        return _loss(L, M0, X)
+
+    compiled = torch.compile(energy, backend="aot_eager", fullgraph=True)
+    compiled(verts, faces)
+    torch.testing.assert_close(compiled(verts, faces), energy(verts, faces))
+    faces.indices.copy_(faces.flipped().indices)  # the same object, other connectivity
     with pytest.raises(RuntimeError, match="get_topology"):
-        compiled(verts, other)
+        compiled(verts, faces)
 
 
 def test_topologies_as_arguments_recompile_per_structure(device):

@@ -133,9 +133,12 @@ def warn_float32_products(
     warn_outside_package(message, Float32PrecisionWarning)
 
 
-def _finite(t: torch.Tensor) -> torch.Tensor:
+def _finite(t: torch.Tensor, symbolic: bool = False) -> torch.Tensor:
     """Whether every entry of ``t`` is finite: its extremes are (NaN propagates through them),
-    which is one read of ``t`` where ``isfinite(t).all()`` takes several."""
+    which is one read of ``t`` where ``isfinite(t).all()`` takes several. ``symbolic``: the
+    size is a symbol of a traced graph (whether ``t`` is empty is not known; no extremes)."""
+    if symbolic:
+        return torch.isfinite(t).all()
     if t.numel() == 0:
         return torch.ones((), dtype=torch.bool, device=t.device)
     return torch.isfinite(torch.stack(torch.aminmax(t))).all()
@@ -147,10 +150,14 @@ def input_ok(finite: torch.Tensor, degenerate: list[torch.Tensor]) -> torch.Tens
 
 
 def output_ok(
-    values: torch.Tensor, masses_n: torch.Tensor | None, masses: torch.Tensor | None
+    values: torch.Tensor,
+    masses_n: torch.Tensor | None,
+    masses: torch.Tensor | None,
+    symbolic: bool = False,
 ) -> torch.Tensor:
-    """Finite values, and masses that neither overflow nor underflow."""
-    ok = _finite(values)
+    """Finite values, and masses that neither overflow nor underflow (``symbolic``: the
+    number of values is a symbol of a graph traced for many meshes)."""
+    ok = _finite(values, symbolic)
     # no vertex, no mass to check (amin of an empty tensor raises)
     if masses_n is not None and masses is not None and masses.numel():
         tiny = torch.finfo(masses.dtype).tiny

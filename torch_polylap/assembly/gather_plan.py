@@ -45,6 +45,9 @@ class VertexSums:
     """``(R,)`` its corner index."""
     corner_vertex: torch.Tensor
     """``(num_corners,)`` the vertex of every corner (the backward's gather)."""
+    symbolic: bool = False
+    """The sizes are symbols of a graph traced for many meshes (the number of layers and of
+    the rest among them): the layers are then summed by one gather, and the rest always added."""
 
     def to(self, device: torch.device) -> VertexSums:
         return moved(self, device)
@@ -54,14 +57,19 @@ class VertexSums:
         backward sums the corners' gradients per vertex by the same gathers as :meth:`total`
         (no scatter)."""
         out: torch.Tensor = _Corners.apply(
-            verts_t, self.corner_vertex, self.layers, self.rest_vertex, self.rest
+            verts_t, self.corner_vertex, self.layers, self.rest_vertex, self.rest, self.symbolic
         )
         return out
 
     def total(self, corner_values: torch.Tensor) -> torch.Tensor:
         """``(V,)`` the per-vertex sums of ``corner_values`` ``(num_corners,)``."""
         out: torch.Tensor = _VertexTotal.apply(
-            corner_values, self.layers, self.rest_vertex, self.rest, self.corner_vertex
+            corner_values,
+            self.layers,
+            self.rest_vertex,
+            self.rest,
+            self.corner_vertex,
+            self.symbolic,
         )
         return out
 
@@ -88,6 +96,9 @@ class GatherPlan:
     """``(V,)`` position of every diagonal entry."""
     num_off: int
     """Number of per-face off-diagonal entries (the start of ``d`` in ``S``)."""
+    symbolic: bool = False
+    """As :attr:`VertexSums.symbolic`: the number of entries with more contributions is a
+    symbol, and they are always added."""
 
     def to(self, device: torch.device) -> GatherPlan:
         return moved(self, device)
@@ -105,6 +116,7 @@ class GatherPlan:
             self.pos_upper,
             self.pos_lower,
             self.diag_pos,
+            self.symbolic,
         )
         return out
 
@@ -120,14 +132,32 @@ def _sum_layers(
     layers: list[torch.Tensor],
     rest_pos: torch.Tensor,
     rest: torch.Tensor,
+    symbolic: bool = False,
 ) -> torch.Tensor:
-    """``sum_l source[..., layers[l]]``, plus ``source[..., rest]`` added at ``rest_pos``."""
+    """``sum_l source[..., layers[l]]``, plus ``source[..., rest]`` added at ``rest_pos``
+    (``symbolic``: always, since whether there is a rest is not known while tracing)."""
     out = source[..., layers[0]]
     for layer in layers[1:]:
         out = out + source[..., layer]
-    if rest.numel():
+    if symbolic or rest.numel():
         out = out.index_add(-1, rest_pos, source[..., rest])
     return out
+
+
+def _sum_stacked(
+    source: torch.Tensor,
+    layers: torch.Tensor,
+    rest_pos: torch.Tensor,
+    rest: torch.Tensor,
+    symbolic: bool,
+) -> torch.Tensor:
+    """:func:`_sum_layers` with the layers ``(D, V)`` one tensor: added one by one, or, where
+    ``D`` is a symbol of a graph traced for many meshes (not a Python loop's length), gathered
+    at once and summed."""
+    if not symbolic:
+        return _sum_layers(source, list(layers.unbind(0)), rest_pos, rest)
+    out = source[..., layers].sum(-2)
+    return out.index_add(-1, rest_pos, source[..., rest])
 
 
 def _padded(t: torch.Tensor) -> torch.Tensor:
@@ -147,18 +177,19 @@ class _Values(torch.autograd.Function):
         pos_upper: torch.Tensor,
         pos_lower: torch.Tensor,
         diag_pos: torch.Tensor,
+        symbolic: bool,
     ) -> torch.Tensor:
         source = torch.cat((off, diagonal, diagonal.new_zeros(1)))
-        return _sum_layers(source, [first, second], rest_pos, rest)
+        return _sum_layers(source, [first, second], rest_pos, rest, symbolic)
 
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-        ctx.save_for_backward(*inputs[2:])
+        ctx.save_for_backward(*inputs[2:9])
 
     @staticmethod
     def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         _, _, _, _, pos_upper, pos_lower, diag_pos = ctx.saved_tensors
-        return (grad[pos_upper] + grad[pos_lower], grad[diag_pos], *([None] * 7))
+        return (grad[pos_upper] + grad[pos_lower], grad[diag_pos], *([None] * 8))
 
 
 class _VertexTotal(torch.autograd.Function):
@@ -169,17 +200,18 @@ class _VertexTotal(torch.autograd.Function):
         rest_vertex: torch.Tensor,
         rest: torch.Tensor,
         corner_vertex: torch.Tensor,
+        symbolic: bool,
     ) -> torch.Tensor:
-        return _sum_layers(_padded(corner_values), list(layers.unbind(0)), rest_vertex, rest)
+        return _sum_stacked(_padded(corner_values), layers, rest_vertex, rest, symbolic)
 
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-        ctx.save_for_backward(*inputs[1:])
+        ctx.save_for_backward(inputs[4])
 
     @staticmethod
     def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
-        corner_vertex = ctx.saved_tensors[3]
-        return grad[corner_vertex], None, None, None, None
+        (corner_vertex,) = ctx.saved_tensors
+        return grad[corner_vertex], None, None, None, None, None
 
 
 def _ranks(target: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -266,15 +298,17 @@ class _Corners(torch.autograd.Function):
         layers: torch.Tensor,
         rest_vertex: torch.Tensor,
         rest: torch.Tensor,
+        symbolic: bool,
     ) -> torch.Tensor:
         return verts_t[:, corner_vertex]
 
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Any, ...], output: torch.Tensor) -> None:
-        ctx.save_for_backward(*inputs[2:])
+        ctx.save_for_backward(*inputs[2:5])
+        ctx.symbolic = inputs[5]
 
     @staticmethod
     def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         layers, rest_vertex, rest = ctx.saved_tensors
-        total = _sum_layers(_padded(grad), list(layers.unbind(0)), rest_vertex, rest)
-        return total, None, None, None, None
+        total = _sum_stacked(_padded(grad), layers, rest_vertex, rest, ctx.symbolic)
+        return total, None, None, None, None, None

@@ -7,17 +7,27 @@ gathers far better than the eager form's scatters.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Protocol
+
 import torch
 
 from ..kernels import BlockKernel
 from ..kernels.aw11 import row_sums
-from ..topology import Topology, TopologyView
+from ..topology import DegreeGroup, Topology, TopologyView
 from ..tracing import outside_transforms
 from .checks import FLOAT32_TOLERANCE, FlaggedAssembly, any_degenerate, input_ok, output_ok
 from .gather_plan import GatherPlan, gather_plan
 from .scaling import normalizer, unscaled
 
 __all__ = ["assemble_gathered", "gather_plan_of"]
+
+
+class HasGroups(Protocol):
+    """What the gathered assembly reads of a :class:`~torch_polylap.topology.TopologyView`."""
+
+    @property
+    def groups(self) -> Sequence[DegreeGroup]: ...
 
 
 def gather_plan_of(topo: Topology, view: TopologyView) -> GatherPlan:
@@ -44,7 +54,7 @@ def gather_plan_of(topo: Topology, view: TopologyView) -> GatherPlan:
 
 def assemble_gathered(
     verts: torch.Tensor,
-    view: TopologyView,
+    view: HasGroups,
     kernel: BlockKernel,
     plan: GatherPlan,
     *,
@@ -80,7 +90,7 @@ def assemble_gathered(
     values = plan.values(torch.cat([*offs, none]), diagonal)
     masses_n = plan.vertex.total(torch.cat([*corner_masses, none])) if want_mass else None
     masses = unscaled(masses_n, unscale)
-    ok = input_ok(finite, degenerate) & output_ok(values, masses_n, masses)
+    ok = input_ok(finite, degenerate) & output_ok(values, masses_n, masses, plan.symbolic)
     all_accurate = torch.stack(accurate).all() if accurate else torch.ones_like(ok)
     top = torch.stack(stretch).amax() if stretch else torch.zeros_like(unscale)
     return FlaggedAssembly(values, masses, ok, all_accurate, top)

@@ -52,7 +52,7 @@ import torch
 
 from ..sparse.pattern import SparsityPattern
 from ..topology import Topology
-from ..tracing import run_eagerly, tracing
+from ..tracing import outside_transforms, run_eagerly, tracing
 from .frames import component_norm
 from .plms import virtual_vertices
 
@@ -127,10 +127,15 @@ def _cached_plan(topo: Topology, device: torch.device) -> DiamondPlan:
     key = ("diamond", device)
     plan = topo.derived.get(key)
     if plan is None:
-        cpu = topo.derived.get(("diamond", torch.device("cpu")))
-        plan = _build_plan(topo) if cpu is None else cpu
-        if device.type != "cpu":
-            plan = _plan_to(plan, device)
+        with outside_transforms():
+            cpu = topo.derived.get(("diamond", torch.device("cpu")))
+            plan = _build_plan(topo) if cpu is None else cpu
+            if device.type != "cpu":
+                plan = _plan_to(plan, device)
+            # the pattern's derived indices now, as a topology view's: traced code reads them
+            # and torch.compile guards on the pattern's attributes, which must not change then
+            plan.pattern.row  # noqa: B018  (fills the cache)
+            plan.pattern.diagonal_class()
         topo.derived[key] = plan
     return plan
 

@@ -23,7 +23,7 @@ from .._torch_compat import (
     disable_current_modes,
     sparse_internal_accessors,
 )
-from ..tracing import tracing
+from ..tracing import require, tracing
 from .autograd import spmm as csr_product_parts
 from .index_ops import diagonal_indices, positions_in, transpose_indices, union_indices
 from .operator import (
@@ -307,6 +307,9 @@ def _combine_traced(
     if A._pattern_key >= 0 and A._pattern_key == B._pattern_key:
         return A.with_values(A._vals + b_vals, symmetric)
     n, m = _shape2(A)
+    unregistered = A._pattern_key < 0 or B._pattern_key < 0
+    if unregistered and {A._diagonal_class(), B._diagonal_class()} == {1, 2}:
+        return _add_diagonal_traced(A, B, b_vals, symmetric)
     nesting = _nesting(A, B)
     if nesting == 1:
         at_b = positions_in(A._crow, A._col, B._crow, B._col, m)
@@ -329,6 +332,29 @@ def _combine_traced(
     values = A._vals.new_zeros(*_batch(A), col.shape[0]).index_add(-1, at_a, A._vals)
     values = values.index_add(-1, at_b, b_vals)
     return SparseOperator(values, crow, col, row, (n, m), symmetric)
+
+
+_MISSING_DIAGONAL = (
+    "torch_polylap: in compiled code, a diagonal operator plus one whose pattern was taken to "
+    "store every diagonal entry (as a mesh's L does) met an operator that does not store them "
+    "all; add these operators outside the compiled code."
+)
+
+
+def _add_diagonal_traced(
+    A: SparseOperator, B: SparseOperator, b_vals: torch.Tensor, symmetric: bool
+) -> SparseOperator:
+    """``A + B`` in traced code for a diagonal operator and one whose pattern stores every
+    diagonal entry (``M0 + t L``), known from their metadata (operators passed into the
+    compiled code, or built there for a mesh the graph does not fix): the sum keeps the
+    larger pattern, the diagonal's values added at the diagonal positions, which the graph
+    checks are all stored (a mesh's L stores them, also at isolated vertices)."""
+    a_vals = A._vals
+    if A._diagonal_class() == 2:
+        A, B, a_vals, b_vals = B, A, b_vals, a_vals
+    pos = diagonal_indices(A._crow, A._col, _shape2(A)[0])
+    require((pos >= 0).all(), _MISSING_DIAGONAL)
+    return A.with_values(a_vals.index_add(-1, pos, b_vals), symmetric)
 
 
 def _is_zero(x: object) -> bool:
@@ -731,5 +757,8 @@ PASSTHROUGH.update(
         torch.Tensor.get_device,
         torch.Tensor.__hash__,
         torch.Tensor.__format__,
+        # read on every operator passed into a graph compiled with dynamic shapes, by torch's
+        # own wrapper code (the wrapper's strides, those of a contiguous (n, m) tensor)
+        torch.Tensor.stride,
     }
 )

@@ -24,7 +24,11 @@ from typing import Any, SupportsIndex
 
 import torch
 
-from .._torch_compat import disable_torch_function_subclass, make_wrapper_subclass
+from .._torch_compat import (
+    disable_current_modes,
+    disable_torch_function_subclass,
+    make_wrapper_subclass,
+)
 from ..tracing import run_eagerly, tracing
 from .pattern import SparsityPattern
 
@@ -72,6 +76,7 @@ class SparseOperator(torch.Tensor):
     _col: torch.Tensor
     _row: torch.Tensor
     _pattern_key: int
+    _diag_class: int
     _pattern_obj: SparsityPattern | None
     _solver_cache: dict[str, Any]
 
@@ -88,6 +93,7 @@ class SparseOperator(torch.Tensor):
         shape: tuple[int, int],
         symmetric: bool = False,
         pattern_key: int = -1,
+        diag_class: int = -1,
     ) -> SparseOperator:
         if values.dim() not in (1, 2) or values.shape[-1] != col.shape[0]:
             raise ValueError(
@@ -103,6 +109,9 @@ class SparseOperator(torch.Tensor):
         A._crow, A._col, A._row = crow, col, row
         A.symmetric = bool(symmetric and shape[0] == shape[1])
         A._pattern_key = pattern_key
+        # how the pattern holds the diagonal (SparsityPattern.diagonal_class), -1 where unknown:
+        # an argument, not set afterwards, so that torch.compile's tracer sees it too
+        A._diag_class = diag_class
         # the pattern object itself where known (eagerly): it keeps its caches, and its entry in
         # the registry that traced code looks it up in, alive as long as the operator
         A._pattern_obj = None
@@ -136,6 +145,7 @@ class SparseOperator(torch.Tensor):
             _shape2(self),
             self.symmetric if symmetric is None else symmetric,
             self._pattern_key,
+            self._diag_class,
         )
         A._pattern_obj = self._pattern_obj
         if share_cache:
@@ -213,19 +223,36 @@ class SparseOperator(torch.Tensor):
 
     # torch.compile traces code that builds and uses operators through __torch_function__; the
     # flatten protocol tells its tracer what an operator holds: the value array and the index
-    # tensors, with the flags as constant metadata.
+    # tensors, with constant metadata that it guards on: the symmetry flag and how the pattern
+    # holds the diagonal, which every mesh's L (or M0) shares, not the pattern's registry
+    # number, which differs from mesh to mesh and would compile a graph for each. Traced code
+    # finds what it needs from the index tensors themselves (the operators of .index_ops).
     def __tensor_flatten__(self) -> tuple[list[str], tuple[Any, ...]]:
-        meta = (self.symmetric, self._pattern_key)
+        meta = (self.symmetric, self._diagonal_class())
         return ["_vals", "_crow", "_col", "_row"], meta
 
     @staticmethod
     def __tensor_unflatten__(
         inner: dict[str, torch.Tensor], meta: tuple[Any, ...], outer_size: Any, outer_stride: Any
     ) -> SparseOperator:
-        symmetric, key = meta
-        shape = (int(outer_size[0]), int(outer_size[1]))
+        symmetric, diag_class = meta
+        shape = (outer_size[-2], outer_size[-1])
         parts = (inner["_crow"], inner["_col"], inner["_row"])
-        return SparseOperator(inner["_vals"], *parts, shape, symmetric, key)
+        return SparseOperator(inner["_vals"], *parts, shape, symmetric, -1, diag_class)
+
+    def _diagonal_class(self) -> int:
+        """How the pattern holds the diagonal: 2 exactly the diagonal (a mass matrix), 1 every
+        diagonal entry and others (a mesh's ``L``), 0 otherwise or unknown
+        (:meth:`SparsityPattern.diagonal_class`)."""
+        if self._diag_class < 0:
+            pattern = self._pattern_obj
+            if pattern is None and self._pattern_key >= 0:
+                pattern = SparsityPattern.registered(self._pattern_key)
+            if pattern is None:
+                return 0
+            with disable_current_modes():
+                self._diag_class = pattern.diagonal_class()
+        return self._diag_class
 
 
 def _rebuild(
@@ -246,9 +273,10 @@ torch.serialization.add_safe_globals([_rebuild])
 
 def _shape2(A: torch.Tensor) -> tuple[int, int]:
     """``(n, m)`` of an operator (of each operator of a batch)."""
+    # symbolic under torch.compile with dynamic shapes (int() would specialize the graph)
     with disable_torch_function_subclass():
         n, m = A.shape[-2:]
-    return int(n), int(m)
+    return n, m
 
 
 def _batch(A: SparseOperator) -> tuple[int, ...]:

@@ -56,6 +56,7 @@ class SparsityPattern:
         "_devices",
         "_eager",
         "_contains",
+        "_diag_class",
         "key",
         "__weakref__",
     )
@@ -82,6 +83,7 @@ class SparsityPattern:
         ] = {}
         self._devices: dict[torch.device, SparsityPattern] = {}
         self._contains: dict[int, bool] = {}
+        self._diag_class: int | None = None
         # built on real index tensors (not inside a torch.compile trace): its caches can be
         # filled at trace time and enter compiled graphs as constants
         self._eager = not tracing()
@@ -252,6 +254,22 @@ class SparsityPattern:
             return other, at_self, None
         row = torch.div(unique, m, rounding_mode="floor")
         return SparsityPattern.from_rows(row, unique - row * m, self.shape), at_self, at_other
+
+    def diagonal_class(self) -> int:
+        """2 when the entries are exactly the diagonal, 1 when every diagonal entry is stored
+        among others, 0 otherwise (computed once, on the real indices).
+
+        Operators carry it into compiled code: ``M0 + t L`` of patterns of classes 2 and 1
+        keeps ``L``'s pattern, which the traced sum must know without reading the indices.
+        """
+        if self._diag_class is None:
+            if self.shape[0] != self.shape[1]:
+                self._diag_class = 0
+            elif self._is_diagonal():
+                self._diag_class = 2
+            else:
+                self._diag_class = int(bool((self.diagonal_positions() >= 0).all()))
+        return self._diag_class
 
     def contains(self, other: SparsityPattern) -> bool:
         """Whether every entry of ``other`` (same shape) is an entry of this pattern."""
