@@ -145,6 +145,10 @@ def test_transport_on_real_meshes_equals_the_differentiable_path(name):
     solver = tv.VectorHeatSolver(verts, faces)
     vec = tangent(verts, 0)
     fast, slow = both_paths(solver, lambda x: x.transport(0, vec))
-    # loki has a few vertices where both paths give inf or nan (the scalar heat's ratio
-    # u / phi blows up where phi falls to round-off): the same ones
-    torch.testing.assert_close(fast, slow, rtol=1e-8, atol=1e-10, equal_nan=True)
+    torch.testing.assert_close(fast, slow, rtol=1e-8, atol=1e-10)
+    # one source: every vertex gets its tangent length (to the 1e-6 within which the far
+    # field's u / phi is kept), also where the scalar heat falls to round-off far away (on
+    # loki the quotient was once inf or NaN at 15 vertices)
+    frames = tp.tangent.vertex_tangent_frames(verts, faces)
+    length = (vec - (vec @ frames.normal[0]) * frames.normal[0]).norm()
+    torch.testing.assert_close(fast.norm(dim=1), length.expand(len(verts)), rtol=2e-6, atol=0)

@@ -201,7 +201,8 @@ class VectorHeatSolver:
         Returns:
             ``(V, 3)`` tangent vectors (``e_x``, ``e_y`` combinations): at every vertex, the
             vector of the nearest source (several sources blend near their Voronoi borders,
-            SSC19 sec. 5), with the length interpolated by the scalar heat flows.  Zero on
+            SSC19 sec. 5), with the length interpolated by the scalar heat flows (within the
+            sources' lengths, also where the heat falls to round-off).  Zero on
             connected components without a source.
 
         Raises:
@@ -237,11 +238,14 @@ class VectorHeatSolver:
         weights[idx, 0] = length
         weights[idx, 1] = 1.0
         u_phi = self.geodesic.heat(weights)
-        ratio = u_phi[:, 0] / u_phi[:, 1].clamp_min(torch.finfo(u_phi.dtype).tiny)
+        ratio = _within_lengths(
+            u_phi[:, 0] / u_phi[:, 1].clamp_min(torch.finfo(u_phi.dtype).tiny), length
+        )
         norm = torch.linalg.vector_norm(Y, dim=1)
         reached = self._reached(idx)
         _warn_underflow(reached & (norm == 0), self.t)
-        X = Y * (ratio / norm.clamp_min(torch.finfo(Y.dtype).tiny))[:, None]
+        # the unit vector first: ratio / norm overflows where Y underflowed to round-off
+        X = (Y / norm.clamp_min(torch.finfo(Y.dtype).tiny)[:, None]) * ratio[:, None]
         X = torch.where(reached[:, None], X, torch.zeros_like(X))
         return to_ambient(X.to(self.verts.dtype), self.frames)
 
@@ -267,14 +271,15 @@ class VectorHeatSolver:
             u, phi = u_phi[:, 0], u_phi[:, 1]
         # as the torch path: no warning where the far field underflowed (checked below)
         with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-            ratio = u / np.maximum(phi, tiny)
+            quotient = torch.from_numpy(u / np.maximum(phi, tiny))
+            ratio = _within_lengths(quotient, length.double()).numpy()
         c = coords.detach().double().numpy()
         vm = self.vector_mass.detach().numpy()  # M Y_0, nonzero at the sources only
         rhs = vm[2 * index] * c[:, 0] + 1j * (vm[2 * index + 1] * c[:, 1])
         Y = self._hermitian(backend).solve_sparse(index, rhs)
         norm = np.abs(Y)
         with np.errstate(over="ignore", invalid="ignore"):
-            X = Y * (ratio / np.maximum(norm, tiny))
+            X = (Y / np.maximum(norm, tiny)) * ratio  # as the torch path: no overflow
         if self.geodesic.num_components > 1:
             reached = self._reached(idx).numpy()
             X = np.where(reached, X, 0.0)
@@ -362,3 +367,16 @@ def _warn_underflow(lost: torch.Tensor | np.ndarray, t: float | torch.Tensor) ->
             RuntimeWarning,
             stacklevel=3,
         )
+
+
+def _within_lengths(ratio: torch.Tensor, length: torch.Tensor) -> torch.Tensor:
+    """``(V,)`` the magnitudes ``u / phi`` of :meth:`VectorHeatSolver.transport` kept within
+    the ``(S,)`` source lengths, widened by a relative ``1e-6``.
+
+    ``u / phi`` is a weighted mean of the source lengths wherever the heat is positive. Far
+    from the sources ``phi`` falls to round-off or below zero, and the quotient is noise that
+    overflowed to inf (and NaN in ``Y * ratio``). The margin keeps the clamp away from
+    quotients that are right to round-off, so their gradients are untouched.
+    """
+    low, high = length.min().detach(), length.max().detach()
+    return ratio.clamp(low * (1 - 1e-6), high * (1 + 1e-6))
