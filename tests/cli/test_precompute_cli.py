@@ -64,8 +64,9 @@ def test_folders_json_and_exit_codes(tmp_path, capsys, device):
     assert report["failures"][0]["item"] == str(bad)
     assert f"failed: {bad}" in err and "line 4" in err
 
-    assert main(["precompute", "--cache", str(cache)]) == 2
-    assert "give at least one mesh file or folder" in capsys.readouterr().err
+    # no INPUT: the embedded default mesh, as for every command
+    assert main(["precompute", "--cache", str(tmp_path / "default"), "--json", "-k", "4"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["computed"] == 1
     assert main(["precompute", str(tmp_path / "missing"), "--cache", str(cache)]) == 2
     assert "no such file or folder" in capsys.readouterr().err
 

@@ -21,6 +21,7 @@ from concurrent.futures import Executor
 from contextlib import contextmanager
 from pathlib import Path
 
+from ..data import DEFAULT_MESH
 from ..datasets import precompute
 from ..datasets.jobs import local_executor
 from .common import Result, add_laplacian_arguments, positive_int, print_table
@@ -40,8 +41,14 @@ MESH_SUFFIXES = (".obj", ".off", ".ply")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    # no INPUT: the embedded default mesh, as every other command runs on it
     p.add_argument(
-        "inputs", nargs="*", type=Path, metavar="INPUT", help="mesh files and folders of meshes"
+        "inputs",
+        nargs="*",
+        type=Path,
+        metavar="INPUT",
+        default=[DEFAULT_MESH],
+        help="mesh files and folders of meshes (default: the embedded default mesh)",
     )
     # -o/--output: the option every command writes its files to; here the files are entries
     p.add_argument(
