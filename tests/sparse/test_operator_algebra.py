@@ -356,6 +356,7 @@ _MEMORY_SCRIPT = """
     """
 
 
+@pytest.mark.slow  # 6 s: a subprocess at 62k vertices
 def test_every_expression_runs_under_a_4gb_cap_at_62k_vertices():
     """O(nnz) memory: any dense V x V tensor (31 GB) would fail under the 4 GB address-space cap,
     as torch's own sparse autograd does in the same process."""

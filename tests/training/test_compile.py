@@ -350,6 +350,7 @@ def test_operators_cross_a_compiled_boundary_without_gradients_only(device):
         torch.compile(lambda L, Y: (L @ Y).sum(), backend="aot_eager")(L, verts)
 
 
+@pytest.mark.slow  # up to 7 s: three compiled measures
 @pytest.mark.parametrize("what", ["principal_curvatures", "mean_edge_length", "corner_gradients"])
 def test_geometry_measures_compile_in_one_graph(what, device):
     """Curvature, edge length and the gradient's corner weights in one graph, on a topology

@@ -64,6 +64,7 @@ def _run(compiled, meshes) -> None:
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow  # 9-11 s: compiles over four meshes, twice
 @pytest.mark.parametrize("dynamic", [None, True])
 def test_building_the_operators_inside_compiles_once_per_degree(dynamic, device):
     """torch's defaults: the first graph static, the second dynamic, then none; dynamic=True:
@@ -79,6 +80,7 @@ def test_building_the_operators_inside_compiles_once_per_degree(dynamic, device)
     assert graphs_compiled() - before == 1
 
 
+@pytest.mark.slow  # 4.5 s: a module step compiled over several meshes
 def test_a_module_step_without_fullgraph_compiles_once(device):
     """PolygonLaplacian in a step compiled with torch's defaults (no fullgraph): the topology's
     sizes do not break the graph, and the gradient path through it stays whole."""
@@ -137,6 +139,7 @@ def test_isolated_vertices_in_the_traced_sum(device):
     torch.testing.assert_close(got, energy(extra, faces))
 
 
+@pytest.mark.slow  # 3 s each: compiles over several meshes
 @pytest.mark.parametrize("dynamic", [None, True])
 def test_precomputed_operators_into_a_compiled_layer(dynamic, device):
     """The DiffusionNet pattern: L, M0 built outside without gradients, passed into a compiled
