@@ -27,7 +27,8 @@ STEPS = (1e-3, 1e-4, 1e-5)
 
 
 def icosphere() -> tuple[torch.Tensor, torch.Tensor]:
-    trimesh = pytest.importorskip("trimesh")
+    import trimesh  # a dependency of the package
+
     mesh = trimesh.creation.icosphere(subdivisions=1)
     return torch.tensor(mesh.vertices, dtype=D64), torch.tensor(mesh.faces, dtype=torch.int64)
 

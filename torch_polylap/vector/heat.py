@@ -238,9 +238,8 @@ class VectorHeatSolver:
         weights[idx, 0] = length
         weights[idx, 1] = 1.0
         u_phi = self.geodesic.heat(weights)
-        ratio = _within_lengths(
-            u_phi[:, 0] / u_phi[:, 1].clamp_min(torch.finfo(u_phi.dtype).tiny), length
-        )
+        ratio = u_phi[:, 0] / u_phi[:, 1].clamp_min(torch.finfo(u_phi.dtype).tiny)
+        ratio = ratio.clamp(*_length_bounds(length))
         norm = torch.linalg.vector_norm(Y, dim=1)
         reached = self._reached(idx)
         _warn_underflow(reached & (norm == 0), self.t)
@@ -271,8 +270,8 @@ class VectorHeatSolver:
             u, phi = u_phi[:, 0], u_phi[:, 1]
         # as the torch path: no warning where the far field underflowed (checked below)
         with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-            quotient = torch.from_numpy(u / np.maximum(phi, tiny))
-            ratio = _within_lengths(quotient, length.double()).numpy()
+            low, high = _length_bounds(length.double())
+            ratio = np.clip(u / np.maximum(phi, tiny), float(low), float(high))
         c = coords.detach().double().numpy()
         vm = self.vector_mass.detach().numpy()  # M Y_0, nonzero at the sources only
         rhs = vm[2 * index] * c[:, 0] + 1j * (vm[2 * index + 1] * c[:, 1])
@@ -369,14 +368,14 @@ def _warn_underflow(lost: torch.Tensor | np.ndarray, t: float | torch.Tensor) ->
         )
 
 
-def _within_lengths(ratio: torch.Tensor, length: torch.Tensor) -> torch.Tensor:
-    """``(V,)`` the magnitudes ``u / phi`` of :meth:`VectorHeatSolver.transport` kept within
-    the ``(S,)`` source lengths, widened by a relative ``1e-6``.
+def _length_bounds(length: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The range within which :meth:`VectorHeatSolver.transport` keeps the magnitudes
+    ``u / phi``: the ``(S,)`` source lengths', widened by a relative ``1e-6``.
 
     ``u / phi`` is a weighted mean of the source lengths wherever the heat is positive. Far
     from the sources ``phi`` falls to round-off or below zero, and the quotient is noise that
     overflowed to inf (and NaN in ``Y * ratio``). The margin keeps the clamp away from
     quotients that are right to round-off, so their gradients are untouched.
     """
-    low, high = length.min().detach(), length.max().detach()
-    return ratio.clamp(low * (1 - 1e-6), high * (1 + 1e-6))
+    low, high = length.detach().aminmax()
+    return low * (1 - 1e-6), high * (1 + 1e-6)
